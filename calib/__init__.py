@@ -1,0 +1,1 @@
+"""manisplat-calibrate: camera-to-base (hand-eye), intrinsics and camera latency."""

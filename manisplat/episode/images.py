@@ -1,0 +1,157 @@
+"""Per-frame image files (``rgb/``, ``depth/``, ``masks/``): naming, full decoding with checks,
+atomic writing, and depth unit conversion. Arrays in memory are RGB; files hold BGR (OpenCV)."""
+
+from __future__ import annotations
+
+import contextlib
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import cv2
+import numpy as np
+
+from manisplat.episode.format import DEPTH_DIR, MASKS_DIR, RGB_DIR, EpisodeFormatError, image_name
+from manisplat.episode.fsio import atomic_write_bytes
+
+_IMAGE_RE = re.compile(r"^(\d{6})(\.png|\.jpg)$")
+_DEPTH_MAX = np.iinfo(np.uint16).max
+
+
+@dataclass(frozen=True)
+class ImageKind:
+    """What the files of one image folder must be.
+
+    Attributes:
+        folder: folder name inside the episode.
+        channels: 3 (colour) or 1.
+        dtype: pixel type in the file.
+        suffixes: allowed file suffixes.
+    """
+
+    folder: str
+    channels: int
+    dtype: np.dtype
+    suffixes: tuple[str, ...]
+
+    def describe(self) -> str:
+        return f"{self.channels}-channel {8 * np.dtype(self.dtype).itemsize}-bit"
+
+
+RGB = ImageKind(RGB_DIR, 3, np.dtype(np.uint8), (".png", ".jpg"))
+DEPTH = ImageKind(DEPTH_DIR, 1, np.dtype(np.uint16), (".png",))
+MASK = ImageKind(MASKS_DIR, 1, np.dtype(np.uint8), (".png",))
+KINDS = (RGB, DEPTH, MASK)
+
+
+def list_images(folder: Path) -> tuple[dict[int, list[str]], list[str]]:
+    """``(index -> file names, other file names)`` of ``folder`` (empty when it does not exist)."""
+    by_index: dict[int, list[str]] = {}
+    others: list[str] = []
+    if not folder.is_dir():
+        return by_index, others
+    for name in sorted(p.name for p in folder.iterdir()):
+        m = _IMAGE_RE.match(name)
+        if m:
+            by_index.setdefault(int(m.group(1)), []).append(name)
+        else:
+            others.append(name)
+    return by_index, others
+
+
+def has_images(folder: Path) -> bool:
+    """Whether ``folder`` holds at least one frame image (an episode "has depth" when ``depth/`` does)."""
+    return bool(list_images(folder)[0])
+
+
+def find_image(folder: Path, index: int) -> Path | None:
+    """The file of frame ``index`` in ``folder`` (``.png`` first, then ``.jpg``), or None."""
+    for suffix in RGB.suffixes:
+        path = folder / image_name(index, suffix)
+        if path.is_file():
+            return path
+    return None
+
+
+@contextlib.contextmanager
+def _quiet_opencv() -> Iterator[None]:
+    """Silence OpenCV's own warnings (a truncated file is reported by us, once)."""
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    try:
+        yield
+    finally:
+        cv2.utils.logging.setLogLevel(level)
+
+
+def decode_image(path: Path) -> np.ndarray | None:
+    """Fully decode an image file as stored (BGR for colour), or None when it is unreadable,
+    truncated or corrupt. OpenCV's PNG and JPEG decoders reject a file cut anywhere short."""
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+    except OSError:
+        return None
+    if data.size == 0:
+        return None
+    with _quiet_opencv():
+        return cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+
+
+def image_problem(image: np.ndarray, kind: ImageKind, width: int | None, height: int | None) -> str | None:
+    """Why a decoded image does not fit ``kind`` and the camera size, or None."""
+    channels = 1 if image.ndim == 2 else image.shape[2]
+    if channels != kind.channels or image.dtype != kind.dtype:
+        got = f"{channels}-channel {8 * image.dtype.itemsize}-bit"
+        return f"must be {kind.describe()} ({kind.folder}); got {got}"
+    if width is not None and height is not None and image.shape[:2] != (height, width):
+        return f"size {image.shape[1]}x{image.shape[0]} does not match the camera's {width}x{height}"
+    return None
+
+
+def load_image(path: Path, kind: ImageKind, width: int, height: int) -> np.ndarray:
+    """Decode and check one frame image; colour images come back RGB.
+
+    Returns (H, W, 3) uint8 for ``RGB``, (H, W) uint16 for ``DEPTH``, (H, W) uint8 for ``MASK``.
+    Raises :class:`EpisodeFormatError` naming the file when it is missing, undecodable or wrong.
+    """
+    if not path.is_file():
+        raise EpisodeFormatError(f"{path}: missing")
+    image = decode_image(path)
+    if image is None:
+        raise EpisodeFormatError(f"{path}: cannot decode (truncated or corrupt)")
+    problem = image_problem(image, kind, width, height)
+    if problem:
+        raise EpisodeFormatError(f"{path}: {problem}")
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB) if kind.channels == 3 else image
+
+
+def write_image(path: Path, image: np.ndarray, *, rgb: bool) -> None:
+    """Encode ``image`` by ``path``'s suffix and write it atomically (temporary file + rename).
+
+    ``rgb`` marks a (H, W, 3) RGB array, which is stored BGR as OpenCV expects. Not fsynced:
+    the writer syncs files in batches.
+    """
+    if rgb:
+        image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+    ok, data = cv2.imencode(path.suffix, image)
+    if not ok:
+        raise OSError(f"{path}: OpenCV could not encode a {image.shape} {image.dtype} image")
+    atomic_write_bytes(path, data.tobytes(), fsync=False)
+
+
+def depth_to_raw(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
+    """Metric depth (H, W) float -> stored (H, W) uint16: ``round(depth / depth_scale)``.
+
+    Non-finite and non-positive values become 0 (invalid); values beyond the range clip to 65535.
+    """
+    depth_m = np.asarray(depth_m, dtype=np.float64)
+    valid = np.isfinite(depth_m) & (depth_m > 0)
+    raw = np.zeros(depth_m.shape, dtype=np.float64)
+    raw[valid] = np.rint(depth_m[valid] / depth_scale)
+    return np.clip(raw, 0, _DEPTH_MAX).astype(np.uint16)
+
+
+def raw_to_depth(raw: np.ndarray, depth_scale: float) -> np.ndarray:
+    """Stored (H, W) uint16 -> (H, W) float32 metres (0 stays 0 = invalid)."""
+    return (raw.astype(np.float64) * depth_scale).astype(np.float32)

@@ -1,0 +1,268 @@
+"""Check an episode folder against the format and report every problem, each naming its file and row."""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from tqdm import tqdm
+
+from manisplat.episode.format import (FRAME_COLUMNS, FRAMES_FILE, GRIPPER_RANGE_M, JOINT_COLUMNS, JOINTS_FILE,
+                                      META_FILE, EpisodeFormatError, image_name)
+from manisplat.episode.fsio import TMP_SUFFIX
+from manisplat.episode.images import DEPTH, KINDS, MASK, RGB, ImageKind, decode_image, image_problem, list_images
+from manisplat.episode.meta import meta_problems, parse_meta_text
+from manisplat.episode.tables import scan_csv
+
+Severity = Literal["error", "warning"]
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One thing wrong with an episode.
+
+    Attributes:
+        file: path relative to the episode folder (``frames.csv``, ``rgb/000007.png``).
+        row: 1-based line of ``frames.csv``/``joints.csv`` (the header is line 1); for an image,
+            the ``frames.csv`` line of its frame; None when no line applies.
+        message: what is wrong.
+        severity: ``"error"`` (the episode is invalid) or ``"warning"`` (suspicious but readable).
+    """
+
+    file: str
+    row: int | None
+    message: str
+    severity: Severity = "error"
+
+    def __str__(self) -> str:
+        if self.row is None:
+            where = self.file
+        elif self.file.endswith(".csv"):
+            where = f"{self.file}:{self.row}"
+        else:
+            where = f"{self.file} ({FRAMES_FILE} line {self.row})"
+        return f"{where}: {self.severity}: {self.message}"
+
+
+@dataclass
+class ValidationReport:
+    """The result of :func:`validate`.
+
+    Attributes:
+        path: the episode folder.
+        problems: every problem found, in file order.
+        frame_rows: data rows in ``frames.csv`` (0 when it is missing).
+    """
+
+    path: Path
+    problems: list[Problem] = field(default_factory=list)
+    frame_rows: int = 0
+
+    @property
+    def errors(self) -> list[Problem]:
+        return [p for p in self.problems if p.severity == "error"]
+
+    @property
+    def warnings(self) -> list[Problem]:
+        return [p for p in self.problems if p.severity == "warning"]
+
+    @property
+    def ok(self) -> bool:
+        """True when there is no error (warnings allowed)."""
+        return not self.errors
+
+    def __str__(self) -> str:
+        status = "OK" if self.ok else "INVALID"
+        head = (f"{self.path}: {status} ({self.frame_rows} frames, {len(self.errors)} errors, "
+                f"{len(self.warnings)} warnings)")
+        return "\n".join([head] + [f"  {p}" for p in self.problems])
+
+
+@dataclass
+class _Facts:
+    """What the later checks need from ``episode.json``, each None when that field is unusable."""
+
+    width: int | None = None
+    height: int | None = None
+    frame_count: int | None = None
+    depth_scale: float | None = None
+    labels: set[int] | None = None
+
+
+def _valid_int(x: Any) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool) and x >= 0
+
+
+def _check_meta(path: Path) -> tuple[list[Problem], _Facts]:
+    facts = _Facts()
+    try:
+        raw = parse_meta_text((path / META_FILE).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        return [Problem(META_FILE, None, "missing")], facts
+    except (OSError, UnicodeDecodeError, EpisodeFormatError) as exc:
+        return [Problem(META_FILE, None, f"unreadable: {exc}")], facts
+    problems = [Problem(META_FILE, None, m) for m in meta_problems(raw)]
+    if raw.get("complete") is False:
+        problems.append(Problem(META_FILE, None, "incomplete episode: run `manisplat-episode recover`"))
+    camera = raw.get("camera") if isinstance(raw.get("camera"), dict) else {}
+    if _valid_int(camera.get("width")) and _valid_int(camera.get("height")):
+        facts.width, facts.height = camera["width"], camera["height"]
+    if _valid_int(raw.get("frame_count")):
+        facts.frame_count = raw["frame_count"]
+    scale = raw.get("depth_scale")
+    if isinstance(scale, (int, float)) and not isinstance(scale, bool) and scale > 0:
+        facts.depth_scale = float(scale)
+    labels = raw.get("labels", {})
+    if isinstance(labels, dict) and all(isinstance(k, str) and k.isdigit() for k in labels):
+        facts.labels = {int(k) for k in labels}
+    return problems, facts
+
+
+def _check_frames(path: Path, facts: _Facts) -> tuple[list[Problem], dict[int, int] | None, int]:
+    """Problems of ``frames.csv``, its frame index -> first line (None when unusable), and its row count."""
+    try:
+        scan = scan_csv(path / FRAMES_FILE, FRAME_COLUMNS, ("index",))
+    except FileNotFoundError:
+        return [Problem(FRAMES_FILE, None, "missing")], None, 0
+    problems = []
+    if scan.header_problem:
+        problems.append(Problem(FRAMES_FILE, 1, scan.header_problem))
+    problems += [Problem(FRAMES_FILE, r.line, r.problem) for r in scan.rows if r.problem]
+    if facts.frame_count is not None and len(scan.rows) != facts.frame_count:
+        problems.append(Problem(FRAMES_FILE, None, f"has {len(scan.rows)} rows but {META_FILE} "
+                                                   f"frame_count is {facts.frame_count}"))
+    if scan.header_problem:
+        return problems, None, len(scan.rows)
+
+    lines, values = scan.parsed()
+    rows: dict[int, int] = {}
+    previous = -1
+    for line, index in zip(lines.tolist(), values[:, 0].astype(np.int64).tolist()):
+        if index in rows:
+            problems.append(Problem(FRAMES_FILE, line, f"duplicate index {index} (also on line {rows[index]})"))
+            continue
+        if index < 0:
+            problems.append(Problem(FRAMES_FILE, line, f"index {index} is negative"))
+        elif index > previous + 1:
+            gap = f"{previous + 1}" if index == previous + 2 else f"{previous + 1}..{index - 1}"
+            problems.append(Problem(FRAMES_FILE, line, f"index jumps from {previous} to {index}: frame(s) {gap} missing"))
+        elif index < previous:
+            problems.append(Problem(FRAMES_FILE, line, f"index {index} after {previous}: rows out of order"))
+        rows[index] = line
+        previous = max(previous, index)
+
+    t = values[:, 1]
+    for k in np.flatnonzero(np.diff(t) <= 0) + 1:
+        problems.append(Problem(FRAMES_FILE, int(lines[k]), f"t={t[k]!r} is not after t={t[k - 1]!r} of line "
+                                                            f"{lines[k - 1]}: t must be strictly increasing"))
+    gripper = values[:, 8]
+    lo, hi = GRIPPER_RANGE_M
+    outside = np.flatnonzero((gripper < lo) | (gripper > hi))
+    if outside.size:
+        k = outside[0]
+        problems.append(Problem(FRAMES_FILE, int(lines[k]), f"gripper outside [{lo}, {hi}] m on {outside.size} "
+                                                            f"row(s), first {gripper[k]!r} m", "warning"))
+    return problems, rows, len(scan.rows)
+
+
+def _check_images(path: Path, kind: ImageKind, rows: dict[int, int] | None, facts: _Facts,
+                  decode: bool, progress: bool) -> list[Problem]:
+    folder = path / kind.folder
+    if kind is RGB and not folder.is_dir():
+        return [Problem(f"{kind.folder}/", None, "missing folder (every frame needs an rgb image)")]
+    by_index, others = list_images(folder)
+    problems = []
+    for name in others:
+        why = ("temporary file of an interrupted write (run `manisplat-episode recover`)"
+               if name.endswith(TMP_SUFFIX) else "unexpected file (not a frame image)")
+        problems.append(Problem(f"{kind.folder}/{name}", None, why, "warning"))
+    if not by_index and kind is not RGB:
+        return problems
+    if kind is DEPTH and facts.depth_scale is None:
+        problems.append(Problem(META_FILE, None, "depth/ holds images but depth_scale is missing or not positive"))
+
+    suffixes = Counter(n[-4:] for names in by_index.values() for n in names)
+    usual = suffixes.most_common(1)[0][0] if suffixes else kind.suffixes[0]
+    if rows is not None:
+        for index, line in rows.items():
+            if index not in by_index:
+                problems.append(Problem(f"{kind.folder}/{image_name(index, usual)}", line, "missing image for this frame"))
+        for index in sorted(set(by_index) - set(rows)):
+            problems.append(Problem(f"{kind.folder}/{by_index[index][0]}", None,
+                                    f"extra frame: no row in {FRAMES_FILE} has index {index}"))
+
+    unlabelled: dict[int, str] = {}
+    for index, names in tqdm(sorted(by_index.items()), desc=f"{path.name}/{kind.folder}", unit="img",
+                             disable=not progress, leave=False):
+        file = f"{kind.folder}/{names[0]}"
+        line = rows.get(index) if rows is not None else None
+        if len(names) > 1:
+            problems.append(Problem(file, line, f"several files for frame {index}: {', '.join(names)}"))
+        if names[0][-4:] not in kind.suffixes:
+            problems.append(Problem(file, line, f"{kind.folder} images must be {' or '.join(kind.suffixes)}"))
+        if not decode:
+            if (folder / names[0]).stat().st_size == 0:
+                problems.append(Problem(file, line, "empty file"))
+            continue
+        image = decode_image(folder / names[0])
+        if image is None:
+            problems.append(Problem(file, line, "cannot decode (truncated or corrupt)"))
+            continue
+        problem = image_problem(image, kind, facts.width, facts.height)
+        if problem:
+            problems.append(Problem(file, line, problem))
+        elif kind is MASK and facts.labels is not None:
+            for value in np.unique(image).tolist():
+                if value not in facts.labels:
+                    unlabelled.setdefault(value, file)
+    for value, file in sorted(unlabelled.items()):
+        problems.append(Problem(file, None, f"mask value {value} is not in {META_FILE} labels "
+                                            f"(first seen here)", "warning"))
+    return problems
+
+
+def _check_joints(path: Path) -> list[Problem]:
+    if not (path / JOINTS_FILE).is_file():
+        return []
+    scan = scan_csv(path / JOINTS_FILE, JOINT_COLUMNS)
+    problems = []
+    if scan.header_problem:
+        return [Problem(JOINTS_FILE, 1, scan.header_problem)]
+    problems += [Problem(JOINTS_FILE, r.line, r.problem) for r in scan.rows if r.problem]
+    lines, values = scan.parsed()
+    t = values[:, 0]
+    for k in np.flatnonzero(np.diff(t) <= 0) + 1:
+        problems.append(Problem(JOINTS_FILE, int(lines[k]), f"t={t[k]!r} is not after t={t[k - 1]!r} of line "
+                                                            f"{lines[k - 1]}: t must be strictly increasing"))
+    return problems
+
+
+def validate(path: str | Path, *, decode_images: bool = True, progress: bool = False) -> ValidationReport:
+    """Check every file of the episode folder ``path`` and report all problems found.
+
+    Checks ``episode.json`` (fields, K, T_mount_cam, complete flag), ``frames.csv`` (header, every
+    row, indices 0..T-1, strictly increasing t, row count, gripper range), the images of every
+    row in ``rgb/`` and, when present, ``depth/`` and ``masks/`` (present, no extra ones, fully
+    decodable, channels, bit depth and size; mask values in ``labels``), and ``joints.csv``.
+
+    Args:
+        path: episode folder.
+        decode_images: decode every image fully (catches truncation); False only checks that
+            the files exist and are not empty (``--quick``).
+        progress: show a tqdm progress bar over the images.
+    """
+    path = Path(path)
+    report = ValidationReport(path)
+    if not path.is_dir():
+        report.problems.append(Problem(".", None, f"{path} is not a folder"))
+        return report
+    meta_problems_, facts = _check_meta(path)
+    frame_problems, rows, report.frame_rows = _check_frames(path, facts)
+    report.problems += meta_problems_ + frame_problems
+    for kind in KINDS:
+        report.problems += _check_images(path, kind, rows, facts, decode_images, progress)
+    report.problems += _check_joints(path)
+    return report

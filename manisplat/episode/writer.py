@@ -1,0 +1,303 @@
+"""Write an episode crash-safely, frame by frame.
+
+Order of writes: ``episode.json`` with ``complete: false`` first (atomically), then for each frame
+its image files (temporary name + rename, so an image is whole or absent), then its
+``frames.csv`` row (one ``write`` + flush). A killed writer therefore leaves at most a torn last
+row, a temporary image and images without a row, which ``recover`` clears away. Files and
+folders are fsynced every ``fsync_every`` rows and at ``close``, which rewrites ``episode.json``
+with ``complete: true`` and the ``frame_count``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import shutil
+from pathlib import Path
+from types import TracebackType
+from typing import IO, Any, Mapping, Sequence
+
+import numpy as np
+
+from manisplat.episode.format import (FRAME_COLUMNS, FRAMES_FILE, JOINT_COLUMNS, JOINTS_FILE, META_FILE,
+                                      image_name)
+from manisplat.episode.fsio import fsync_path
+from manisplat.episode.images import DEPTH, MASK, RGB, depth_to_raw, write_image
+from manisplat.episode.meta import CameraInfo, EpisodeMeta, RobotInfo, save_meta
+from manisplat.episode.tables import format_row
+
+log = logging.getLogger(__name__)
+
+IMAGE_FORMATS = {"png": ".png", "jpg": ".jpg"}
+
+
+def _finite(name: str, value: Any) -> float:
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number; got {value!r}") from None
+    if not math.isfinite(x):
+        raise ValueError(f"{name} must be finite; got {x}")
+    return x
+
+
+def _joint_vector(name: str, q: Any) -> np.ndarray:
+    q = np.asarray(q, dtype=np.float64)
+    if q.shape != (6,):
+        raise ValueError(f"{name} must hold 6 joint angles (radians); got shape {q.shape}")
+    if not np.isfinite(q).all():
+        raise ValueError(f"{name} must be finite; got {q.tolist()}")
+    return q
+
+
+def _extra_values(name: str, extra: Mapping[str, Any] | None, columns: tuple[str, ...]) -> list[float]:
+    extra = dict(extra or {})
+    missing = [c for c in columns if c not in extra]
+    unknown = [c for c in extra if c not in columns]
+    if missing or unknown:
+        raise ValueError(f"{name}: extra must give exactly the declared columns {list(columns)}; "
+                         f"missing {missing}, undeclared {unknown}")
+    return [_finite(f"{name}: extra[{c!r}]", extra[c]) for c in columns]
+
+
+def _check_columns(name: str, columns: Sequence[str], required: tuple[str, ...]) -> tuple[str, ...]:
+    columns = tuple(columns)
+    bad = [c for c in columns if c in required or not c or any(ch in c for ch in ", \t\r\n")]
+    if bad or len(set(columns)) != len(columns):
+        raise ValueError(f"{name} must be distinct names without commas or spaces, other than "
+                         f"{list(required)}; got {list(columns)}")
+    return columns
+
+
+def _prepare_folder(path: Path, overwrite: bool) -> None:
+    if path.exists():
+        if not path.is_dir():
+            raise FileExistsError(f"{path}: exists and is not a folder")
+        if any(path.iterdir()):
+            if not (path / META_FILE).exists():
+                raise FileExistsError(f"{path}: folder is not empty and holds no episode; refusing to write into it")
+            if not overwrite:
+                raise FileExistsError(f"{path}: an episode already exists here; pass overwrite=True to replace it")
+            shutil.rmtree(path)
+    path.mkdir(parents=True, exist_ok=True)
+
+
+class EpisodeWriter:
+    """Writes one episode folder (EPISODE.md); use it as a context manager.
+
+    Args:
+        path: episode folder to create. An existing episode there is refused unless
+            ``overwrite`` (then it is deleted); a non-empty folder that is no episode is always refused.
+        camera: the camera; every rgb/depth/mask must have its size.
+        robot: the arm (joint names, how to read the angles).
+        fps: declared camera rate in Hz.
+        source: ``episode.json`` ``source`` (``"recorder"``, ``"simulation"``, ``"import:..."``).
+        depth_scale: metres per depth unit; required to write depth.
+        labels: mask value -> name.
+        objects: names of the manipulated objects.
+        image_format: ``"png"`` (lossless) or ``"jpg"`` for rgb; depth and masks are always PNG.
+        extra_frame_columns: names of optional ``frames.csv`` columns (``seq``, ``a1``..``a_gripper``);
+            every ``add_frame`` must give exactly these in ``extra``.
+        joint_columns: names of optional ``joints.csv`` columns, likewise for ``add_joint_sample``.
+        extra_meta: further top-level ``episode.json`` keys (e.g. ``{"task": "pick the box"}``).
+        fsync_every: fsync written images and rows every this many rows (0: only at ``close``).
+            Without fsync a killed process loses nothing, but power loss may lose the latest rows.
+
+    If the ``with`` block raises, the files are closed and ``complete`` stays false.
+    """
+
+    def __init__(self, path: str | Path, camera: CameraInfo, robot: RobotInfo, fps: float, *,
+                 source: str = "recorder", depth_scale: float | None = None,
+                 labels: Mapping[int, str] | None = None, objects: Sequence[str] | None = None,
+                 image_format: str = "png", extra_frame_columns: Sequence[str] = (),
+                 joint_columns: Sequence[str] = (), extra_meta: Mapping[str, Any] | None = None,
+                 fsync_every: int = 30, overwrite: bool = False) -> None:
+        if image_format not in IMAGE_FORMATS:
+            raise ValueError(f"image_format must be one of {sorted(IMAGE_FORMATS)}; got {image_format!r}")
+        if fsync_every < 0:
+            raise ValueError(f"fsync_every must be >= 0; got {fsync_every}")
+        self._suffix = IMAGE_FORMATS[image_format]
+        self._frame_columns = _check_columns("extra_frame_columns", extra_frame_columns, FRAME_COLUMNS)
+        self._joint_columns = _check_columns("joint_columns", joint_columns, JOINT_COLUMNS)
+        self.meta = EpisodeMeta(complete=False, source=source, robot=robot, camera=camera, fps=fps,
+                                depth_scale=depth_scale, labels=dict(labels or {}), objects=list(objects or []),
+                                extra=dict(extra_meta or {}))
+        self.path = Path(path)
+        self._fsync_every = fsync_every
+        _prepare_folder(self.path, overwrite)
+        (self.path / RGB.folder).mkdir()
+        save_meta(self.path / META_FILE, self.meta)
+        self._frames = self._open_table(FRAMES_FILE, FRAME_COLUMNS + self._frame_columns)
+        self._joints: IO[str] | None = None
+        self._frame_count = 0
+        self._joint_count = 0
+        self._last_t: float | None = None
+        self._last_joint_t: float | None = None
+        self._layers: tuple[bool, bool] | None = None  # (depth, mask), fixed by frame 0
+        self._unsynced: list[Path] = []
+        self._rows_since_sync = 0
+        self._closed = False
+
+    def _open_table(self, name: str, columns: tuple[str, ...]) -> IO[str]:
+        f = open(self.path / name, "x", encoding="utf-8", newline="")
+        f.write(",".join(columns) + "\n")
+        f.flush()
+        os.fsync(f.fileno())
+        fsync_path(self.path)
+        return f
+
+    def __enter__(self) -> EpisodeWriter:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self._close_files()
+            log.warning("%s: writer stopped by %s; the episode stays incomplete "
+                        "(run `manisplat-episode recover %s`)", self.path, exc_type.__name__, self.path)
+
+    @property
+    def frame_count(self) -> int:
+        """Frames written so far."""
+        return self._frame_count
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def _check_open(self, name: str) -> None:
+        if self._closed:
+            raise ValueError(f"{name}: the writer of {self.path} is closed")
+
+    def _check_image(self, name: str, image: Any, channels: int, dtypes: tuple[type, ...]) -> np.ndarray:
+        image = np.asarray(image)
+        cam = self.meta.camera
+        shape = (cam.height, cam.width) + ((channels,) if channels > 1 else ())
+        if image.shape != shape or not any(image.dtype == d for d in dtypes):
+            want = " or ".join(np.dtype(d).name for d in dtypes)
+            raise ValueError(f"add_frame: {name} must be {shape} {want} for camera {cam.name!r} "
+                             f"({cam.width}x{cam.height}); got {image.shape} {image.dtype}")
+        return image
+
+    def _depth_raw(self, depth: Any) -> np.ndarray:
+        depth = self._check_image("depth", depth, 1, (np.float32, np.float64, np.uint16))
+        if self.meta.depth_scale is None:
+            raise ValueError("add_frame: depth given but the writer has no depth_scale (metres per unit)")
+        return depth if depth.dtype == np.uint16 else depth_to_raw(depth, self.meta.depth_scale)
+
+    def add_frame(self, t: float, q: Any, gripper: float, rgb: np.ndarray, depth: np.ndarray | None = None,
+                  mask: np.ndarray | None = None, extra: Mapping[str, float] | None = None) -> int:
+        """Write one frame: its images first, then its ``frames.csv`` row. Returns its index.
+
+        Args:
+            t: seconds on the episode clock, strictly after the previous frame's.
+            q: (6,) joint angles in radians.
+            gripper: finger-pad gap in metres.
+            rgb: (H, W, 3) uint8 RGB.
+            depth: (H, W) float metres (non-finite or <= 0: invalid, stored 0) or uint16 raw units.
+            mask: (H, W) uint8 labels.
+            extra: values of the declared ``extra_frame_columns``.
+
+        Every frame must carry the same kinds of image (depth, mask) as frame 0.
+        """
+        self._check_open("add_frame")
+        t = _finite("add_frame: t", t)
+        if self._last_t is not None and not t > self._last_t:
+            raise ValueError(f"add_frame: t={t!r} must be after the previous frame's t={self._last_t!r}")
+        q = _joint_vector("add_frame: q", q)
+        gripper = _finite("add_frame: gripper", gripper)
+        extras = _extra_values("add_frame", extra, self._frame_columns)
+        rgb = self._check_image("rgb", rgb, 3, (np.uint8,))
+        raw_depth = None if depth is None else self._depth_raw(depth)
+        mask = None if mask is None else self._check_image("mask", mask, 1, (np.uint8,))
+        layers = (depth is not None, mask is not None)
+        if self._layers is not None and layers != self._layers:
+            raise ValueError(f"add_frame: frame 0 had (depth, mask) = {self._layers}, this frame has {layers}; "
+                             "every frame must carry the same images")
+
+        index = self._frame_count
+        self._write_image(RGB.folder, image_name(index, self._suffix), rgb, rgb=True)
+        if raw_depth is not None:
+            self._write_image(DEPTH.folder, image_name(index), raw_depth, rgb=False)
+        if mask is not None:
+            self._write_image(MASK.folder, image_name(index), mask, rgb=False)
+        self._frames.write(format_row([index, t, *q, gripper, *extras]))
+        self._frames.flush()
+        self._layers = layers
+        self._frame_count += 1
+        self._last_t = t
+        self._row_written()
+        return index
+
+    def _write_image(self, folder: str, name: str, image: np.ndarray, *, rgb: bool) -> None:
+        path = self.path / folder / name
+        if not path.parent.is_dir():
+            path.parent.mkdir()
+            fsync_path(self.path)
+        write_image(path, image, rgb=rgb)
+        self._unsynced.append(path)
+
+    def add_joint_sample(self, t: float, q: Any, gripper: float, extra: Mapping[str, float] | None = None) -> None:
+        """Append one arm feedback sample to ``joints.csv`` (created by the first call).
+
+        Args:
+            t: seconds on the episode clock (the clock of ``add_frame``), strictly increasing.
+            q: (6,) joint angles in radians.
+            gripper: finger-pad gap in metres.
+            extra: values of the declared ``joint_columns``.
+        """
+        self._check_open("add_joint_sample")
+        t = _finite("add_joint_sample: t", t)
+        if self._last_joint_t is not None and not t > self._last_joint_t:
+            raise ValueError(f"add_joint_sample: t={t!r} must be after the previous sample's t={self._last_joint_t!r}")
+        q = _joint_vector("add_joint_sample: q", q)
+        gripper = _finite("add_joint_sample: gripper", gripper)
+        extras = _extra_values("add_joint_sample", extra, self._joint_columns)
+        if self._joints is None:
+            self._joints = self._open_table(JOINTS_FILE, JOINT_COLUMNS + self._joint_columns)
+        self._joints.write(format_row([t, *q, gripper, *extras]))
+        self._joints.flush()
+        self._last_joint_t = t
+        self._joint_count += 1
+        self._row_written()
+
+    def _row_written(self) -> None:
+        self._rows_since_sync += 1
+        if self._fsync_every and self._rows_since_sync >= self._fsync_every:
+            self.sync()
+
+    def sync(self) -> None:
+        """Flush and fsync everything written so far (images, their folders, the CSV files)."""
+        self._check_open("sync")
+        for path in self._unsynced:
+            fsync_path(path)
+        for folder in {p.parent for p in self._unsynced}:
+            fsync_path(folder)
+        self._unsynced.clear()
+        for f in (self._frames, self._joints):
+            if f is not None:
+                f.flush()
+                os.fsync(f.fileno())
+        self._rows_since_sync = 0
+
+    def _close_files(self) -> None:
+        if self._closed:
+            return
+        self.sync()
+        for f in (self._frames, self._joints):
+            if f is not None:
+                f.close()
+        self._closed = True
+
+    def close(self) -> None:
+        """Sync and close the files, then mark the episode complete with its ``frame_count``."""
+        if self._closed:
+            return
+        self._close_files()
+        self.meta.complete = True
+        self.meta.frame_count = self._frame_count
+        save_meta(self.path / META_FILE, self.meta)
+        log.info("%s: wrote %d frames, %d joint samples", self.path, self._frame_count, self._joint_count)

@@ -1,0 +1,203 @@
+"""Rotations: SO(3) exp/log, quaternions (w, x, y, z), geodesic angles, Euler RPY.
+
+All functions are batched over leading dimensions (``...``) and keep the input dtype
+(float64 is the project default; float32 is allowed). Exp/log and quaternion conversions
+call kornia, whose implementations pass our stress tests (exact at 0, 1e-12, pi - 1e-9 and pi,
+finite gradients there, float32 included); we add arbitrary batch shapes, a canonical
+quaternion sign and clear errors on inputs kornia silently maps to identity (a zero quaternion).
+The geodesic angle uses atan2 (kornia has no such function; acos loses all precision near 0
+and pi).
+"""
+
+from __future__ import annotations
+
+import torch
+from kornia.geometry import conversions as _kc
+
+from manisplat.geometry.errors import GeometryError
+
+DEFAULT_DTYPE = torch.float64
+
+
+def _flat(x: torch.Tensor, tail: int) -> tuple[torch.Tensor, torch.Size]:
+    """Reshape ``[..., *tail_shape]`` to ``[B, *tail_shape]``; return it and the batch shape."""
+    batch = x.shape[: x.ndim - tail]
+    return x.reshape(-1, *x.shape[x.ndim - tail :]), batch
+
+
+def hat(w: torch.Tensor) -> torch.Tensor:
+    """Skew-symmetric matrix of ``w`` [..., 3] -> [..., 3, 3], so that ``hat(w) @ v = w x v``."""
+    zero = torch.zeros_like(w[..., 0])
+    wx, wy, wz = w.unbind(-1)
+    return torch.stack(
+        [zero, -wz, wy, wz, zero, -wx, -wy, wx, zero], dim=-1
+    ).reshape(*w.shape[:-1], 3, 3)
+
+
+def vee(W: torch.Tensor) -> torch.Tensor:
+    """Inverse of :func:`hat` on the skew part: [..., 3, 3] -> [..., 3]."""
+    return 0.5 * torch.stack(
+        [W[..., 2, 1] - W[..., 1, 2], W[..., 0, 2] - W[..., 2, 0], W[..., 1, 0] - W[..., 0, 1]], dim=-1
+    )
+
+
+def so3_exp(w: torch.Tensor) -> torch.Tensor:
+    """Rotation matrix of the axis-angle vector ``w`` [..., 3] (rad) -> [..., 3, 3]."""
+    flat, batch = _flat(w, 1)
+    return _kc.axis_angle_to_rotation_matrix(flat).reshape(*batch, 3, 3)
+
+
+def so3_log(R: torch.Tensor) -> torch.Tensor:
+    """Axis-angle vector [..., 3] of rotation matrices [..., 3, 3]; angle in [0, pi].
+
+    At exactly pi the axis sign is arbitrary (both are correct).
+    """
+    flat, batch = _flat(R, 2)
+    return _kc.rotation_matrix_to_axis_angle(flat).reshape(*batch, 3)
+
+
+def quat_canonical(q: torch.Tensor) -> torch.Tensor:
+    """The representative of ``q`` [..., 4] (w, x, y, z) with w >= 0.
+
+    When w == 0, the first non-zero of (x, y, z) is made positive, so every rotation has one
+    canonical quaternion.
+    """
+    sign = torch.ones_like(q[..., :1])
+    decided = torch.zeros_like(q[..., 0], dtype=torch.bool)
+    for k in range(4):
+        comp = q[..., k]
+        flip = (~decided) & (comp < 0)
+        sign = torch.where(flip[..., None], -torch.ones_like(sign), sign)
+        decided = decided | (comp != 0)
+    return q * sign
+
+
+def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
+    """Rotation matrix [..., 3, 3] of quaternions [..., 4] (w, x, y, z); ``q`` need not be unit.
+
+    Raises:
+        GeometryError: a quaternion has (near) zero norm, so it names no rotation.
+    """
+    norm = q.norm(dim=-1)
+    tiny = norm <= torch.finfo(q.dtype).tiny ** 0.5
+    if bool(tiny.any()):
+        idx = tiny.nonzero()[0].tolist()
+        raise GeometryError(f"quaternion at index {idx} has zero norm; it names no rotation")
+    flat, batch = _flat(q / norm[..., None], 1)
+    return _kc.quaternion_to_rotation_matrix(flat).reshape(*batch, 3, 3)
+
+
+def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
+    """Unit quaternion [..., 4] (w, x, y, z), canonical sign (w >= 0), of rotations [..., 3, 3]."""
+    flat, batch = _flat(R, 2)
+    q = _kc.rotation_matrix_to_quaternion(flat)
+    q = q / q.norm(dim=-1, keepdim=True)
+    return quat_canonical(q).reshape(*batch, 4)
+
+
+def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Hamilton product ``a * b`` of quaternions [..., 4] (w, x, y, z): rotation ``a`` after ``b``."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        dim=-1,
+    )
+
+
+def quat_conjugate(q: torch.Tensor) -> torch.Tensor:
+    """Conjugate (the inverse, for unit quaternions) of ``q`` [..., 4]."""
+    return q * torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=q.dtype, device=q.device)
+
+
+def rotation_angle(R: torch.Tensor) -> torch.Tensor:
+    """Geodesic angle (rad, in [0, pi]) of rotations [..., 3, 3], via atan2(sin, cos).
+
+    ``acos((tr R - 1) / 2)`` loses about half the digits near 0 and near pi; atan2 of the
+    skew part's norm and the trace term keeps full relative precision at both ends.
+    """
+    trace = R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2]
+    cos = 0.5 * (trace - 1.0)
+    sin = vee(R).norm(dim=-1)
+    return torch.atan2(sin, cos)
+
+
+def rotation_error(R_a: torch.Tensor, R_b: torch.Tensor) -> torch.Tensor:
+    """Geodesic angle (rad) between rotations [..., 3, 3]: the angle of ``R_a^T R_b``."""
+    return rotation_angle(R_a.transpose(-1, -2) @ R_b)
+
+
+def orthonormalize(R: torch.Tensor) -> torch.Tensor:
+    """Nearest rotation (Frobenius norm) to each [..., 3, 3] matrix, via SVD (polar factor).
+
+    Use it to remove the drift of long products of rotations. Any reflection is removed by
+    flipping the singular vector of the smallest singular value.
+    """
+    U, _, Vh = torch.linalg.svd(R)
+    det = torch.linalg.det(U @ Vh)
+    fix = torch.ones_like(U[..., 0, :])
+    fix[..., 2] = torch.sign(det) + (det == 0).to(det.dtype)
+    return (U * fix[..., None, :]) @ Vh
+
+
+def is_rotation(R: torch.Tensor, atol: float = 1e-6) -> torch.Tensor:
+    """Bool [...]: finite, ``R^T R = I`` and ``det R = +1`` within ``atol``."""
+    eye = torch.eye(3, dtype=R.dtype, device=R.device)
+    finite = torch.isfinite(R).all(dim=-1).all(dim=-1)
+    ortho = (R.transpose(-1, -2) @ R - eye).abs().amax(dim=(-1, -2)) <= atol
+    det = (torch.linalg.det(R) - 1.0).abs() <= atol
+    return finite & ortho & det
+
+
+def axis_rotation(axis: str, angle: torch.Tensor | float, dtype: torch.dtype = DEFAULT_DTYPE) -> torch.Tensor:
+    """Rotation [..., 3, 3] by ``angle`` (rad) about the principal axis ``"x"``, ``"y"`` or ``"z"``."""
+    a = torch.as_tensor(angle, dtype=dtype)
+    c, s = torch.cos(a), torch.sin(a)
+    one, zero = torch.ones_like(a), torch.zeros_like(a)
+    rows = {
+        "x": [one, zero, zero, zero, c, -s, zero, s, c],
+        "y": [c, zero, s, zero, one, zero, -s, zero, c],
+        "z": [c, -s, zero, s, c, zero, zero, zero, one],
+    }
+    if axis not in rows:
+        raise ValueError(f"axis must be 'x', 'y' or 'z', got {axis!r}")
+    return torch.stack(rows[axis], dim=-1).reshape(*a.shape, 3, 3)
+
+
+def rpy_to_matrix(rpy: torch.Tensor) -> torch.Tensor:
+    """Rotation ``Rz(yaw) @ Ry(pitch) @ Rx(roll)`` of ``rpy`` [..., 3] = (roll, pitch, yaw) in rad.
+
+    This is the URDF ``rpy`` convention (fixed axes X, then Y, then Z).
+    """
+    roll, pitch, yaw = rpy.unbind(-1)
+    return axis_rotation("z", yaw, rpy.dtype) @ axis_rotation("y", pitch, rpy.dtype) @ axis_rotation("x", roll, rpy.dtype)
+
+
+def matrix_to_rpy(R: torch.Tensor) -> torch.Tensor:
+    """(roll, pitch, yaw) [..., 3] in rad with ``R = Rz(yaw) Ry(pitch) Rx(roll)``; pitch in [-pi/2, pi/2].
+
+    At gimbal lock (|pitch| = pi/2) roll and yaw are not separable; as piper_sdk does, yaw is
+    then 0 and roll carries the whole rotation (a documented convention, not an error).
+    """
+    cos_pitch = torch.hypot(R[..., 0, 0], R[..., 1, 0])
+    pitch = torch.atan2(-R[..., 2, 0], cos_pitch)
+    locked = cos_pitch <= 1e3 * torch.finfo(R.dtype).eps
+    sign = torch.where(R[..., 2, 0] < 0, 1.0, -1.0).to(R.dtype)
+    roll = torch.where(
+        locked, torch.atan2(sign * R[..., 0, 1], R[..., 1, 1]), torch.atan2(R[..., 2, 1], R[..., 2, 2])
+    )
+    yaw = torch.where(locked, torch.zeros_like(pitch), torch.atan2(R[..., 1, 0], R[..., 0, 0]))
+    return torch.stack([roll, pitch, yaw], dim=-1)
+
+
+def random_rotations(n: int, *, generator: torch.Generator | None = None, dtype: torch.dtype = DEFAULT_DTYPE) -> torch.Tensor:
+    """``n`` rotations [n, 3, 3] drawn uniformly (Haar measure) via normalised Gaussian quaternions."""
+    q = torch.randn(n, 4, generator=generator, dtype=dtype)
+    return quat_to_matrix(q)
+
+

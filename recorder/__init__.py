@@ -1,0 +1,1 @@
+"""manisplat-record: synchronised, crash-safe recording of camera frames and joint states."""
