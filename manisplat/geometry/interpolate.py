@@ -102,13 +102,14 @@ def interpolate_joints(times: torch.Tensor, values: torch.Tensor, query: torch.T
 def slerp(R0: torch.Tensor, R1: torch.Tensor, s: torch.Tensor | float) -> torch.Tensor:
     """Rotation a fraction ``s`` [...] of the way from ``R0`` to ``R1`` [..., 3, 3] on the geodesic.
 
-    ``R0 @ exp(s * log(R0^T R1))``: exact at s = 0 and 1 up to rounding, stable for nearly equal
-    rotations (no division by sin of a small angle). At a relative angle of exactly pi the two
-    geodesics are equally short and either may be taken.
+    ``R0 @ exp(s * log(R0^T R1))``, stable for nearly equal rotations (no division by sin of a
+    small angle); s = 0 and s = 1 return ``R0`` and ``R1`` bit for bit. At a relative angle of
+    exactly pi the two geodesics are equally short and either may be taken.
     """
     s = _as_float(s, R0)
     delta = so3_log(R0.transpose(-1, -2) @ R1)
-    return R0 @ so3_exp(s[..., None] * delta)
+    out = R0 @ so3_exp(s[..., None] * delta)
+    return torch.where((s == 1.0)[..., None, None], R1, out)
 
 
 def interpolate_poses(times: torch.Tensor, poses: torch.Tensor, query: torch.Tensor) -> torch.Tensor:

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+from lxml import etree
 
 from manisplat.robot.model import Gripper, Joint, JointLimits, RobotModel, Visual
 from manisplat.robot.urdf import load_urdf
@@ -130,9 +131,16 @@ def builtin_piper(*, with_geometry: bool = True) -> RobotModel:
 
 
 def is_agilex_piper_urdf(path: str | Path) -> bool:
-    """True for AgileX's ``piper_description`` URDF (joints joint1..joint8, fingers link7/link8)."""
-    text = Path(path).read_text(errors="replace")
-    return "piper" in text.lower() and all(f'name="joint{i}"' in text for i in range(1, 9))
+    """True for AgileX's ``piper_description`` URDF: a robot named like "piper" with joints
+    joint1..joint8 where joint7/joint8 are the prismatic fingers."""
+    try:
+        root = etree.parse(str(path)).getroot()
+    except etree.XMLSyntaxError:
+        return False
+    kinds = {j.get("name"): j.get("type") for j in root.iter("joint")}
+    arm = all(kinds.get(f"joint{i}") in ("revolute", "continuous") for i in range(1, 7))
+    fingers = kinds.get("joint7") == kinds.get("joint8") == "prismatic"
+    return "piper" in (root.get("name") or "").lower() and arm and fingers
 
 
 def load_agilex_piper_urdf(path: str | Path, *, load_meshes: bool = True) -> RobotModel:

@@ -14,6 +14,7 @@ from typing import Mapping, Sequence
 import numpy as np
 import trimesh
 import yourdfpy
+from lxml import etree
 
 from manisplat.robot.model import Gripper, Joint, JointLimits, RobotModel, RobotModelError, Visual
 
@@ -50,8 +51,11 @@ def load_urdf(
     if not path.is_file():
         raise FileNotFoundError(f"URDF not found: {path}")
     try:
+        # Strict parse first: yourdfpy silently switches to lxml's recovering parser on broken
+        # XML, which turns a truncated file into a smaller robot.
+        etree.parse(str(path), etree.XMLParser(recover=False))
         urdf = yourdfpy.URDF.load(str(path), load_meshes=False, build_scene_graph=False)
-    except Exception as exc:  # yourdfpy raises assorted lxml/ValueError types
+    except Exception as exc:  # lxml and yourdfpy raise assorted error types
         raise RobotModelError(f"{path}: not a readable URDF ({exc})") from exc
     robot = urdf.robot
     velocity_limits = dict(velocity_limits or {})
