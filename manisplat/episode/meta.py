@@ -211,13 +211,15 @@ class CameraInfo:
     extra: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        problems = camera_problems(self._raw())
-        _raise_if(problems)
+        try:
+            self.K = np.asarray(self.K, dtype=np.float64)
+            self.dist = np.asarray(self.dist, dtype=np.float64).reshape(-1)
+            if self.T_mount_cam is not None:
+                self.T_mount_cam = np.asarray(self.T_mount_cam, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise EpisodeFormatError(f"camera: K, dist and T_mount_cam must be arrays of numbers: {exc}") from None
+        _raise_if(camera_problems(self._raw()))
         self.width, self.height = int(self.width), int(self.height)
-        self.K = np.asarray(self.K, dtype=np.float64)
-        self.dist = np.asarray(self.dist, dtype=np.float64).reshape(-1)
-        if self.T_mount_cam is not None:
-            self.T_mount_cam = np.asarray(self.T_mount_cam, dtype=np.float64)
         _raise_if([f"camera.extra must not repeat the field {k!r}" for k in self.extra if k in _CAMERA_KEYS])
 
     def _raw(self) -> dict[str, Any]:

@@ -67,7 +67,8 @@ def header_problem(columns: Sequence[str], required: Sequence[str]) -> str | Non
     return None
 
 
-def parse_row(text: str, columns: Sequence[str], int_columns: Sequence[str] = ()) -> tuple[tuple[float, ...] | None, str | None]:
+def parse_row(text: str, columns: Sequence[str],
+              int_columns: Sequence[str] = ()) -> tuple[tuple[float, ...] | None, str | None]:
     """``(values, None)`` for a well-formed line, ``(None, problem)`` otherwise.
 
     Every field must be a finite number; fields of ``int_columns`` must be integers.

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -15,7 +16,7 @@ from manisplat.episode.format import (FRAME_COLUMNS, FRAMES_FILE, GRIPPER_RANGE_
 from manisplat.episode.fsio import TMP_SUFFIX
 from manisplat.episode.images import DEPTH, KINDS, MASK, RGB, ImageKind, decode_image, image_problem, list_images
 from manisplat.episode.meta import meta_problems, parse_meta_text
-from manisplat.episode.tables import scan_csv
+from manisplat.episode.tables import CsvRow, scan_csv
 
 Severity = Literal["error", "warning"]
 
@@ -85,6 +86,7 @@ class ValidationReport:
 class _Facts:
     """What the later checks need from ``episode.json``, each None when that field is unusable."""
 
+    readable: bool = False
     width: int | None = None
     height: int | None = None
     frame_count: int | None = None
@@ -104,6 +106,7 @@ def _check_meta(path: Path) -> tuple[list[Problem], _Facts]:
         return [Problem(META_FILE, None, "missing")], facts
     except (OSError, UnicodeDecodeError, EpisodeFormatError) as exc:
         return [Problem(META_FILE, None, f"unreadable: {exc}")], facts
+    facts.readable = True
     problems = [Problem(META_FILE, None, m) for m in meta_problems(raw)]
     if raw.get("complete") is False:
         problems.append(Problem(META_FILE, None, "incomplete episode: run `manisplat-episode recover`"))
@@ -119,6 +122,19 @@ def _check_meta(path: Path) -> tuple[list[Problem], _Facts]:
     if isinstance(labels, dict) and all(isinstance(k, str) and k.isdigit() for k in labels):
         facts.labels = {int(k) for k in labels}
     return problems, facts
+
+
+def _indices(rows: list[CsvRow]) -> list[tuple[int, int]]:
+    """``(line, frame index)`` of every row whose index field reads, even if another field does not
+    (so a NaN in ``q3`` is one problem, not also a missing frame)."""
+    found = []
+    for row in rows:
+        if row.values is not None:
+            found.append((row.line, int(row.values[0])))
+        else:
+            with contextlib.suppress(ValueError):
+                found.append((row.line, int(row.text.split(",", 1)[0])))
+    return found
 
 
 def _check_frames(path: Path, facts: _Facts) -> tuple[list[Problem], dict[int, int] | None, int]:
@@ -137,10 +153,9 @@ def _check_frames(path: Path, facts: _Facts) -> tuple[list[Problem], dict[int, i
     if scan.header_problem:
         return problems, None, len(scan.rows)
 
-    lines, values = scan.parsed()
     rows: dict[int, int] = {}
     previous = -1
-    for line, index in zip(lines.tolist(), values[:, 0].astype(np.int64).tolist()):
+    for line, index in _indices(scan.rows):
         if index in rows:
             problems.append(Problem(FRAMES_FILE, line, f"duplicate index {index} (also on line {rows[index]})"))
             continue
@@ -148,12 +163,14 @@ def _check_frames(path: Path, facts: _Facts) -> tuple[list[Problem], dict[int, i
             problems.append(Problem(FRAMES_FILE, line, f"index {index} is negative"))
         elif index > previous + 1:
             gap = f"{previous + 1}" if index == previous + 2 else f"{previous + 1}..{index - 1}"
-            problems.append(Problem(FRAMES_FILE, line, f"index jumps from {previous} to {index}: frame(s) {gap} missing"))
+            problems.append(Problem(FRAMES_FILE, line,
+                                    f"index jumps from {previous} to {index}: frame(s) {gap} missing"))
         elif index < previous:
             problems.append(Problem(FRAMES_FILE, line, f"index {index} after {previous}: rows out of order"))
         rows[index] = line
         previous = max(previous, index)
 
+    lines, values = scan.parsed()
     t = values[:, 1]
     for k in np.flatnonzero(np.diff(t) <= 0) + 1:
         problems.append(Problem(FRAMES_FILE, int(lines[k]), f"t={t[k]!r} is not after t={t[k - 1]!r} of line "
@@ -181,7 +198,7 @@ def _check_images(path: Path, kind: ImageKind, rows: dict[int, int] | None, fact
         problems.append(Problem(f"{kind.folder}/{name}", None, why, "warning"))
     if not by_index and kind is not RGB:
         return problems
-    if kind is DEPTH and facts.depth_scale is None:
+    if kind is DEPTH and facts.readable and facts.depth_scale is None:
         problems.append(Problem(META_FILE, None, "depth/ holds images but depth_scale is missing or not positive"))
 
     suffixes = Counter(n[-4:] for names in by_index.values() for n in names)
@@ -189,7 +206,8 @@ def _check_images(path: Path, kind: ImageKind, rows: dict[int, int] | None, fact
     if rows is not None:
         for index, line in rows.items():
             if index not in by_index:
-                problems.append(Problem(f"{kind.folder}/{image_name(index, usual)}", line, "missing image for this frame"))
+                problems.append(Problem(f"{kind.folder}/{image_name(index, usual)}", line,
+                                        "missing image for this frame"))
         for index in sorted(set(by_index) - set(rows)):
             problems.append(Problem(f"{kind.folder}/{by_index[index][0]}", None,
                                     f"extra frame: no row in {FRAMES_FILE} has index {index}"))

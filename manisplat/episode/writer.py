@@ -102,7 +102,8 @@ class EpisodeWriter:
         joint_columns: names of optional ``joints.csv`` columns, likewise for ``add_joint_sample``.
         extra_meta: further top-level ``episode.json`` keys (e.g. ``{"task": "pick the box"}``).
         fsync_every: fsync written images and rows every this many rows (0: only at ``close``).
-            Without fsync a killed process loses nothing, but power loss may lose the latest rows.
+            A killed process loses at most the frame being written whatever this is; after a
+            power loss the rows since the last fsync may be lost (``recover`` drops them).
 
     If the ``with`` block raises, the files are closed and ``complete`` stays false.
     """

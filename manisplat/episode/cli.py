@@ -1,0 +1,169 @@
+"""``manisplat-episode``: inspect, validate, recover, import and synthesize episodes."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from manisplat.episode.format import EpisodeFormatError
+from manisplat.episode.importers.act_hdf5 import ARM_COLUMNS, import_act_hdf5
+from manisplat.episode.reader import Episode
+from manisplat.episode.recover import recover
+from manisplat.episode.summary import describe
+from manisplat.episode.validate import validate
+
+
+def _floats(count: tuple[int, ...]) -> Callable[[str], list[float]]:
+    """An argparse type: comma-separated numbers, as many as one of ``count``."""
+    def parse(text: str) -> list[float]:
+        try:
+            values = [float(v) for v in text.split(",")] if text else []
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected comma-separated numbers; got {text!r}") from None
+        if len(values) not in count:
+            raise argparse.ArgumentTypeError(f"expected {' or '.join(map(str, count))} numbers; got {len(values)}")
+        return values
+
+    return parse
+
+
+def _cmd_info(args: argparse.Namespace) -> int:
+    print(describe(Episode.open(args.episode)))
+    return 0
+
+
+def _cmd_validate(args: argparse.Namespace) -> int:
+    status = 0
+    for path in args.episodes:
+        report = validate(path, decode_images=not args.quick, progress=sys.stderr.isatty())
+        print(report)
+        status = max(status, 0 if report.ok else 1)
+    return status
+
+
+def _cmd_recover(args: argparse.Namespace) -> int:
+    report = recover(args.episode, drop_damaged=args.drop_damaged)
+    print(report)
+    return 0 if report.validation is None or report.validation.ok else 1
+
+
+def _cmd_import_act(args: argparse.Namespace) -> int:
+    fx, fy, cx, cy = args.K
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    episode = import_act_hdf5(args.file, args.out, K=K, arm=args.arm, camera=args.camera, fps=args.fps,
+                              gripper_scale=args.gripper_scale, dist=args.dist, mount=args.mount, bgr=args.bgr,
+                              robot_description=args.robot_description, task=args.task,
+                              image_format=args.image_format, overwrite=args.overwrite)
+    print(f"imported {len(episode)} frames from {args.file} into {episode.path}")
+    return 0
+
+
+def _cmd_sample(args: argparse.Namespace) -> int:
+    try:
+        from manisplat.episode.synthetic import write_sample_episode
+    except ModuleNotFoundError as exc:
+        if exc.name != "manisplat.episode.synthetic":
+            raise
+        print("error: manisplat.episode.synthetic is not part of this installation", file=sys.stderr)
+        return 1
+    write_sample_episode(args.out, frames=args.frames, seed=args.seed)
+    print(f"wrote a sample episode to {args.out}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``manisplat-episode`` and its subcommands."""
+    parser = argparse.ArgumentParser(
+        prog="manisplat-episode",
+        description="Inspect, validate, recover, import and synthesize ManiSplat episodes (format v1).")
+    parser.add_argument("-v", "--verbose", action="count", default=0,
+                        help="log more (-v: info, -vv: debug); default: warnings only")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("info", help="print a summary of an episode",
+                       description="Print a summary of an episode: frames, duration, declared and measured "
+                                   "fps, joint ranges (degrees), gripper range (mm), camera, files present "
+                                   "and whether it is complete.")
+    p.add_argument("episode", type=Path, help="episode folder")
+    p.set_defaults(func=_cmd_info)
+
+    p = sub.add_parser("validate", help="check episodes against the format; exit 1 if any has an error",
+                       description="Check every file of each episode and list every problem with its file and "
+                                   "row. Exit status: 0 all valid (warnings allowed), 1 an error in any "
+                                   "episode, 2 usage error.")
+    p.add_argument("episodes", type=Path, nargs="+", metavar="EPISODE", help="episode folder(s)")
+    p.add_argument("--quick", action="store_true",
+                   help="only check that image files exist and are not empty, without decoding them "
+                        "(misses truncated or wrong-size images)")
+    p.set_defaults(func=_cmd_validate)
+
+    p = sub.add_parser("recover", help="make an interrupted episode valid again without losing complete frames",
+                       description="Make an episode whose writer was killed valid again. Crash artefacts "
+                                   "(temporary files, a torn last row, images without a row, trailing rows with "
+                                   "missing or truncated images) and the original CSV files are moved into "
+                                   "EPISODE/.recovered/<time>/; nothing is deleted. A complete, valid episode is "
+                                   "left unchanged. Damage followed by good frames is refused unless "
+                                   "--drop-damaged.")
+    p.add_argument("episode", type=Path, help="episode folder")
+    p.add_argument("--drop-damaged", action="store_true",
+                   help="also move aside damaged frames in the middle and renumber the remaining ones")
+    p.set_defaults(func=_cmd_recover)
+
+    p = sub.add_parser("import-act", help="convert an ACT / ALOHA / Cobot Magic HDF5 episode",
+                       description="Convert one ACT-style HDF5 episode (observations/qpos, observations/images/"
+                                   "<cam>, optional images_depth and action) into an episode folder, frame by "
+                                   "frame. The file holds no intrinsics: --K is required.")
+    p.add_argument("file", type=Path, metavar="FILE.hdf5", help="the HDF5 episode")
+    p.add_argument("--out", type=Path, required=True, help="episode folder to create")
+    p.add_argument("--K", type=_floats((4,)), required=True, metavar="fx,fy,cx,cy",
+                   help="camera intrinsics in pixels (required: these files store none)")
+    p.add_argument("--arm", choices=sorted(ARM_COLUMNS), default="left",
+                   help="which arm of a 14-column dual-arm file, or 'single' for 7 columns (default left)")
+    p.add_argument("--camera", default="cam_high", help="image dataset under observations/images (default cam_high)")
+    p.add_argument("--fps", type=float, default=30.0, help="recording rate in Hz; t = index / fps (default 30)")
+    p.add_argument("--gripper-scale", type=float, default=1.0,
+                   help="factor from the file's gripper value to the finger gap in metres (default 1)")
+    p.add_argument("--dist", type=_floats((0, 4, 5, 8, 12, 14)), default=[], metavar="k1,k2,...",
+                   help="OpenCV distortion coefficients (default none)")
+    p.add_argument("--mount", default="base", help="'base' or the link a wrist camera is fixed to (default base)")
+    p.add_argument("--bgr", action="store_true", help="the stored images are BGR (default: RGB, as Cobot Magic stores)")
+    p.add_argument("--robot-description", default="builtin:agilex_piper",
+                   help="how to read the joint angles: URDF path or builtin:agilex_piper (default)")
+    p.add_argument("--task", help="task description stored in episode.json")
+    p.add_argument("--image-format", choices=("png", "jpg"), default="png", help="rgb file format (default png)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing episode at --out")
+    p.set_defaults(func=_cmd_import_act)
+
+    p = sub.add_parser("sample", help="write a small synthetic episode",
+                       description="Write a small synthetic episode (manisplat.episode.synthetic), for tests "
+                                   "and first steps.")
+    p.add_argument("out", type=Path, metavar="OUT", help="episode folder to create")
+    p.add_argument("--frames", type=int, default=10, help="number of frames (default 10)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.set_defaults(func=_cmd_sample)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run ``manisplat-episode`` with ``argv`` (default ``sys.argv[1:]``); returns the exit status."""
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help (0) or a usage error (2)
+        return exc.code if isinstance(exc.code, int) else 2
+    logging.basicConfig(level=logging.WARNING - 10 * min(args.verbose, 2),
+                        format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return args.func(args)
+    except (EpisodeFormatError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

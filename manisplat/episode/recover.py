@@ -1,0 +1,319 @@
+"""Make an episode whose writer was killed (or lost power) valid again without losing a complete frame.
+
+A frame is complete when its ``frames.csv`` row is whole and its rgb image (and its depth and
+mask, when the episode has them) decodes at the camera size. Crash artefacts are what an
+interrupted :class:`~manisplat.episode.writer.EpisodeWriter` leaves behind: temporary files, a
+torn last CSV line, images whose row was never written, rows at the end whose images are
+missing or truncated. ``recover`` moves them, and the original CSV files, into
+``<episode>/.recovered/<UTC time>/`` (nothing is deleted), rewrites the CSV files, and marks
+the episode complete with a ``recovery`` entry in ``episode.json``. Damage that is not a crash
+artefact (a broken frame followed by good ones, or any broken frame in an episode that was
+closed as complete) is refused unless ``drop_damaged``.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import logging
+import os
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from manisplat.episode.format import (FRAME_COLUMNS, FRAMES_FILE, JOINT_COLUMNS, JOINTS_FILE, META_FILE,
+                                      RECOVERED_DIR, DamagedEpisodeError, image_name)
+from manisplat.episode.fsio import TMP_SUFFIX, atomic_write_bytes, fsync_path
+from manisplat.episode.images import (DEPTH, KINDS, MASK, RGB, ImageKind, decode_image, find_image, has_images,
+                                      image_problem, list_images)
+from manisplat.episode.meta import CameraInfo, load_meta, save_meta
+from manisplat.episode.tables import CsvRow, CsvScan, scan_csv
+from manisplat.episode.validate import ValidationReport, validate
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class RecoveryReport:
+    """What :func:`recover` did.
+
+    Attributes:
+        path: the episode folder.
+        changed: False when the episode was already complete and valid.
+        frames_kept: frames in the recovered episode.
+        dropped: ``frames.csv`` lines (1-based, header = 1) of the rows moved aside.
+        moved: files moved out of the episode, relative to it (they are now under ``backup_dir``).
+        saved: files rewritten, whose original is kept under ``backup_dir``.
+        renamed: ``(old, new)`` image paths when frames were renumbered (``drop_damaged``).
+        backup_dir: ``<episode>/.recovered/<time>``, or None when nothing was moved.
+        validation: :func:`validate` of the result (None when nothing changed).
+    """
+
+    path: Path
+    changed: bool
+    frames_kept: int
+    dropped: list[int] = field(default_factory=list)
+    moved: list[str] = field(default_factory=list)
+    saved: list[str] = field(default_factory=list)
+    renamed: list[tuple[str, str]] = field(default_factory=list)
+    backup_dir: Path | None = None
+    validation: ValidationReport | None = None
+
+    def __str__(self) -> str:
+        if not self.changed:
+            return f"{self.path}: already complete and valid ({self.frames_kept} frames); nothing to do"
+        lines = [f"{self.path}: recovered {self.frames_kept} frames"
+                 + (f"; dropped the {FRAMES_FILE} line(s) {self.dropped}" if self.dropped else "")]
+        if self.backup_dir is not None:
+            originals = ", ".join(self.saved) or "no rewritten file"
+            lines.append(f"  moved {len(self.moved)} file(s) and the original of {originals} to {self.backup_dir}")
+        if self.renamed:
+            lines.append(f"  renumbered {len(self.renamed)} image(s)")
+        if self.validation is not None and not self.validation.ok:
+            lines.append(f"  still invalid:\n{self.validation}")
+        return "\n".join(lines)
+
+
+def _image_faults(path: Path, index: int, kinds: list[ImageKind], camera: CameraInfo) -> list[str]:
+    """Why the images of frame ``index`` are not complete (empty when they are)."""
+    faults = []
+    for kind in kinds:
+        file = find_image(path / kind.folder, index)
+        if file is None:
+            faults.append(f"{kind.folder}/{image_name(index)} missing")
+            continue
+        image = decode_image(file)
+        if image is None:
+            problem = "cannot decode (truncated or corrupt)"
+        else:
+            problem = image_problem(image, kind, camera.width, camera.height)
+        if problem:
+            faults.append(f"{kind.folder}/{file.name} {problem}")
+    return faults
+
+
+def _row_faults(scan: CsvScan, path: Path, kinds: list[ImageKind], camera: CameraInfo) -> list[list[str]]:
+    """Per ``frames.csv`` row, why it is not a complete frame on its own (index and t order aside)."""
+    faults = []
+    for k, row in enumerate(scan.rows):
+        if row.values is None:
+            faults.append([f"line {row.line}: {row.problem}"])
+            continue
+        own = []
+        if k == len(scan.rows) - 1 and not scan.ends_with_newline:
+            own.append(f"line {row.line}: torn last line (no line break)")
+        faults.append(own + _image_faults(path, int(row.values[0]), kinds, camera))
+    return faults
+
+
+def _select_frames(scan: CsvScan, faults: list[list[str]], *, drop_damaged: bool, complete: bool) -> list[int]:
+    """Positions of the ``frames.csv`` rows to keep.
+
+    Without ``drop_damaged`` the kept frames are the rows before the first damaged one, and the
+    rest must be a crash tail: raises :class:`DamagedEpisodeError` when a good frame follows the
+    damage, or when the episode was closed (``complete``), so that no crash can explain it. With
+    ``drop_damaged`` every good row is kept whose index and t increase strictly (kept frames are
+    then renumbered in order, which never overwrites an image).
+    """
+    kept: list[int] = []
+    last_index, last_t = -1, float("-inf")
+    for k, row in enumerate(scan.rows):
+        fault = list(faults[k])
+        if not fault:
+            index, t = int(row.values[0]), row.values[1]
+            if not drop_damaged and index != len(kept):
+                fault.append(f"line {row.line}: index {index}, expected {len(kept)}")
+            elif drop_damaged and index <= last_index:
+                fault.append(f"line {row.line}: index {index} not after the previous frame's {last_index}")
+            if t <= last_t:
+                fault.append(f"line {row.line}: t={t!r} not after the previous frame's t={last_t!r}")
+        if not fault:
+            kept.append(k)
+            last_index, last_t = index, t
+            continue
+        if drop_damaged:
+            continue
+        good_after = sum(1 for j in range(k + 1, len(scan.rows)) if not faults[j])
+        if good_after or complete:
+            why = (f"{good_after} good frame(s) follow it" if good_after
+                   else "the episode was closed as complete, so no crash explains it")
+            raise DamagedEpisodeError(
+                f"{FRAMES_FILE}: frame at line {row.line} is damaged ({'; '.join(fault)}) and {why}: "
+                "it is not a crash artefact. Repair it, or run `manisplat-episode recover --drop-damaged` "
+                "to move the damaged frames aside and renumber the rest")
+        break
+    return kept
+
+
+def _select_joints(scan: CsvScan, drop_damaged: bool) -> list[int]:
+    """Positions of the ``joints.csv`` rows to keep: a torn last line is a crash artefact,
+    other bad rows are damage (refused unless ``drop_damaged``)."""
+    kept: list[int] = []
+    last_t = float("-inf")
+    for k, row in enumerate(scan.rows):
+        is_last = k == len(scan.rows) - 1
+        if is_last and scan.torn_tail:
+            break
+        if row.values is not None and row.values[0] > last_t:
+            kept.append(k)
+            last_t = row.values[0]
+        elif not drop_damaged:
+            why = row.problem or f"t={row.values[0]!r} not after {last_t!r}"
+            raise DamagedEpisodeError(f"{JOINTS_FILE}: line {row.line}: {why}; this is not a crash artefact. "
+                                      "Repair it, or run `manisplat-episode recover --drop-damaged`")
+    return kept
+
+
+def _csv_text(columns: tuple[str, ...], rows: list[str]) -> bytes:
+    return ("".join(line + "\n" for line in [",".join(columns), *rows])).encode("utf-8")
+
+
+def _backup_dir(path: Path) -> Path:
+    stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+    candidate, n = path / RECOVERED_DIR / stamp, 1
+    while candidate.exists():
+        candidate, n = path / RECOVERED_DIR / f"{stamp}-{n}", n + 1
+    return candidate
+
+
+def _scan_frames(path: Path) -> tuple[CsvScan, bool]:
+    """``(frames.csv, needs_rewrite)``: an empty table to rewrite when the file is missing, empty
+    or holds only a torn header (the writer was stopped while creating it)."""
+    file = path / FRAMES_FILE
+    scan = scan_csv(file, FRAME_COLUMNS, ("index",)) if file.is_file() else None
+    if scan is None or (not scan.rows and (not scan.columns or not scan.ends_with_newline)):
+        return CsvScan(FRAME_COLUMNS, None, [], True), True
+    if scan.header_problem:
+        raise DamagedEpisodeError(f"{file}: line 1: {scan.header_problem}; repair the header by hand")
+    return scan, False
+
+
+def _stray_files(path: Path, keep: set[int]) -> list[str]:
+    """Files to move aside: frame images not in ``keep`` and temporary files, relative to ``path``."""
+    stray = []
+    for kind in KINDS:
+        by_index, others = list_images(path / kind.folder)
+        stray += [f"{kind.folder}/{n}" for i, names in sorted(by_index.items()) if i not in keep for n in names]
+        stray += [f"{kind.folder}/{n}" for n in others if n.endswith(TMP_SUFFIX)]
+    return stray + [p.name for p in sorted(path.glob("*" + TMP_SUFFIX))]
+
+
+def _renames(path: Path, old_indices: list[int], kinds: list[ImageKind]) -> list[tuple[str, str]]:
+    """``(old, new)`` image paths that give kept frame ``old_indices[j]`` the index ``j``."""
+    renamed = []
+    for new, old in enumerate(old_indices):
+        if new != old:
+            for kind in kinds:
+                file = find_image(path / kind.folder, old)
+                renamed.append((f"{kind.folder}/{file.name}", f"{kind.folder}/{image_name(new, file.suffix)}"))
+    return renamed
+
+
+@dataclass
+class _Plan:
+    """What :func:`recover` will change, decided before anything is touched."""
+
+    frames: CsvScan
+    kept_rows: list[CsvRow]
+    old_indices: list[int]  # original index of each kept frame; its position is its new index
+    dropped: list[int]
+    joints: CsvScan | None
+    joint_keep: list[int]
+    moved: list[str]
+    saved: list[str]
+    renamed: list[tuple[str, str]]
+
+
+def _plan(path: Path, camera: CameraInfo, *, drop_damaged: bool, complete: bool) -> _Plan:
+    kinds = [RGB] + [k for k in (DEPTH, MASK) if has_images(path / k.folder)]
+    frames, rewrite_frames = _scan_frames(path)
+    kept = _select_frames(frames, _row_faults(frames, path, kinds, camera), drop_damaged=drop_damaged,
+                          complete=complete)
+    kept_rows = [frames.rows[k] for k in kept]
+    old_indices = [int(r.values[0]) for r in kept_rows]
+    kept_set = set(kept)
+    dropped = [r.line for k, r in enumerate(frames.rows) if k not in kept_set]
+
+    joints_file = path / JOINTS_FILE
+    joints = scan_csv(joints_file, JOINT_COLUMNS) if joints_file.is_file() else None
+    torn_joints_header = joints is not None and not joints.rows and not joints.ends_with_newline
+    if joints is not None and joints.header_problem and not torn_joints_header:
+        raise DamagedEpisodeError(f"{joints_file}: line 1: {joints.header_problem}; repair the header by hand")
+    joint_keep = _select_joints(joints, drop_damaged) if joints is not None else []
+
+    moved = _stray_files(path, set(old_indices)) + ([JOINTS_FILE] if torn_joints_header else [])
+    renamed = _renames(path, old_indices, kinds)
+    saved = [FRAMES_FILE] if rewrite_frames or dropped or renamed else []
+    if joints is not None and not torn_joints_header and len(joint_keep) != len(joints.rows):
+        saved.append(JOINTS_FILE)
+    return _Plan(frames, kept_rows, old_indices, dropped, None if torn_joints_header else joints, joint_keep,
+                 moved, saved, renamed)
+
+
+def _apply(path: Path, plan: _Plan, backup: Path, entry: dict[str, Any]) -> None:
+    """Move files aside into ``backup`` (with a copy of each rewritten file), rewrite, rename."""
+    if plan.moved or plan.saved:
+        backup.mkdir(parents=True)
+        (backup / "recovery.json").write_text(json.dumps(entry, indent=1) + "\n")
+    for name in plan.saved:
+        if (path / name).is_file():
+            shutil.copy2(path / name, backup / name)
+    for rel in plan.moved:
+        (backup / rel).parent.mkdir(parents=True, exist_ok=True)
+        os.replace(path / rel, backup / rel)
+    if FRAMES_FILE in plan.saved:
+        lines = [r.text if new == old else str(new) + r.text[r.text.index(","):]
+                 for new, (old, r) in enumerate(zip(plan.old_indices, plan.kept_rows))]
+        atomic_write_bytes(path / FRAMES_FILE, _csv_text(plan.frames.columns, lines))
+    for old, new in plan.renamed:
+        os.replace(path / old, path / new)
+    if JOINTS_FILE in plan.saved:
+        rows = [plan.joints.rows[k].text for k in plan.joint_keep]
+        atomic_write_bytes(path / JOINTS_FILE, _csv_text(plan.joints.columns, rows))
+    for folder in {path / k.folder for k in KINDS if (path / k.folder).is_dir()} | {path}:
+        fsync_path(folder)
+
+
+def recover(path: str | Path, *, drop_damaged: bool = False) -> RecoveryReport:
+    """Make the episode at ``path`` complete and valid again, keeping every complete frame.
+
+    Args:
+        path: episode folder (its ``episode.json`` must be readable: the writer writes it first).
+        drop_damaged: also move aside damaged frames that are followed by good ones (or that are
+            in an episode closed as complete), and renumber the remaining frames 0..T-1 (rows
+            and image files).
+
+    Returns:
+        a :class:`RecoveryReport`; ``changed`` is False for an already complete, valid episode.
+
+    Raises:
+        DamagedEpisodeError: damage that is not a crash artefact, without ``drop_damaged``;
+            nothing is changed then.
+        EpisodeFormatError: ``episode.json`` is missing or invalid.
+    """
+    path = Path(path)
+    meta = load_meta(path / META_FILE)
+    if meta.complete:
+        report = validate(path)
+        if report.ok:
+            return RecoveryReport(path, changed=False, frames_kept=report.frame_rows)
+
+    plan = _plan(path, meta.camera, drop_damaged=drop_damaged, complete=meta.complete)
+    backup = _backup_dir(path)
+    has_backup = bool(plan.moved or plan.saved)
+    entry = {"date": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+             "frames_kept": len(plan.kept_rows), "dropped_lines": plan.dropped, "moved": plan.moved,
+             "saved": plan.saved, "renamed": [list(r) for r in plan.renamed],
+             "backup": str(backup.relative_to(path)) if has_backup else None}
+    _apply(path, plan, backup, entry)
+
+    meta.complete = True
+    meta.frame_count = len(plan.kept_rows)
+    meta.extra["recovery"] = [*meta.extra.get("recovery", []), entry]
+    save_meta(path / META_FILE, meta)
+    report = RecoveryReport(path, changed=True, frames_kept=len(plan.kept_rows), dropped=plan.dropped,
+                            moved=plan.moved, saved=plan.saved, renamed=plan.renamed,
+                            backup_dir=backup if has_backup else None, validation=validate(path))
+    log.info("%s", report)
+    return report
