@@ -52,3 +52,13 @@ def test_images_agree_with_ground_truth(sample):
         assert mask[int(round(v)), int(round(u))] == BOX_LABEL
         # the visible face is at most half a box (2 cm) nearer than the centre
         assert -0.001 < center[2] - depth[int(round(v)), int(round(u))] < 0.03
+
+
+def test_cli_sample_then_validate(tmp_path, capsys):
+    from manisplat.episode.cli import main
+
+    out = tmp_path / "cli_sample"
+    assert main(["sample", str(out), "--frames", "12", "--width", "64", "--height", "48"]) == 0
+    assert main(["validate", str(out)]) == 0
+    assert main(["sample", str(out), "--frames", "12"]) == 1  # refuses to overwrite without --overwrite
+    assert "overwrite" in capsys.readouterr().err

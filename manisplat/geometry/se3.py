@@ -3,7 +3,9 @@
 Convention (EPISODE.md): ``T_a_b`` maps coordinates in frame b to frame a, ``X_a = T_a_b @ X_b``;
 composition is matrix multiplication ``T_a_c = T_a_b @ T_b_c``. A twist ``xi`` [..., 6] is
 ``(v, w)``: translational part first, rotational part (axis-angle, rad) last, as in kornia and
-Sophus. Exp/log call kornia's ``Se3`` (passes our stress tests at 0 and pi).
+Sophus. Exp/log call kornia's ``Se3`` (passes our stress tests at 0 and pi); its results are
+detached when the input needs no gradient (kornia wraps the translation in an ``nn.Parameter``,
+which would otherwise make every output require grad).
 """
 
 from __future__ import annotations
@@ -38,13 +40,17 @@ def transform_points(T: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
 def se3_exp(xi: torch.Tensor) -> torch.Tensor:
     """Transform [..., 4, 4] of twists ``xi`` [..., 6] = (v, w)."""
     flat, batch = _flat(xi, 1)
-    return _KorniaSe3.exp(flat).matrix().reshape(*batch, 4, 4)
+    return _plain(_KorniaSe3.exp(flat).matrix().reshape(*batch, 4, 4), xi)
 
 
 def se3_log(T: torch.Tensor) -> torch.Tensor:
     """Twist [..., 6] = (v, w) of rigid transforms [..., 4, 4]; rotation angle in [0, pi]."""
     flat, batch = _flat(T, 2)
-    return _KorniaSe3.from_matrix(flat).log().reshape(*batch, 6)
+    return _plain(_KorniaSe3.from_matrix(flat).log().reshape(*batch, 6), T)
+
+
+def _plain(out: torch.Tensor, source: torch.Tensor) -> torch.Tensor:
+    return out if source.requires_grad else out.detach()
 
 
 def translation_error(T_a: torch.Tensor, T_b: torch.Tensor) -> torch.Tensor:

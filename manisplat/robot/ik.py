@@ -4,8 +4,9 @@ Each target is solved independently but all targets step together as one batch. 
 ``e = (p* - p, w_rot * log(R* R^T))`` in the base frame, matching the geometric Jacobian; a step
 ``dq = (J^T J + lambda diag(J^T J) + mu I)^-1 J^T e`` is taken, clamped into the limits, and
 accepted only if it lowers ``|e|`` (then ``lambda`` shrinks; otherwise it grows). Targets that
-have not converged after ``max_iterations`` restart from several random configurations at once;
-the best solution found is returned with its residuals and a success flag.
+have not converged after ``max_iterations`` restart from several configurations at once, taken
+from a scrambled Sobol sequence over the joint ranges; the best solution found is returned with
+its residuals and a success flag.
 """
 
 from __future__ import annotations
@@ -16,6 +17,10 @@ import torch
 
 from manisplat.geometry import rotation_error, so3_log
 from manisplat.robot.model import RobotModel, RobotModelError
+
+
+POLISH = 1e-3  # descend until the errors are this fraction of the tolerances
+MAX_DAMPING = 1e7  # a target whose damping reaches this has stalled
 
 
 @dataclass(frozen=True)
@@ -70,9 +75,11 @@ def _descend(
     e, J = _residual(model, q, target, w_rot)
     cost = (e * e).sum(-1)
     for _ in range(iterations):
-        pos_ok = e[:, :3].norm(dim=-1) <= tol_pos
-        rot_ok = e[:, 3:].norm(dim=-1) <= tol_rot * w_rot
-        active = ~(pos_ok & rot_ok)
+        # Keep polishing well below the tolerances (LM converges quadratically there, so this
+        # costs an iteration or two) unless the damping shows the target has stalled.
+        pos_ok = e[:, :3].norm(dim=-1) <= POLISH * tol_pos
+        rot_ok = e[:, 3:].norm(dim=-1) <= POLISH * tol_rot * w_rot
+        active = ~(pos_ok & rot_ok) & (lam < MAX_DAMPING)
         if not bool(active.any()):
             break
         dq = _lm_step(J, e, lam, eye)
@@ -89,7 +96,7 @@ def _descend(
         e = torch.where(accept[:, None], e_new, e)
         J = torch.where(accept[:, None, None], J_new, J)
         cost = torch.where(accept, cost_new, cost)
-        lam = torch.where(accept, (lam / 3).clamp(min=1e-7), (lam * 4).clamp(max=1e7))
+        lam = torch.where(accept, (lam / 3).clamp(min=1e-7), (lam * 4).clamp(max=MAX_DAMPING))
     return q
 
 
@@ -104,7 +111,7 @@ def solve_ik(
     position_tolerance: float = 1e-4,
     rotation_tolerance: float = 1e-3,
     rotation_weight: float = 0.1,
-    generator: torch.Generator | None = None,
+    seed: int = 0,
 ) -> IKResult:
     """Joint positions whose TCP reaches ``target`` poses ``T_base_tcp`` [B, 4, 4] (or [4, 4]).
 
@@ -117,7 +124,9 @@ def solve_ik(
         position_tolerance: success bound on the position error (m).
         rotation_tolerance: success bound on the rotation error (rad).
         rotation_weight: metres per radian when mixing the two errors.
-        generator: for the random restarts (default: seeded, so results are reproducible).
+        seed: scrambles the restart sequence. Every target draws its restarts from the same
+            low-discrepancy (Sobol) sequence over the joint ranges, so a target's result does
+            not depend on the other targets in the batch.
     """
     single = target.ndim == 2
     target = target[None] if single else target
@@ -132,23 +141,26 @@ def solve_ik(
         q0 = ((lo + hi) / 2).expand(B, -1).clone()
     else:
         q0 = model.clamp(model.check_joints(q_init, dtype=dtype).expand(B, -1).clone())
-    gen = generator if generator is not None else torch.Generator().manual_seed(0)
+    if restarts < 0 or parallel_starts < 1:
+        raise ValueError(f"restarts must be >= 0 and parallel_starts >= 1; got {restarts}, {parallel_starts}")
+    sobol = torch.quasirandom.SobolEngine(model.dof, scramble=True, seed=seed)
+    starts = lo + sobol.draw(restarts, dtype=dtype) * (hi - lo) if restarts else lo[None]
 
     best_q = q0.clone()
     best_score = torch.full((B,), float("inf"), dtype=dtype)
     best_pos, best_rot = best_score.clone(), best_score.clone()
     attempts = torch.zeros(B, dtype=torch.long)
     pending = torch.arange(B)
-    starts_left = restarts
+    used = 0
     first = True
     while len(pending) > 0:
         if first:
             k, owner, q = 1, pending, q0
-        elif starts_left > 0:
-            k = min(parallel_starts, starts_left)
+        elif used < restarts:
+            k = min(parallel_starts, restarts - used)
             owner = pending.repeat_interleave(k)
-            q = lo + torch.rand(len(owner), model.dof, generator=gen, dtype=dtype) * (hi - lo)
-            starts_left -= k
+            q = starts[used : used + k].repeat(len(pending), 1)
+            used += k
         else:
             break
         q = _descend(model, q, target[owner], max_iterations, rotation_weight, position_tolerance, rotation_tolerance)

@@ -80,3 +80,12 @@ def test_is_transform_rejects_bad_matrices():
     nan[0, 3] = math.nan
     for bad in (bad_row, scaled, nan):
         assert not bool(is_transform(bad))
+
+
+def test_exp_log_need_no_grad_for_plain_inputs_and_pass_gradcheck():
+    xi = torch.tensor([0.1, -0.2, 0.3, 0.4, 0.5, -0.6], dtype=torch.float64)
+    assert not se3_exp(xi).requires_grad and not se3_log(se3_exp(xi)).requires_grad
+    se3_exp(xi).numpy()  # usable as plain data
+    assert torch.autograd.gradcheck(se3_exp, (xi.clone().requires_grad_(True),))
+    T = se3_exp(xi).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda M: se3_log(M), (T,))

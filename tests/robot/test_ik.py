@@ -25,6 +25,16 @@ def test_solves_random_reachable_targets(piper):
     ok = result.success
     assert float(t_err[ok].max()) <= 1e-4 and float(r_err[ok].max()) <= 1e-3
     assert torch.allclose(t_err, result.position_error) and torch.allclose(r_err, result.rotation_error, atol=1e-12)
+    assert float(t_err[ok].median()) < 1e-6  # polished far below the tolerance, not stopped at it
+
+
+def test_a_targets_result_does_not_depend_on_its_batch(piper):
+    q_true = piper.sample_configurations(64, generator=torch.Generator().manual_seed(13))
+    targets = piper.tcp_pose(q_true)
+    batch = solve_ik(piper, targets)
+    for i in (0, 17, 42):
+        alone = solve_ik(piper, targets[i])
+        assert torch.allclose(alone.q, batch.q[i], atol=1e-9) and int(alone.attempts) == int(batch.attempts[i])
 
 
 def test_unreachable_target_fails_honestly(piper):
