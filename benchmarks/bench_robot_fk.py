@@ -13,7 +13,6 @@ Rows: part, case, model, dtype, n, max_pos_err_mm / max_rot_err_deg (or us_per_c
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -21,6 +20,7 @@ import numpy as np
 import torch
 
 from benchmarks._harness import time_call
+from manisplat.episode import Episode
 from manisplat.robot import builtin_piper, load_robot
 
 THREADED = False
@@ -89,13 +89,6 @@ def _rot_err_deg(Ra: np.ndarray, Rb: np.ndarray) -> np.ndarray:
     return np.degrees(np.arctan2(sin, cos))
 
 
-def _read_frames(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(q [T, 6], gripper [T]) from frames.csv, by column name."""
-    data = np.genfromtxt(path, delimiter=",", names=True, dtype=np.float64)
-    q = np.stack([data[f"q{i}"] for i in range(1, 7)], axis=-1)
-    return q, np.asarray(data["gripper"], dtype=np.float64)
-
-
 def _part_a(ctx, rows: list[dict]) -> None:
     model = builtin_piper(with_geometry=False)
     n = 1000 if ctx.quick else 10000
@@ -161,9 +154,9 @@ def _part_b(ctx, rows: list[dict]) -> None:
         ctx.notes.append(f"(b) no episode with gt.npz under {data}; part b skipped")
         return
     for ep in episodes:
-        meta = json.loads((ep / "episode.json").read_text())
-        model = load_robot(meta["robot"]["description"], base_dir=ep, load_meshes=False)
-        q, grip = _read_frames(ep / "frames.csv")
+        episode = Episode.open(ep)
+        model = load_robot(episode.meta.robot.description, base_dir=ep, load_meshes=False)
+        q, grip = episode.frames.q, episode.frames.gripper
         gt = np.load(ep / "gt.npz", allow_pickle=False)
         qt = torch.as_tensor(q, dtype=torch.float64)
         T_tcp = model.tcp_pose(qt).numpy()
@@ -175,7 +168,7 @@ def _part_b(ctx, rows: list[dict]) -> None:
             {
                 "part": "b",
                 "case": f"{ep.name}:tcp",
-                "model": Path(meta["robot"]["description"]).name,
+                "model": Path(episode.meta.robot.description).name,
                 "dtype": "float64",
                 "n": len(q),
                 "max_pos_err_mm": float(pos_m.max()) * 1000.0,
@@ -205,7 +198,7 @@ def _part_b(ctx, rows: list[dict]) -> None:
                     {
                         "part": "b",
                         "case": f"{ep.name}:{label}",
-                        "model": Path(meta["robot"]["description"]).name,
+                        "model": Path(episode.meta.robot.description).name,
                         "dtype": "float64",
                         "n": int(lpos.size),
                         "max_pos_err_mm": float(lpos.max()) * 1000.0,
