@@ -40,7 +40,7 @@ def describe(episode: Episode) -> str:
     ]
     if n:
         deg = np.degrees(frames.q)
-        lines.append("joints    " + "  ".join(f"q{j + 1} [{deg[:, j].min():.1f}, {deg[:, j].max():.1f}]"
+        lines.append("joints    " + "  ".join(f"q{j + 1} [{_one_decimal(deg[:, j].min())}, {_one_decimal(deg[:, j].max())}]"
                                               for j in range(6)) + " deg")
         lines.append(f"gripper   [{1e3 * frames.gripper.min():.1f}, {1e3 * frames.gripper.max():.1f}] mm")
     if frames.extra:
@@ -63,3 +63,9 @@ def describe(episode: Episode) -> str:
     if meta.objects:
         lines.append(f"objects   {', '.join(meta.objects)}")
     return "\n".join(lines)
+
+
+def _one_decimal(x: float) -> str:
+    """``x`` to one decimal, without the "-0.0" of a tiny negative."""
+    text = f"{x:.1f}"
+    return "0.0" if text == "-0.0" else text
