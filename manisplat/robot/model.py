@@ -268,8 +268,13 @@ class RobotModel:
             if name not in self.joint_map:
                 raise RobotModelError(f"{self.name}: gripper finger joint {name!r} is not in the model")
         for joint in self.joints:
-            if joint.mimic is not None and joint.mimic[0] not in self.joint_map:
-                raise RobotModelError(f"{self.name}: joint {joint.name!r} mimics unknown joint {joint.mimic[0]!r}")
+            if joint.mimic is None:
+                continue
+            source = self.joint_map.get(joint.mimic[0])
+            if source is None or source.kind == "fixed":
+                raise RobotModelError(
+                    f"{self.name}: joint {joint.name!r} mimics {joint.mimic[0]!r}, which is not a movable joint"
+                )
         unknown = set(self.visuals) - links
         if unknown:
             raise RobotModelError(f"{self.name}: geometry given for unknown links {sorted(unknown)}")

@@ -153,6 +153,10 @@ def test_clear_errors(tmp_path):
         load_urdf(forest)
     with pytest.raises(RobotModelError, match="not an independent"):
         load_urdf(path, arm_joints=["tool_mount"], load_meshes=False)
+    bad_mimic = tmp_path / "bad_mimic.urdf"
+    bad_mimic.write_text(TOY_URDF.format(velocity="1").replace('mimic joint="finger_a_joint"', 'mimic joint="tool_mount"'))
+    with pytest.raises(RobotModelError, match="not a movable joint"):
+        load_urdf(bad_mimic, arm_joints=["shoulder", "slide"], load_meshes=False)
 
 
 def piper_like_urdf(folder: Path) -> Path:
