@@ -1,0 +1,1 @@
+"""The AgileX PiPER over CAN: protocol (pure encode/decode), PiperArm (bus I/O), SimulatedPiper."""
