@@ -1,1 +1,11 @@
-"""ROS-free drivers: the PiPER over CAN, the OAK camera, replay doubles, a simulated arm."""
+"""ROS-free drivers: the PiPER over CAN, the OAK camera, replay doubles, a simulated arm.
+
+The recorder talks to the :class:`Arm` and :class:`Camera` interfaces (:mod:`.base`);
+:mod:`.piper` (``PiperArm``, ``SimulatedPiper``), :mod:`.replay` (``CanLogPlayer``,
+``EpisodeArm``) and :mod:`.oak` (``OakCamera``, ``DepthaiReplayCamera``, ``EpisodeCamera``)
+implement them.
+"""
+
+from manisplat.drivers.base import Arm, ArmHealth, Camera, CameraFrame, DriverError, JointState, SequenceTracker
+
+__all__ = ["Arm", "ArmHealth", "Camera", "CameraFrame", "DriverError", "JointState", "SequenceTracker"]
