@@ -1,0 +1,24 @@
+"""Differentiable Gaussian splatting: one ``rasterization`` function, several backends.
+
+Backends: "torch" (pure PyTorch, the test oracle), "cpu" (C++/OpenMP with a hand-written
+backward, the default on CPU) and "gsplat" (CUDA, optional). All follow gsplat's conventions.
+"""
+
+from manisplat.splat.backends import BACKENDS, BackendUnavailable, available_backends
+from manisplat.splat.projection import Projection, opencv_to_splat_K, project_gaussians
+from manisplat.splat.rasterization import RENDER_MODES, RasterizationError, rasterization
+from manisplat.splat.sh import num_sh_bases, spherical_harmonics
+
+__all__ = [
+    "BACKENDS",
+    "BackendUnavailable",
+    "Projection",
+    "RENDER_MODES",
+    "RasterizationError",
+    "available_backends",
+    "num_sh_bases",
+    "opencv_to_splat_K",
+    "project_gaussians",
+    "rasterization",
+    "spherical_harmonics",
+]

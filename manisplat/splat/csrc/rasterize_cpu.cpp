@@ -1,0 +1,418 @@
+// CPU compositing of projected 2D Gaussians: forward and hand-written backward.
+//
+// Rules (gsplat's): pixel (i, j) is sampled at (j + 0.5, i + 0.5); sigma = 0.5 (a dx^2 + c dy^2)
+// + b dx dy with d = mean - pixel; alpha = min(0.999, o exp(-sigma)); a splat with sigma < 0 or
+// alpha < 1/255 is skipped; a pixel stops before the splat that would bring its transmittance
+// to 1e-4 or below. Splats are binned into square tiles; each tile's list is in depth order
+// because Gaussians are visited in depth order when the lists are filled.
+//
+// Work is split over tiles with at::parallel_for (so torch.set_num_threads applies) and an
+// atomic tile counter (dynamic load balance). The backward accumulates per-Gaussian gradients
+// in one buffer per worker and sums them at the end.
+
+#include <torch/extension.h>
+#include <ATen/Parallel.h>
+
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <functional>
+#include <type_traits>
+#include <vector>
+
+namespace {
+
+constexpr double kMaxAlpha = 0.999;
+constexpr double kAlphaThreshold = 1.0 / 255.0;
+constexpr double kMinTransmittance = 1e-4;
+constexpr double kSkipMargin = 1e-3;  // sigma pre-test margin; the exact alpha test decides near it
+
+struct Bins {
+  const int64_t* offsets;  // [tiles + 1]
+  const int32_t* gauss;    // [pairs], depth-ordered within each tile
+};
+
+// Fills offsets [tiles + 1] and returns the tile lists; Gaussians visited in depth order.
+torch::Tensor bin_tiles(const int64_t* rects, const int64_t* order, int64_t n, int64_t tiles_x, int64_t tiles,
+                        torch::Tensor& offsets_out) {
+  offsets_out = torch::zeros({tiles + 1}, torch::kInt64);
+  int64_t* offsets = offsets_out.data_ptr<int64_t>();
+  for (int64_t k = 0; k < n; ++k) {
+    const int64_t* r = rects + 4 * order[k];
+    for (int64_t ty = r[1]; ty < r[3]; ++ty)
+      for (int64_t tx = r[0]; tx < r[2]; ++tx) offsets[ty * tiles_x + tx + 1]++;
+  }
+  for (int64_t t = 0; t < tiles; ++t) offsets[t + 1] += offsets[t];
+  auto lists = torch::empty({offsets[tiles]}, torch::kInt32);
+  int32_t* gauss = lists.data_ptr<int32_t>();
+  std::vector<int64_t> fill(offsets, offsets + tiles);
+  for (int64_t k = 0; k < n; ++k) {
+    const int64_t g = order[k];
+    const int64_t* r = rects + 4 * g;
+    for (int64_t ty = r[1]; ty < r[3]; ++ty)
+      for (int64_t tx = r[0]; tx < r[2]; ++tx) gauss[fill[ty * tiles_x + tx]++] = static_cast<int32_t>(g);
+  }
+  return lists;
+}
+
+// Everything about one splat that the per-pixel loops need, computed once per call.
+// Its pixel box [x0, x1) x [y0, y1) holds the centres within `radius` of the mean, clipped to the
+// image; sigma <= skip is where alpha can reach 1/255 (plus a small margin).
+template <typename T>
+struct Splat {
+  T mx, my, a, b, c, o, skip, inv_a, k1, k2;
+  int32_t x0, x1, y0, y1;
+};
+
+template <typename T>
+std::vector<Splat<T>> prepare_splats(const T* means, const T* conics, const T* opac, const int32_t* radii,
+                                     int64_t N, int64_t W, int64_t H) {
+  std::vector<Splat<T>> out(N);
+  at::parallel_for(0, N, 2048, [&](int64_t begin, int64_t end) {
+    for (int64_t g = begin; g < end; ++g) {
+      Splat<T>& sp = out[g];
+      sp.mx = means[2 * g];
+      sp.my = means[2 * g + 1];
+      sp.a = conics[3 * g];
+      sp.b = conics[3 * g + 1];
+      sp.c = conics[3 * g + 2];
+      sp.o = opac[g];
+      const bool visible = radii[2 * g] > 0 && radii[2 * g + 1] > 0 && sp.o > T(0) && sp.a > T(0);
+      sp.skip = visible ? static_cast<T>(std::log(255.0 * static_cast<double>(sp.o)) + kSkipMargin) : T(-1);
+      // On a row at offset dy, sigma <= skip for dx in [(-b dy - s) / a, (-b dy + s) / a],
+      // s = sqrt(k1 dy^2 + k2), with k1 = b^2 - a c and k2 = 2 a skip.
+      sp.inv_a = visible ? T(1) / sp.a : T(0);
+      sp.k1 = sp.b * sp.b - sp.a * sp.c;
+      sp.k2 = T(2) * sp.a * sp.skip;
+      const double mx = sp.mx, my = sp.my, rx = radii[2 * g], ry = radii[2 * g + 1];
+      auto clip = [](double v, int64_t hi) { return static_cast<int32_t>(std::min<double>(std::max<double>(v, 0.0), hi)); };
+      sp.x0 = clip(std::ceil(mx - rx - 0.5), W);
+      sp.x1 = clip(std::floor(mx + rx - 0.5) + 1, W);
+      sp.y0 = clip(std::ceil(my - ry - 0.5), H);
+      sp.y1 = clip(std::floor(my + ry - 0.5) + 1, H);
+      if (!visible) sp.x1 = sp.x0;
+    }
+  });
+  return out;
+}
+
+// Pixels [x0, x1) of the row at offset dy that can reach sigma <= skip, within [lo, hi). One
+// pixel of margin each side leaves the decision to the exact alpha test, so no result changes.
+template <typename T>
+inline void row_span(const Splat<T>& sp, T dy, int64_t lo, int64_t hi, int64_t& x0, int64_t& x1) {
+  const T disc = sp.k1 * dy * dy + sp.k2;
+  if (!(disc >= T(0))) {
+    x0 = x1 = 0;
+    return;
+  }
+  const T s = std::sqrt(disc), bdy = sp.b * dy;
+  const T left = sp.mx + (bdy - s) * sp.inv_a;   // leftmost centre
+  const T right = sp.mx + (bdy + s) * sp.inv_a;  // rightmost centre
+  x0 = std::max(lo, static_cast<int64_t>(std::ceil(left - T(0.5))) - 1);
+  x1 = std::min(hi, static_cast<int64_t>(std::floor(right - T(0.5))) + 2);
+}
+
+void run_tiles(int64_t tiles, const std::function<void(int64_t worker, int64_t tile)>& body) {
+  std::atomic<int64_t> next{0};
+  const int64_t workers = std::max<int64_t>(1, at::get_num_threads());
+  at::parallel_for(0, workers, 1, [&](int64_t begin, int64_t end) {
+    for (int64_t worker = begin; worker < end; ++worker)
+      for (int64_t t = next++; t < tiles; t = next++) body(worker, t);
+  });
+}
+
+// A fast exp for float: Cephes' single-precision range reduction and polynomial (relative error
+// below 2 ulp). Double precision keeps std::exp (the reference path in tests).
+inline float fast_exp(float x) {
+  x = std::min(std::max(x, -87.0f), 88.0f);
+  const float n = std::floor(x * 1.44269504088896341f + 0.5f);
+  float r = x - n * 0.693359375f;
+  r = r - n * -2.12194440e-4f;
+  float p = 1.9875691500e-4f;
+  p = p * r + 1.3981999507e-3f;
+  p = p * r + 8.3334519073e-3f;
+  p = p * r + 4.1665795894e-2f;
+  p = p * r + 1.6666665459e-1f;
+  p = p * r + 5.0000001201e-1f;
+  const float y = p * r * r + r + 1.0f;
+  const int32_t bits = (static_cast<int32_t>(n) + 127) << 23;
+  float scale;
+  std::memcpy(&scale, &bits, sizeof(scale));
+  return y * scale;
+}
+inline double fast_exp(double x) { return std::exp(x); }
+
+// Per-tile pixel state over TW x TW pixels (those outside the image are never touched), colours
+// planar by channel. The pixel loops stay scalar with early skips: measured here, skipping
+// finished pixels and empty spans beats branch-free vector rows, whose lanes mostly idle.
+template <typename T, int TW>
+struct TileState {
+  static constexpr int P = TW * TW;
+  int64_t x0, y0, x1, y1;
+  int64_t n_pixels;
+  std::vector<T> Tr, C;  // transmittance [P], colour (or, in backward, colour behind) [D][P]
+  TileState(int64_t tile, int64_t tiles_x, int64_t W, int64_t H, int64_t D)
+      : x0((tile % tiles_x) * TW), y0((tile / tiles_x) * TW), x1(std::min<int64_t>(x0 + TW, W)),
+        y1(std::min<int64_t>(y0 + TW, H)), n_pixels((x1 - x0) * (y1 - y0)), Tr(P, T(1)), C(P * D, T(0)) {}
+  int64_t lane(int64_t px) const { return px - x0; }
+  int64_t row(int64_t py) const { return py - y0; }
+};
+
+template <typename T, int TW>
+void forward_impl(const std::vector<Splat<T>>& splats, const T* colors, const Bins& bins, int64_t D, int64_t W,
+                  int64_t H, T* image, T* alpha, T* final_T, int32_t* last) {
+  const int64_t tiles_x = (W + TW - 1) / TW, tiles_y = (H + TW - 1) / TW;
+  const T max_alpha = static_cast<T>(kMaxAlpha), alpha_thr = static_cast<T>(kAlphaThreshold);
+  const T min_T = static_cast<T>(kMinTransmittance);
+  run_tiles(tiles_x * tiles_y, [&, max_alpha, alpha_thr, min_T](int64_t, int64_t tile) {
+    TileState<T, TW> st(tile, tiles_x, W, H, D);
+    constexpr int P = TileState<T, TW>::P;
+    std::vector<int32_t> lst(P, -1);
+    std::vector<uint8_t> live(P, 0);   // the pixel still composites (lanes outside the image never)
+    std::vector<int> row_live(TW, 0);  // live pixels per row: finished rows are skipped
+    for (int64_t py = st.y0; py < st.y1; ++py)
+      for (int64_t px = st.x0; px < st.x1; ++px) live[st.row(py) * TW + st.lane(px)] = 1;
+    for (int64_t py = st.y0; py < st.y1; ++py) row_live[st.row(py)] = static_cast<int>(st.x1 - st.x0);
+    int64_t n_done = 0;
+    for (int64_t k = bins.offsets[tile]; k < bins.offsets[tile + 1] && n_done < st.n_pixels; ++k) {
+      const int64_t g = bins.gauss[k];
+      const Splat<T>& sp = splats[g];
+      const int64_t rx0 = std::max<int64_t>(st.x0, sp.x0), rx1 = std::min<int64_t>(st.x1, sp.x1);
+      const int64_t ry0 = std::max<int64_t>(st.y0, sp.y0), ry1 = std::min<int64_t>(st.y1, sp.y1);
+      if (rx0 >= rx1 || ry0 >= ry1) continue;
+      const T* col = colors + D * g;
+      const int32_t idx = static_cast<int32_t>(k - bins.offsets[tile]);
+      for (int64_t py = ry0; py < ry1; ++py) {
+        const int64_t r = st.row(py);
+        if (row_live[r] == 0) continue;
+        const T dy = sp.my - (static_cast<T>(py) + T(0.5));
+        int64_t x0, x1;
+        row_span(sp, dy, rx0, rx1, x0, x1);
+        if (x0 >= x1) continue;
+        const int64_t base = r * TW - st.x0;  // pixel index = base + px
+        int stops = 0;
+        for (int64_t px = x0; px < x1; ++px) {
+          const int64_t p = base + px;
+          if (!live[p]) continue;
+          const T dx = sp.mx - (static_cast<T>(px) + T(0.5));
+          const T sigma = T(0.5) * (sp.a * dx * dx + sp.c * dy * dy) + sp.b * dx * dy;
+          if (sigma < T(0) || sigma > sp.skip) continue;
+          const T al = std::min(max_alpha, sp.o * fast_exp(-sigma));
+          if (al < alpha_thr) continue;
+          const T next = st.Tr[p] * (T(1) - al);
+          if (next <= min_T) {  // stop before the splat that would make the pixel opaque
+            live[p] = 0;
+            ++stops;
+            continue;
+          }
+          const T w = al * st.Tr[p];
+          T* Cp = st.C.data() + p;
+          for (int64_t ch = 0; ch < D; ++ch) Cp[ch * P] += w * col[ch];
+          st.Tr[p] = next;
+          lst[p] = idx;
+        }
+        n_done += stops;
+        row_live[r] -= stops;
+      }
+    }
+    for (int64_t py = st.y0; py < st.y1; ++py)
+      for (int64_t px = st.x0; px < st.x1; ++px) {
+        const int64_t p = st.row(py) * TW + st.lane(px), q = py * W + px;
+        for (int64_t ch = 0; ch < D; ++ch) image[q * D + ch] = st.C[ch * P + p];
+        alpha[q] = T(1) - st.Tr[p];
+        final_T[q] = st.Tr[p];
+        last[q] = lst[p];
+      }
+  });
+}
+
+template <typename T, int TW>
+void backward_impl(const std::vector<Splat<T>>& splats, const T* colors, const Bins& bins, int64_t D, int64_t W,
+                   int64_t H, const T* final_T, const int32_t* last, const T* g_image, const T* g_alpha, T* g_means,
+                   T* g_conics, T* g_opac, T* g_colors) {
+  const int64_t N = static_cast<int64_t>(splats.size());
+  const int64_t tiles_x = (W + TW - 1) / TW, tiles_y = (H + TW - 1) / TW;
+  const T max_alpha = static_cast<T>(kMaxAlpha), alpha_thr = static_cast<T>(kAlphaThreshold);
+  const int64_t workers = std::max<int64_t>(1, at::get_num_threads());
+  const int64_t stride = 6 + D;  // means 2, conics 3, opacity 1, colours D
+  std::vector<std::vector<T>> buffers(workers);
+  run_tiles(tiles_x * tiles_y, [&, max_alpha, alpha_thr](int64_t worker, int64_t tile) {
+    std::vector<T>& buf = buffers[worker];
+    if (buf.empty()) buf.assign(N * stride, T(0));
+    TileState<T, TW> st(tile, tiles_x, W, H, D);  // st.C holds S, the colour composited behind
+    constexpr int P = TileState<T, TW>::P;
+    std::vector<T> gC(P * D, T(0)), gAT(P, T(0));  // dL/dC [D][P]; dL/d(alpha out) * final T [P]
+    std::vector<int32_t> lst(P, -1), row_last(TW, -1);
+    int32_t max_last = -1;
+    for (int64_t py = st.y0; py < st.y1; ++py)
+      for (int64_t px = st.x0; px < st.x1; ++px) {
+        const int64_t p = st.row(py) * TW + st.lane(px), q = py * W + px;
+        st.Tr[p] = final_T[q];
+        gAT[p] = g_alpha[q] * final_T[q];
+        lst[p] = last[q];
+        row_last[st.row(py)] = std::max(row_last[st.row(py)], last[q]);
+        max_last = std::max(max_last, last[q]);
+        for (int64_t ch = 0; ch < D; ++ch) gC[ch * P + p] = g_image[q * D + ch];
+      }
+    std::vector<T> gcol(D);
+    for (int64_t idx = max_last; idx >= 0; --idx) {
+      const int64_t g = bins.gauss[bins.offsets[tile] + idx];
+      const Splat<T>& sp = splats[g];
+      const int64_t rx0 = std::max<int64_t>(st.x0, sp.x0), rx1 = std::min<int64_t>(st.x1, sp.x1);
+      const int64_t ry0 = std::max<int64_t>(st.y0, sp.y0), ry1 = std::min<int64_t>(st.y1, sp.y1);
+      if (rx0 >= rx1 || ry0 >= ry1) continue;
+      const T* col = colors + D * g;
+      const int32_t id = static_cast<int32_t>(idx);
+      T gmx = 0, gmy = 0, ga = 0, gb = 0, gc = 0, go = 0, touched = 0;
+      std::fill(gcol.begin(), gcol.end(), T(0));
+      for (int64_t py = ry0; py < ry1; ++py) {
+        const int64_t r = st.row(py);
+        if (id > row_last[r]) continue;
+        const T dy = sp.my - (static_cast<T>(py) + T(0.5));
+        int64_t x0, x1;
+        row_span(sp, dy, rx0, rx1, x0, x1);
+        if (x0 >= x1) continue;
+        const int64_t base = r * TW - st.x0;  // pixel index = base + px
+        for (int64_t px = x0; px < x1; ++px) {
+          const int64_t p = base + px;
+          if (id > lst[p]) continue;
+          const T dx = sp.mx - (static_cast<T>(px) + T(0.5));
+          const T sigma = T(0.5) * (sp.a * dx * dx + sp.c * dy * dy) + sp.b * dx * dy;
+          if (sigma < T(0) || sigma > sp.skip) continue;
+          const T e = fast_exp(-sigma);
+          const T raw = sp.o * e;
+          const T al = std::min(max_alpha, raw);
+          if (al < alpha_thr) continue;
+          touched = T(1);
+          const T inv = T(1) / (T(1) - al);
+          const T Ti = st.Tr[p] * inv;  // transmittance in front of this splat
+          const T w = al * Ti;
+          T dL_dalpha = gAT[p] * inv;
+          T* S = st.C.data() + p;
+          const T* gCp = gC.data() + p;
+          for (int64_t ch = 0; ch < D; ++ch) {
+            const T gch = gCp[ch * P];
+            gcol[ch] += w * gch;
+            dL_dalpha += gch * (Ti * col[ch] - S[ch * P] * inv);
+            S[ch * P] += w * col[ch];
+          }
+          st.Tr[p] = Ti;
+          if (raw <= max_alpha) {  // no gradient through the 0.999 clamp
+            go += dL_dalpha * e;
+            const T dL_dsigma = -dL_dalpha * al;
+            gmx += dL_dsigma * (sp.a * dx + sp.b * dy);
+            gmy += dL_dsigma * (sp.b * dx + sp.c * dy);
+            ga += dL_dsigma * T(0.5) * dx * dx;
+            gb += dL_dsigma * dx * dy;
+            gc += dL_dsigma * T(0.5) * dy * dy;
+          }
+        }
+      }
+      if (touched == T(0)) continue;
+      T* out = buf.data() + g * stride;
+      out[0] += gmx; out[1] += gmy; out[2] += ga; out[3] += gb; out[4] += gc; out[5] += go;
+      for (int64_t ch = 0; ch < D; ++ch) out[6 + ch] += gcol[ch];
+    }
+  });
+  at::parallel_for(0, N, 1024, [&](int64_t begin, int64_t end) {
+    for (int64_t g = begin; g < end; ++g) {
+      T sum[6] = {0, 0, 0, 0, 0, 0};
+      for (int64_t ch = 0; ch < D; ++ch) g_colors[g * D + ch] = 0;
+      for (const auto& buf : buffers) {
+        if (buf.empty()) continue;
+        const T* in = buf.data() + g * stride;
+        for (int i = 0; i < 6; ++i) sum[i] += in[i];
+        for (int64_t ch = 0; ch < D; ++ch) g_colors[g * D + ch] += in[6 + ch];
+      }
+      g_means[2 * g] = sum[0]; g_means[2 * g + 1] = sum[1];
+      g_conics[3 * g] = sum[2]; g_conics[3 * g + 1] = sum[3]; g_conics[3 * g + 2] = sum[4];
+      g_opac[g] = sum[5];
+    }
+  });
+}
+
+// Calls f<TW>() for the supported tile sides.
+template <typename F>
+void with_tile_width(int64_t tile_size, F&& f) {
+  switch (tile_size) {
+    case 8: f(std::integral_constant<int, 8>{}); break;
+    case 16: f(std::integral_constant<int, 16>{}); break;
+    case 32: f(std::integral_constant<int, 32>{}); break;
+    default: TORCH_CHECK(false, "tile_size must be 8, 16 or 32, got ", tile_size);
+  }
+}
+
+void check(const torch::Tensor& t, const char* name, int64_t dim) {
+  TORCH_CHECK(t.device().is_cpu(), name, " must be a CPU tensor");
+  TORCH_CHECK(t.is_contiguous(), name, " must be contiguous");
+  TORCH_CHECK(t.dim() == dim, name, " must have ", dim, " dimensions");
+}
+
+}  // namespace
+
+// Returns image [H, W, D], alpha [H, W], final transmittance [H, W], last contributor [H, W]
+// (index in the tile's list, -1 for none), tile offsets [tiles + 1] and tile lists [pairs].
+std::vector<torch::Tensor> forward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opacities,
+                                   torch::Tensor colors, torch::Tensor radii, torch::Tensor rects,
+                                   torch::Tensor order, int64_t width, int64_t height, int64_t tile_size) {
+  check(means2d, "means2d", 2); check(conics, "conics", 2); check(opacities, "opacities", 1);
+  check(colors, "colors", 2); check(radii, "radii", 2); check(rects, "rects", 2); check(order, "order", 1);
+  TORCH_CHECK(tile_size == 8 || tile_size == 16 || tile_size == 32, "tile_size must be 8, 16 or 32");
+  TORCH_CHECK(radii.scalar_type() == torch::kInt32 && rects.scalar_type() == torch::kInt64 &&
+              order.scalar_type() == torch::kInt64, "radii must be int32, rects and order int64");
+  const int64_t D = colors.size(1);
+  const int64_t tiles_x = (width + tile_size - 1) / tile_size, tiles_y = (height + tile_size - 1) / tile_size;
+  torch::Tensor offsets;
+  torch::Tensor lists = bin_tiles(rects.data_ptr<int64_t>(), order.data_ptr<int64_t>(), order.size(0), tiles_x,
+                                  tiles_x * tiles_y, offsets);
+  const Bins bins{offsets.data_ptr<int64_t>(), lists.data_ptr<int32_t>()};
+  auto opts = colors.options();
+  auto image = torch::empty({height, width, D}, opts);
+  auto alpha = torch::empty({height, width}, opts);
+  auto final_T = torch::empty({height, width}, opts);
+  auto last = torch::empty({height, width}, opts.dtype(torch::kInt32));
+  AT_DISPATCH_FLOATING_TYPES(colors.scalar_type(), "manisplat_rasterize_forward", [&] {
+    const auto splats = prepare_splats<scalar_t>(means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
+                                                 opacities.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
+                                                 means2d.size(0), width, height);
+    with_tile_width(tile_size, [&](auto tw) {
+      forward_impl<scalar_t, decltype(tw)::value>(splats, colors.data_ptr<scalar_t>(), bins, D, width, height,
+                                                  image.data_ptr<scalar_t>(), alpha.data_ptr<scalar_t>(),
+                                                  final_T.data_ptr<scalar_t>(), last.data_ptr<int32_t>());
+    });
+  });
+  return {image, alpha, final_T, last, offsets, lists};
+}
+
+// Gradients of a scalar loss w.r.t. means2d [N, 2], conics [N, 3], opacities [N], colors [N, D].
+std::vector<torch::Tensor> backward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opacities,
+                                    torch::Tensor colors, torch::Tensor radii, torch::Tensor offsets,
+                                    torch::Tensor lists, torch::Tensor final_T, torch::Tensor last,
+                                    torch::Tensor grad_image, torch::Tensor grad_alpha, int64_t width,
+                                    int64_t height, int64_t tile_size) {
+  check(grad_image, "grad_image", 3); check(grad_alpha, "grad_alpha", 2);
+  const int64_t N = means2d.size(0), D = colors.size(1);
+  const Bins bins{offsets.data_ptr<int64_t>(), lists.data_ptr<int32_t>()};
+  auto g_means = torch::empty_like(means2d), g_conics = torch::empty_like(conics);
+  auto g_opac = torch::empty_like(opacities), g_colors = torch::empty_like(colors);
+  AT_DISPATCH_FLOATING_TYPES(colors.scalar_type(), "manisplat_rasterize_backward", [&] {
+    const auto splats = prepare_splats<scalar_t>(means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
+                                                 opacities.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(), N,
+                                                 width, height);
+    with_tile_width(tile_size, [&](auto tw) {
+      backward_impl<scalar_t, decltype(tw)::value>(splats, colors.data_ptr<scalar_t>(), bins, D, width, height,
+                            final_T.data_ptr<scalar_t>(),
+                            last.data_ptr<int32_t>(), grad_image.data_ptr<scalar_t>(),
+                            grad_alpha.data_ptr<scalar_t>(), g_means.data_ptr<scalar_t>(),
+                            g_conics.data_ptr<scalar_t>(), g_opac.data_ptr<scalar_t>(), g_colors.data_ptr<scalar_t>());
+    });
+  });
+  return {g_means, g_conics, g_opac, g_colors};
+}
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("forward", &forward, "composite projected Gaussians (CPU)");
+  m.def("backward", &backward, "gradients of composite (CPU)");
+}

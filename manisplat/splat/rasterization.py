@@ -1,0 +1,167 @@
+"""``rasterization``: render 3D Gaussians into C cameras, modelled on ``gsplat.rasterization``.
+
+Colours, depth and per-group alphas are composited in one pass as channels of one colour
+tensor: depth is the camera z of each splat, and a group's alpha is a one-hot channel (the
+summed blending weight of that group's splats, e.g. the dynamic parts for a mask loss).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from manisplat.splat.backends import resolve_backend
+from manisplat.splat.projection import project_gaussians
+from manisplat.splat.sh import num_sh_bases, spherical_harmonics
+
+RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
+
+
+class RasterizationError(ValueError):
+    """Inputs of the wrong shape, dtype or value (NaN, negative scales, ...)."""
+
+
+def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree) -> None:
+    N = means.shape[0] if means.ndim == 2 else -1
+    expected = {"means": (means, (N, 3)), "quats": (quats, (N, 4)), "scales": (scales, (N, 3)), "opacities": (opacities, (N,))}
+    for name, (tensor, shape) in expected.items():
+        if tuple(tensor.shape) != shape:
+            raise RasterizationError(f"{name} must have shape {shape} (N = len(means)), got {tuple(tensor.shape)}")
+    if sh_degree is None:
+        if colors.ndim != 2 or colors.shape[0] != N:
+            raise RasterizationError(f"colors must be [N, D] (or SH [N, K, 3] with sh_degree), got {tuple(colors.shape)}")
+    elif colors.ndim != 3 or colors.shape[0] != N or colors.shape[1] < num_sh_bases(sh_degree):
+        raise RasterizationError(
+            f"SH colours for degree {sh_degree} must be [N, K >= {num_sh_bases(sh_degree)}, D], got {tuple(colors.shape)}"
+        )
+    if viewmats.ndim != 3 or viewmats.shape[1:] != (4, 4) or Ks.shape != (viewmats.shape[0], 3, 3):
+        raise RasterizationError(f"viewmats must be [C, 4, 4] and Ks [C, 3, 3], got {tuple(viewmats.shape)}, {tuple(Ks.shape)}")
+    if width <= 0 or height <= 0:
+        raise RasterizationError(f"image size must be positive, got {width}x{height}")
+    for name, tensor in (("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
+                         ("colors", colors), ("viewmats", viewmats), ("Ks", Ks)):
+        if not bool(torch.isfinite(tensor).all()):
+            raise RasterizationError(f"{name} contains NaN or Inf")
+    if bool((scales < 0).any()):
+        raise RasterizationError("scales must be non-negative (pass activated scales, e.g. exp(log_scales))")
+    if bool(((opacities < 0) | (opacities > 1)).any()):
+        raise RasterizationError("opacities must be in [0, 1] (pass activated opacities, e.g. sigmoid(logits))")
+
+
+def rasterization(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    viewmats: torch.Tensor,
+    Ks: torch.Tensor,
+    width: int,
+    height: int,
+    *,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    eps2d: float = 0.3,
+    sh_degree: int | None = None,
+    backgrounds: torch.Tensor | None = None,
+    render_mode: str = "RGB",
+    group_ids: torch.Tensor | None = None,
+    num_groups: int | None = None,
+    backend: str = "auto",
+    tile_size: int = 16,
+) -> tuple[torch.Tensor, torch.Tensor, dict]:
+    """Render N Gaussians into C cameras.
+
+    Args:
+        means: [N, 3] world positions (m). quats: [N, 4] (w, x, y, z), any norm (zero gives identity).
+        scales: [N, 3] activated standard deviations (m). opacities: [N] activated, in [0, 1].
+        colors: [N, D] activated colours, or SH coefficients [N, K, D] with ``sh_degree``
+            (colour = max(SH(view direction) + 0.5, 0), as gsplat).
+        viewmats: [C, 4, 4] world-to-camera (OpenCV axes). Ks: [C, 3, 3]; pixel (i, j) is sampled
+            at (j + 0.5, i + 0.5); convert an episode's OpenCV K with ``opencv_to_splat_K``.
+        width, height: image size in pixels.
+        near_plane, far_plane: depth range kept (m); eps2d: 2D dilation (px^2).
+        backgrounds: [C, D] colour behind the splats (default black).
+        render_mode: "RGB", "D" (accumulated depth), "ED" (expected depth = D / alpha),
+            "RGB+D" or "RGB+ED"; depth is the last channel.
+        group_ids: [N] int64 in [0, num_groups): also return each group's alpha map.
+        backend: "auto" (gsplat on CUDA tensors when installed, else the C++ "cpu" backend),
+            "cpu", "torch" (pure PyTorch reference) or "gsplat".
+
+    Returns:
+        render_colors: [C, H, W, X]; render_alphas: [C, H, W, 1];
+        meta: dict with "means2d" [C, N, 2] (call ``retain_grad()`` on it for densification),
+        "radii" [C, N, 2], "depths" [C, N], "conics" [C, N, 3], "visible" [C, N], "width",
+        "height", "n_cameras", "backend", and "group_alphas" [C, H, W, G] with ``group_ids``.
+    """
+    if render_mode not in RENDER_MODES:
+        raise RasterizationError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
+    _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree)
+    impl = resolve_backend(backend, means.device)
+    C, N = viewmats.shape[0], means.shape[0]
+    G = 0
+    if group_ids is not None:
+        if num_groups is None or num_groups < 1:
+            raise RasterizationError("group_ids needs num_groups >= 1")
+        if group_ids.shape != (N,) or group_ids.dtype not in (torch.int32, torch.int64):
+            raise RasterizationError(f"group_ids must be an int tensor of shape ({N},), got {tuple(group_ids.shape)} {group_ids.dtype}")
+        if N and (int(group_ids.min()) < 0 or int(group_ids.max()) >= num_groups):
+            raise RasterizationError(f"group_ids must lie in [0, {num_groups})")
+        G = num_groups
+    if impl.name == "gsplat":
+        return impl.rasterize(
+            means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane=near_plane,
+            far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, backgrounds=backgrounds,
+            render_mode=render_mode, group_ids=group_ids, num_groups=G, tile_size=tile_size,
+        )
+
+    proj = project_gaussians(
+        means, quats, scales, opacities, viewmats, Ks, width, height,
+        near_plane=near_plane, far_plane=far_plane, eps2d=eps2d,
+    )
+    proj.means2d.requires_grad_(proj.means2d.requires_grad)
+    want_rgb = render_mode.startswith("RGB")
+    want_depth = render_mode != "RGB"
+    outputs, alphas, group_alphas = [], [], []
+    for cam in range(C):
+        channels = []
+        if want_rgb:
+            channels.append(_camera_colors(colors, means, viewmats[cam], sh_degree))
+        if want_depth:
+            channels.append(proj.depths[cam][:, None])
+        if G:
+            channels.append(torch.nn.functional.one_hot(group_ids.long(), G).to(means.dtype))
+        feats = torch.cat(channels, dim=-1) if channels else means.new_zeros(N, 0)
+        image, alpha = impl.composite(
+            proj.means2d[cam], proj.conics[cam], proj.opacities[cam], feats, proj.depths[cam],
+            proj.radii[cam], width, height, tile_size,
+        )
+        D_rgb = colors.shape[-1] if want_rgb else 0
+        rgb = image[..., :D_rgb]
+        if want_rgb and backgrounds is not None:
+            rgb = rgb + (1.0 - alpha[..., None]) * backgrounds[cam]
+        parts = [rgb] if want_rgb else []
+        if want_depth:
+            depth = image[..., D_rgb : D_rgb + 1]
+            if render_mode.endswith("ED"):
+                depth = depth / alpha[..., None].clamp_min(1e-10)
+            parts.append(depth)
+        outputs.append(torch.cat(parts, dim=-1))
+        alphas.append(alpha[..., None])
+        if G:
+            group_alphas.append(image[..., -G:])
+    meta = {
+        "means2d": proj.means2d, "radii": proj.radii, "depths": proj.depths, "conics": proj.conics,
+        "visible": proj.visible, "width": width, "height": height, "n_cameras": C, "backend": impl.name,
+    }
+    if G:
+        meta["group_alphas"] = torch.stack(group_alphas)
+    return torch.stack(outputs), torch.stack(alphas), meta
+
+
+def _camera_colors(colors: torch.Tensor, means: torch.Tensor, viewmat: torch.Tensor, sh_degree: int | None) -> torch.Tensor:
+    """[N, D] colours for one camera: as given, or SH evaluated along camera-to-Gaussian rays."""
+    if sh_degree is None:
+        return colors
+    R, t = viewmat[:3, :3], viewmat[:3, 3]
+    camera_center = -(R.transpose(0, 1) @ t)
+    return torch.clamp_min(spherical_harmonics(sh_degree, means - camera_center, colors) + 0.5, 0.0)
