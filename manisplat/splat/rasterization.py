@@ -10,7 +10,6 @@ from __future__ import annotations
 import torch
 
 from manisplat.splat.backends import resolve_backend
-from manisplat.splat.projection import project_gaussians
 from manisplat.splat.sh import num_sh_bases, spherical_harmonics
 
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
@@ -114,11 +113,10 @@ def rasterization(
             render_mode=render_mode, group_ids=group_ids, num_groups=G, tile_size=tile_size,
         )
 
-    proj = project_gaussians(
+    proj = impl.project(
         means, quats, scales, opacities, viewmats, Ks, width, height,
         near_plane=near_plane, far_plane=far_plane, eps2d=eps2d,
     )
-    proj.means2d.requires_grad_(proj.means2d.requires_grad)
     want_rgb = render_mode.startswith("RGB")
     want_depth = render_mode != "RGB"
     outputs, alphas, group_alphas = [], [], []

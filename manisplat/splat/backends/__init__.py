@@ -16,15 +16,17 @@ import torch
 
 from manisplat.splat.backends import cpu_raster, gsplat_raster, torch_raster
 from manisplat.splat.backends.cpu_raster import BackendUnavailable
+from manisplat.splat.projection import project_gaussians
 
 BACKENDS = ("torch", "cpu", "gsplat")
 
 
 @dataclass(frozen=True)
 class Backend:
-    """A backend: ``composite`` for the shared projection path, or ``rasterize`` for gsplat."""
+    """A backend: ``project`` + ``composite`` (torch, cpu), or the whole ``rasterize`` (gsplat)."""
 
     name: str
+    project: Callable | None = None
     composite: Callable | None = None
     rasterize: Callable | None = None
 
@@ -52,12 +54,12 @@ def resolve_backend(name: str, device: torch.device) -> Backend:
     if name == "auto":
         name = "gsplat" if device.type == "cuda" else "cpu"
     if name == "torch":
-        return Backend("torch", composite=torch_raster.composite)
+        return Backend("torch", project=project_gaussians, composite=torch_raster.composite)
     if name == "cpu":
         if device.type != "cpu":
             raise BackendUnavailable(f"the 'cpu' backend takes CPU tensors, got {device}")
         cpu_raster.load_extension()
-        return Backend("cpu", composite=cpu_raster.composite)
+        return Backend("cpu", project=cpu_raster.project, composite=cpu_raster.composite)
     if name == "gsplat":
         if device.type != "cuda" or not gsplat_raster.available():
             raise BackendUnavailable(

@@ -1,4 +1,4 @@
-"""The C++/OpenMP backend: compositing forward and hand-written backward (``csrc/rasterize_cpu.cpp``).
+"""The C++/OpenMP backend: projection and compositing, forward and hand-written backward (``csrc/``).
 
 Built on first use with ``torch.utils.cpp_extension`` and cached (``$TORCH_EXTENSIONS_DIR``, by
 default ``~/.cache/torch_extensions``) under a name that hashes the source, the flags and the
@@ -18,9 +18,12 @@ from types import ModuleType
 import torch
 
 from manisplat.splat.backends.tiles import tile_rects
+from manisplat.splat.projection import Projection
 
 log = logging.getLogger(__name__)
-SOURCE = Path(__file__).resolve().parent.parent / "csrc" / "rasterize_cpu.cpp"
+CSRC = Path(__file__).resolve().parent.parent / "csrc"
+SOURCES = (CSRC / "rasterize_cpu.cpp", CSRC / "project_cpu.cpp")
+HEADERS = (CSRC / "splat_cpu.h",)
 _extension: ModuleType | None = None
 
 
@@ -54,12 +57,16 @@ def load_extension() -> ModuleType:
     from torch.utils import cpp_extension
 
     flags = _flags()
-    digest = hashlib.sha1(SOURCE.read_bytes() + " ".join(flags).encode() + torch.__version__.encode()).hexdigest()[:12]
-    name = f"manisplat_raster_cpu_{digest}"
+    digest = hashlib.sha1()
+    for path in SOURCES + HEADERS:
+        digest.update(path.read_bytes())
+    digest.update((" ".join(flags) + torch.__version__).encode())
+    name = f"manisplat_raster_cpu_{digest.hexdigest()[:12]}"
     log.info("loading the C++ rasterizer %s (the first build takes about a minute; it is cached)", name)
     try:
         _extension = cpp_extension.load(
-            name=name, sources=[str(SOURCE)], extra_cflags=flags, extra_ldflags=["-fopenmp"], verbose=False
+            name=name, sources=[str(p) for p in SOURCES], extra_include_paths=[str(CSRC)], extra_cflags=flags,
+            extra_ldflags=["-fopenmp"], verbose=False,
         )
     except Exception as exc:  # compiler and ninja errors come in several types
         raise BackendUnavailable(
@@ -102,3 +109,42 @@ def composite(means2d, conics, opacities, colors, depths, radii, width, height, 
         means2d.to(dtype), conics.to(dtype), opacities.to(dtype), colors, radii.to(torch.int32), rects, order,
         width, height, tile_size,
     )
+
+
+class _Project(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, quats, scales, viewmat, K, opacities, width, height, near, far, eps2d):
+        ext = load_extension()
+        inputs = [t.contiguous() for t in (means, quats, scales, viewmat, K)]
+        means2d, conics, depths, radii = ext.project_forward(
+            *inputs[:3], opacities.detach().contiguous(), *inputs[3:], width, height, near, far, eps2d
+        )
+        ctx.save_for_backward(*inputs, radii)
+        ctx.args = (width, height, eps2d)
+        ctx.mark_non_differentiable(radii)
+        return means2d, conics, depths, radii
+
+    @staticmethod
+    def backward(ctx, g_means2d, g_conics, g_depths, _):
+        means, quats, scales, viewmat, K, radii = ctx.saved_tensors
+        width, height, eps2d = ctx.args
+        g_means, g_quats, g_scales, g_view = load_extension().project_backward(
+            means, quats, scales, viewmat, K, width, height, eps2d, radii,
+            g_means2d.contiguous(), g_conics.contiguous(), g_depths.contiguous(),
+        )
+        return g_means, g_quats, g_scales, g_view, None, None, None, None, None, None, None
+
+
+def project(means, quats, scales, opacities, viewmats, Ks, width, height, *, near_plane=0.01, far_plane=1e10,
+            eps2d=0.3) -> Projection:
+    """:func:`manisplat.splat.projection.project_gaussians` in C++ (same conventions and results)."""
+    if means.device.type != "cpu":
+        raise BackendUnavailable("the 'cpu' backend takes CPU tensors")
+    dtype = means.dtype
+    parts = [
+        _Project.apply(means, quats.to(dtype), scales.to(dtype), viewmats[c].to(dtype), Ks[c].to(dtype),
+                       opacities.to(dtype), width, height, float(near_plane), float(far_plane), float(eps2d))
+        for c in range(viewmats.shape[0])
+    ]
+    means2d, conics, depths, radii = (torch.stack(x) for x in zip(*parts))
+    return Projection(means2d, conics, depths, radii, opacities.to(dtype)[None].expand(viewmats.shape[0], -1))

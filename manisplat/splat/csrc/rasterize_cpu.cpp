@@ -10,7 +10,8 @@
 // atomic tile counter (dynamic load balance). The backward accumulates per-Gaussian gradients
 // in one buffer per worker and sums them at the end.
 
-#include <torch/extension.h>
+#include "splat_cpu.h"
+
 #include <ATen/Parallel.h>
 
 #include <algorithm>
@@ -415,4 +416,6 @@ std::vector<torch::Tensor> backward(torch::Tensor means2d, torch::Tensor conics,
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("forward", &forward, "composite projected Gaussians (CPU)");
   m.def("backward", &backward, "gradients of composite (CPU)");
+  m.def("project_forward", &project_forward, "EWA projection into one camera (CPU)");
+  m.def("project_backward", &project_backward, "gradients of the projection (CPU)");
 }
