@@ -76,6 +76,10 @@ def composite(
             image = image.index_put((used[i:j],), image_c)
             alpha = alpha.index_put((used[i:j],), alpha_c)
             i = j
+    else:
+        # nothing visible: keep the output attached to the inputs so backward() gives zeros, not an error
+        attach = sum(t.sum() for t in (means2d, conics, opacities, colors)) * 0.0
+        image, alpha = image + attach, alpha + attach
     image = image.reshape(tiles_y, tiles_x, tile_size, tile_size, D).permute(0, 2, 1, 3, 4)
     alpha = alpha.reshape(tiles_y, tiles_x, tile_size, tile_size).permute(0, 2, 1, 3)
     image = image.reshape(tiles_y * tile_size, tiles_x * tile_size, D)[:height, :width]
