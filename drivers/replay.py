@@ -1,5 +1,6 @@
 """Replays: a python-can log played onto a virtual bus (so :class:`PiperArm` runs unchanged on a
-file), and an episode's joint stream as an :class:`~manisplat.drivers.base.Arm`.
+file), and a recorded episode as an :class:`~manisplat.drivers.base.Arm` (its joint stream) and a
+:class:`~manisplat.drivers.base.Camera` (its frames), with the original timestamps.
 
     >>> player = CanLogPlayer("run.blf", realtime=False)
     >>> arm = PiperArm(player.open_bus(), read_only=True)   # open the receiving bus first
@@ -22,7 +23,7 @@ from pathlib import Path
 import can
 import numpy as np
 
-from manisplat.drivers.base import ArmHealth, DriverError, JointState
+from manisplat.drivers.base import ArmHealth, CameraFrame, DriverError, JointState, SequenceTracker
 from manisplat.episode import Episode
 
 log = logging.getLogger(__name__)
@@ -199,6 +200,55 @@ class EpisodeArm:
         self._closed = True
 
     def __enter__(self) -> EpisodeArm:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class EpisodeCamera:
+    """An episode's frames (EPISODE.md) as a :class:`~manisplat.drivers.base.Camera`: RGB, depth
+    when present, the episode's ``t`` (its monotonic clock, mid-exposure where the recorder knew
+    it), ``seq`` from the ``seq`` column when present (else the frame index) and drops from its
+    gaps. ``realtime`` paces frames at their recorded spacing; otherwise as fast as read."""
+
+    def __init__(self, episode: Episode | str | Path, *, realtime: bool = False) -> None:
+        self.episode = episode if isinstance(episode, Episode) else Episode.open(episode)
+        cam = self.episode.camera
+        self.width, self.height, self.K, self.dist = cam.width, cam.height, cam.K.copy(), cam.dist.copy()
+        self.realtime = realtime
+        self.tracker = SequenceTracker()
+        self._index = 0
+        self._start: float | None = None
+        seq = self.episode.frames.extra.get("seq")
+        self._seq = seq.astype(np.int64) if seq is not None else self.episode.frames.index
+
+    def __len__(self) -> int:
+        return len(self.episode)
+
+    def read(self, timeout: float | None = 1.0) -> CameraFrame | None:
+        i = self._index
+        if i >= len(self.episode):
+            return None
+        t = self.episode.frames.t
+        if self.realtime:
+            if self._start is None:
+                self._start = time.monotonic()
+            delay = self._start + (t[i] - t[0]) - time.monotonic()
+            if timeout is not None and delay > timeout:
+                time.sleep(timeout)
+                raise TimeoutError(f"frame {i} is due in more than {timeout} s")
+            time.sleep(max(0.0, delay))
+        frame = self.episode.frame(i)
+        self._index += 1
+        seq = int(self._seq[i])
+        return CameraFrame(seq=seq, t=frame.t, rgb=frame.rgb, depth=frame.depth, exposure_s=None,
+                           dropped=self.tracker.update(seq), t_host=time.monotonic())
+
+    def close(self) -> None:
+        self._index = len(self.episode)
+
+    def __enter__(self) -> EpisodeCamera:
         return self
 
     def __exit__(self, *exc: object) -> None:

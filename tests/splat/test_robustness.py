@@ -20,7 +20,7 @@ def check_finite_everywhere(backend, params, V, K, W, H, **kwargs):
     (colors.sum() + alphas.sum()).backward()
     for p in leaves:
         assert p.grad is not None and torch.isfinite(p.grad).all()
-    return colors, alphas, meta
+    return colors.detach(), alphas.detach(), meta
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -71,10 +71,10 @@ def test_empty_scene_and_all_culled(backend):
     params, V, K, W, H = random_scene(10, 3)
     params[0][:, 2] = -10.0
     colors, alphas, _ = check_finite_everywhere(backend, params, V, K, W, H)
-    assert float(alphas.detach().max()) == 0.0
+    assert float(alphas.max()) == 0.0
 
 
-def test_many_gaussians_stay_finite_and_agree():
+def test_many_gaussians_stay_finite_and_saturate():
     """200k small Gaussians in a 64x48 image (hundreds per pixel, early termination everywhere)."""
     params, V, K, W, H = random_scene(200_000, 4, dtype=torch.float32, width=64, height=48, scale=(0.005, 0.05))
     colors, alphas, _ = check_finite_everywhere("cpu", params, V, K, W, H)
