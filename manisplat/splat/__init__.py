@@ -5,20 +5,26 @@ backward, the default on CPU) and "gsplat" (CUDA, optional). All follow gsplat's
 """
 
 from manisplat.splat.backends import BACKENDS, BackendUnavailable, available_backends
+from manisplat.splat.ply import PlyFormatError, load_ply, save_ply
 from manisplat.splat.projection import Projection, opencv_to_splat_K, project_gaussians
 from manisplat.splat.rasterization import RENDER_MODES, RasterizationError, rasterization
 from manisplat.splat.sh import num_sh_bases, spherical_harmonics
+from manisplat.splat.strategy import DefaultStrategy
 
 __all__ = [
     "BACKENDS",
     "BackendUnavailable",
+    "DefaultStrategy",
+    "PlyFormatError",
     "Projection",
     "RENDER_MODES",
     "RasterizationError",
     "available_backends",
+    "load_ply",
     "num_sh_bases",
     "opencv_to_splat_K",
     "project_gaussians",
     "rasterization",
+    "save_ply",
     "spherical_harmonics",
 ]

@@ -47,15 +47,16 @@ class Projection:
         return (self.radii > 0).all(dim=-1)
 
 
-def quat_scale_to_covariance(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
-    """3D covariances [N, 3, 3] = R S S^T R^T of quaternions (w, x, y, z) [N, 4] and scales [N, 3].
+def splat_rotations(quats: torch.Tensor) -> torch.Tensor:
+    """Rotations [..., 3, 3] of Gaussian quaternions (w, x, y, z) [..., 4], any norm.
 
-    Quaternions are normalised with a floor of 1e-12 on the norm: a zero quaternion gives the
-    identity rotation (finite values and gradients) instead of NaN.
+    Normalised with a floor of 1e-12 on the norm, so a zero quaternion gives the identity
+    (finite values and gradients) instead of NaN: the splatting convention, unlike
+    :func:`manisplat.geometry.quat_to_matrix`, which rejects zero quaternions in poses.
     """
     q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     w, x, y, z = q.unbind(-1)
-    R = torch.stack(
+    return torch.stack(
         [
             1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
             2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
@@ -63,7 +64,12 @@ def quat_scale_to_covariance(quats: torch.Tensor, scales: torch.Tensor) -> torch
         ],
         dim=-1,
     ).reshape(*q.shape[:-1], 3, 3)
-    M = R * scales[..., None, :]
+
+
+def quat_scale_to_covariance(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+    """3D covariances [N, 3, 3] = R S S^T R^T of quaternions [N, 4] (see :func:`splat_rotations`)
+    and scales [N, 3]."""
+    M = splat_rotations(quats) * scales[..., None, :]
     return M @ M.transpose(-1, -2)
 
 
@@ -157,4 +163,4 @@ def opencv_to_splat_K(K: torch.Tensor) -> torch.Tensor:
     return out
 
 
-__all__ = ["ALPHA_THRESHOLD", "Projection", "opencv_to_splat_K", "project_gaussians", "quat_scale_to_covariance"]
+__all__ = ["ALPHA_THRESHOLD", "Projection", "opencv_to_splat_K", "project_gaussians", "quat_scale_to_covariance", "splat_rotations"]
