@@ -80,6 +80,7 @@ def test_remove_and_reset_opacity():
 
 
 def train(strategy, steps, n=200):
+    torch.manual_seed(0)  # splits sample from the global generator, as gsplat's do
     scene, V, K, W, H = random_scene(n, 7, dtype=torch.float32, width=48, height=36, scale=(0.003, 0.2))
     params = {
         "means": torch.nn.Parameter(scene[0]), "quats": torch.nn.Parameter(scene[1]),
