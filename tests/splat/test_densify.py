@@ -103,7 +103,7 @@ def train(strategy, steps, n=200):
         for opt in optimizers.values():
             opt.step()
             opt.zero_grad(set_to_none=True)
-        history.append((step, len(params["means"]), float(loss), float(torch.sigmoid(params["opacities"].detach()).max())))
+        history.append((step, len(params["means"]), float(loss.detach()), float(torch.sigmoid(params["opacities"].detach()).max())))
     return params, state, history
 
 
