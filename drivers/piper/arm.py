@@ -42,6 +42,7 @@ from manisplat.drivers.base import ArmHealth, DriverError, JointState
 from manisplat.drivers.piper import protocol as P
 from manisplat.drivers.piper.assembler import DEFAULT_WINDOW_S
 from manisplat.drivers.piper.feedback import BusStats, FeedbackTracker, Received
+from manisplat.drivers.replay import CanLogPlayer
 from manisplat.robot import RobotModel, builtin_piper
 
 log = logging.getLogger(__name__)
@@ -163,8 +164,6 @@ class PiperArm:
         """A read-only arm reading a python-can log (.blf, .asc, .log, .csv, ...) replayed onto a
         private virtual bus (:class:`~manisplat.drivers.replay.CanLogPlayer`), with the recorded
         timing or as fast as possible. ``replay_done()`` tells when the log has been read."""
-        from manisplat.drivers.replay import CanLogPlayer
-
         player = CanLogPlayer(path, channel=f"piper-log-{uuid.uuid4().hex}", realtime=realtime, speed=speed)
         arm = cls(player.open_bus(), read_only=True, own_bus=True, **kwargs)
         arm._player = player
@@ -408,6 +407,9 @@ class PiperArm:
         self._commanded = True
         self.send(P.MotionCtrl1(P.EStop.RESUME))
         self._last_target = None
+        for _ in range(2):  # the maintainer: enable at least twice after a reset (piper_sdk #66)
+            self.send(P.MotorEnable(7, True))
+            time.sleep(ENABLE_RESEND_S)
         self.enable(timeout)
 
     def hold(self, speed_pct: int = 10) -> bool:
@@ -470,12 +472,12 @@ class PiperArm:
             return
         try:
             if self._commanded and not self.read_only and not self._estopped:
-                enabled = self.motors_enabled()
-                if all(enabled):
-                    if self.hold():
-                        log.info("PiperArm: holding the measured position on close")
-                    else:
-                        log.warning("PiperArm: closing without fresh feedback; the arm keeps its last target")
+                if not all(self.motors_enabled()):
+                    log.info("PiperArm: closing; the motors are not all reported enabled, nothing to hold")
+                elif self.hold():
+                    log.info("PiperArm: holding the measured position on close")
+                else:
+                    log.warning("PiperArm: closing without fresh feedback; the arm keeps its last target")
         finally:
             self._closed = True
             self._stop.set()
