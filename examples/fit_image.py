@@ -44,7 +44,9 @@ def main(out_dir: str, steps: int = 300, backend: str = "cpu") -> dict:
     }
     lrs = {"means": 1.6e-4 * 2, "quats": 1e-3, "scales": 5e-3, "opacities": 5e-2, "colors": 2.5e-3 * 4}
     optimizers = {k: torch.optim.Adam([p], lr=lrs[k], eps=1e-15) for k, p in params.items()}
-    strategy = DefaultStrategy(refine_start_iter=50, refine_every=50, reset_every=10_000, refine_stop_iter=steps - 50)
+    every = max(steps // 6, 1)  # refine a few times, none in the last sixth
+    strategy = DefaultStrategy(refine_start_iter=every - 1, refine_every=every, reset_every=10_000,
+                               refine_stop_iter=steps - every)
     state = strategy.initialize_state(scene_scale=1.0)
     for step in tqdm(range(steps), desc="fitting", unit="step"):
         img, _, info = rasterization(params["means"], params["quats"], torch.exp(params["scales"]),
