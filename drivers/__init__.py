@@ -2,7 +2,7 @@
 
 The recorder talks to the :class:`Arm` and :class:`Camera` interfaces (:mod:`.base`);
 :mod:`.piper` (``PiperArm``, ``SimulatedPiper``), :mod:`.replay` (``CanLogPlayer``,
-``EpisodeArm``) and :mod:`.oak` (``OakCamera``, ``DepthaiReplayCamera``, ``EpisodeCamera``)
+``EpisodeArm``, ``EpisodeCamera``) and :mod:`.oak` (``OakCamera``, ``DepthaiReplayCamera``)
 implement them.
 """
 

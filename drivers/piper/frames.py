@@ -3,7 +3,7 @@
 Units and the choices where sources disagree:
 * Joint angles, end-pose angles: 0.001 deg -> rad. Lengths: 0.001 mm -> m.
 * Driver position (0x251..0x256): the SDK docs say both "rad" and "0.001 rad"; pyAgxArm decodes
-  x1e-3, so 0.001 rad (a joint-angle check against 0x2A5..0x2A7 confirms the scale on a real arm).
+  x1e-3, so 0.001 rad (unverified on hardware here; comparing with 0x2A5..0x2A7 would settle it).
 * Driver current: the SDK message doc says uint16 but the parser (and pyAgxArm) read int16: int16.
 * Max joint speed (0x473, 0x474): the SDK says 0.001 rad/s before firmware V1.5-8 and 0.01 rad/s
   from V1.5-8 on; this project targets S-V1.6-3+ (the built-in kinematics), so 0.01 rad/s.
@@ -12,7 +12,8 @@ Units and the choices where sources disagree:
   kp 12 bit 0..500, kd 12 bit -5..5, t 8 bit +-18 N*m, then a 4-bit XOR CRC of bytes 0..6. The
   SDK 0.6.x truncates (``int()``) when quantising, this module rounds, so an SDK frame and ours
   for the same float may differ by 1 LSB; decoding either is exact. Firmware S-V1.8-8+ (12-bit t,
-  no CRC) is not decoded by this layout: its frames fail the CRC check and come out invalid.
+  no CRC) is not decoded by this layout: 15 in 16 of its frames fail the CRC check and come out
+  invalid, the rest decode with a wrong torque.
 * 0x121 (light), 0x422 (upgrade silent mode): the tables give no layout; they decode to
   :class:`UndocumentedFrame` carrying the bytes.
 """
@@ -23,7 +24,7 @@ import math
 import struct
 from dataclasses import dataclass
 from enum import IntEnum
-from typing import Any, ClassVar, Iterable
+from typing import Any, ClassVar
 
 from manisplat.drivers.piper.wire import (CENTI, DECI, DECIDEG, MDEG, MILLI, ONE, UM, Field, Frame, InvalidFrame,
                                           LayoutFrame)
@@ -197,8 +198,8 @@ class CanId(IntEnum):
     FIRMWARE = 0x4AF
 
 
-def _values(*enums: type[IntEnum], exclude: Iterable[int] = ()) -> frozenset[int]:
-    return frozenset(int(m) for e in enums for m in e) - frozenset(exclude)
+def _values(*enums: type[IntEnum]) -> frozenset[int]:
+    return frozenset(int(m) for e in enums for m in e)
 
 
 _MOTOR_1_6 = frozenset(range(1, 7))
