@@ -92,12 +92,11 @@ def test_leaving_the_context_holds_the_measured_position(channel, sim):
         arm.move_joints(TARGET, speed_pct=5)  # slow: still moving when we leave
         arm.wait_for_joint_state(arm.wait_for_joint_state().seq + 40)
     state = sim.state()
-    assert np.abs(state["q"] - TARGET).max() > 0.1
+    assert np.abs(state["q"] - TARGET).max() > 0.1  # it was still on its way
     assert np.abs(state["target"] - state["q"]).max() < 0.02  # the target became the measured position
     assert state["enabled"].all() and not state["estop"]  # no disable, no reset
-    later = sim.state()
-    sim.wait_cycles(40)
-    assert np.abs(sim.state()["q"] - later["q"]).max() < 0.01
+    sim.wait_cycles(80)
+    np.testing.assert_allclose(sim.state()["q"], state["target"], atol=1e-3)  # and it stopped there
 
 
 def test_an_exception_inside_the_context_still_holds(channel, sim):
