@@ -126,49 +126,35 @@ class Frame:
 
 
 @dataclass(frozen=True)
-class UnknownFrame(Frame):
+class RawFrame(Frame):
+    """A frame kept as its raw bytes (base of the frames that have no typed layout)."""
+
+    id: int
+    data: bytes
+
+    @property
+    def can_id(self) -> int:
+        return self.id
+
+    def pack(self) -> bytes:
+        return bytes(self.data)
+
+
+@dataclass(frozen=True)
+class UnknownFrame(RawFrame):
     """A frame with an ID this protocol does not define (or a non-PiPER device on the bus)."""
 
-    id: int
-    data: bytes
-
-    @property
-    def can_id(self) -> int:
-        return self.id
-
-    def pack(self) -> bytes:
-        return bytes(self.data)
-
 
 @dataclass(frozen=True)
-class InvalidFrame(Frame):
+class InvalidFrame(RawFrame):
     """A frame with a known ID that does not fit its layout; ``reason`` says why."""
 
-    id: int
-    data: bytes
     reason: str
-
-    @property
-    def can_id(self) -> int:
-        return self.id
-
-    def pack(self) -> bytes:
-        return bytes(self.data)
 
 
 @dataclass(frozen=True)
-class UndocumentedFrame(Frame):
+class UndocumentedFrame(RawFrame):
     """A known ID whose layout the protocol tables do not give (0x121 light, 0x422 silent mode)."""
-
-    id: int
-    data: bytes
-
-    @property
-    def can_id(self) -> int:
-        return self.id
-
-    def pack(self) -> bytes:
-        return bytes(self.data)
 
 
 class LayoutFrame(Frame):
