@@ -1,0 +1,271 @@
+"""``manisplat-calibrate``: boards, intrinsics, capture, hand-eye solve, latency, apply.
+
+Exit codes: 0 success; 1 the calibration failed for another reason (inconsistent data,
+divergence); 2 usage or unreadable input (missing file, bad JSON, wrong image size);
+3 not enough data (too few usable views or detections); 4 degenerate motion (the poses do not
+determine the result).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from manisplat.calib.errors import CalibrationError, DegenerateMotionError, InputError, NotEnoughDataError
+
+EXIT_OK, EXIT_FAILED, EXIT_INPUT, EXIT_NOT_ENOUGH, EXIT_DEGENERATE = 0, 1, 2, 3, 4
+
+
+def _board_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--board", required=True, type=Path, help="board.json (as `manisplat-calibrate board` writes it)")
+
+
+def cmd_board(a: argparse.Namespace) -> int:
+    from manisplat.calib.board import BoardSpec, write_printables
+    spec = BoardSpec(dictionary=a.dictionary, squares_x=a.squares_x, squares_y=a.squares_y,
+                     square_length_m=a.square_mm / 1000.0, marker_length_m=a.marker_mm / 1000.0,
+                     legacy_pattern=a.legacy)
+    paths = write_printables(spec, a.out, px_per_mm=a.px_per_mm, paper=a.paper)
+    for kind, path in paths.items():
+        print(f"wrote {path}")
+    print("print the PDF at 100 % scale (no 'fit to page'), check the 100 mm bar, measure one square and "
+          "put the measured length into square_length_m")
+    return EXIT_OK
+
+
+def cmd_intrinsics(a: argparse.Namespace) -> int:
+    from manisplat.calib.intrinsics import intrinsics_from_images, intrinsics_from_oak
+    if a.oak or a.oak_json:
+        if not (a.width and a.height):
+            raise InputError("--width and --height (the recording size) are required with --oak/--oak-json")
+        cam = intrinsics_from_oak(a.width, a.height, calib_json=a.oak_json, resize=a.resize, device=a.device)
+        out = {"format": "manisplat-intrinsics", **cam.to_dict(), "source": "oak factory calibration"}
+        print(f"OAK factory intrinsics at {a.width}x{a.height}: fx {cam.K[0, 0]:.2f} fy {cam.K[1, 1]:.2f} "
+              f"cx {cam.K[0, 2]:.2f} cy {cam.K[1, 2]:.2f}, {len(cam.dist)} distortion coefficients")
+    else:
+        from manisplat.calib.board import load_board
+        if a.board is None:
+            raise InputError("--board is required to solve intrinsics from images")
+        spec = load_board(a.board)
+        images = _images(a)
+        res = intrinsics_from_images(images, spec, model=a.model, min_coverage=a.min_coverage)
+        out = {**res.to_dict(), "source": "board frames"}
+        k = res.camera.K
+        print(f"{res.views} views: RMS {res.rms_px:.3f} px, coverage {res.coverage:.0%}; fx {k[0, 0]:.2f} "
+              f"fy {k[1, 1]:.2f} cx {k[0, 2]:.2f} cy {k[1, 2]:.2f} (1-sigma {np.round(res.std, 2).tolist()} px)")
+    Path(a.out).write_text(json.dumps(out, indent=1) + "\n", encoding="utf-8")
+    print(f"wrote {a.out}")
+    return EXIT_OK
+
+
+def _images(a: argparse.Namespace) -> list[np.ndarray]:
+    import cv2
+    if a.episode:
+        from manisplat.episode import Episode
+        ep = Episode.open(a.episode)
+        return [ep.rgb(i) for i in range(0, len(ep), max(1, a.step))]
+    if not a.images:
+        raise InputError("give --oak, --oak-json, --episode or --images")
+    paths = sorted(p for pattern in a.images for p in Path().glob(pattern)) if any("*" in x for x in a.images) \
+        else [Path(x) for x in a.images]
+    out = []
+    for p in paths:
+        img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+        if img is None:
+            raise InputError(f"{p}: cannot read image")
+        out.append(img)
+    return out
+
+
+def cmd_capture(a: argparse.Namespace) -> int:
+    from manisplat.calib.board import load_board
+    from manisplat.calib.capture import capture
+    from manisplat.robot import load_robot
+    spec = load_board(a.board)
+    robot = load_robot(a.description, load_meshes=False)
+    if a.replay:
+        from manisplat.drivers.replay import EpisodeArm, EpisodeCamera
+        arm, camera = EpisodeArm(a.replay), EpisodeCamera(a.replay)
+    else:
+        from manisplat.drivers.oak import OakCamera, OakConfig
+        from manisplat.drivers.piper import PiperArm
+        arm = PiperArm.open(a.can, a.interface, read_only=True)
+        camera = OakCamera(OakConfig(width=a.width, height=a.height, fps=a.fps))
+    try:
+        n = capture(arm, camera, robot, spec, a.out, link=a.link if a.mount == "base" else a.mount, mount=a.mount,
+                    auto=a.auto, settle_s=a.settle, frames_per_pose=a.frames_per_pose, max_poses=a.max_poses,
+                    description=a.description, overwrite=a.overwrite)
+    finally:
+        camera.close()
+        arm.close()
+    if n < 3:
+        print(f"only {n} poses recorded; hand-eye calibration needs at least 3 (15-25 recommended)", file=sys.stderr)
+        return EXIT_NOT_ENOUGH
+    print(f"next: manisplat-calibrate solve {a.out} --board {a.board} --out calibration.json --mount {a.mount}")
+    return EXIT_OK
+
+
+def cmd_solve(a: argparse.Namespace) -> int:
+    from manisplat.calib.board import load_board
+    from manisplat.calib.episode_solve import solve_episode
+    from manisplat.calib.result import build_calibration, save_calibration
+    spec = load_board(a.board)
+    camera = None
+    if a.intrinsics:
+        from manisplat.calib.intrinsics import load_intrinsics
+        camera = load_intrinsics(a.intrinsics)
+    solved = solve_episode(a.episode, spec, mount=a.mount, link=a.link, camera=camera,
+                           corner_offset=a.corner_offset, use_opencv=not a.no_opencv)
+    latency = None
+    if a.latency_from:
+        from manisplat.calib.latency import estimate_latency
+        latency = estimate_latency(a.latency_from, max_offset_s=a.max_offset)
+    cal = build_calibration(solved, spec.to_dict(), None if latency is None else latency.to_dict())
+    save_calibration(a.out, cal)
+    r = solved.result
+    s, u = cal["residuals"], cal["uncertainty"]
+    T = r.T_mount_cam
+    print(f"{a.episode}: {s['views_used']}/{s['views_total']} views, {r.poses} distinct poses, "
+          f"{len(solved.rejected)} frames refused; start {r.start}")
+    print(f"reprojection RMS {s['rms_px']:.3f} px (median {s['median_px']:.3f}, max {s['max_px']:.3f}); "
+          f"1-sigma {u['T_mount_cam_rot_std_deg']:.4f} deg, {u['T_mount_cam_trans_std_mm']:.3f} mm")
+    print(f"T_{r.mount}_cam translation {np.round(T[:3, 3], 5).tolist()} m")
+    for note in r.notes:
+        print(f"note: {note}")
+    print(f"wrote {a.out}")
+    if a.report:
+        from manisplat.calib.report import write_report
+        print(f"wrote {write_report(solved, a.report, cal, latency)}")
+    return EXIT_OK
+
+
+def cmd_latency(a: argparse.Namespace) -> int:
+    from manisplat.calib.latency import estimate_latency
+    est = estimate_latency(a.episode, max_offset_s=a.max_offset, use_calibration=not a.uncalibrated)
+    print(f"{a.episode}: latency {est.latency_s * 1000:.2f} +- {est.std_s * 1000:.2f} ms (t_frame - t_exposure; "
+          f"correlation {est.correlation:.3f} over {est.intervals} frame intervals, robot signal in {est.signal})")
+    if a.json:
+        Path(a.json).write_text(json.dumps(est.to_dict(), indent=1) + "\n", encoding="utf-8")
+    return EXIT_OK
+
+
+def cmd_apply(a: argparse.Namespace) -> int:
+    from manisplat.calib.result import apply_calibration, load_calibration
+    cal = load_calibration(a.calibration)
+    for ep in a.episodes:
+        apply_calibration(cal, ep, source=str(Path(a.calibration).resolve()))
+        print(f"{ep}: camera calibrated (mount {cal['mount']}"
+              + (f", latency {cal['latency_s'] * 1000:.1f} ms" if cal.get("latency_s") is not None else "") + ")")
+    return EXIT_OK
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="manisplat-calibrate", description=__doc__.split("\n\n")[0],
+                                epilog=__doc__.split("\n\n", 1)[1], formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("-v", "--verbose", action="store_true")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    b = sub.add_parser("board", help="write a printable ChArUco board (PNG, PDF at true scale) and board.json")
+    b.add_argument("--out", default="board", help="output prefix: PREFIX.png, PREFIX.pdf, PREFIX.json (default: board)")
+    b.add_argument("--squares-x", type=int, default=7, help="squares along x (columns), default 7")
+    b.add_argument("--squares-y", type=int, default=5, help="squares along y (rows), default 5")
+    b.add_argument("--square-mm", type=float, default=30.0, help="square side, mm (default 30)")
+    b.add_argument("--marker-mm", type=float, default=22.0, help="marker side, mm (default 22)")
+    b.add_argument("--dictionary", default="DICT_5X5_100", help="OpenCV ArUco dictionary (default DICT_5X5_100)")
+    b.add_argument("--legacy", action="store_true", help="OpenCV < 4.6 marker layout (boards from calib.io)")
+    b.add_argument("--px-per-mm", type=int, default=10, help="raster resolution of the page (default 10 = 254 dpi)")
+    b.add_argument("--paper", default="a4", choices=["a4", "letter", "a3"])
+    b.set_defaults(fn=cmd_board)
+
+    i = sub.add_parser("intrinsics", help="intrinsics from the OAK factory calibration or from board images")
+    i.add_argument("--oak", action="store_true", help="read the connected OAK's factory calibration")
+    i.add_argument("--oak-json", type=Path, help="an OAK calibration dump (CalibrationHandler.eepromToJsonFile)")
+    i.add_argument("--device", help="OAK device id (default: the first found)")
+    i.add_argument("--resize", default="crop", choices=["crop", "stretch"], help="how the stream was resized")
+    i.add_argument("--width", type=int, help="recording width (px)")
+    i.add_argument("--height", type=int, help="recording height (px)")
+    i.add_argument("--board", type=Path, help="board.json (to solve from images)")
+    i.add_argument("--images", nargs="+", help="image files or glob patterns with the board")
+    i.add_argument("--episode", type=Path, help="an episode whose frames show the board")
+    i.add_argument("--step", type=int, default=1, help="use every STEP-th episode frame")
+    i.add_argument("--model", default="k1k2k3", choices=["none", "k1k2", "k1k2k3", "rational"], help="distortion model")
+    i.add_argument("--min-coverage", type=float, default=0.6, help="fraction of 8x6 image cells with corners (0.6)")
+    i.add_argument("--out", required=True, type=Path, help="intrinsics JSON to write")
+    i.set_defaults(fn=cmd_intrinsics)
+
+    c = sub.add_parser("capture", help="record (joint state, image) pairs at still poses; says which poses add information")
+    c.add_argument("--can", default="can0", help="CAN channel of the PiPER (read only; default can0)")
+    c.add_argument("--interface", default="socketcan", help="python-can interface (default socketcan)")
+    c.add_argument("--replay", type=Path, help="dry run: read arm and camera from this episode instead of devices")
+    _board_args(c)
+    c.add_argument("--out", required=True, type=Path, help="episode folder to write")
+    c.add_argument("--mount", default="base", help="'base' (eye-to-hand) or the camera's link (eye-in-hand, link6)")
+    c.add_argument("--link", default="link6", help="link holding the board (eye-to-hand; default link6)")
+    c.add_argument("--description", default="builtin:agilex_piper", help="robot description the joints follow")
+    c.add_argument("--auto", action="store_true", help="record still poses that add information without asking")
+    c.add_argument("--settle", type=float, default=1.0, help="seconds the arm must be still (1.0)")
+    c.add_argument("--frames-per-pose", type=int, default=3)
+    c.add_argument("--max-poses", type=int, default=25)
+    c.add_argument("--width", type=int, default=1280)
+    c.add_argument("--height", type=int, default=720)
+    c.add_argument("--fps", type=float, default=15.0)
+    c.add_argument("--overwrite", action="store_true")
+    c.set_defaults(fn=cmd_capture)
+
+    s = sub.add_parser("solve", help="camera-to-base / camera-to-flange from a calibration episode")
+    s.add_argument("episode", type=Path)
+    _board_args(s)
+    s.add_argument("--out", required=True, type=Path, help="calibration.json to write")
+    s.add_argument("--mount", default="base", help="'base' (eye-to-hand, default) or the camera's link, e.g. link6")
+    s.add_argument("--link", default="link6", help="link holding the board for eye-to-hand (default link6)")
+    s.add_argument("--intrinsics", type=Path, help="intrinsics JSON (default: the episode's K and dist)")
+    s.add_argument("--corner-offset", type=float, help="px subtracted from OpenCV's ChArUco corners "
+                   "(default: measured for the installed OpenCV)")
+    s.add_argument("--no-opencv", action="store_true", help="start only from our own closed form")
+    s.add_argument("--latency-from", type=Path, help="also estimate the camera latency from this (moving) episode")
+    s.add_argument("--max-offset", type=float, default=0.25, help="latency search range +- s (0.25)")
+    s.add_argument("--report", type=Path, help="write report.html, report.png and overlays into this folder")
+    s.set_defaults(fn=cmd_solve)
+
+    t = sub.add_parser("latency", help="camera-vs-joint timestamp offset of a moving episode")
+    t.add_argument("episode", type=Path)
+    t.add_argument("--max-offset", type=float, default=0.25, help="search range +- s (0.25)")
+    t.add_argument("--uncalibrated", action="store_true", help="ignore the episode's camera calibration")
+    t.add_argument("--json", type=Path, help="also write the estimate here")
+    t.set_defaults(fn=cmd_latency)
+
+    ap = sub.add_parser("apply", help="write calibration.json into episodes (atomically, keeps the rest)")
+    ap.add_argument("calibration", type=Path)
+    ap.add_argument("episodes", type=Path, nargs="+")
+    ap.set_defaults(fn=cmd_apply)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(message)s")
+    from manisplat.drivers.base import DriverError
+    from manisplat.episode import EpisodeFormatError
+    try:
+        return args.fn(args)
+    except DegenerateMotionError as exc:
+        print(f"error: degenerate motion: {exc}", file=sys.stderr)
+        return EXIT_DEGENERATE
+    except NotEnoughDataError as exc:
+        print(f"error: not enough data: {exc}", file=sys.stderr)
+        return EXIT_NOT_ENOUGH
+    except (InputError, EpisodeFormatError, DriverError, FileNotFoundError, FileExistsError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_INPUT
+    except CalibrationError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_FAILED
+
+
+if __name__ == "__main__":
+    sys.exit(main())
