@@ -200,6 +200,11 @@ class PiperArm:
         """Call ``listener`` (from the reader thread) with every complete joint sample."""
         self._joint_listeners.append(listener)
 
+    def add_listener(self, listener: can.Listener) -> None:
+        """Give every received frame to ``listener`` too, on the reader thread (one Notifier per
+        bus: several would split the frames between them). Keep ``on_message_received`` short."""
+        self._notifier.add_listener(listener)
+
     def joint_state(self) -> JointState | None:
         """The latest complete joint sample (rad), or None before the first."""
         with self._cond:

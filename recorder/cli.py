@@ -1,0 +1,446 @@
+"""``manisplat-record``: record episodes from a PiPER on CAN and an OAK (or replayed) camera.
+
+See ``manisplat-record --help``; the pieces are :mod:`.session` (one episode), :mod:`.clock`,
+:mod:`.sync`, :mod:`.writer`, :mod:`.canlog`, :mod:`.actions`, :mod:`.recovery`, and for
+``--sim`` / ``--camera replay:`` :mod:`.simrig` and :mod:`.replaycam`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import logging
+import os
+import re
+import signal
+import sys
+import threading
+from pathlib import Path
+from typing import Any, Iterator, TextIO
+
+from manisplat.drivers.base import Camera, DriverError
+from manisplat.drivers.piper import PiperArm
+from manisplat.recorder.clock import Clock, SystemClock
+from manisplat.recorder.recovery import recover_all
+from manisplat.recorder.session import EpisodeResult, Recorder, RecorderConfig, Status
+
+log = logging.getLogger("manisplat.recorder")
+
+EXIT_OK, EXIT_EPISODE_ERROR, EXIT_USAGE, EXIT_DEVICE, EXIT_RECOVERY = 0, 1, 2, 3, 4
+
+EPILOG = """\
+Start and stop:
+  Each episode starts when you press Enter or space (--start key, the default on a terminal) or at
+  once (--start now), and stops after --duration seconds, on Enter/space, or on Ctrl-C / SIGTERM
+  (which also end the session after the current episode has been closed cleanly). Press q to quit.
+
+What is written (one folder per episode, --out/episode_NNNN, format v1 of EPISODE.md):
+  episode.json   complete:false while recording; the clock mapping, sync settings, task, stats
+  frames.csv     index,t,q1..q6,gripper,seq,sync_gap,sync_flags[,a1..a6,a_gripper]
+                 sync_flags: 1 interpolated across a gap > --max-gap-ms, 2 no joint sample after
+                 the frame (last state held, never extrapolated), 4 before the first sample,
+                 8 no fresh leader command (action = measured state)
+  joints.csv     every joint sample (200 Hz on a PiPER) on the same clock
+  rgb/ depth/    images (depth in uint16 millimetres, depth_scale 0.001)
+  can.asc        every CAN frame as received (python-can ASC; time 0 = the episode's t 0)
+
+Exit status:
+  0  every episode was recorded completely and validates
+  1  an episode ended with an error (disk full, write error, camera failure); what was written is
+     kept (run --recover on it)
+  2  bad arguments
+  3  the arm or the camera could not be opened (or the arm sends no feedback)
+  4  --recover (or the recovery at start) could not make an episode valid
+"""
+
+
+def _size(text: str) -> tuple[int, int]:
+    m = re.fullmatch(r"(\d+)[xX](\d+)", text)
+    if not m or int(m.group(1)) <= 0 or int(m.group(2)) <= 0:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 640x400; got {text!r}")
+    return int(m.group(1)), int(m.group(2))
+
+
+def _camera(text: str) -> str:
+    if text != "oak" and not text.startswith("replay:"):
+        raise argparse.ArgumentTypeError(f"expected 'oak' or 'replay:PATH'; got {text!r}")
+    if text.startswith("replay:") and not text[len("replay:"):]:
+        raise argparse.ArgumentTypeError("replay: needs a path, e.g. replay:episodes/episode_0000")
+    return text
+
+
+def _positive(kind: type) -> Any:
+    def parse(text: str) -> Any:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number; got {text!r}") from None
+        if not value > 0:
+            raise argparse.ArgumentTypeError(f"must be > 0; got {text}")
+        return value
+    return parse
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``manisplat-record``."""
+    p = argparse.ArgumentParser(
+        prog="manisplat-record", formatter_class=argparse.RawDescriptionHelpFormatter, epilog=EPILOG,
+        description="Record episodes (camera frames with the PiPER's joint state at each frame, the raw joint "
+                    "stream, the raw CAN stream) from a PiPER on CAN and an OAK camera, without ROS.")
+    arm = p.add_argument_group("arm")
+    arm.add_argument("--can", default="can0", metavar="CHANNEL",
+                     help="CAN channel of the arm: can0 (socketcan), /dev/ttyACM0 (slcan), ... (default can0)")
+    arm.add_argument("--interface", default="socketcan", metavar="NAME",
+                     help="python-can interface: socketcan, slcan, gs_usb, pcan, kvaser, virtual, ... "
+                          "(default socketcan; the bus runs at 1 Mbit/s, the PiPER's rate)")
+    arm.add_argument("--sim", action="store_true",
+                     help="use a simulated PiPER on a private virtual bus instead of a real arm (no hardware)")
+    arm.add_argument("--sim-motion", choices=("wave", "teleop", "still"), default="wave",
+                     help="--sim: the arm waves (default), follows a simulated leader arm that sends "
+                          "0x155-0x157 (so actions are recorded), or stands still")
+    cam = p.add_argument_group("camera")
+    cam.add_argument("--camera", type=_camera, default="oak", metavar="{oak,replay:PATH}",
+                     help="oak: the first OAK found (depthai); replay:PATH: replay an episode folder or a depthai "
+                          "recording (.mkv/.avi/.mp4 with its .mcap and calibration.json or K.json) live")
+    cam.add_argument("--loop", action="store_true", help="replay camera: repeat the recording without end")
+    cam.add_argument("--fps", type=_positive(float), default=None,
+                     help="camera rate in Hz (oak: its rate, default 30; replay: keep at most this many frames "
+                          "per second, default all)")
+    cam.add_argument("--size", type=_size, default=None, metavar="WxH",
+                     help="image size (oak: output size, default 640x400; replay: must match the recording)")
+    cam.add_argument("--depth", action="store_true",
+                     help="also record depth aligned to the colour image (oak: stereo depth; replay: its depth)")
+    cam.add_argument("--latency-ms", type=float, default=0.0, metavar="MS",
+                     help="camera latency from calibration, ms: a frame's true time is its stamp minus this "
+                          "(default 0; depthai stamps are already mid-exposure times)")
+    out = p.add_argument_group("episodes")
+    out.add_argument("--out", type=Path, default=Path("episodes"), metavar="DIR",
+                     help="folder for the episodes (episode_0000, episode_0001, ...; default ./episodes). "
+                          "Incomplete episodes found there are recovered first")
+    out.add_argument("--episodes", type=_positive(int), default=1, metavar="N", help="episodes to record (default 1)")
+    out.add_argument("--duration", type=_positive(float), default=None, metavar="S",
+                     help="stop each episode after S seconds (default: stop by key or Ctrl-C)")
+    out.add_argument("--start", choices=("key", "now"), default=None,
+                     help="start each episode on Enter/space (key; default on a terminal) or at once (now)")
+    out.add_argument("--image-format", choices=("png", "jpg"), default="png",
+                     help="rgb image format: png (lossless, default) or jpg (smaller, lossy)")
+    out.add_argument("--task", default=None, metavar="TEXT", help="task description stored in episode.json")
+    out.add_argument("--actions", choices=("auto", "on", "off"), default="auto",
+                     help="record leader-arm commands (0x155-0x157, 0x159) as a1..a6,a_gripper: auto = when "
+                          "seen on the bus before the episode starts (default)")
+    out.add_argument("--max-gap-ms", type=_positive(float), default=15.0, metavar="MS",
+                     help="flag frames interpolated across a longer gap between joint samples (default 15 ms: "
+                          "three PiPER samples)")
+    out.add_argument("--recover", type=Path, default=None, metavar="DIR",
+                     help="only recover the incomplete episode DIR (or every incomplete episode in DIR) and exit")
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    return p
+
+
+# -- devices ------------------------------------------------------------------------------------
+
+class Devices:
+    """The arm, the camera and (with --sim) the simulator, closed together."""
+
+    def __init__(self) -> None:
+        self.arm: PiperArm | None = None
+        self.camera: Camera | None = None
+        self.rig: Any = None
+        self.info: dict[str, Any] = {}
+        self.nominal_fps: float | None = None
+
+    def close(self) -> None:
+        for name, thing in (("camera", self.camera), ("arm", self.arm), ("simulator", self.rig)):
+            if thing is None:
+                continue
+            try:
+                thing.close() if name != "simulator" else thing.stop()
+            except Exception as exc:  # closing must not hide the real outcome
+                log.warning("closing the %s failed: %s", name, exc)
+
+
+def open_devices(args: argparse.Namespace, clock: Clock, stop: threading.Event) -> Devices:
+    """Open the arm (or simulator) and the camera the arguments name; DriverError when one fails."""
+    dev = Devices()
+    try:
+        if args.sim:
+            from manisplat.recorder.simrig import SimRig
+
+            dev.rig = SimRig(clock, motion=args.sim_motion, keep_states=False).start()
+            dev.arm = PiperArm(dev.rig.open_bus(), read_only=True, own_bus=True)
+            dev.info["arm"] = f"simulated PiPER ({args.sim_motion}) on a virtual bus"
+        else:
+            dev.arm = PiperArm.open(args.can, args.interface, read_only=True)
+            dev.info["arm"] = f"PiPER on {args.interface} {args.can}"
+        dev.camera = open_camera(args, clock, stop, dev)
+    except BaseException:
+        dev.close()
+        raise
+    return dev
+
+
+def open_camera(args: argparse.Namespace, clock: Clock, stop: threading.Event, dev: Devices) -> Camera:
+    if args.camera == "oak":
+        from manisplat.drivers.oak import OakCamera, OakConfig
+
+        width, height = args.size or (640, 400)
+        fps = args.fps or 30.0
+        camera = OakCamera(OakConfig(width=width, height=height, fps=fps, depth=args.depth))
+        dev.nominal_fps = fps
+        dev.info["camera"] = f"OAK {width}x{height} @ {fps:g} fps{' + depth' if args.depth else ''}"
+        return camera
+    from manisplat.recorder.replaycam import ReplayCamera, open_replay_source
+
+    path = Path(args.camera[len("replay:"):])
+    camera = ReplayCamera(open_replay_source(path), clock, loop=args.loop, fps=args.fps, stop=stop)
+    if args.size is not None and args.size != (camera.width, camera.height):
+        camera.close()
+        raise DriverError(f"--size {args.size[0]}x{args.size[1]} does not match the replayed recording "
+                          f"({camera.width}x{camera.height}); leave --size out or pick that size")
+    dev.nominal_fps = args.fps or _source_fps(path)
+    dev.info["camera"] = f"replay of {path}{' (looped)' if args.loop else ''}"
+    return camera
+
+
+def _source_fps(path: Path) -> float | None:
+    if (path / "episode.json").is_file():
+        from manisplat.episode import Episode
+
+        return Episode.open(path).meta.fps
+    return None
+
+
+# -- keys and status ----------------------------------------------------------------------------
+
+class Keys:
+    """Start/stop by key: Enter or space toggles, q quits (single keys on a terminal, lines otherwise)."""
+
+    def __init__(self, stream: TextIO) -> None:
+        self.stream = stream
+        self.toggle = threading.Event()
+        self.quit = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="keys", daemon=True)
+
+    def start(self) -> Keys:
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        with _cbreak(self.stream):
+            while not self.quit.is_set():
+                ch = self.stream.read(1)
+                if ch == "":
+                    return  # end of input: keys can no longer stop anything
+                if ch in ("q", "Q"):
+                    self.quit.set()
+                    self.toggle.set()
+                elif ch in ("\n", "\r", " "):
+                    self.toggle.set()
+
+
+@contextlib.contextmanager
+def _cbreak(stream: TextIO) -> Iterator[None]:
+    """Single-key input on a terminal (restored afterwards); nothing otherwise."""
+    try:
+        import termios
+        import tty
+
+        fd = stream.fileno()
+        if not os.isatty(fd):
+            raise OSError
+        saved = termios.tcgetattr(fd)
+    except (ImportError, OSError, ValueError, AttributeError):
+        yield
+        return
+    try:
+        tty.setcbreak(fd)
+        yield
+    finally:
+        termios.tcsetattr(fd, termios.TCSADRAIN, saved)
+
+
+class StatusLine:
+    """The live status line on stderr (rewritten in place on a terminal, a log line every 5 s otherwise)."""
+
+    def __init__(self, stream: TextIO, label: str) -> None:
+        self.stream = stream
+        self.label = label
+        self.tty = stream.isatty()
+        self._last_log = -1e9
+        self.width = 0
+
+    def __call__(self, s: Status) -> None:
+        text = (f"{self.label} {s.elapsed_s:6.1f} s | {s.fps:4.1f} fps | CAN {s.can_fps:5.0f}/s | frames {s.frames} | "
+                f"lost {s.lost} | sync gap {s.sync_gap_ms:4.1f} ms | flagged {s.flagged} | queue {s.queue} | "
+                f"arm {s.arm}" + (f" | CAMERA SILENT {s.camera_silent_s:.1f} s" if s.camera_silent_s > 0.5 else ""))
+        if self.tty:
+            self.stream.write("\r" + text.ljust(self.width))
+            self.stream.flush()
+            self.width = len(text)
+        elif s.elapsed_s - self._last_log >= 5.0:
+            self._last_log = s.elapsed_s
+            log.info("%s", text)
+
+    def end(self) -> None:
+        if self.tty and self.width:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def next_episode_path(out: Path) -> Path:
+    """``out/episode_NNNN`` after the highest number there."""
+    numbers = [int(m.group(1)) for p in out.glob("episode_*") if (m := re.fullmatch(r"episode_(\d+)", p.name))]
+    return out / f"episode_{max(numbers, default=-1) + 1:04d}"
+
+
+def summary(results: list[EpisodeResult]) -> str:
+    """The table printed at the end."""
+    rows = [("episode", "frames", "s", "fps", "lost", "flagged", "max gap ms", "joints", "CAN frames", "result")]
+    for r in results:
+        s = r.stats
+        fps = s.frames / s.duration_s if s.duration_s > 0 else 0.0
+        outcome = "valid" if r.valid and not r.error else (r.error or "invalid").splitlines()[0]
+        rows.append((r.path.name, str(s.frames), f"{s.duration_s:.1f}", f"{fps:.1f}", str(s.frames_lost),
+                     str(s.flagged), f"{s.max_sync_gap_s * 1e3:.1f}", str(s.joint_samples),
+                     str(s.can_frames_logged), outcome))
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    return "\n".join("  ".join(c.ljust(w) for c, w in zip(r, widths)) for r in rows)
+
+
+# -- main ---------------------------------------------------------------------------------------
+
+def _setup_logging(verbose: int) -> None:
+    level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    logging.getLogger("manisplat.recorder").setLevel(min(level, logging.INFO))
+
+
+def _recover(folder: Path) -> int:
+    results = recover_all(folder)
+    if not results:
+        print(f"{folder}: no incomplete episode")
+    for r in results:
+        print(r)
+    return EXIT_RECOVERY if any(r.error for r in results) else EXIT_OK
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _setup_logging(args.verbose)
+    if args.recover is not None:
+        if not args.recover.exists():
+            parser.error(f"--recover: {args.recover} does not exist")
+        return _recover(args.recover)
+    try:
+        config = RecorderConfig(fps=args.fps, latency_s=args.latency_ms / 1e3, max_gap_s=args.max_gap_ms / 1e3,
+                                image_format=args.image_format, depth=args.depth, task=args.task, actions=args.actions)
+    except ValueError as exc:
+        parser.error(str(exc))
+    start = args.start or ("key" if sys.stdin.isatty() else "now")
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    if any(r.error for r in recover_all(args.out)):
+        print(f"an incomplete episode in {args.out} could not be recovered (see above); fix it or move it away",
+              file=sys.stderr)
+        return EXIT_RECOVERY
+
+    stop = threading.Event()      # ends the session
+    episode_stop = threading.Event()
+
+    def on_signal(signum: int, _frame: object) -> None:
+        if stop.is_set():
+            log.warning("already stopping (closing the episode cleanly)")
+        stop.set()
+        episode_stop.set()
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    clock = SystemClock()
+    camera_stop = threading.Event()
+    try:
+        try:
+            devices = open_devices(args, clock, camera_stop)
+        except (DriverError, OSError) as exc:
+            print(f"manisplat-record: {exc}", file=sys.stderr)
+            return EXIT_DEVICE
+        try:
+            recorder = Recorder(devices.arm, devices.camera, clock, config, source_info=devices.info,
+                                nominal_fps=devices.nominal_fps)
+            recorder.wait_for_arm()
+        except DriverError as exc:
+            devices.close()
+            print(f"manisplat-record: {exc}", file=sys.stderr)
+            return EXIT_DEVICE
+        try:
+            results = _record(args, recorder, start, stop, episode_stop)
+        finally:
+            camera_stop.set()
+            devices.close()
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    print(summary(results))
+    return EXIT_OK if results and all(r.valid and not r.error for r in results) else \
+        (EXIT_OK if not results else EXIT_EPISODE_ERROR)
+
+
+def _record(args: argparse.Namespace, recorder: Recorder, start: str, stop: threading.Event,
+            episode_stop: threading.Event) -> list[EpisodeResult]:
+    keys = Keys(sys.stdin).start() if start == "key" or args.duration is None else None
+    results: list[EpisodeResult] = []
+    for k in range(args.episodes):
+        if stop.is_set() or (keys is not None and keys.quit.is_set()):
+            break
+        path = next_episode_path(args.out)
+        if start == "key":
+            print(f"episode {k + 1}/{args.episodes} -> {path}: press Enter or space to start (q quits)",
+                  file=sys.stderr)
+            while not keys.toggle.wait(0.1):
+                if stop.is_set():
+                    return results
+            keys.toggle.clear()
+            if keys.quit.is_set():
+                break
+        episode_stop.clear()
+        if stop.is_set():
+            break
+        watcher = _KeyStop(keys, episode_stop) if keys is not None else None
+        status = StatusLine(sys.stderr, f"[{path.name}]")
+        try:
+            result = recorder.record_episode(path, duration=args.duration, stop=episode_stop, on_status=status)
+        finally:
+            status.end()
+            if watcher is not None:
+                watcher.close()
+        results.append(result)
+        print(f"{path}: {result.stats.frames} frames, {result.stats.duration_s:.1f} s"
+              + (f"; ERROR: {result.error}" if result.error else "; valid" if result.valid else ""), file=sys.stderr)
+        if result.error or result.stats.stop_reason in ("camera ended", "camera error"):
+            break
+    return results
+
+
+class _KeyStop:
+    """Sets ``episode_stop`` when a key toggles (Enter/space) or quits during an episode."""
+
+    def __init__(self, keys: Keys, episode_stop: threading.Event) -> None:
+        self._done = threading.Event()
+        keys.toggle.clear()
+
+        def watch() -> None:
+            while not self._done.is_set():
+                if keys.toggle.wait(0.1):
+                    keys.toggle.clear()
+                    episode_stop.set()
+                    return
+
+        self._thread = threading.Thread(target=watch, name="key-stop", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        self._done.set()
+        self._thread.join(1.0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

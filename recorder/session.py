@@ -1,0 +1,517 @@
+"""A recording session: one arm and one camera, any number of episodes.
+
+    >>> rec = Recorder(arm, camera, SystemClock(), RecorderConfig(latency_s=0.012))
+    >>> rec.wait_for_arm()
+    >>> result = rec.record_episode(Path("out/episode_0000"), duration=30.0)
+
+Per episode (:meth:`Recorder.record_episode`):
+1. ``episode.json`` (``complete: false``, the clock mapping, the sync settings), ``frames.csv``
+   and ``can.asc`` are created; a writer thread (:class:`~.writer.EpisodeSink`) takes over.
+2. Every joint sample the arm completes (reader thread) is mapped onto the monotonic timeline
+   (:class:`~.clock.ClockMap`), kept for sync (:class:`~.sync.JointHistory`) and queued for
+   ``joints.csv``; every CAN frame goes to the CAN log; leader commands to :mod:`.actions`.
+3. The loop reads camera frames. A frame's time is its stamp minus the camera latency
+   (``latency_s``); it waits until a joint sample after it has arrived (or ``max_wait_s`` has
+   passed), then gets the interpolated joint state (:mod:`.sync`), the action, its flags, and
+   goes to the writer queue (bounded: a full queue drops and counts the frame).
+4. At the end (duration, stop event, a camera that ended, a write error) the pending frames are
+   resolved, everything queued is written, the statistics are added to ``episode.json`` and
+   ``complete: true`` is written last. A write error instead leaves the episode incomplete with
+   everything written before it (:class:`~.writer.StorageError`).
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from manisplat.drivers.base import Camera, CameraFrame, DriverError, JointState
+from manisplat.drivers.piper import PiperArm
+from manisplat.episode import ACTION_COLUMNS, CameraInfo, EpisodeWriter, RobotInfo, validate
+from manisplat.recorder.actions import LeaderCommands
+from manisplat.recorder.canlog import CAN_LOG_NAME, CanLogSink
+from manisplat.recorder.clock import Clock, ClockMap, RealDeadline
+from manisplat.recorder.sync import FLAG_NAMES, JointHistory
+from manisplat.recorder.writer import EpisodeSink, FrameItem, StorageError
+
+log = logging.getLogger(__name__)
+
+DEPTH_SCALE = 0.001  # metres per depth unit: millimetres, the OAK's own unit
+SYNC_COLUMNS = ("seq", "sync_gap", "sync_flags")
+WALL_STAMP_TOLERANCE_S = 5.0  # CAN stamps further than this from the wall clock are not wall-clock stamps
+
+
+@dataclass
+class RecorderConfig:
+    """Settings of a recording (the CLI flags).
+
+    Attributes:
+        fps: the camera rate declared in ``episode.json`` (None: the camera's nominal rate).
+        latency_s: camera latency from calibration, s: the frame's true time is its stamp minus this.
+        max_gap_s: a frame interpolated across a longer gap between joint samples is flagged, s
+            (the PiPER samples every 5 ms; default 3 samples).
+        max_wait_s: how long a frame waits for a joint sample after it before it is written
+            with the last state held (flagged), s.
+        image_format: ``"png"`` or ``"jpg"``.
+        depth: record depth (the camera must give it).
+        task: the task text for ``episode.json``.
+        actions: ``"auto"`` (record leader commands as actions when seen before the episode
+            starts), ``"on"`` or ``"off"``.
+        max_action_age_s: a leader command older than this at a frame is stale, s.
+        queue_frames: frames the writer queue holds.
+        fsync_every: fsync the episode's files every this many rows.
+        camera_poll_s: the loop waits at most this long for a camera frame, s.
+        stall_after_s: a camera silent for longer counts as stalled, s.
+    """
+
+    fps: float | None = None
+    latency_s: float = 0.0
+    max_gap_s: float = 0.015
+    max_wait_s: float = 0.25
+    image_format: str = "png"
+    depth: bool = False
+    task: str | None = None
+    actions: str = "auto"
+    max_action_age_s: float = 0.1
+    queue_frames: int = 64
+    fsync_every: int = 200
+    camera_poll_s: float = 0.05
+    stall_after_s: float = 0.5
+
+    def __post_init__(self) -> None:
+        if self.actions not in ("auto", "on", "off"):
+            raise ValueError(f"actions must be auto, on or off; got {self.actions!r}")
+        if self.image_format not in ("png", "jpg"):
+            raise ValueError(f"image_format must be png or jpg; got {self.image_format!r}")
+        for name in ("max_gap_s", "max_wait_s", "camera_poll_s", "stall_after_s", "max_action_age_s"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.fps is not None and not self.fps > 0:
+            raise ValueError(f"fps must be > 0, got {self.fps}")
+        if not math.isfinite(self.latency_s) or abs(self.latency_s) > 1.0:
+            raise ValueError(f"latency_s must be within +-1 s, got {self.latency_s}")
+
+
+@dataclass
+class EpisodeStats:
+    """What happened in one episode (also written to ``episode.json`` ``stats``).
+
+    Counts of frames: ``frames`` written; ``dropped_camera`` missing in the camera's sequence
+    numbers; ``dropped_queue`` lost because the writer fell behind; ``stale`` read after the
+    start but exposed before it; ``out_of_order`` with a time not after the previous frame's;
+    ``flagged`` written with a sync flag (``flag_counts`` by flag name).
+    """
+
+    frames: int = 0
+    dropped_camera: int = 0
+    dropped_queue: int = 0
+    stale: int = 0
+    out_of_order: int = 0
+    flagged: int = 0
+    flag_counts: dict[str, int] = field(default_factory=dict)
+    joint_samples: int = 0
+    can_frames_logged: int = 0
+    can_frames_dropped: int = 0
+    duration_s: float = 0.0
+    max_sync_gap_s: float = 0.0
+    camera_stalls: int = 0
+    longest_camera_gap_s: float = 0.0
+    gripper_action_from_state: int = 0
+    stop_reason: str = ""
+
+    @property
+    def frames_lost(self) -> int:
+        return self.dropped_camera + self.dropped_queue
+
+
+@dataclass
+class EpisodeResult:
+    """The outcome of :meth:`Recorder.record_episode`.
+
+    Attributes:
+        path: the episode folder.
+        stats: :class:`EpisodeStats`.
+        error: why the episode could not be completed (None when complete).
+        valid: whether ``validate`` (quick) found no error (False when incomplete).
+    """
+
+    path: Path
+    stats: EpisodeStats
+    error: str | None = None
+    valid: bool = False
+
+
+@dataclass
+class Status:
+    """A snapshot for the live status line.
+
+    Attributes: ``elapsed_s``; ``fps`` (frames written in the last second); ``can_fps`` (CAN
+    frames received per s); ``frames``; ``lost`` (camera + queue drops); ``sync_gap_ms`` (of the
+    last frame); ``flagged``; ``queue`` (frames waiting for the writer); ``camera_silent_s``;
+    ``arm`` (arm health state).
+    """
+
+    elapsed_s: float
+    fps: float
+    can_fps: float
+    frames: int
+    lost: int
+    sync_gap_ms: float
+    flagged: int
+    queue: int
+    camera_silent_s: float
+    arm: str
+
+
+class _Active:
+    """The episode being recorded, as the reader thread sees it."""
+
+    def __init__(self, t0: float, sink: EpisodeSink) -> None:
+        self.t0 = t0
+        self.sink = sink
+        self.last_joint_t = -math.inf
+        self.joint_samples = 0
+
+    def add_joint(self, t: float, q: np.ndarray, gripper: float) -> None:
+        if t > self.last_joint_t:
+            self.last_joint_t = t
+            self.joint_samples += 1
+            self.sink.put_joint(t - self.t0, q, gripper)
+
+
+class Recorder:
+    """Records episodes from ``arm`` and ``camera``; see the module docstring.
+
+    Args:
+        arm: a PiperArm (read-only is enough) on the bus.
+        camera: any :class:`~manisplat.drivers.base.Camera`.
+        clock: the host clocks (:class:`~.clock.SystemClock` outside tests).
+        config: :class:`RecorderConfig`.
+        camera_name: ``episode.json`` camera name.
+        source_info: free-form description of the arm and camera for ``episode.json``.
+        nominal_fps: the camera's configured rate (used when ``config.fps`` is None).
+    """
+
+    def __init__(self, arm: PiperArm, camera: Camera, clock: Clock, config: RecorderConfig | None = None, *,
+                 camera_name: str = "ego", source_info: dict[str, Any] | None = None,
+                 nominal_fps: float | None = None) -> None:
+        self.arm = arm
+        self.camera = camera
+        self.clock = clock
+        self.config = config if config is not None else RecorderConfig()
+        self.camera_name = camera_name
+        self.source_info = dict(source_info or {})
+        self.nominal_fps = nominal_fps
+        self.clock_map = ClockMap(clock)
+        self.history = JointHistory()
+        self.can_stamps = "wall"  # or "host" when the interface's stamps are not on the wall clock
+        self.leader = LeaderCommands(self._can_to_mono, self.config.max_action_age_s)
+        self.can_log = CanLogSink()
+        self._active: _Active | None = None
+        self._lock = threading.Lock()
+        self.rejected_samples = 0
+        arm.add_joint_listener(self._on_joint)
+        arm.add_listener(self.leader)
+        arm.add_listener(self.can_log)
+
+    # -- the reader thread's side --------------------------------------------------------------
+
+    def _can_to_mono(self, t: float) -> float:
+        return self.clock_map.to_mono(t)
+
+    def _on_joint(self, state: JointState) -> None:
+        if self.can_stamps == "host":
+            t = state.t_host
+        else:
+            t = self.clock_map.to_mono(state.t)
+        if not math.isfinite(state.gripper):  # before the first gripper frame: not a full state
+            self.rejected_samples += 1
+            return
+        with self._lock:
+            if not self.history.append(t, np.append(state.q, state.gripper)):
+                self.rejected_samples += 1
+                return
+            active = self._active
+            if active is not None and t >= active.t0:
+                active.add_joint(t, state.q, state.gripper)
+
+    def _activate(self, active: _Active | None) -> None:
+        """Make ``active`` the episode joint samples go to, first giving it those already
+        received at or after its start (the set-up takes a few ms)."""
+        with self._lock:
+            self._active = active
+            if active is not None:
+                times, values = self.history.since(active.t0)
+                for t, v in zip(times, values):
+                    active.add_joint(float(t), v[:6], float(v[6]))
+
+    # -- set-up -------------------------------------------------------------------------------
+
+    def wait_for_arm(self, timeout: float = 3.0) -> None:
+        """Wait for complete joint samples (with the gripper) and check the CAN stamps' clock.
+
+        Raises DriverError when none comes within ``timeout`` (real) s. CAN stamps more than
+        5 s away from the wall clock (an interface with its own time base) are replaced by the
+        host arrival times, with a warning; ``episode.json`` says which was used.
+        """
+        try:
+            state = self.arm.wait_for_joint_state(timeout=timeout)
+            while not math.isfinite(state.gripper):
+                state = self.arm.wait_for_joint_state(state.seq, timeout=timeout)
+        except TimeoutError as exc:
+            raise DriverError(f"no PiPER joint feedback within {timeout} s ({self.arm.health().detail or exc}); "
+                              "check power, wiring, the bitrate (1 Mbit/s) and that the arm is not a silent "
+                              "leader") from None
+        skew = state.t - self.clock.wall()
+        if abs(skew) > WALL_STAMP_TOLERANCE_S and self.can_stamps == "wall":
+            self.can_stamps = "host"
+            log.warning("the CAN interface's timestamps are %.1f s away from the wall clock (not SocketCAN-style "
+                        "wall stamps); using the host arrival time of each joint sample instead", skew)
+        while self.history.last_t is None:
+            latest = self.arm.joint_state()
+            self.arm.wait_for_joint_state(latest.seq if latest else -1, timeout=timeout)
+
+    def _episode_meta(self, t0: float, t0_wall: float, with_actions: bool) -> dict[str, Any]:
+        c = self.config
+        meta: dict[str, Any] = {
+            "recording": {"tool": "manisplat-record", **self.source_info},
+            "clock": {**self.clock_map.describe(since=t0), "t0_monotonic": t0, "t0_wall": t0_wall,
+                      "can_timestamps": ("bus stamps (wall clock), mapped with the measured offset"
+                                         if self.can_stamps == "wall" else "host arrival time (monotonic)"),
+                      "camera_timestamps": "camera stamps (host monotonic clock, mid-exposure where known)",
+                      "camera_latency_s": c.latency_s},
+            "sync": {"method": "linear interpolation between the joint samples around each frame time "
+                               "(frame time = camera stamp - camera_latency_s); never extrapolated",
+                     "max_gap_s": c.max_gap_s, "max_wait_s": c.max_wait_s,
+                     "columns": {"seq": "camera sequence number",
+                                 "sync_gap": "s between the joint samples interpolated across",
+                                 "sync_flags": {str(k): v for k, v in FLAG_NAMES.items()}}},
+            "can_log": {"file": CAN_LOG_NAME, "time_zero_wall": t0_wall,
+                        "note": "timestamps in the file are s since time_zero_wall = episode t 0"},
+        }
+        if c.task:
+            meta["task"] = c.task
+        if with_actions:
+            meta["actions"] = {"source": "leader-arm commands seen on the bus (0x155-0x157 joints, 0x159 gripper)",
+                               "rule": "the latest command at or before the frame time; stale after "
+                                       f"{c.max_action_age_s} s (then the measured state, flag action_stale)"}
+        return meta
+
+    # -- one episode --------------------------------------------------------------------------
+
+    def record_episode(self, path: Path, *, duration: float | None = None, stop: threading.Event | None = None,
+                       on_status: Callable[[Status], None] | None = None, status_every_s: float = 0.5) -> EpisodeResult:
+        """Record one episode into the new folder ``path``; see the module docstring.
+
+        Ends after ``duration`` s (on the clock), when ``stop`` is set, when the camera ends,
+        or at the first write error. Returns an :class:`EpisodeResult` (its ``error`` says why
+        an episode is incomplete); raises DriverError when the arm has never been heard.
+        """
+        c = self.config
+        stop = stop if stop is not None else threading.Event()
+        if self.history.last_t is None:
+            raise DriverError("no joint sample yet: call wait_for_arm() first")
+        with_actions = c.actions == "on" or (c.actions == "auto" and self.leader.seen)
+        columns = SYNC_COLUMNS + (ACTION_COLUMNS if with_actions else ())
+        self.clock_map.remeasure()
+        t0 = self.clock.monotonic()
+        t0_wall = t0 + self.clock_map.offset
+        cam = CameraInfo(name=self.camera_name, width=self.camera.width, height=self.camera.height, K=self.camera.K,
+                         dist=_opencv_dist(self.camera.dist), mount="base", T_mount_cam=None)
+        fps = c.fps or self.nominal_fps or 30.0
+        writer = EpisodeWriter(path, cam, RobotInfo(), fps, source="recorder",
+                               depth_scale=DEPTH_SCALE if c.depth else None, image_format=c.image_format,
+                               extra_frame_columns=columns, extra_meta=self._episode_meta(t0, t0_wall, with_actions),
+                               fsync_every=c.fsync_every)
+        self.can_log.open(path / CAN_LOG_NAME, t0_wall)
+        sink = EpisodeSink(writer, self.can_log, queue_frames=c.queue_frames)
+        active = _Active(t0, sink)
+        self._activate(active)
+        stats = EpisodeStats()
+        loop = _EpisodeLoop(self, active, stats, with_actions)
+        log.info("%s: recording (%s)", path, f"{duration} s" if duration else "until stopped")
+        try:
+            stats.stop_reason = loop.run(duration, stop, on_status, status_every_s)
+        finally:
+            loop.flush_pending()
+            self._activate(None)
+            self.can_log.seal()
+        stats.frames = loop.queued  # all of them are on disk once finish() succeeds
+        stats.joint_samples = active.joint_samples
+        stats.duration_s = self.clock.monotonic() - t0
+        stats.dropped_queue = sink.frames_dropped
+        stats.can_frames_dropped = self.can_log.dropped
+        stats.can_frames_logged = self.can_log.received - self.can_log.dropped
+        extra = {"stats": {k: v for k, v in asdict(stats).items()},
+                 "clock": {**writer.meta.extra["clock"], **self.clock_map.describe(since=t0)}}
+        if with_actions:
+            extra["actions"] = {**writer.meta.extra["actions"],
+                                "gripper_from_state_frames": stats.gripper_action_from_state}
+        error = loop.camera_error
+        try:
+            sink.finish(extra)
+        except StorageError as exc:
+            error = str(exc)
+        stats.frames = sink.frames_written
+        result = EpisodeResult(path, stats, error)
+        if sink.complete:
+            report = validate(path, decode_images=False)
+            result.valid = report.ok
+            if not report.ok:
+                result.error = (result.error + "; " if result.error else "") + f"validation failed:\n{report}"
+        log.info("%s: %d frames, %d joint samples, %d lost, %d flagged, stop: %s%s", path, stats.frames,
+                 stats.joint_samples, stats.frames_lost, stats.flagged, stats.stop_reason,
+                 f"; ERROR: {result.error}" if result.error else "")
+        return result
+
+
+class _EpisodeLoop:
+    """The camera loop of one episode (kept apart from :class:`Recorder` for readability)."""
+
+    def __init__(self, rec: Recorder, active: _Active, stats: EpisodeStats, with_actions: bool) -> None:
+        self.rec = rec
+        self.active = active
+        self.stats = stats
+        self.with_actions = with_actions
+        self.pending: collections.deque[tuple[float, CameraFrame]] = collections.deque()
+        self.last_frame_t = -math.inf
+        self.last_frame_host = rec.clock.monotonic()
+        self.camera_error: str | None = None
+        self.queued = 0
+        self.last_gap = 0.0
+        self.recent: collections.deque[float] = collections.deque()
+        self._can_frames = (rec.arm.stats().frames, rec.clock.monotonic())
+        self._stalled = False
+
+    def run(self, duration: float | None, stop: threading.Event, on_status: Callable[[Status], None] | None,
+            status_every_s: float) -> str:
+        rec, c, clock = self.rec, self.rec.config, self.rec.clock
+        next_status = clock.monotonic() + status_every_s
+        while True:
+            now = clock.monotonic()
+            if stop.is_set():
+                return "stopped"
+            if duration is not None and now - self.active.t0 >= duration:
+                return "duration"
+            if self.active.sink.failed.is_set():
+                return "write error"
+            try:
+                frame = rec.camera.read(timeout=c.camera_poll_s)
+                if frame is None:
+                    return "camera ended"
+                self._accept(frame)
+            except TimeoutError:
+                pass
+            except DriverError as exc:
+                self.camera_error = f"camera failed: {exc}"
+                log.error("%s", self.camera_error)
+                return "camera error"
+            self.resolve(force=False)
+            rec.clock_map.maybe_remeasure()
+            now = clock.monotonic()
+            silent = now - self.last_frame_host
+            if silent > c.stall_after_s and not self._stalled:
+                self._stalled = True
+                self.stats.camera_stalls += 1
+                log.warning("the camera has sent no frame for %.2f s", silent)
+            if on_status is not None and now >= next_status:
+                next_status = now + status_every_s
+                on_status(self.status(now))
+
+    def _accept(self, frame: CameraFrame) -> None:
+        rec, stats = self.rec, self.stats
+        now = rec.clock.monotonic()
+        if self._stalled:
+            self._stalled = False
+            log.info("the camera sends frames again after %.2f s", now - self.last_frame_host)
+        self.last_frame_host = now
+        if rec.config.depth and frame.depth is None:
+            raise DriverError("--depth was asked for but the camera gives frames without depth")
+        t = frame.t - rec.config.latency_s
+        if t < self.active.t0:
+            stats.stale += 1
+            return
+        stats.dropped_camera += frame.dropped if self.last_frame_t > -math.inf else 0
+        if t <= self.last_frame_t:
+            stats.out_of_order += 1
+            log.warning("camera frame %d at t=%.6f is not after the previous one (%.6f); dropped", frame.seq, t,
+                        self.last_frame_t)
+            return
+        if self.last_frame_t > -math.inf:
+            stats.longest_camera_gap_s = max(stats.longest_camera_gap_s, t - self.last_frame_t)
+        self.last_frame_t = t
+        self.pending.append((t, frame))
+
+    def resolve(self, force: bool) -> None:
+        """Sync and queue the pending frames whose joint state is known (or waited long enough)."""
+        rec, c = self.rec, self.rec.config
+        while self.pending:
+            t, frame = self.pending[0]
+            last = rec.history.last_t
+            waited = rec.clock.monotonic() - t
+            if not (force or (last is not None and last >= t) or waited >= c.max_wait_s):
+                return
+            self.pending.popleft()
+            values, gap, flags = rec.history.sync(t, c.max_gap_s)
+            extra = {"seq": float(frame.seq), "sync_gap": gap}
+            if self.with_actions:
+                action, from_state, aflags = rec.leader.action_at(t, values)
+                flags |= aflags
+                self.stats.gripper_action_from_state += int(from_state)
+                extra.update(zip(ACTION_COLUMNS, action.tolist()))
+            extra["sync_flags"] = float(flags)
+            if flags:
+                self.stats.flagged += 1
+                for bit, name in FLAG_NAMES.items():
+                    if flags & bit:
+                        self.stats.flag_counts[name] = self.stats.flag_counts.get(name, 0) + 1
+            self.stats.max_sync_gap_s = max(self.stats.max_sync_gap_s, gap)
+            self.last_gap = gap
+            item = FrameItem(t - self.active.t0, values[:6], float(values[6]), frame.rgb, frame.depth, extra)
+            if self.active.sink.put_frame(item):
+                self.queued += 1
+                self.recent.append(rec.clock.monotonic())
+
+    def flush_pending(self) -> None:
+        """At the end: give pending frames up to ``max_wait_s`` (on the clock, at most that + 1 s
+        of real time) for a joint sample after them, then write them all."""
+        rec = self.rec
+        deadline = rec.clock.monotonic() + rec.config.max_wait_s
+        real_deadline = time.monotonic() + rec.config.max_wait_s + 1.0
+        while self.pending and not self.active.sink.failed.is_set():
+            self.resolve(force=False)
+            if not self.pending or rec.clock.monotonic() >= deadline or time.monotonic() >= real_deadline:
+                break
+            rec.clock.sleep_until(min(deadline, rec.clock.monotonic() + 0.005), RealDeadline(0.01))
+        self.resolve(force=True)
+
+    def status(self, now: float) -> Status:
+        rec = self.rec
+        while self.recent and self.recent[0] < now - 1.0:
+            self.recent.popleft()
+        frames_before, t_before = self._can_frames
+        frames_now = rec.arm.stats().frames
+        can_fps = (frames_now - frames_before) / max(now - t_before, 1e-9)
+        self._can_frames = (frames_now, now)
+        sink = self.active.sink
+        return Status(elapsed_s=now - self.active.t0, fps=float(len(self.recent)), can_fps=can_fps,
+                      frames=sink.frames_written, lost=self.stats.dropped_camera + sink.frames_dropped,
+                      sync_gap_ms=self.last_gap * 1e3, flagged=self.stats.flagged, queue=sink.queued_frames,
+                      camera_silent_s=now - self.last_frame_host, arm=rec.arm.health().state)
+
+
+def _opencv_dist(dist: np.ndarray) -> np.ndarray:
+    """Distortion coefficients in a length OpenCV (and the episode format) accepts."""
+    d = np.asarray(dist, dtype=np.float64).reshape(-1)
+    for n in (0, 4, 5, 8, 12, 14):
+        if len(d) <= n:
+            return np.concatenate([d, np.zeros(n - len(d))]) if len(d) else d
+    raise ValueError(f"{len(d)} distortion coefficients: more than OpenCV's 14")

@@ -1,0 +1,195 @@
+"""The writer thread of one episode: frames arrive through a bounded queue, joint samples and
+CAN frames through their own unbounded buffers, and one thread writes them all with
+:class:`~manisplat.episode.EpisodeWriter` (images then row, each flushed as it goes) and the
+episode's :class:`~.canlog.CanLogSink`.
+
+A frame that finds the queue full is dropped and counted (the recording loop never blocks on
+the disk). The first write error (a full disk, a file size limit, an I/O error) stops the
+thread: nothing more is written, the files are closed with ``complete: false``, and
+:attr:`EpisodeSink.error` says what failed; everything written before stays on disk.
+"""
+
+from __future__ import annotations
+
+import collections
+import errno
+import logging
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from manisplat.episode import EpisodeWriter
+from manisplat.recorder.canlog import CanLogSink
+
+log = logging.getLogger(__name__)
+
+DISK_FULL_ERRNOS = {errno.ENOSPC: "the disk is full", errno.EDQUOT: "the disk quota is exceeded",
+                    errno.EFBIG: "a file reached the size limit"}
+
+
+class StorageError(RuntimeError):
+    """Writing the episode failed (disk full, I/O error); what was written before is kept."""
+
+
+def describe_write_error(exc: BaseException) -> str:
+    """A sentence for a write error, naming a full disk as such."""
+    if isinstance(exc, OSError) and exc.errno in DISK_FULL_ERRNOS:
+        where = f" ({exc.filename})" if exc.filename else ""
+        return f"{DISK_FULL_ERRNOS[exc.errno]}{where}: {exc.strerror}"
+    return f"{type(exc).__name__}: {exc}"
+
+
+@dataclass
+class FrameItem:
+    """One synced frame for the writer.
+
+    Attributes:
+        t: seconds since the episode's start.
+        q: (6,) rad; gripper: m.
+        rgb: (H, W, 3) uint8; depth: (H, W) float32 m or None.
+        extra: values of the episode's extra ``frames.csv`` columns.
+    """
+
+    t: float
+    q: np.ndarray
+    gripper: float
+    rgb: np.ndarray
+    depth: np.ndarray | None = None
+    extra: dict[str, float] = field(default_factory=dict)
+
+
+_STOP = object()
+
+
+class EpisodeSink:
+    """Owns an :class:`EpisodeWriter` (and optionally a :class:`CanLogSink`) on a thread.
+
+    Args:
+        writer: the episode writer (``episode.json`` already written, ``complete: false``).
+        can_log: the episode's CAN log sink, opened by the caller, or None.
+        queue_frames: frames the queue holds before new ones are dropped.
+        flush_s: the CAN log is flushed at least this often, s.
+    """
+
+    def __init__(self, writer: EpisodeWriter, can_log: CanLogSink | None = None, *, queue_frames: int = 64,
+                 flush_s: float = 0.1) -> None:
+        if queue_frames < 1:
+            raise ValueError(f"queue_frames must be >= 1, got {queue_frames}")
+        self.writer = writer
+        self.can_log = can_log
+        self.flush_s = float(flush_s)
+        self._frames: queue.Queue[Any] = queue.Queue(maxsize=queue_frames)
+        self._joints: collections.deque[tuple[float, np.ndarray, float]] = collections.deque()
+        self._final_extra: dict[str, Any] = {}
+        self.error: BaseException | None = None
+        self.failed = threading.Event()
+        self.frames_written = 0
+        self.joints_written = 0
+        self.frames_dropped = 0
+        self.max_queue = 0
+        self.complete = False
+        self._thread = threading.Thread(target=self._run, name=f"EpisodeSink-{writer.path.name}", daemon=True)
+        self._thread.start()
+
+    # -- producer side ------------------------------------------------------------------------
+
+    def put_frame(self, item: FrameItem) -> bool:
+        """Queue a frame; False when it was dropped (queue full) or the sink has failed."""
+        if self.failed.is_set():
+            return False
+        try:
+            self._frames.put_nowait(item)
+        except queue.Full:
+            self.frames_dropped += 1
+            if self.frames_dropped == 1:
+                log.warning("%s: the writer falls behind (queue of %d frames full); dropping frames (counted)",
+                            self.writer.path, self._frames.maxsize)
+            return False
+        self.max_queue = max(self.max_queue, self._frames.qsize())
+        return True
+
+    def put_joint(self, t: float, q: np.ndarray, gripper: float) -> None:
+        """Queue a joints.csv row (any thread; never dropped)."""
+        if not self.failed.is_set():
+            self._joints.append((t, q, gripper))
+
+    @property
+    def queued_frames(self) -> int:
+        return self._frames.qsize()
+
+    # -- the thread ---------------------------------------------------------------------------
+
+    def _run(self) -> None:
+        try:
+            self._loop()
+            self.writer.meta.extra.update(self._final_extra)
+            self.writer.close()
+            if self.can_log is not None:
+                self.can_log.close()
+            self.complete = True
+        except BaseException as exc:  # the first write error ends the episode (module docstring)
+            self.error = exc
+            self.failed.set()
+            log.error("%s: writing stopped: %s", self.writer.path, describe_write_error(exc))
+            try:
+                self.writer.__exit__(type(exc), exc, exc.__traceback__)  # close, leave complete: false
+            except OSError as again:
+                log.error("%s: closing the files failed too: %s", self.writer.path, again)
+            if self.can_log is not None:
+                self.can_log.abandon()
+
+    def _loop(self) -> None:
+        last_flush = time.monotonic()
+        while True:
+            try:
+                item = self._frames.get(timeout=self.flush_s)
+            except queue.Empty:
+                item = None
+            if item is not None and item is not _STOP:
+                self.writer.add_frame(item.t, item.q, item.gripper, item.rgb, depth=item.depth, extra=item.extra)
+                self.frames_written += 1
+            self._write_joints()
+            now = time.monotonic()
+            if self.can_log is not None and (item is None or item is _STOP or now - last_flush >= self.flush_s):
+                self.can_log.drain(flush=True)
+                last_flush = now
+            if item is _STOP:
+                return
+
+    def _write_joints(self) -> None:
+        while True:
+            try:
+                t, q, gripper = self._joints.popleft()
+            except IndexError:
+                return
+            self.writer.add_joint_sample(t, q, gripper)
+            self.joints_written += 1
+
+    # -- ending -------------------------------------------------------------------------------
+
+    def finish(self, extra_meta: dict[str, Any] | None = None, timeout: float = 120.0) -> None:
+        """Write everything queued, add ``extra_meta`` to ``episode.json`` and mark the episode
+        complete. Raises :class:`StorageError` when a write failed (the episode then stays
+        incomplete, with everything written before the failure)."""
+        self._final_extra = dict(extra_meta or {})
+        deadline = time.monotonic() + timeout
+        while self._thread.is_alive():
+            try:
+                self._frames.put(_STOP, timeout=0.1)
+                break
+            except queue.Full:
+                if time.monotonic() > deadline:
+                    break
+        self._thread.join(max(0.0, deadline - time.monotonic()))
+        if self._thread.is_alive():
+            raise StorageError(f"{self.writer.path}: the writer did not finish within {timeout} s "
+                               f"({self._frames.qsize()} frames still queued); the episode stays incomplete")
+        if self.error is not None:
+            raise StorageError(f"{self.writer.path}: {describe_write_error(self.error)}; recording stopped. "
+                               f"Kept {self.frames_written} frames and {self.joints_written} joint samples "
+                               f"(episode left incomplete: free space, then run `manisplat-record --recover "
+                               f"{self.writer.path}`)") from self.error
