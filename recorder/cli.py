@@ -299,7 +299,7 @@ def summary(results: list[EpisodeResult]) -> str:
     for r in results:
         s = r.stats
         fps = s.frames / s.duration_s if s.duration_s > 0 else 0.0
-        outcome = "valid" if r.valid and not r.error else (r.error or "invalid").splitlines()[0]
+        outcome = "valid" if r.valid and not r.error else "ERROR (see above)" if r.error else "invalid"
         rows.append((r.path.name, str(s.frames), f"{s.duration_s:.1f}", f"{fps:.1f}", str(s.frames_lost),
                      str(s.flagged), f"{s.max_sync_gap_s * 1e3:.1f}", str(s.joint_samples),
                      str(s.can_frames_logged), outcome))

@@ -12,6 +12,7 @@ recorder must correct (``--latency-ms``). With ``loop`` the stream repeats with 
 
 from __future__ import annotations
 
+import collections
 import logging
 import math
 import threading
@@ -77,6 +78,7 @@ class ReplayCamera:
         self.nominal_fps = fps
         self.tracker = SequenceTracker()
         self.consumed_until: float = clock.monotonic()  # every frame due before this was read
+        self.exposures: collections.deque[tuple[int, float]] = collections.deque(maxlen=100_000)
         self.delivered = 0
 
     def _read_all(self) -> list[CameraFrame]:
@@ -139,6 +141,7 @@ class ReplayCamera:
         self._pending = None
         self.delivered += 1
         t_exp = due - self.delivery_delay_s
+        self.exposures.append((f.seq, t_exp))  # the truth a test compares with
         return CameraFrame(seq=f.seq, t=t_exp + self.stamp_latency_s, rgb=f.rgb, depth=f.depth, exposure_s=None,
                            dropped=self.tracker.update(f.seq), t_host=self.clock.monotonic())
 

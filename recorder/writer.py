@@ -92,6 +92,7 @@ class EpisodeSink:
         self.frames_dropped = 0
         self.max_queue = 0
         self.complete = False
+        self._doing = "starting"
         self._thread = threading.Thread(target=self._run, name=f"EpisodeSink-{writer.path.name}", daemon=True)
         self._thread.start()
 
@@ -126,6 +127,7 @@ class EpisodeSink:
     def _run(self) -> None:
         try:
             self._loop()
+            self._doing = "closing the episode"
             self.writer.meta.extra.update(self._final_extra)
             self.writer.close()
             if self.can_log is not None:
@@ -134,7 +136,8 @@ class EpisodeSink:
         except BaseException as exc:  # the first write error ends the episode (module docstring)
             self.error = exc
             self.failed.set()
-            log.error("%s: writing stopped: %s", self.writer.path, describe_write_error(exc))
+            log.error("%s: writing stopped while writing %s: %s", self.writer.path, self._doing,
+                      describe_write_error(exc))
             try:
                 self.writer.__exit__(type(exc), exc, exc.__traceback__)  # close, leave complete: false
             except OSError as again:
@@ -150,11 +153,14 @@ class EpisodeSink:
             except queue.Empty:
                 item = None
             if item is not None and item is not _STOP:
+                self._doing = f"frame {self.frames_written} (its images and frames.csv row)"
                 self.writer.add_frame(item.t, item.q, item.gripper, item.rgb, depth=item.depth, extra=item.extra)
                 self.frames_written += 1
+            self._doing = "joints.csv"
             self._write_joints()
             now = time.monotonic()
             if self.can_log is not None and (item is None or item is _STOP or now - last_flush >= self.flush_s):
+                self._doing = f"the CAN log {self.can_log.path.name if self.can_log.path else ''}"
                 self.can_log.drain(flush=True)
                 last_flush = now
             if item is _STOP:
@@ -189,7 +195,8 @@ class EpisodeSink:
             raise StorageError(f"{self.writer.path}: the writer did not finish within {timeout} s "
                                f"({self._frames.qsize()} frames still queued); the episode stays incomplete")
         if self.error is not None:
-            raise StorageError(f"{self.writer.path}: {describe_write_error(self.error)}; recording stopped. "
+            raise StorageError(f"{self.writer.path}: {describe_write_error(self.error)} (writing {self._doing}); "
+                               f"recording stopped. "
                                f"Kept {self.frames_written} frames and {self.joints_written} joint samples "
                                f"(episode left incomplete: free space, then run `manisplat-record --recover "
                                f"{self.writer.path}`)") from self.error

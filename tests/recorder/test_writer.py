@@ -1,0 +1,55 @@
+"""The writer thread: frames through a bounded queue, joint rows and CAN frames beside them,
+complete only at the end; a full queue drops and counts."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import can
+import numpy as np
+
+from manisplat.episode import CameraInfo, Episode, EpisodeWriter, RobotInfo, validate
+from manisplat.recorder.canlog import CanLogSink
+from manisplat.recorder.writer import EpisodeSink, FrameItem
+from tests.recorder.helpers import K
+
+
+def writer(path: Path, w: int = 64, h: int = 48) -> EpisodeWriter:
+    Kw = K.copy()
+    Kw[0, 2], Kw[1, 2] = (w - 1) / 2, (h - 1) / 2
+    return EpisodeWriter(path, CameraInfo("c", w, h, Kw), RobotInfo(), 30.0, extra_frame_columns=("seq",))
+
+
+def test_frames_and_joints_are_written_and_the_episode_completes_last(tmp_path: Path) -> None:
+    w = writer(tmp_path / "ep2")
+    can_log = CanLogSink()
+    can_log.open(tmp_path / "ep2" / "can.asc", 100.0)
+    for k in range(7):
+        can_log.on_message_received(can.Message(arbitration_id=0x2A5, data=bytes(8), timestamp=100.0 + k * 0.01))
+    sink = EpisodeSink(w, can_log, queue_frames=4)
+    rng = np.random.default_rng(0)
+    images = [rng.integers(0, 256, (48, 64, 3), dtype=np.uint8) for _ in range(3)]
+    for i, rgb in enumerate(images):
+        for k in range(4):
+            sink.put_joint(i / 30 + k * 0.005, np.full(6, 0.1 * i), 0.03)
+        while not sink.put_frame(FrameItem(i / 30, np.full(6, 0.1 * i), 0.03, rgb, extra={"seq": float(i)})):
+            pass
+    assert not Episode.open(tmp_path / "ep2").meta.complete
+    sink.finish({"stats": {"note": "test"}})
+    ep = Episode.open(tmp_path / "ep2")
+    assert ep.meta.complete and ep.meta.frame_count == 3 and ep.meta.extra["stats"] == {"note": "test"}
+    assert len(ep.joints()) == 12 and sink.frames_written == 3 and sink.joints_written == 12
+    for i, rgb in enumerate(images):
+        np.testing.assert_array_equal(ep.rgb(i), rgb)
+    assert validate(tmp_path / "ep2").ok
+    assert len(list(can.LogReader(tmp_path / "ep2" / "can.asc"))) == 7
+
+
+def test_a_full_queue_drops_frames_and_counts_them(tmp_path: Path) -> None:
+    sink = EpisodeSink(writer(tmp_path / "ep", 640, 480), queue_frames=1)
+    rgb = np.random.default_rng(1).integers(0, 256, (480, 640, 3), dtype=np.uint8)
+    accepted = sum(sink.put_frame(FrameItem(i / 30, np.zeros(6), 0.0, rgb, extra={"seq": float(i)}))
+                   for i in range(40))
+    sink.finish()
+    assert sink.frames_dropped > 0 and accepted + sink.frames_dropped == 40
+    assert sink.frames_written == accepted == Episode.open(tmp_path / "ep").meta.frame_count
