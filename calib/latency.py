@@ -6,12 +6,15 @@ camera stamps frames late relative to the joint clock; the true exposure time of
 
 Method: the image signal is the mean optical-flow magnitude (Farneback, on frames downscaled to
 ``flow_width`` px) between consecutive frames ``k, k+1``. The robot signal for a candidate
-offset ``L`` is the mean displacement of points on the robot (every link origin and the TCP,
-from FK of ``joints.csv``) between the times ``t_k - L`` and ``t_{k+1} - L``: the same interval
-the flow covers, so no midpoint approximation is needed. With a calibrated camera
-(``K``, ``T_base_cam``) the points are projected and the displacement is in pixels, otherwise in
-metres. ``L`` maximises the Pearson correlation of the two signals: a 1 ms grid over
-``+-max_offset_s``, then a 0.1 ms grid +-3 ms around the best with a parabolic peak fit. The
+offset ``L`` is built from the displacements of points on the robot (every link origin and the
+TCP, from FK of ``joints.csv``) between the times ``t_k - L`` and ``t_{k+1} - L``: the same
+interval the flow covers, so no midpoint approximation is needed. With a calibrated camera
+(``K``, ``T_base_cam``) the points are projected and the displacements are in pixels, otherwise
+in metres. Which parts of the robot the image sees (and how large) is unknown, so the image
+signal is fitted as a non-negative combination of the per-point displacements plus a constant
+(NNLS); ``L`` maximises the fit's R^2 (the "correlation" reported is its square root): a 1 ms
+grid over ``+-max_offset_s``, then a 0.1 ms grid +-3 ms around the best with a parabolic peak
+fit. The
 uncertainty is the standard deviation over a moving-block bootstrap of the frame intervals
 (blocks of about 1 s, 200 resamples).
 """
@@ -22,6 +25,8 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
+from scipy.optimize import nnls
 
 from manisplat.calib.errors import CalibrationError, NotEnoughDataError
 from manisplat.episode import Episode
@@ -35,7 +40,7 @@ class LatencyEstimate:
     Attributes:
         latency_s: frame timestamp minus true exposure time, s.
         std_s: bootstrap 1-sigma, s.
-        correlation: peak Pearson correlation of image motion and robot motion (0..1).
+        correlation: square root of the peak R^2 of the image-motion fit (0..1).
         intervals: frame intervals used.
         signal: ``"pixels"`` (projected through the calibration) or ``"metres"``.
         offsets_s, scores: the coarse correlation curve (for the report).
@@ -91,8 +96,8 @@ class RobotMotion:
         return flat.reshape(len(times), *self.points.shape[1:])
 
     def displacement(self, t0: np.ndarray, t1: np.ndarray) -> np.ndarray:
-        """(K,) mean point displacement between times ``t0`` and ``t1`` (K,)."""
-        return np.linalg.norm(self.at(t1) - self.at(t0), axis=-1).mean(axis=-1)
+        """(K, M) displacement of every point between times ``t0`` and ``t1`` (K,)."""
+        return np.linalg.norm(self.at(t1) - self.at(t0), axis=-1)
 
 
 def robot_motion(ep: Episode, K: np.ndarray | None = None, T_base_cam: np.ndarray | None = None,
@@ -114,12 +119,20 @@ def robot_motion(ep: Episode, K: np.ndarray | None = None, T_base_cam: np.ndarra
     return RobotMotion(t, uv * scale), "pixels"
 
 
-def _corr_rows(D: np.ndarray, s: np.ndarray) -> np.ndarray:
-    """Pearson correlation of each row of D (n_L, K) with s (K,), 0 for constant rows."""
-    Dc = D - D.mean(axis=1, keepdims=True)
+def _fit_scores(D: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """R^2 of the NNLS fit ``s ~ D[i] @ a + b`` (a >= 0) for each offset i; D (n_L, K, M), s (K,)."""
     sc = s - s.mean()
-    den = np.linalg.norm(Dc, axis=1) * np.linalg.norm(sc)
-    return np.where(den > 0, Dc @ sc / np.where(den > 0, den, 1.0), 0.0)
+    ss = float(sc @ sc)
+    out = np.zeros(len(D))
+    for i, Di in enumerate(D):
+        Dc = Di - Di.mean(axis=0)
+        norms = np.linalg.norm(Dc, axis=0)
+        if not (norms > 1e-12).any():
+            continue
+        Dn = Dc[:, norms > 1e-12] / norms[norms > 1e-12]
+        _, rnorm = nnls(Dn, sc)
+        out[i] = 1.0 - rnorm ** 2 / ss if ss > 0 else 0.0
+    return out
 
 
 def _peak(offsets: np.ndarray, scores: np.ndarray) -> float:
@@ -156,11 +169,11 @@ def fit_latency(t_frames: np.ndarray, motion_img: np.ndarray, robot: RobotMotion
     D = np.stack([robot.displacement(t0 - L, t1 - L) for L in coarse])
     if np.std(D) <= 1e-12:
         raise NotEnoughDataError("latency: the robot does not move during the episode: nothing to align")
-    scores = _corr_rows(D, s)
+    scores = _fit_scores(D, s)
     best = float(coarse[int(np.argmax(scores))])
     fine = np.arange(best - 0.003, best + 0.003 + 1e-12, 0.0001)
     Df = np.stack([robot.displacement(t0 - L, t1 - L) for L in fine])
-    fs = _corr_rows(Df, s)
+    fs = _fit_scores(Df, s)
     latency = _peak(fine, fs)
     # moving-block bootstrap over intervals (blocks of ~1 s); local grid around the estimate
     rng = np.random.default_rng(seed)
@@ -174,9 +187,9 @@ def fit_latency(t_frames: np.ndarray, motion_img: np.ndarray, robot: RobotMotion
     for _ in range(bootstrap):
         starts = rng.integers(0, starts_max + 1, size=int(np.ceil(n / block)))
         idx = np.concatenate([np.arange(a, a + block) for a in starts])[:n]
-        boots.append(_peak(local, _corr_rows(Dl[:, idx], s[idx])))
+        boots.append(_peak(local, _fit_scores(Dl[:, idx], s[idx])))
     std = float(np.std(boots))
-    peak = float(fs.max())
+    peak = float(np.sqrt(max(fs.max(), 0.0)))
     if not (np.isfinite(latency) and np.isfinite(std)):
         raise CalibrationError("latency: the fit produced a non-finite value")
     if abs(latency) >= max_offset_s - 0.002:

@@ -219,16 +219,17 @@ def min_jerk_trajectory(waypoints: np.ndarray, durations: np.ndarray, pauses: np
 
 def write_latency_episode(path, spec: BoardSpec, truth: EpisodeTruth, *, rng: np.random.Generator,
                           duration_s: float = 8.0, fps: float = 30.0, joint_rate: float = 200.0,
-                          blur_sigma: float = 0.5, calibrated: bool = False) -> None:
+                          blur_sigma: float = 0.5, calibrated: bool = False,
+                          move_s: tuple[float, float] = (0.4, 0.9), pause_s: tuple[float, float] = (0.05, 0.4),
+                          spread: np.ndarray = np.array([0.2, 0.15, 0.15, 0.3, 0.3, 0.5])) -> None:
     """A moving episode: bursty min-jerk moves with pauses; frame ``k`` shows the scene at
     exposure time ``k / fps`` and is stamped ``k / fps + latency_s``; its frames.csv joints are
     interpolated at the stamped time (as a recorder does); joints.csv holds the true stream."""
     from manisplat.episode import EpisodeWriter, RobotInfo
     robot = _robot()
-    n_moves = int(duration_s / 0.9) + 2
-    way = np.concatenate([Q_NOMINAL[None], sample_configurations(spec, truth, n_moves, rng,
-                                                                 spread=np.array([0.2, 0.15, 0.15, 0.3, 0.3, 0.5]))])
-    t, q = min_jerk_trajectory(way, rng.uniform(0.4, 0.9, n_moves), rng.uniform(0.05, 0.4, n_moves), joint_rate)
+    n_moves = int(duration_s / (np.mean(move_s) + np.mean(pause_s))) + 2
+    way = np.concatenate([Q_NOMINAL[None], sample_configurations(spec, truth, n_moves, rng, spread=spread)])
+    t, q = min_jerk_trajectory(way, rng.uniform(*move_s, n_moves), rng.uniform(*pause_s, n_moves), joint_rate)
     t = t + 0.5  # the joint stream starts before the first frame
     t = np.concatenate([[0.0], t])
     q = np.concatenate([Q_NOMINAL[None], q])
