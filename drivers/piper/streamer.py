@@ -185,12 +185,13 @@ class _Run:
 
     # -- commands -------------------------------------------------------------------------------
 
-    def send(self, q: np.ndarray, gripper: float | None) -> None:
-        now = self.clock()
-        dt = now - self.last_send if self.last_target is not None else None
+    def send(self, q: np.ndarray, gripper: float | None, dt: float | None, *, force_gripper: bool = False) -> None:
+        """Command ``q`` (and the gripper every ``gripper_every`` ticks). ``dt``: the planned
+        time since the previous target, s (its step is checked against the speed limits; the
+        planned time, not the send time, so a late tick cannot fail the check)."""
         self.arm.move_joints(q, self.c.arm_speed_pct, dt=dt if dt is not None and dt > 0 else None)
-        self.last_target, self.last_send = np.asarray(q, dtype=np.float64).copy(), now
-        if gripper is not None and self._ticks % self.c.gripper_every == 0:
+        self.last_target, self.last_send = np.asarray(q, dtype=np.float64).copy(), self.clock()
+        if gripper is not None and (force_gripper or self._ticks % self.c.gripper_every == 0):
             self.arm.gripper(gripper, self.c.gripper_effort_nm)
         self._ticks += 1
 
@@ -252,10 +253,12 @@ class _Run:
         log.info("moving to the start: %.1f deg away, %.2f s", float(np.degrees(np.abs(q0 - q_now).max())), duration)
         start = self.clock()
         deadline = start
-        self.send(q_now, g0)
+        self.send(q_now, g0, None)
+        previous = 0.0
         while True:
-            s = self.clock() - start
-            self.send(at(s), g0)
+            s = min(self.clock() - start, duration)
+            self.send(at(s), g0, s - previous)
+            previous = s
             self.check(streaming=False)
             if s >= duration:
                 break
@@ -266,8 +269,10 @@ class _Run:
         """Keep commanding ``target`` until every joint is within ``settle_tol_deg``."""
         limit = self.clock() + self.c.settle_timeout_s
         deadline = self.clock()
+        first = True
         while True:
-            self.send(target, gripper)
+            self.send(target, gripper, self.period, force_gripper=first)
+            first = False
             q = self.check(streaming=False)
             err = np.degrees(np.abs(q - target))
             if err.max() <= self.c.settle_tol_deg:
@@ -282,15 +287,17 @@ class _Run:
         start = self.clock()
         deadline = start
         next_progress = start
+        previous = 0.0
         while True:
-            s = self.clock() - start
-            q, g = sample(traj, min(s, traj.t[-1]))
-            self.send(q, g)
+            s = min(self.clock() - start, float(traj.t[-1]))
+            q, g = sample(traj, s)
+            self.send(q, g, s - previous if self.report.ticks else None)
+            previous = s
             self.sent_t.append(self.last_send)
             self.sent_q.append(self.last_target)
             self.sent_g.append(g)
             self.report.ticks += 1
-            self.report.streamed_s = min(s, traj.t[-1])
+            self.report.streamed_s = s
             self.check(streaming=True)
             if self.on_progress is not None and self.clock() >= next_progress:
                 next_progress += 0.5

@@ -88,6 +88,11 @@ def trajectory_from_episode(episode: Episode, convention: JointConvention, speed
     return Trajectory(t, convention.to_arm(q), gripper.copy(), "actions" if use_actions else "joints", float(speed))
 
 
+def _floor3(x: float) -> str:
+    """``x`` rounded down to 3 decimals (a speed that passes, as printed)."""
+    return f"{math.floor(x * 1000) / 1000:.3f}"
+
+
 def _joint_list(values: np.ndarray, fmt: str) -> str:
     return ", ".join(f"J{j + 1} {fmt.format(v)}" for j, v in enumerate(values))
 
@@ -132,7 +137,7 @@ def check_trajectory(traj: Trajectory, robot: RobotModel, limits: ReplayLimits,
         k, j = np.unravel_index(int(np.argmax(ratio_v)), ratio_v.shape)
         problems.append(f"velocity {abs(v[k, j]):.3f} rad/s on joint{j + 1} between frames {k} and {k + 1} exceeds "
                         f"{vmax[j]:.3f} rad/s (speed limit x {limits.arm_speed_pct} %); "
-                        f"replay with --speed {traj.speed / ratio_v.max():.3f} or lower")
+                        f"replay with --speed {_floor3(traj.speed / ratio_v.max())} or lower")
     if len(t) >= 3:
         amax = robot.acceleration_limits
         a = (v[1:] - v[:-1]) / (0.5 * (dt[1:] + dt[:-1]))[:, None]
@@ -140,7 +145,7 @@ def check_trajectory(traj: Trajectory, robot: RobotModel, limits: ReplayLimits,
         if ratio_a.max() > 1.0 + 1e-9:
             k, j = np.unravel_index(int(np.argmax(ratio_a)), ratio_a.shape)
             problems.append(f"acceleration {abs(a[k, j]):.3f} rad/s^2 on joint{j + 1} at frame {k + 1} exceeds "
-                            f"{amax[j]:.3f} rad/s^2; replay with --speed {traj.speed / math.sqrt(ratio_a.max()):.3f} "
+                            f"{amax[j]:.3f} rad/s^2; replay with --speed {_floor3(traj.speed / math.sqrt(ratio_a.max()))} "
                             f"or lower")
     if current_q is not None:
         distance = np.abs(q[0] - np.asarray(current_q, dtype=np.float64))
