@@ -11,9 +11,10 @@ Per episode (:meth:`Recorder.record_episode`):
    (:class:`~.clock.ClockMap`), kept for sync (:class:`~.sync.JointHistory`) and queued for
    ``joints.csv``; every CAN frame goes to the CAN log; leader commands to :mod:`.actions`.
 3. The loop reads camera frames. A frame's time is its stamp minus the camera latency
-   (``latency_s``); it waits until a joint sample after it has arrived (or ``max_wait_s`` has
-   passed), then gets the interpolated joint state (:mod:`.sync`), the action, its flags, and
-   goes to the writer queue (bounded: a full queue drops and counts the frame).
+   (``latency_s``); it waits until a joint sample and a gripper frame after it have arrived (or
+   ``max_wait_s`` has passed), then gets the joints interpolated from the joint samples and the
+   gripper from the gripper's own frames (:mod:`.sync`, :mod:`.gripper`), the action, its flags,
+   and goes to the writer queue (bounded: a full queue drops and counts the frame).
 4. At the end (duration, stop event, a camera that ended, a write error) the pending frames are
    resolved, everything queued is written, the statistics are added to ``episode.json`` and
    ``complete: true`` is written last. A write error instead leaves the episode incomplete with
@@ -39,6 +40,7 @@ from manisplat.episode import ACTION_COLUMNS, CameraInfo, EpisodeWriter, RobotIn
 from manisplat.recorder.actions import LeaderCommands
 from manisplat.recorder.canlog import CAN_LOG_NAME, CanLogSink
 from manisplat.recorder.clock import Clock, ClockMap, RealDeadline
+from manisplat.recorder.gripper import GripperStream
 from manisplat.recorder.sync import FLAG_NAMES, JointHistory
 from manisplat.recorder.writer import EpisodeSink, FrameItem, StorageError
 
@@ -214,17 +216,22 @@ class Recorder:
         self.history = JointHistory()
         self.can_stamps = "wall"  # or "host" when the interface's stamps are not on the wall clock
         self.leader = LeaderCommands(self._can_to_mono, self.config.max_action_age_s)
+        self.gripper = GripperStream(self._can_to_mono)
         self.can_log = CanLogSink()
         self._active: _Active | None = None
         self._lock = threading.Lock()
         self.rejected_samples = 0
         arm.add_joint_listener(self._on_joint)
         arm.add_listener(self.leader)
+        arm.add_listener(self.gripper)
         arm.add_listener(self.can_log)
 
     # -- the reader thread's side --------------------------------------------------------------
 
     def _can_to_mono(self, t: float) -> float:
+        """A CAN frame's stamp on the monotonic timeline (wall-clock stamps; see wait_for_arm)."""
+        if self.can_stamps == "host":
+            return self.clock.monotonic()
         return self.clock_map.to_mono(t)
 
     def _on_joint(self, state: JointState) -> None:
@@ -275,7 +282,7 @@ class Recorder:
             self.can_stamps = "host"
             log.warning("the CAN interface's timestamps are %.1f s away from the wall clock (not SocketCAN-style "
                         "wall stamps); using the host arrival time of each joint sample instead", skew)
-        while self.history.last_t is None:
+        while self.history.last_t is None or self.gripper.history.last_t is None:
             latest = self.arm.joint_state()
             self.arm.wait_for_joint_state(latest.seq if latest else -1, timeout=timeout)
 
@@ -455,12 +462,17 @@ class _EpisodeLoop:
         rec, c = self.rec, self.rec.config
         while self.pending:
             t, frame = self.pending[0]
-            last = rec.history.last_t
+            joints_last, gripper_last = rec.history.last_t, rec.gripper.history.last_t
+            known = joints_last is not None and gripper_last is not None and min(joints_last, gripper_last) >= t
             waited = rec.clock.monotonic() - t
-            if not (force or (last is not None and last >= t) or waited >= c.max_wait_s):
+            if not (force or known or waited >= c.max_wait_s):
                 return
             self.pending.popleft()
             values, gap, flags = rec.history.sync(t, c.max_gap_s)
+            gripper, gripper_gap, gripper_flags = rec.gripper.history.sync(t, c.max_gap_s)
+            values[6] = gripper[0]  # the gripper from its own stream (.gripper)
+            flags |= gripper_flags
+            gap = max(gap, gripper_gap)
             extra = {"seq": float(frame.seq), "sync_gap": gap}
             if self.with_actions:
                 action, from_state, aflags = rec.leader.action_at(t, values)

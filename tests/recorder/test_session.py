@@ -36,6 +36,9 @@ def test_synced_joints_match_the_true_state_at_the_frame_times(tmp_path: Path, s
     ep = Episode.open(tmp_path / "ep")
     err = truth_error_deg(rig, ep)
     assert len(ep) >= 85 and err.max() < MAX_SYNC_ERROR_DEG, f"max sync error {err.max():.4f} deg"
+    exposure = dict(rig.camera.exposures)
+    truth = rig.rig.truth(np.array([exposure[int(s)] for s in ep.frames.extra["seq"]]))
+    assert np.abs(ep.frames.gripper - truth[:, 6]).max() < 1e-4  # 0.1 mm, from the gripper's own frames
     assert not ep.frames.extra["sync_flags"].any()
     np.testing.assert_allclose(np.diff(ep.frames.t), 1 / FPS, atol=1e-6)
     exposure = dict(rig.camera.exposures)  # frames.csv t is the true exposure time: the latency was applied
