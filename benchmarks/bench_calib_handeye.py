@@ -115,6 +115,8 @@ def _plot(rows, path):
             ax.grid(True, which="both", alpha=0.3)
             if part == "poses":
                 ax.set_xscale("log")
+                ax.set_xticks([3, 5, 10, 15, 20, 30, 50], ["3", "5", "10", "15", "20", "30", "50"])
+                ax.minorticks_off()
     axes[0, 0].legend(fontsize=7, ncol=2)
     fig.suptitle("camera-to-base error, eye-to-hand, rendered board views (red: goal)")
     fig.tight_layout()

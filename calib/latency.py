@@ -4,10 +4,10 @@
 camera stamps frames late relative to the joint clock; the true exposure time of a frame is
 ``t - latency_s``.
 
-Method: the image signal is the mean optical-flow magnitude (Farneback, on frames downscaled to
-``flow_width`` px) between consecutive frames ``k, k+1``. The robot signal for a candidate
+Method: the image signal is the magnitude-weighted mean optical flow (Farneback, on frames
+downscaled to ``flow_width`` px) between consecutive frames ``k, k+1`` (:func:`image_motion`). The robot signal for a candidate
 offset ``L`` is built from the displacements of points on the robot (every link origin and the
-TCP, from FK of ``joints.csv``) between the times ``t_k - L`` and ``t_{k+1} - L``: the same
+TCP, each with three points 0.1 m along its axes, from FK of ``joints.csv``) between the times ``t_k - L`` and ``t_{k+1} - L``: the same
 interval the flow covers, so no midpoint approximation is needed. With a calibrated camera
 (``K``, ``T_base_cam``) the points are projected and the displacements are in pixels, otherwise
 in metres. Which parts of the robot the image sees (and how large) is unknown, so the image
@@ -31,6 +31,10 @@ from scipy.optimize import nnls
 from manisplat.calib.errors import CalibrationError, NotEnoughDataError
 from manisplat.episode import Episode
 from manisplat.robot import load_robot
+
+
+LEVER_M = 0.1
+"""Distance of the extra robot points from each link origin along the link's axes, metres."""
 
 
 @dataclass
@@ -60,7 +64,9 @@ class LatencyEstimate:
 
 
 def image_motion(frames: list[np.ndarray] | np.ndarray, flow_width: int = 160) -> np.ndarray:
-    """(T-1,) mean optical-flow magnitude between consecutive frames (pixels at ``flow_width``)."""
+    """(T-1,) magnitude-weighted mean optical flow ``sum |f|^2 / sum |f|`` between consecutive
+    frames (pixels at ``flow_width``): the typical displacement of what moves, independent of
+    how much of the image it covers (a plain mean would change with the robot's visible area)."""
     out, prev = [], None
     for img in frames:
         g = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if img.ndim == 3 else img
@@ -68,7 +74,8 @@ def image_motion(frames: list[np.ndarray] | np.ndarray, flow_width: int = 160) -
         g = cv2.resize(g, (flow_width, max(8, int(round(g.shape[0] * scale)))), interpolation=cv2.INTER_AREA)
         if prev is not None:
             flow = cv2.calcOpticalFlowFarneback(prev, g, None, 0.5, 3, 15, 3, 5, 1.2, 0)
-            out.append(float(np.mean(np.linalg.norm(flow, axis=2))))
+            mag = np.linalg.norm(flow, axis=2)
+            out.append(float(np.sum(mag ** 2) / (np.sum(mag) + 1e-9)))
         prev = g
     return np.asarray(out)
 
@@ -109,7 +116,11 @@ def robot_motion(ep: Episode, K: np.ndarray | None = None, T_base_cam: np.ndarra
     robot = load_robot(ep.meta.robot.description, base_dir=ep.path, load_meshes=False)
     poses = robot.forward_kinematics(q).numpy()  # [N, L, 4, 4]
     tcp = robot.tcp_pose(q).numpy()[:, None]
-    pts = np.concatenate([poses[:, 1:, :3, 3], tcp[:, :, :3, 3]], axis=1)  # skip the base link
+    frames = np.concatenate([poses[:, 1:], tcp], axis=1)  # skip the base link  [N, L, 4, 4]
+    # each frame's origin and three points LEVER_M along its axes, so rotations show too
+    offsets = np.concatenate([np.zeros((1, 3)), LEVER_M * np.eye(3)])  # [4, 3]
+    pts = (frames[:, :, None, :3, :3] @ offsets[None, None, :, :, None])[..., 0] + frames[:, :, None, :3, 3]
+    pts = pts.reshape(len(q), -1, 3)  # [N, 4L, 3]
     if K is None or T_base_cam is None:
         return RobotMotion(t, pts), "metres"
     T_cam_base = np.linalg.inv(T_base_cam)

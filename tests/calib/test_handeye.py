@@ -105,3 +105,15 @@ def test_too_few_views(spec):
     views = _views(spec, sc, Tcb, rng)
     with pytest.raises(NotEnoughDataError, match="at least 3"):
         solve_hand_eye(views, robot_poses_for(sc, Tcb), spec, sc.camera)
+
+
+def test_eye_in_hand_refinement(spec):
+    """Camera on link6, board fixed in the base: T_link_cam and T_base_board both recovered."""
+    sc, A, Tcb, T_link_cam, T_base_board = _exact(spec, "link6", n=12, seed=4)
+    rng = np.random.default_rng(4)
+    views = _views(spec, sc, Tcb, rng)
+    r = solve_hand_eye(views, A, spec, sc.camera, mount="link6", link="link6")
+    rot, trans = pose_difference(r.T_mount_cam, T_link_cam)
+    assert rot < 0.05 and trans < 0.5
+    rot_b, trans_b = pose_difference(r.T_other, T_base_board)
+    assert rot_b < 0.1 and trans_b < 1.0
