@@ -67,7 +67,7 @@ def _cmd_sample(args: argparse.Namespace) -> int:
     from manisplat.episode.synthetic import write_sample_episode
 
     path = write_sample_episode(args.out, frames=args.frames, fps=args.fps, width=args.width, height=args.height,
-                                seed=args.seed, overwrite=args.overwrite)
+                                seed=args.seed, task=args.task, overwrite=args.overwrite)
     print(f"wrote the sample episode ({args.frames} frames, {args.width}x{args.height}) to {path}")
     return 0
 
@@ -145,6 +145,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--width", type=int, default=160, help="image width in pixels (default 160)")
     p.add_argument("--height", type=int, default=120, help="image height in pixels (default 120)")
     p.add_argument("--seed", type=int, default=0, help="0: the nominal camera; others move it by up to 5 cm (default 0)")
+    p.add_argument("--task", choices=("pick_place", "reach"), default="pick_place",
+                   help="pick_place: the box is picked and placed; reach: the arm hovers over it (default pick_place)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing episode at OUT")
     p.set_defaults(func=_cmd_sample)
     return parser

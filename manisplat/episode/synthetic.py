@@ -26,6 +26,7 @@ from manisplat.render.painter import Camera, GroundPlane, MeshItem, look_at, ren
 BOX_SIZE = 0.04
 OPEN, GRASP = 0.07, 0.038  # gripper widths (m): fully open, closed on the 4 cm box
 TABLE_LABEL, BOX_LABEL = 11, 10
+TASKS = {"pick_place": "pick the box and place it to the left", "reach": "reach above the box and come back"}
 LINK_COLORS = {
     "base_link": (60, 60, 66), "link1": (210, 210, 215), "link2": (215, 215, 220), "link3": (205, 205, 210),
     "link4": (70, 70, 76), "link5": (200, 200, 205), "link6": (55, 55, 60), "link7": (90, 90, 95),
@@ -43,9 +44,22 @@ class Keyframe:
     phase: str
 
 
-def _script(duration: float) -> list[Keyframe]:
-    """Pick at (0.30, -0.09), place at (0.28, 0.09); times scaled to ``duration`` seconds."""
+def _script(duration: float, task: str = "pick_place") -> list[Keyframe]:
+    """Pick at (0.30, -0.09), place at (0.28, 0.09); or, for "reach", hover 4 cm above the box and
+    come back with the gripper open. Times scaled to ``duration`` seconds."""
     pick, place, z_grasp, z_up = (0.30, -0.09), (0.28, 0.09), BOX_SIZE / 2, 0.14
+    if task == "reach":
+        raw = [
+            (0.00, (0.25, 0.0, 0.24), OPEN, "approach"),
+            (0.30, (*pick, z_up), OPEN, "approach"),
+            (0.50, (*pick, BOX_SIZE + 0.04), OPEN, "descend"),
+            (0.65, (*pick, BOX_SIZE + 0.04), OPEN, "hover"),
+            (0.85, (*pick, z_up), OPEN, "ascend"),
+            (1.00, (0.25, 0.0, 0.24), OPEN, "return"),
+        ]
+        return [Keyframe(f * duration, p, g, phase) for f, p, g, phase in raw]
+    if task != "pick_place":
+        raise ValueError(f"task must be 'pick_place' or 'reach', got {task!r}")
     raw = [
         (0.00, (0.25, 0.0, 0.24), OPEN, "approach"),
         (0.18, (*pick, z_up), OPEN, "approach"),
@@ -96,10 +110,10 @@ class SampleTrajectory:
         return q, g, np.array([self.phases[i + 1] for i in k])
 
 
-def sample_trajectory(duration: float) -> SampleTrajectory:
+def sample_trajectory(duration: float, task: str = "pick_place") -> SampleTrajectory:
     """Solve the keyframes by IK, each seeded by the previous one (one continuous branch)."""
     robot = builtin_piper(with_geometry=False)
-    keys = _script(duration)
+    keys = _script(duration, task)
     seed = torch.tensor([0.0, 1.2, -1.3, 0.0, 0.6, 0.0], dtype=torch.float64)
     qs = []
     for key in keys:
@@ -130,18 +144,19 @@ def _box_poses(T_tcp: np.ndarray, phases: np.ndarray, start_xy) -> np.ndarray:
 
 def write_sample_episode(
     out: str | Path, *, frames: int = 64, fps: float = 16.0, width: int = 160, height: int = 120, seed: int = 0,
-    overwrite: bool = False,
+    task: str = "pick_place", overwrite: bool = False,
 ) -> Path:
     """Write the sample episode to ``out`` and return its path.
 
     Args:
         frames: number of camera frames (the motion is stretched to ``frames / fps`` seconds).
         seed: perturbs the camera position by up to 5 cm (0: the nominal view).
+        task: "pick_place" (the box is moved) or "reach" (the arm hovers over it; it never moves).
     """
     if frames < 8:
         raise ValueError(f"the sample needs at least 8 frames, got {frames}")
     duration = (frames - 1) / fps
-    trajectory = sample_trajectory(duration)
+    trajectory = sample_trajectory(duration, task)
     robot = builtin_piper()
     rng = np.random.default_rng(seed)
     eye = np.array([0.95, -0.62, 0.62]) + (rng.uniform(-0.05, 0.05, 3) if seed else 0.0)
@@ -156,7 +171,7 @@ def write_sample_episode(
     t_frames = np.arange(frames) / fps
     q, g, phase = trajectory.at(t_frames)
     T_tcp = robot.tcp_pose(torch.tensor(q)).numpy()
-    T_box = _box_poses(T_tcp, phase, _script(duration)[2].position[:2])
+    T_box = _box_poses(T_tcp, phase, _script(duration, "pick_place")[2].position[:2])
     links = robot.forward_kinematics(torch.tensor(q), torch.tensor(g)).numpy()  # [T, L, 4, 4]
 
     out = Path(out)
@@ -164,7 +179,7 @@ def write_sample_episode(
         out, CameraInfo("ego", width, height, K, mount="base", T_mount_cam=camera.T_world_cam),
         RobotInfo(description="builtin:agilex_piper"), fps, source="simulation", depth_scale=1e-4,
         labels=labels, objects=["box"], extra_frame_columns=("a1", "a2", "a3", "a4", "a5", "a6", "a_gripper"),
-        extra_meta={"task": "pick the box and place it to the left", "generator": "manisplat.episode.synthetic"},
+        extra_meta={"task": TASKS[task], "generator": "manisplat.episode.synthetic"},
         overwrite=overwrite,
     ) as writer:
         t_joint = np.arange(0.0, duration + 1e-9, 0.005)

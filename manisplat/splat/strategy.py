@@ -82,7 +82,11 @@ class DefaultStrategy:
 
     def step_post_backward(self, params, optimizers, state: dict, step: int, info: dict) -> None:
         """Call after ``loss.backward()`` (before or after ``optimizer.step()``): accumulates the
-        statistics and, on refinement steps, clones, splits, prunes and resets."""
+        statistics and, on refinement steps, clones, splits, prunes and resets.
+
+        ``info`` is the rasterization meta; instead of "means2d" it may carry "means2d_grad"
+        [C, N, 2] (this node's slice when several were rendered together) with "radii" to match.
+        """
         if step >= self.refine_stop_iter:
             return
         self._accumulate(params, state, info)
@@ -103,7 +107,8 @@ class DefaultStrategy:
 
     @torch.no_grad()
     def _accumulate(self, params, state: dict, info: dict) -> None:
-        grads = info["means2d"].grad  # [C, N, 2]
+        # "means2d_grad" lets a caller that rendered several nodes in one pass hand each node its slice
+        grads = info["means2d_grad"] if "means2d_grad" in info else info["means2d"].grad  # [C, N, 2]
         if grads is None:
             raise RuntimeError("means2d has no gradient: call step_pre_backward before loss.backward()")
         n = len(params["means"])

@@ -1,0 +1,1 @@
+"""Task-oriented alignment: Motion/Skill phases, keypoint tracking, hybrid pseudo-ground-truth poses."""

@@ -1,0 +1,1 @@
+"""manisplat-reconstruct: the scene graph trained on one episode, with task-oriented alignment."""

@@ -1,0 +1,141 @@
+"""An episode loaded for reconstruction: images, masks, depth, the camera in the rasterizer's
+convention, every link pose by forward kinematics, and which mask labels are which node."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from manisplat.episode import Episode
+from manisplat.robot import RobotModel, load_robot
+from manisplat.splat import opencv_to_splat_K
+
+log = logging.getLogger(__name__)
+
+
+class ReconstructionInputError(ValueError):
+    """The episode lacks something reconstruction needs (a calibrated camera, a pinhole model...)."""
+
+
+@dataclass
+class Labels:
+    """Mask label values by role: robot links, manipulated objects, and everything static."""
+
+    robot: dict[int, str] = field(default_factory=dict)  # value -> link name
+    objects: dict[int, str] = field(default_factory=dict)  # value -> object name
+    static: list[int] = field(default_factory=list)
+
+    @classmethod
+    def from_meta(cls, labels: dict[int, str], objects: list[str]) -> "Labels":
+        out = cls()
+        for value, name in labels.items():
+            if name.startswith("robot/"):
+                out.robot[value] = name[len("robot/"):]
+            elif name.startswith("object/") and name[len("object/"):] in objects:
+                out.objects[value] = name[len("object/"):]
+            else:
+                out.static.append(value)  # background, table, distractors that never move
+        return out
+
+
+@dataclass
+class EpisodeData:
+    """Everything reconstruction reads from one episode, as tensors.
+
+    Attributes:
+        rgb: [T, H, W, 3] uint8. depth: [T, H, W] float32 metres (0 invalid) or None.
+        masks: [T, H, W] uint8 labels or None. t: [T] s. q: [T, dof] rad. gripper: [T] m.
+        K: [3, 3] intrinsics in the rasterizer's half-pixel convention. viewmat: [4, 4] base-to-camera.
+        link_poses: [T, L, 4, 4] T_base_link. tcp: [T, 4, 4] T_base_tcp.
+    """
+
+    path: Path
+    robot: RobotModel
+    rgb: torch.Tensor
+    depth: torch.Tensor | None
+    masks: torch.Tensor | None
+    t: torch.Tensor
+    q: torch.Tensor
+    gripper: torch.Tensor
+    K: torch.Tensor
+    K_opencv: torch.Tensor
+    viewmat: torch.Tensor
+    link_poses: torch.Tensor
+    tcp: torch.Tensor
+    labels: Labels
+    objects: list[str]
+    gt: dict | None
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.t)
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height) in pixels."""
+        return self.rgb.shape[2], self.rgb.shape[1]
+
+    def image(self, i: int) -> torch.Tensor:
+        """Frame ``i`` as [H, W, 3] float32 in [0, 1]."""
+        return self.rgb[i].float() / 255.0
+
+    def region(self, i: int, values) -> torch.Tensor:
+        """[H, W] bool: pixels of frame ``i`` whose label is in ``values`` (False without masks)."""
+        if self.masks is None:
+            return torch.zeros(self.rgb.shape[1:3], dtype=torch.bool)
+        return torch.isin(self.masks[i], torch.tensor(sorted(values), dtype=torch.uint8))
+
+
+def load_episode_data(path: str | Path, *, robot: str | None = None, load_meshes: bool = True) -> EpisodeData:
+    """Read an episode for reconstruction.
+
+    Args:
+        robot: a robot description overriding the episode's ``robot.description``.
+
+    Raises:
+        ReconstructionInputError: the camera is not calibrated (no ``T_mount_cam``), is not fixed
+            to the base, or has lens distortion (undistort the images first).
+    """
+    episode = Episode.open(path)
+    cam = episode.camera
+    if cam.T_mount_cam is None:
+        raise ReconstructionInputError(
+            f"{episode.path}: camera.T_mount_cam is null; calibrate the camera (manisplat-calibrate) first"
+        )
+    if cam.mount != "base":
+        raise ReconstructionInputError(f"{episode.path}: camera mount {cam.mount!r}: only a base-fixed camera is supported")
+    if len(cam.dist) and np.any(np.abs(cam.dist) > 0):
+        raise ReconstructionInputError(f"{episode.path}: the camera has distortion {cam.dist.tolist()}; undistort first")
+    description = robot or episode.meta.robot.description
+    model = load_robot(description, base_dir=episode.path, load_meshes=load_meshes)
+    frames = episode.frames
+    n = len(episode)
+    rgb = torch.empty(n, cam.height, cam.width, 3, dtype=torch.uint8)
+    depth = torch.empty(n, cam.height, cam.width) if episode.has_depth else None
+    masks = torch.empty(n, cam.height, cam.width, dtype=torch.uint8) if episode.has_masks else None
+    for i in tqdm(range(n), desc="loading frames", unit="frame", leave=False):
+        rgb[i] = torch.from_numpy(episode.rgb(i))
+        if depth is not None:
+            depth[i] = torch.from_numpy(episode.depth(i))
+        if masks is not None:
+            masks[i] = torch.from_numpy(episode.mask(i))
+    q = torch.as_tensor(frames.q, dtype=torch.float64)
+    gripper = torch.as_tensor(frames.gripper, dtype=torch.float64)
+    link_poses = model.forward_kinematics(q, gripper).float()
+    tcp = model.tcp_pose(q).float()
+    K = torch.as_tensor(cam.K, dtype=torch.float64)
+    T_base_cam = torch.as_tensor(cam.T_mount_cam, dtype=torch.float64)
+    log.info("loaded %s: %d frames %dx%d, depth %s, masks %s, robot %s", episode.path, n, cam.width, cam.height,
+             depth is not None, masks is not None, model.name)
+    return EpisodeData(
+        path=episode.path, robot=model, rgb=rgb, depth=depth, masks=masks,
+        t=torch.as_tensor(frames.t, dtype=torch.float64), q=q, gripper=gripper,
+        K=opencv_to_splat_K(K).float(), K_opencv=K, viewmat=torch.linalg.inv(T_base_cam).float(),
+        link_poses=link_poses, tcp=tcp, labels=Labels.from_meta(episode.meta.labels, episode.meta.objects),
+        objects=list(episode.meta.objects), gt=episode.gt(),
+    )

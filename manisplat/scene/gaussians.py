@@ -1,0 +1,107 @@
+"""A set of Gaussians in one local frame, as trainable parameters in 3DGS activations.
+
+Parameters (per Gaussian, first dimension N): ``means`` [N, 3] (m, local frame), ``scales``
+[N, 3] log of the standard deviations, ``quats`` [N, 4] (w, x, y, z, any norm), ``opacities``
+[N] logits, ``sh0`` [N, 3] the degree-0 SH coefficient (colour = 0.5 + C0 * sh0). Kept as a dict
+of ``torch.nn.Parameter`` so :class:`manisplat.splat.DefaultStrategy` can densify it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from manisplat.splat.sh import C0
+
+LEARNING_RATES = {"means": 1.6e-4, "scales": 5e-3, "quats": 1e-3, "opacities": 5e-2, "sh0": 2.5e-3}
+
+
+class GaussianSet:
+    """Trainable Gaussians of one scene-graph node and their Adam optimizer.
+
+    One optimizer holds every parameter (a group each, named like the parameter, batched
+    ``foreach`` updates); ``optimizers`` maps each parameter name to it, the form
+    :class:`manisplat.splat.DefaultStrategy` expects.
+    """
+
+    def __init__(self, params: dict[str, torch.Tensor], *, scene_scale: float = 1.0, lr_scale: float = 1.0) -> None:
+        self.params = {k: torch.nn.Parameter(v.detach().clone().float()) for k, v in params.items()}
+        self.scene_scale = scene_scale
+        lrs = dict(LEARNING_RATES)
+        lrs["means"] *= scene_scale
+        self.optimizer = torch.optim.Adam(
+            [{"params": [p], "lr": lrs[k] * lr_scale, "name": k} for k, p in self.params.items()],
+            eps=1e-15, foreach=True,
+        )
+        self.optimizers = {k: self.optimizer for k in self.params}
+        self.strategy_state: dict | None = None
+
+    @classmethod
+    def from_points(
+        cls, points: torch.Tensor, colors: torch.Tensor, spacing: torch.Tensor | float, *,
+        normals: torch.Tensor | None = None, opacity: float = 0.5, scene_scale: float = 1.0,
+    ) -> "GaussianSet":
+        """Gaussians at ``points`` [N, 3] with RGB ``colors`` [N, 3] in [0, 1].
+
+        ``spacing`` (m, scalar or [N]) is the distance to neighbouring points: the standard
+        deviation starts at half of it. With ``normals`` [N, 3] the Gaussians start as flat discs
+        in the surface (a tenth as thick), otherwise as spheres.
+        """
+        n = len(points)
+        s = torch.as_tensor(spacing, dtype=torch.float32).expand(n).clamp_min(1e-4) * 0.5
+        scales = s[:, None].repeat(1, 3)
+        quats = torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(n, 1)
+        if normals is not None:
+            scales[:, 2] = s * 0.1
+            quats = _quats_aligning_z(normals.float())
+        sh0 = (colors.float().clamp(0.02, 0.98) - 0.5) / C0
+        params = {
+            "means": points.float(),
+            "scales": torch.log(scales),
+            "quats": quats,
+            "opacities": torch.full((n,), math.log(opacity / (1 - opacity))),
+            "sh0": sh0,
+        }
+        return cls(params, scene_scale=scene_scale)
+
+    def __len__(self) -> int:
+        return len(self.params["means"])
+
+    def activated(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(means [N, 3], quats [N, 4], scales [N, 3], opacities [N], colours [N, 3]) for rendering."""
+        p = self.params
+        colors = (0.5 + C0 * p["sh0"]).clamp_min(0.0)
+        return p["means"], p["quats"], torch.exp(p["scales"]), torch.sigmoid(p["opacities"]), colors
+
+    def step(self) -> None:
+        """One optimizer step for every parameter, then clear the gradients."""
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+
+    def set_learning_rate(self, name: str, lr: float) -> None:
+        for group in self.optimizer.param_groups:
+            if group["name"] == name:
+                group["lr"] = lr
+
+    def ply_dict(self) -> dict[str, torch.Tensor]:
+        """The raw parameters in the layout :func:`manisplat.splat.save_ply` writes."""
+        p = self.params
+        return {"means": p["means"], "scales": p["scales"], "quats": p["quats"],
+                "opacities": p["opacities"], "sh0": p["sh0"][:, None, :]}
+
+
+def _quats_aligning_z(normals: torch.Tensor) -> torch.Tensor:
+    """Quaternions [N, 4] rotating the local z axis onto unit ``normals`` [N, 3] (shortest arc).
+
+    For a normal opposite to z (n = -z) the half-way vector is undefined; a rotation by pi about x
+    is used there.
+    """
+    n = normals / normals.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    z = torch.tensor([0.0, 0.0, 1.0]).expand_as(n)
+    w = 1.0 + (z * n).sum(-1, keepdim=True)
+    xyz = torch.linalg.cross(z, n, dim=-1)
+    q = torch.cat([w, xyz], dim=-1)
+    flipped = w[:, 0] < 1e-6
+    q[flipped] = torch.tensor([0.0, 1.0, 0.0, 0.0])
+    return q / q.norm(dim=-1, keepdim=True)

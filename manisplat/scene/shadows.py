@@ -1,0 +1,139 @@
+"""Cast shadows of the moving parts on the static background, from one directional light.
+
+A moving arm darkens the table under it, and a static background cannot explain that: on the
+shared pick-and-place episode a perfect static background caps the held-out PSNR at 26.8 dB.
+Here the dynamic nodes (robot links, objects) are rendered from the light's point of view with
+the same rasterizer (a shadow map: alpha and expected depth). Every background Gaussian is
+projected into that view; where an occluder lies in front of it, its colour is scaled by
+``1 - strength * occlusion`` (strength per colour channel, learned). The light direction is
+learned too (through the rasterizer's viewmat gradient); it starts from a coarse search.
+The occluders' geometry is detached in the light pass: shadows tune the light, not the robot.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+from manisplat.splat import rasterization
+
+LIGHT_DISTANCE = 100.0  # m: far enough that the pinhole light camera is nearly orthographic
+
+
+def light_camera(direction: torch.Tensor, center: torch.Tensor, extent: float, resolution: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(viewmat [4, 4], K [3, 3]) of a camera far along ``direction`` (towards the light) looking
+    at ``center``, whose image of ``resolution`` pixels spans ``extent`` metres there."""
+    light = direction / direction.norm().clamp_min(1e-12)
+    eye = center + LIGHT_DISTANCE * light
+    z = -light
+    up = torch.tensor([0.0, 0.0, 1.0]) if float(light[2].detach().abs()) < 0.99 else torch.tensor([1.0, 0.0, 0.0])
+    x = torch.linalg.cross(z, up)
+    x = x / x.norm()
+    y = torch.linalg.cross(z, x)
+    R = torch.stack([x, y, z])  # rows: camera axes in world coordinates (world-to-camera rotation)
+    view = torch.cat([torch.cat([R, -(R @ eye)[:, None]], dim=1), torch.tensor([[0.0, 0.0, 0.0, 1.0]])])
+    f = LIGHT_DISTANCE / (extent / 2) * (resolution / 2)
+    K = torch.tensor([[f, 0.0, resolution / 2], [0.0, f, resolution / 2], [0.0, 0.0, 1.0]])
+    return view, K
+
+
+def direction_from_angles(azimuth: float, elevation: float) -> torch.Tensor:
+    """Unit vector towards a light at ``azimuth`` (rad, from +x towards +y) and ``elevation`` (rad)."""
+    return torch.tensor([math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth), math.sin(elevation)])
+
+
+class DirectionalShadows(torch.nn.Module):
+    """Learned directional light: ``direction`` (towards the light) and per-channel ``strength``.
+
+    Args:
+        center, extent: where the shadow map looks (m) and how wide it is; cover the robot's reach.
+        resolution: shadow-map size in pixels.
+        softness: occluder depth margin (m) below which a point is not considered shadowed.
+    """
+
+    def __init__(self, direction: torch.Tensor, center: torch.Tensor, extent: float, *, resolution: int = 128,
+                 softness: float = 0.02, strength: float = 0.4) -> None:
+        super().__init__()
+        self.direction = torch.nn.Parameter(direction.float() / direction.norm())
+        self.strength_logit = torch.nn.Parameter(torch.full((3,), math.log(strength / (1 - strength))))
+        self.register_buffer("center", center.float())
+        self.extent, self.resolution, self.softness = float(extent), int(resolution), float(softness)
+
+    @property
+    def strength(self) -> torch.Tensor:
+        return torch.sigmoid(self.strength_logit)
+
+    def occlusion(self, points: torch.Tensor, occluders: tuple[torch.Tensor, ...]) -> torch.Tensor:
+        """How much of the light each point [N, 3] loses to the occluders, in [0, 1]: [N].
+
+        ``occluders`` = (means, quats, scales, opacities) of the dynamic Gaussians (world frame).
+        """
+        view, K = light_camera(self.direction, self.center, self.extent, self.resolution)
+        means, quats, scales, opacities = (x.detach() for x in occluders)
+        depth_map, alpha_map, _ = rasterization(
+            means, quats, scales, opacities, means.new_zeros(len(means), 0), view[None], K[None],
+            self.resolution, self.resolution, render_mode="ED",
+        )
+        cam = points @ view[:3, :3].T + view[:3, 3]  # [N, 3] in the light camera
+        uv = cam[:, :2] / cam[:, 2:3] * K[0, 0] + K[0, 2]
+        grid = (uv / self.resolution * 2 - 1)[None, None]  # [1, 1, N, 2], half-pixel convention
+        maps = torch.cat([alpha_map[0], depth_map[0]], dim=-1).permute(2, 0, 1)[None]  # [1, 2, R, R]
+        sampled = F.grid_sample(maps, grid, mode="bilinear", padding_mode="zeros", align_corners=False)[0, :, 0]
+        alpha, occluder_depth = sampled[0], sampled[1]
+        in_front = torch.sigmoid((cam[:, 2] - occluder_depth - self.softness) / (0.5 * self.softness))
+        return alpha * in_front
+
+    def shade(self, colors: torch.Tensor, points: torch.Tensor, occluders: tuple[torch.Tensor, ...]) -> torch.Tensor:
+        """Colours [N, 3] of points [N, 3] darkened where the occluders shadow them."""
+        return colors * (1.0 - self.strength * self.occlusion(points, occluders)[:, None])
+
+
+@torch.no_grad()
+def search_direction(
+    model: DirectionalShadows,
+    points: torch.Tensor,
+    colors: torch.Tensor,
+    observations: list[tuple[tuple[torch.Tensor, ...], torch.Tensor, torch.Tensor]],
+) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """Best light direction over the upper hemisphere, coarse to fine, as a starting point.
+
+    For every candidate, the occlusion of the background points [N, 3] (base colours [N, 3]) is
+    predicted in each observed frame and the per-channel strength fitted in closed form to
+    ``observed = colour * (1 - strength * occlusion)``; the candidate with the smallest residual
+    wins. A 30 x 20 deg grid is searched first, then a 10 x 5 deg grid around its best.
+    ``observations`` holds, per frame, (occluders, observed colours [N, 3], valid [N] bool).
+
+    Returns (direction [3], strength [3], residual).
+    """
+    original = model.direction.detach().clone()
+    coarse = [(math.radians(a), math.radians(e)) for e in (25, 45, 65, 85) for a in range(0, 360, 30)]
+    best = _best_of(model, coarse, points, colors, observations)
+    az, el = best[3]
+    fine = [(az + math.radians(da), min(math.radians(89), el + math.radians(de)))
+            for da in (-20, -10, 0, 10, 20) for de in (-10, -5, 0, 5, 10)]
+    best = min(best, _best_of(model, fine, points, colors, observations), key=lambda b: b[2])
+    model.direction.copy_(original)
+    return best[0], best[1], best[2]
+
+
+def _best_of(model, candidates, points, colors, observations):
+    """(direction, strength, residual, (azimuth, elevation)) of the best candidate angles."""
+    best = (None, None, math.inf, None)
+    for azimuth, elevation in candidates:
+        direction = direction_from_angles(azimuth, elevation)
+        model.direction.copy_(direction)
+        num, den, terms = torch.zeros(3), torch.zeros(3), []
+        for occluders, observed, valid in observations:
+            occ = model.occlusion(points, occluders)[valid]
+            shade = colors[valid] * occ[:, None]  # predicted darkening per unit strength
+            gap = colors[valid] - observed[valid]
+            num += (gap * shade).sum(0)
+            den += (shade * shade).sum(0)
+            terms.append((gap, shade))
+        strength = (num / den.clamp_min(1e-9)).clamp(0.0, 0.95)
+        residual = float(sum(((gap - strength * shade) ** 2).sum() for gap, shade in terms))
+        if residual < best[2]:
+            best = (direction, strength, residual, (azimuth, elevation))
+    return best

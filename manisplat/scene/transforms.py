@@ -1,0 +1,18 @@
+"""Placing Gaussians: a rigid transform moves means and rotates orientations."""
+
+from __future__ import annotations
+
+import torch
+
+from manisplat.geometry import matrix_to_quat, quat_multiply
+
+
+def transform_gaussians(T: torch.Tensor, means: torch.Tensor, quats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Means [N, 3] and quaternions [N, 4] (w, x, y, z) moved by the rigid transform ``T`` [4, 4].
+
+    Differentiable in ``T`` (object poses, camera refinement) and in the Gaussians. Covariances
+    follow because a Gaussian's rotation is composed with ``T``'s: R_world = R_T @ R_local.
+    """
+    R, t = T[:3, :3], T[:3, 3]
+    q = matrix_to_quat(R.to(torch.float64)).to(quats.dtype)
+    return means @ R.transpose(0, 1).to(means.dtype) + t.to(means.dtype), quat_multiply(q.expand_as(quats), quats)

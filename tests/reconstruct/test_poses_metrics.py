@@ -1,0 +1,59 @@
+"""Object trajectories (shared static twists, held-out interpolation) and the evaluation metrics."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from manisplat.geometry import make_transform, se3_exp, so3_exp
+from manisplat.reconstruct.metrics import fit_constant_offset, pose_errors, psnr, ssim
+from manisplat.reconstruct.poses import ObjectTrajectory
+
+
+def test_static_stretches_share_one_twist_and_moving_frames_get_their_own():
+    pseudo = np.repeat(np.eye(4)[None], 10, axis=0)
+    source = ["static"] * 4 + ["tracked"] * 3 + ["static"] * 3
+    traj = ObjectTrajectory(pseudo, source)
+    assert traj.n_params == 1 + 3 + 1
+    assert traj.index.tolist() == [0, 0, 0, 0, 1, 2, 3, 4, 4, 4]
+    assert ObjectTrajectory(pseudo, source, static=True).n_params == 1
+
+
+def test_held_out_frames_interpolate_the_trained_neighbours():
+    pseudo = np.repeat(np.eye(4)[None], 5, axis=0)
+    traj = ObjectTrajectory(pseudo, ["tracked"] * 5)
+    with torch.no_grad():
+        traj.xi[1] = torch.tensor([0.01, 0, 0, 0, 0, 0], dtype=torch.float64)
+        traj.xi[3] = torch.tensor([0.03, 0, 0, 0, 0, 0], dtype=torch.float64)
+        traj.xi[2] = 5.0  # never trained: must be ignored
+    poses = traj.evaluation_poses(trained=[1, 3])
+    assert abs(poses[2][0, 3] - 0.02) < 1e-12
+    assert abs(poses[0][0, 3] - 0.01) < 1e-12 and abs(poses[4][0, 3] - 0.03) < 1e-12
+    assert traj.pose_loss(1).item() == (0.01 / 0.01) ** 2
+
+
+def test_pose_errors_remove_one_constant_offset():
+    rng = torch.Generator().manual_seed(0)
+    gt = torch.stack([make_transform(so3_exp(torch.randn(3, dtype=torch.float64, generator=rng)),
+                                     torch.randn(3, dtype=torch.float64, generator=rng)) for _ in range(20)]).numpy()
+    X = se3_exp(torch.tensor([0.05, -0.02, 0.01, 0.3, -0.2, 0.1], dtype=torch.float64)).numpy()
+    ours = gt @ np.linalg.inv(X)  # our canonical frame differs by X
+    assert np.allclose(fit_constant_offset(ours, gt), X, atol=1e-10)
+    err = pose_errors(ours, gt)
+    assert err["et_cm"] < 1e-8 and err["er_deg"] < 1e-6
+    noisy = ours.copy()
+    noisy[:, 0, 3] += 0.01
+    assert 0.5 < pose_errors(noisy, gt)["et_cm"] <= 1.0 + 1e-9
+
+
+def test_psnr_and_ssim_over_regions():
+    target = torch.full((20, 30, 3), 0.5)
+    pred = target.clone()
+    pred[:10] += 0.1
+    region = torch.zeros(20, 30, dtype=torch.bool)
+    region[10:] = True
+    assert math.isinf(psnr(pred, target, region)) is False and psnr(pred, target, region) > 100
+    assert abs(psnr(pred, target) - (-10 * math.log10(0.5 * 0.01))) < 1e-4
+    assert ssim(target, target) > 0.999 and math.isnan(psnr(pred, target, torch.zeros_like(region)))

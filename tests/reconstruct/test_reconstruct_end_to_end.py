@@ -1,0 +1,89 @@
+"""manisplat-reconstruct end to end on tiny samples the test writes itself."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import pytest
+
+from manisplat.episode import load_meta, save_meta
+from manisplat.episode.synthetic import write_sample_episode
+from manisplat.reconstruct.cli import main
+from manisplat.reconstruct.data import load_episode_data
+from manisplat.reconstruct.pipeline import build
+from manisplat.reconstruct.plan import make_plan
+from manisplat.reconstruct.trainer import TrainConfig
+from manisplat.splat import load_ply
+
+
+@pytest.fixture(scope="module")
+def pick(tmp_path_factory):
+    return write_sample_episode(tmp_path_factory.mktemp("pick") / "ep", frames=24, width=80, height=60)
+
+
+@pytest.fixture(scope="module")
+def reach(tmp_path_factory):
+    return write_sample_episode(tmp_path_factory.mktemp("reach") / "ep", frames=16, width=80, height=60, task="reach")
+
+
+def test_cli_writes_every_output(pick, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main([str(pick), "--out", str(out), "--iters", "40", "-q"]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert set(metrics["psnr"]) == {"full", "robot", "object"} and set(metrics["ssim"]) == set(metrics["psnr"])
+    assert metrics["iters"] == 40 and metrics["wall_s"] > 0 and metrics["plan"]["frames"] == 24
+    assert set(metrics["pose"]["box"]) == {"et_cm", "er_deg"} and "box" in metrics["pose_baseline"]
+    assert metrics["psnr"]["full"] > 15.0
+    renders = sorted(p.name for p in (out / "renders" / "test").iterdir())
+    assert renders == ["000000.png", "000008.png", "000016.png"]  # every 8th frame, by frame index
+    assert len(list((out / "renders" / "sheets").iterdir())) == 3 and (out / "pose_plot.png").stat().st_size > 0
+    rows = list(csv.DictReader(open(out / "object_poses.csv")))
+    assert len(rows) == 24 and {"frame", "t", "source", "T00", "T33"} <= set(rows[0])
+    phases = [r["phase"] for r in csv.DictReader(open(out / "phases.csv"))]
+    order = list(dict.fromkeys(phases))  # in order of appearance
+    assert order[:4] == ["M_approach", "S_pick", "M_transfer", "S_place"]
+    assert len(load_ply(out / "object_box.ply")["means"]) > 0 and (out / "background.ply").exists()
+    assert "done in" in capsys.readouterr().out
+
+
+def test_plan_prints_and_exits(pick, capsys, tmp_path):
+    assert main([str(pick), "--out", str(tmp_path / "x"), "--plan"]) == 0
+    text = capsys.readouterr().out
+    assert "held out" in text and "box: tracked" in text and not (tmp_path / "x").exists()
+
+
+def test_resume_continues_from_the_checkpoint(pick, tmp_path):
+    out = tmp_path / "out"
+    assert main([str(pick), "--out", str(out), "--iters", "20", "-q"]) == 0
+    assert main([str(pick), "--out", str(out), "--iters", "30", "--resume", "-q"]) == 0
+    assert json.loads((out / "metrics.json").read_text())["iters"] == 30
+
+
+def test_an_object_that_never_moves_gets_one_pose_and_no_tracking(reach):
+    data = load_episode_data(reach)
+    plan = make_plan(data)
+    (obj,) = plan.objects
+    assert not obj.moves
+    rec, alignments = build(data, plan, TrainConfig(iters=1))
+    assert rec.trajectories["box"].n_params == 1 and alignments["box"].baseline is None
+
+
+def test_shadows_are_searched_and_learned(pick):
+    data = load_episode_data(pick)
+    rec, _ = build(data, make_plan(data), TrainConfig(iters=12, shadow_start=6, eval_every=100))
+    rec.train(progress=False)
+    assert rec.graph.shadows is not None and rec.light_optimizer is not None
+    assert abs(float(rec.graph.shadows.direction.norm()) - 1.0) < 0.1
+
+
+def test_uncalibrated_camera_is_a_clear_error(pick, tmp_path, capsys):
+    import shutil
+
+    copy = tmp_path / "uncalibrated"
+    shutil.copytree(pick, copy)
+    meta = load_meta(copy / "episode.json")
+    meta.camera.T_mount_cam = None
+    save_meta(copy / "episode.json", meta)
+    assert main([str(copy), "--out", str(tmp_path / "o"), "--iters", "5"]) == 1
+    assert "T_mount_cam" in capsys.readouterr().err

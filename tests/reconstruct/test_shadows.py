@@ -1,0 +1,61 @@
+"""Cast shadows: the light camera, which points are occluded, and finding the light direction."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from manisplat.scene.shadows import DirectionalShadows, direction_from_angles, light_camera, search_direction
+
+
+def blob(center, radius=0.05, n=200, seed=0):
+    """Opaque Gaussians filling a ball: (means, quats, scales, opacities)."""
+    g = torch.Generator().manual_seed(seed)
+    d = torch.randn(n, 3, generator=g)
+    means = torch.as_tensor(center, dtype=torch.float32) + radius * d / d.norm(dim=-1, keepdim=True) * torch.rand(n, 1, generator=g)
+    return means, torch.tensor([1.0, 0, 0, 0]).repeat(n, 1), torch.full((n, 3), radius / 3), torch.full((n,), 0.95)
+
+
+def test_light_camera_is_nearly_orthographic_along_the_light():
+    direction = direction_from_angles(0.3, 1.0)
+    center = torch.tensor([0.2, 0.1, 0.0])
+    view, K = light_camera(direction, center, extent=1.0, resolution=100)
+    for p in (center, center + 0.5 * direction):  # same ray of light -> same pixel
+        cam = view[:3, :3] @ p + view[:3, 3]
+        uv = cam[:2] / cam[2] * K[0, 0] + K[0, 2]
+        assert torch.allclose(uv, torch.tensor([50.0, 50.0]), atol=0.6)
+
+
+def test_points_under_an_occluder_are_shadowed_and_others_not():
+    light = direction_from_angles(0.0, math.radians(60))
+    model = DirectionalShadows(light, torch.zeros(3), extent=1.2)
+    ground_under = torch.tensor([0.0, 0.0, 0.0])
+    occluder = blob(ground_under + 0.3 * light)
+    points = torch.stack([ground_under, torch.tensor([0.4, 0.4, 0.0]), ground_under + 0.6 * light])
+    occ = model.occlusion(points, occluder)
+    assert occ[0] > 0.9  # behind the ball as seen from the light
+    assert occ[1] < 0.01  # elsewhere on the ground
+    assert occ[2] < 0.01  # between the ball and the light: lit
+    shaded = model.shade(torch.ones(3, 3), points, occluder)
+    assert torch.allclose(shaded[1], torch.ones(3)) and bool((shaded[0] < 1).all())
+
+
+def test_search_recovers_the_light_direction():
+    true = direction_from_angles(math.radians(-45), math.radians(55))
+    truth = DirectionalShadows(true, torch.zeros(3), extent=1.5, strength=0.5, resolution=64)
+    xs = torch.linspace(-0.6, 0.6, 40)
+    grid = torch.stack(torch.meshgrid(xs, xs, indexing="ij"), -1).reshape(-1, 2)
+    points = torch.cat([grid, torch.zeros(len(grid), 1)], -1)
+    colors = torch.full((len(points), 3), 0.8)
+    observations = []
+    for k, centre in enumerate(([0.1, 0.0, 0.25], [-0.2, 0.2, 0.3], [0.2, -0.3, 0.2])):
+        occluder = blob(centre, radius=0.08, seed=k)
+        with torch.no_grad():
+            observed = truth.shade(colors, points, occluder)
+        observations.append((occluder, observed, torch.ones(len(points), dtype=torch.bool)))
+    model = DirectionalShadows(torch.tensor([0.0, 0.0, 1.0]), torch.zeros(3), extent=1.5, resolution=64)
+    direction, strength, _ = search_direction(model, points, colors, observations)
+    angle = math.degrees(math.acos(float(torch.clamp(direction @ true, -1, 1))))
+    assert angle < 6.0  # the fine grid is 10 deg in azimuth and 5 deg in elevation
+    assert torch.allclose(strength, torch.full((3,), 0.5), atol=0.15)
