@@ -257,3 +257,35 @@ def cv2_background(camera: CameraModel, rng: np.random.Generator) -> np.ndarray:
     import cv2
     small = rng.uniform(40, 160, (camera.height // 16 + 1, camera.width // 16 + 1)).astype(np.float32)
     return cv2.resize(small, (camera.width, camera.height), interpolation=cv2.INTER_CUBIC)
+
+
+def write_eye_in_hand_episode(path, spec: BoardSpec, n: int, rng: np.random.Generator, *, width: int = 640,
+                              height: int = 480, f: float = 520.0) -> tuple[np.ndarray, np.ndarray]:
+    """A static-pose eye-in-hand episode (camera on link6, board fixed in the base frame, mount
+    ``"link6"``). Returns the truth ``(T_link6_cam, T_base_board)``."""
+    from manisplat.episode import CameraInfo, EpisodeWriter, RobotInfo
+    robot = _robot()
+    cam = CameraModel(K=[[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]], width=width, height=height)
+    T_link6_cam = make_T(rodrigues([0.0, 0.0, np.pi / 2]) @ rodrigues([0.1, -0.05, 0.0]), [0.06, 0.0, 0.03])
+    T_nom = robot.link_pose(Q_NOMINAL, "link6").numpy() @ T_link6_cam
+    # the board 0.45 m in front of the nominal camera, facing it
+    centre = T_nom[:3, 3] + 0.45 * T_nom[:3, 2]
+    R_board = T_nom[:3, :3] @ rodrigues([0.0, 0.0, 0.3])
+    T_base_board = make_T(R_board, centre - R_board @ np.array([spec.size_m[0] / 2, spec.size_m[1] / 2, 0.0]))
+    qs, lo, hi = [], robot.lower, robot.upper
+    spread = np.array([0.25, 0.2, 0.2, 0.5, 0.4, 0.8])
+    for _ in range(400 * n):
+        q = np.clip(Q_NOMINAL + rng.uniform(-1, 1, 6) * spread, lo + 1e-3, hi - 1e-3)
+        T_cam_board = inv_T(robot.link_pose(q, "link6").numpy() @ T_link6_cam) @ T_base_board
+        if _board_visible(spec, cam, T_cam_board, 55.0):
+            qs.append((q, T_cam_board))
+            if len(qs) == n:
+                break
+    if len(qs) < n:
+        raise RuntimeError(f"write_eye_in_hand_episode: found only {len(qs)} of {n} visible configurations")
+    info = CameraInfo(name="wrist", width=width, height=height, K=cam.K, mount="link6")
+    with EpisodeWriter(path, info, RobotInfo(), fps=2.0, source="simulation") as w:
+        for k, (q, T_cam_board) in enumerate(qs):
+            g = render_board(spec, cam, T_cam_board, supersample=2, blur_sigma=0.6, noise_std=1.5, rng=rng)
+            w.add_frame(0.5 * k, q, 0.0, np.repeat(g[..., None], 3, axis=2))
+    return T_link6_cam, T_base_board

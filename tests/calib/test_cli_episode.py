@@ -97,3 +97,18 @@ def test_help_lists_exit_codes(capsys):
     with pytest.raises(SystemExit):
         main(["--help"])
     assert "Exit codes" in capsys.readouterr().out
+
+
+def test_eye_in_hand_episode(tmp_path, spec):
+    from manisplat.calib.synth import write_eye_in_hand_episode
+    T_link6_cam, T_base_board = write_eye_in_hand_episode(tmp_path / "ep", spec, 10, np.random.default_rng(9))
+    save_board(tmp_path / "board.json", spec)
+    out = tmp_path / "c.json"
+    assert main(["solve", str(tmp_path / "ep"), "--board", str(tmp_path / "board.json"), "--out", str(out),
+                 "--mount", "link6"]) == 0
+    cal = json.loads(out.read_text())
+    assert cal["mount"] == "link6"
+    rot, trans = pose_difference(np.asarray(cal["T_mount_cam"]), T_link6_cam)
+    assert rot < 0.05 and trans < 0.5
+    rot_b, trans_b = pose_difference(np.asarray(cal["T_base_board"]), T_base_board)
+    assert rot_b < 0.1 and trans_b < 1.0
