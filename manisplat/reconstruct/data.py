@@ -12,6 +12,7 @@ import torch
 from tqdm import tqdm
 
 from manisplat.episode import Episode
+from manisplat.geometry import matrix_to_quat
 from manisplat.robot import RobotModel, load_robot
 from manisplat.splat import opencv_to_splat_K
 
@@ -51,7 +52,8 @@ class EpisodeData:
         rgb: [T, H, W, 3] uint8. depth: [T, H, W] float32 metres (0 invalid) or None.
         masks: [T, H, W] uint8 labels or None. t: [T] s. q: [T, dof] rad. gripper: [T] m.
         K: [3, 3] intrinsics in the rasterizer's half-pixel convention. viewmat: [4, 4] base-to-camera.
-        link_poses: [T, L, 4, 4] T_base_link. tcp: [T, 4, 4] T_base_tcp.
+        link_poses: [T, L, 4, 4] T_base_link. link_quats: [T, L, 4] their rotations as quaternions.
+        tcp: [T, 4, 4] T_base_tcp.
     """
 
     path: Path
@@ -66,6 +68,7 @@ class EpisodeData:
     K_opencv: torch.Tensor
     viewmat: torch.Tensor
     link_poses: torch.Tensor
+    link_quats: torch.Tensor
     tcp: torch.Tensor
     labels: Labels
     objects: list[str]
@@ -136,6 +139,6 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, load_meshes
         path=episode.path, robot=model, rgb=rgb, depth=depth, masks=masks,
         t=torch.as_tensor(frames.t, dtype=torch.float64), q=q, gripper=gripper,
         K=opencv_to_splat_K(K).float(), K_opencv=K, viewmat=torch.linalg.inv(T_base_cam).float(),
-        link_poses=link_poses, tcp=tcp, labels=Labels.from_meta(episode.meta.labels, episode.meta.objects),
+        link_poses=link_poses, link_quats=matrix_to_quat(link_poses[..., :3, :3].double()).float(), tcp=tcp, labels=Labels.from_meta(episode.meta.labels, episode.meta.objects),
         objects=list(episode.meta.objects), gt=episode.gt(),
     )

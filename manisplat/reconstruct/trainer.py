@@ -112,7 +112,8 @@ class Reconstruction:
     def render(self, frame: int, evaluation: dict[str, np.ndarray] | None = None):
         """(image [H, W, 3], alpha [H, W], dynamic alpha [H, W], meta, composed) at ``frame``."""
         W, H = self.data.size
-        composed = self.graph.compose(self.data.link_poses[frame], self.object_poses(frame, evaluation))
+        composed = self.graph.compose(self.data.link_poses[frame], self.object_poses(frame, evaluation),
+                                      self.data.link_quats[frame])
         colors, alphas, meta = rasterization(
             composed.means, composed.quats, composed.scales, composed.opacities, composed.colors,
             self.viewmat()[None], self.data.K[None], W, H, group_ids=composed.groups,
@@ -127,11 +128,12 @@ class Reconstruction:
         c = self.config
         image, _, dynamic_alpha, meta, composed = self.render(frame)
         target = self.data.image(frame)
-        terms = {"render": _photometric(image, target, None, c.ssim_weight)}
+        l1, ssim_map = _error_maps(image, target)  # computed once for the render and appearance terms
+        terms = {"render": _photometric(l1, ssim_map, None, c.ssim_weight)}
         if self.data.masks is not None:
             dyn_mask = torch.isin(self.data.masks[frame], self._dynamic)
             if bool(dyn_mask.any()):
-                terms["app"] = c.lambda_app * _photometric(image, target, dyn_mask, c.ssim_weight)
+                terms["app"] = c.lambda_app * _photometric(l1, ssim_map, dyn_mask, c.ssim_weight)
             terms["mask"] = c.lambda_mask * (dynamic_alpha - dyn_mask.float()).abs().mean()
         if self.trajectories:
             terms["pose"] = c.lambda_pose * sum(t.pose_loss(frame) for t in self.trajectories.values()).float()
@@ -301,10 +303,15 @@ def _replace_node(graph: SceneGraph, name: str, g: GaussianSet) -> None:
         graph.objects[rest] = g
 
 
-def _photometric(image: torch.Tensor, target: torch.Tensor, region: torch.Tensor | None, ssim_weight: float) -> torch.Tensor:
-    """(1 - w) L1 + w (1 - SSIM) over the image, or averaged over ``region`` [H, W] pixels."""
+def _error_maps(image: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-pixel L1 [H, W] and SSIM [H, W] (11 x 11 Gaussian window, kornia) of [H, W, 3] images."""
     l1 = (image - target).abs().mean(-1)
     ssim_map = kornia.metrics.ssim(image.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None], 11)[0].mean(0)
+    return l1, ssim_map
+
+
+def _photometric(l1: torch.Tensor, ssim_map: torch.Tensor, region: torch.Tensor | None, ssim_weight: float) -> torch.Tensor:
+    """(1 - w) L1 + w (1 - SSIM) over the image, or averaged over ``region`` [H, W] pixels."""
     if region is None:
         return (1 - ssim_weight) * l1.mean() + ssim_weight * (1 - ssim_map.mean())
     return (1 - ssim_weight) * l1[region].mean() + ssim_weight * (1 - ssim_map[region].mean())

@@ -74,14 +74,20 @@ class SceneGraph:
     def num_groups(self) -> int:
         return 2 + len(self.objects)
 
-    def compose(self, link_poses: torch.Tensor, object_poses: dict[str, torch.Tensor]) -> Composed:
-        """G(t) for link poses [L, 4, 4] (T_base_link, FK order) and object poses name -> [4, 4]."""
+    def compose(self, link_poses: torch.Tensor, object_poses: dict[str, torch.Tensor],
+                link_quats: torch.Tensor | None = None) -> Composed:
+        """G(t) for link poses [L, 4, 4] (T_base_link, FK order) and object poses name -> [4, 4].
+
+        ``link_quats`` [L, 4], the links' rotations as quaternions, may be passed precomputed.
+        """
         parts, slices, start = [], {}, 0
         for node in self.nodes():
             means, quats, scales, opacities, colors = node.gaussians.activated()
             kind, _, name = node.name.partition("/")
             if kind == "robot":
-                means, quats = transform_gaussians(link_poses[self.link_index[name]], means, quats)
+                i = self.link_index[name]
+                q = None if link_quats is None else link_quats[i]
+                means, quats = transform_gaussians(link_poses[i], means, quats, q)
             elif kind == "object":
                 means, quats = transform_gaussians(object_poses[name], means, quats)
             n = len(means)
