@@ -90,24 +90,35 @@ class PoseAdvisor:
 
 
 class _ArmHistory:
-    """Recent joint states, read up to a given time, interpolated at frame timestamps."""
+    """Recent joint states, read up to a given time, interpolated at frame timestamps.
 
-    def __init__(self, arm: Arm, window_s: float) -> None:
+    ``clock="source"`` compares ``JointState.t`` with the frame time (replays share one clock);
+    ``"host"`` uses ``JointState.t_host`` (a live CAN arm stamps on the bus clock, an OAK frame
+    on the host's monotonic clock).
+    """
+
+    def __init__(self, arm: Arm, window_s: float, clock: str = "source") -> None:
+        if clock not in ("source", "host"):
+            raise ValueError(f"clock must be 'source' or 'host'; got {clock!r}")
         self.arm = arm
         self.window_s = window_s
         self.states: collections.deque[JointState] = collections.deque()
+        self.times: collections.deque[float] = collections.deque()
         self.last_seq = -1
+        self.host = clock == "host"
 
     def read_until(self, t: float, timeout: float = 1.0) -> None:
-        while not self.states or self.states[-1].t < t:
+        while not self.times or self.times[-1] < t:
             s = self.arm.wait_for_joint_state(self.last_seq, timeout)
             self.last_seq = s.seq
             self.states.append(s)
-        while len(self.states) > 2 and self.states[-1].t - self.states[0].t > self.window_s:
+            self.times.append(s.t_host if self.host else s.t)
+        while len(self.times) > 2 and self.times[-1] - self.times[0] > self.window_s:
             self.states.popleft()
+            self.times.popleft()
 
     def q_at(self, t: float) -> np.ndarray:
-        ts = np.array([s.t for s in self.states])
+        ts = np.array(self.times)
         qs = np.stack([s.q for s in self.states])
         return np.array([np.interp(t, ts, qs[:, j]) for j in range(qs.shape[1])])
 
@@ -116,10 +127,10 @@ class _ArmHistory:
         return float(g) if np.isfinite(g) else 0.0
 
     def still(self, settle_s: float, tol: float) -> bool:
-        if not self.states or self.states[-1].t - self.states[0].t < settle_s * 0.95:
+        if not self.times or self.times[-1] - self.times[0] < settle_s * 0.95:
             return False
-        t_end = self.states[-1].t
-        recent = np.stack([s.q for s in self.states if s.t >= t_end - settle_s])
+        t_end = self.times[-1]
+        recent = np.stack([s.q for s, t in zip(self.states, self.times) if t >= t_end - settle_s])
         return bool(np.abs(recent - recent[-1]).max() <= tol)
 
 
@@ -143,16 +154,17 @@ def capture(arm: Arm, camera: Camera, robot: RobotModel, spec: BoardSpec, out: s
             mount: str = "base", auto: bool = False, settle_s: float = 1.0, still_tol_rad: float = 0.002,
             frames_per_pose: int = 3, max_poses: int = 25, min_new_angle_deg: float = MIN_NEW_ANGLE_DEG,
             commands: "queue.Queue[str] | None" = None, say: Callable[[str], None] = print,
-            description: str = "builtin:agilex_piper", overwrite: bool = False) -> int:
+            description: str = "builtin:agilex_piper", overwrite: bool = False, clock: str = "source") -> int:
     """Record a calibration episode into ``out``; returns the number of poses recorded.
 
+    ``clock``: see :class:`_ArmHistory` (``"host"`` for a live CAN arm with an OAK camera).
     Ends when ``max_poses`` are recorded, the camera ends (replays), ``q`` is entered, or on
     Ctrl-C; the episode is closed properly in every case.
     """
     cam_model = CameraModel(K=camera.K, dist=camera.dist, width=camera.width, height=camera.height)
     detector = BoardDetector(spec)
     advisor = PoseAdvisor(min_new_angle_deg)
-    history = _ArmHistory(arm, window_s=max(2.0 * settle_s, 1.0))
+    history = _ArmHistory(arm, window_s=max(2.0 * settle_s, 1.0), clock=clock)
     commands = commands if commands is not None or auto else _stdin_commands()
     info = CameraInfo(name="calibration", width=camera.width, height=camera.height, K=camera.K, dist=camera.dist,
                       mount=mount)

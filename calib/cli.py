@@ -99,7 +99,7 @@ def cmd_capture(a: argparse.Namespace) -> int:
     try:
         n = capture(arm, camera, robot, spec, a.out, link=a.link if a.mount == "base" else a.mount, mount=a.mount,
                     auto=a.auto, settle_s=a.settle, frames_per_pose=a.frames_per_pose, max_poses=a.max_poses,
-                    description=a.description, overwrite=a.overwrite)
+                    description=a.description, overwrite=a.overwrite, clock="source" if a.replay else "host")
     finally:
         camera.close()
         arm.close()
@@ -120,7 +120,8 @@ def cmd_solve(a: argparse.Namespace) -> int:
         from manisplat.calib.intrinsics import load_intrinsics
         camera = load_intrinsics(a.intrinsics)
     solved = solve_episode(a.episode, spec, mount=a.mount, link=a.link, camera=camera,
-                           corner_offset=a.corner_offset, use_opencv=not a.no_opencv)
+                           corner_offset=a.corner_offset, use_opencv=not a.no_opencv,
+                           max_joint_speed=None if a.allow_moving else a.max_joint_speed)
     latency = None
     if a.latency_from:
         from manisplat.calib.latency import estimate_latency
@@ -227,6 +228,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--corner-offset", type=float, help="px subtracted from OpenCV's ChArUco corners "
                    "(default: measured for the installed OpenCV)")
     s.add_argument("--no-opencv", action="store_true", help="start only from our own closed form")
+    s.add_argument("--max-joint-speed", type=float, default=0.02,
+                   help="skip frames taken while a joint moves faster than this (rad/s, from joints.csv; 0.02)")
+    s.add_argument("--allow-moving", action="store_true", help="use every frame, moving or not")
     s.add_argument("--latency-from", type=Path, help="also estimate the camera latency from this (moving) episode")
     s.add_argument("--max-offset", type=float, default=0.25, help="latency search range +- s (0.25)")
     s.add_argument("--report", type=Path, help="write report.html, report.png and overlays into this folder")

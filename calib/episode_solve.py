@@ -50,6 +50,28 @@ def camera_of(ep: Episode) -> CameraModel:
     return CameraModel(K=c.K, dist=c.dist, width=c.width, height=c.height)
 
 
+MAX_JOINT_SPEED = 0.02
+"""rad/s: frames taken while a joint moves faster (within +-0.1 s, from joints.csv) are not used:
+the image and the joint reading would not describe the same pose."""
+
+
+def moving_frames(ep: Episode, max_speed: float = MAX_JOINT_SPEED, window_s: float = 0.1) -> dict[int, str]:
+    """Frame index -> reason, for frames where ``joints.csv`` shows the arm moving."""
+    joints = ep.joints()
+    if joints is None or len(joints) < 2:
+        return {}
+    dt = np.diff(joints.t)
+    ok = dt > 0
+    speed = np.zeros(len(joints.t))
+    speed[1:][ok] = np.abs(np.diff(joints.q, axis=0)[ok] / dt[ok, None]).max(axis=1)
+    out = {}
+    for i, t in enumerate(ep.frames.t):
+        near = (joints.t >= t - window_s) & (joints.t <= t + window_s)
+        if near.any() and speed[near].max() > max_speed:
+            out[i] = f"arm moving ({speed[near].max():.3f} rad/s > {max_speed} rad/s)"
+    return out
+
+
 def detect_episode(ep: Episode, detector: BoardDetector, camera: CameraModel,
                    frames: list[int] | None = None) -> tuple[list[BoardView], dict[int, str]]:
     """Usable views and the reasons for every refused frame."""
@@ -66,7 +88,7 @@ def detect_episode(ep: Episode, detector: BoardDetector, camera: CameraModel,
 
 def solve_episode(path: str | Path, spec: BoardSpec, *, mount: str = "base", link: str = "link6",
                   camera: CameraModel | None = None, corner_offset: float | None = None,
-                  use_opencv: bool = True) -> EpisodeSolve:
+                  use_opencv: bool = True, max_joint_speed: float | None = MAX_JOINT_SPEED) -> EpisodeSolve:
     """Hand-eye calibration of a recorded episode.
 
     Args:
@@ -75,6 +97,7 @@ def solve_episode(path: str | Path, spec: BoardSpec, *, mount: str = "base", lin
         link: the board's link for eye-to-hand (default ``link6``); ignored for eye-in-hand.
         camera: intrinsics (default: the episode's); their size must match the images.
         corner_offset: detector offset override (px); None measures it.
+        max_joint_speed: skip frames where joints.csv shows a faster joint (rad/s); None keeps all.
     """
     ep = Episode.open(path)
     cam = camera if camera is not None else camera_of(ep)
@@ -84,7 +107,9 @@ def solve_episode(path: str | Path, spec: BoardSpec, *, mount: str = "base", lin
     fk_link = link if is_eye_to_hand(mount) else mount
     robot = load_robot(ep.meta.robot.description, base_dir=ep.path, load_meshes=False)
     detector = BoardDetector(spec, corner_offset=corner_offset)
-    views, rejected = detect_episode(ep, detector, cam)
+    moving = {} if max_joint_speed is None else moving_frames(ep, max_joint_speed)
+    views, rejected = detect_episode(ep, detector, cam, [i for i in range(len(ep)) if i not in moving])
+    rejected = dict(sorted({**rejected, **moving}.items()))
     require_views(views, 3, rejected, len(ep))
     q = ep.frames.q[[v.index for v in views]]
     A = robot.link_pose(q, fk_link).numpy().astype(np.float64)

@@ -43,6 +43,12 @@ def test_capture_from_replayed_arm_and_camera_then_solve(tmp_path, spec):
     solved = solve_episode(tmp_path / "out", spec)
     rot, trans = pose_difference(solved.result.T_mount_cam, truth.T_base_cam)
     assert rot < 0.1 and trans < 1.0
+    # the raw session, moving frames included: those are refused by the joints.csv speed check
+    raw = solve_episode(tmp_path / "session", spec)
+    moving = [i for i, why in raw.rejected.items() if why.startswith("arm moving")]
+    assert 10 < len(moving) < len(Episode.open(tmp_path / "session")) - 10
+    rot, trans = pose_difference(raw.result.T_mount_cam, truth.T_base_cam)
+    assert rot < 0.1 and trans < 1.0
 
 
 def test_capture_command_with_replay(tmp_path, spec):
