@@ -79,6 +79,7 @@ class ReplayCamera:
         self.tracker = SequenceTracker()
         self.consumed_until: float = clock.monotonic()  # every frame due before this was read
         self.exposures: collections.deque[tuple[int, float]] = collections.deque(maxlen=100_000)
+        self.max_late_s = 0.0  # the most a frame was read after it was due (the reader fell behind)
         self.delivered = 0
 
     def _read_all(self) -> list[CameraFrame]:
@@ -140,6 +141,7 @@ class ReplayCamera:
             raise TimeoutError(f"replayed frame {f.seq} is not due within {timeout} s")
         self._pending = None
         self.delivered += 1
+        self.max_late_s = max(self.max_late_s, self.clock.monotonic() - due)
         t_exp = due - self.delivery_delay_s
         self.exposures.append((f.seq, t_exp))  # the truth a test compares with
         return CameraFrame(seq=f.seq, t=t_exp + self.stamp_latency_s, rgb=f.rgb, depth=f.depth, exposure_s=None,
