@@ -339,7 +339,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(str(exc))
     start = args.start or ("key" if sys.stdin.isatty() else "now")
 
-    args.out.mkdir(parents=True, exist_ok=True)
+    try:
+        args.out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        parser.error(f"--out {args.out}: cannot create the folder: {exc}")
     if any(r.error for r in recover_all(args.out)):
         print(f"an incomplete episode in {args.out} could not be recovered (see above); fix it or move it away",
               file=sys.stderr)

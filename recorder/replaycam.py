@@ -58,7 +58,8 @@ class ReplayCamera:
         self.stop = stop if stop is not None else threading.Event()
         self._source = open_source()
         self.width, self.height = self._source.width, self._source.height
-        self.K, self.dist = np.asarray(self._source.K, dtype=np.float64), np.asarray(self._source.dist, dtype=np.float64)
+        self.K = np.asarray(self._source.K, dtype=np.float64)
+        self.dist = np.asarray(self._source.dist, dtype=np.float64)
         self._frames: list[CameraFrame] | None = None
         if preload:
             self._frames = self._read_all()

@@ -42,7 +42,7 @@ from manisplat.recorder.canlog import CAN_LOG_NAME, CanLogSink
 from manisplat.recorder.clock import Clock, ClockMap, RealDeadline
 from manisplat.recorder.gripper import GripperStream
 from manisplat.recorder.sync import FLAG_NAMES, JointHistory
-from manisplat.recorder.writer import EpisodeSink, FrameItem, StorageError
+from manisplat.recorder.writer import EpisodeSink, FrameItem, StorageError, describe_write_error
 
 log = logging.getLogger(__name__)
 
@@ -279,7 +279,10 @@ class Recorder:
                               "leader") from None
         skew = state.t - self.clock.wall()
         if abs(skew) > WALL_STAMP_TOLERANCE_S and self.can_stamps == "wall":
-            self.can_stamps = "host"
+            with self._lock:
+                self.can_stamps = "host"
+                for history in (self.history, self.gripper.history, self.leader.joints, self.leader.gripper):
+                    history.clear()  # mapped from the wrong clock
             log.warning("the CAN interface's timestamps are %.1f s away from the wall clock (not SocketCAN-style "
                         "wall stamps); using the host arrival time of each joint sample instead", skew)
         while self.history.last_t is None or self.gripper.history.last_t is None:
@@ -334,11 +337,19 @@ class Recorder:
         cam = CameraInfo(name=self.camera_name, width=self.camera.width, height=self.camera.height, K=self.camera.K,
                          dist=_opencv_dist(self.camera.dist), mount="base", T_mount_cam=None)
         fps = c.fps or self.nominal_fps or 30.0
-        writer = EpisodeWriter(path, cam, RobotInfo(), fps, source="recorder",
-                               depth_scale=DEPTH_SCALE if c.depth else None, image_format=c.image_format,
-                               extra_frame_columns=columns, extra_meta=self._episode_meta(t0, t0_wall, with_actions),
-                               fsync_every=c.fsync_every)
-        self.can_log.open(path / CAN_LOG_NAME, t0_wall)
+        writer: EpisodeWriter | None = None
+        try:
+            writer = EpisodeWriter(path, cam, RobotInfo(), fps, source="recorder",
+                                   depth_scale=DEPTH_SCALE if c.depth else None, image_format=c.image_format,
+                                   extra_frame_columns=columns,
+                                   extra_meta=self._episode_meta(t0, t0_wall, with_actions), fsync_every=c.fsync_every)
+            self.can_log.open(path / CAN_LOG_NAME, t0_wall)
+        except OSError as exc:
+            if writer is not None:
+                writer.__exit__(type(exc), exc, exc.__traceback__)
+            error = f"{path}: cannot start the episode: {describe_write_error(exc)}"
+            log.error("%s", error)
+            return EpisodeResult(path, EpisodeStats(stop_reason="write error"), error)
         sink = EpisodeSink(writer, self.can_log, queue_frames=c.queue_frames)
         active = _Active(t0, sink)
         self._activate(active)

@@ -139,6 +139,11 @@ class JointHistory:
                 self._start = self._end - self.capacity
             return True
 
+    def clear(self) -> None:
+        """Forget every sample (e.g. when the timeline they were mapped onto was wrong)."""
+        with self._lock:
+            self._start = self._end = 0
+
     @property
     def last_t(self) -> float | None:
         """Time of the newest sample (None when empty)."""

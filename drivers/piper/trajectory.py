@@ -115,8 +115,9 @@ def check_trajectory(traj: Trajectory, robot: RobotModel, limits: ReplayLimits,
         bad = np.flatnonzero((q[:, j] < lo[j] - 1e-9) | (q[:, j] > hi[j] + 1e-9))
         if bad.size:
             k = int(bad[0])
-            problems.append(f"joint{j + 1} leaves its limits [{math.degrees(lo[j]):.2f}, {math.degrees(hi[j]):.2f}] deg "
-                            f"on {bad.size} frame(s), first frame {k} at {math.degrees(q[k, j]):.2f} deg")
+            problems.append(f"joint{j + 1} leaves its limits [{math.degrees(lo[j]):.2f}, "
+                            f"{math.degrees(hi[j]):.2f}] deg on {bad.size} frame(s), first frame {k} at "
+                            f"{math.degrees(q[k, j]):.2f} deg")
     g_lo, g_hi = robot.gripper.width_range if robot.gripper else (0.0, 0.07)
     bad = np.flatnonzero((g < g_lo - 1e-9) | (g > g_hi + 1e-9))
     if bad.size:
@@ -144,9 +145,9 @@ def check_trajectory(traj: Trajectory, robot: RobotModel, limits: ReplayLimits,
         ratio_a = np.abs(a) / amax
         if ratio_a.max() > 1.0 + 1e-9:
             k, j = np.unravel_index(int(np.argmax(ratio_a)), ratio_a.shape)
+            passes = _floor3(traj.speed / math.sqrt(ratio_a.max()))
             problems.append(f"acceleration {abs(a[k, j]):.3f} rad/s^2 on joint{j + 1} at frame {k + 1} exceeds "
-                            f"{amax[j]:.3f} rad/s^2; replay with --speed {_floor3(traj.speed / math.sqrt(ratio_a.max()))} "
-                            f"or lower")
+                            f"{amax[j]:.3f} rad/s^2; replay with --speed {passes} or lower")
     if current_q is not None:
         distance = np.abs(q[0] - np.asarray(current_q, dtype=np.float64))
         if np.degrees(distance.max()) > limits.max_start_distance_deg:

@@ -83,6 +83,13 @@ def test_bad_arguments_exit_2(argv: list[str], capsys: pytest.CaptureFixture) ->
     assert exc.value.code == 2 and "error" in capsys.readouterr().err
 
 
+def test_an_out_folder_that_cannot_be_made_is_a_usage_error(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(SystemExit) as exc:
+        main(["--sim", "--out", str(tmp_path / "file" / "eps")])
+    assert exc.value.code == 2 and "cannot create the folder" in capsys.readouterr().err
+
+
 def test_devices_that_cannot_be_opened_exit_3(tmp_path: Path, source: Path, capsys: pytest.CaptureFixture) -> None:
     assert main(["--sim", "--camera", f"replay:{tmp_path / 'none'}", "--out", str(tmp_path / "o"),
                  "--start", "now", "--duration", "1"]) == 3
