@@ -103,7 +103,7 @@ def test_devices_that_cannot_be_opened_exit_3(tmp_path: Path, source: Path, caps
 
 
 def test_sigterm_ends_the_episode_cleanly(tmp_path: Path, source: Path) -> None:
-    proc = subprocess.Popen(RECORD + record_args(source, tmp_path / "out") + ["--task", "pick"],
+    proc = subprocess.Popen(RECORD + record_args(source, tmp_path / "out") + ["--task", "pick", "--image-format", "jpg"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     wait_for_rows(tmp_path / "out" / "episode_0000" / "frames.csv", 15, proc)
     proc.send_signal(signal.SIGTERM)
@@ -113,7 +113,7 @@ def test_sigterm_ends_the_episode_cleanly(tmp_path: Path, source: Path) -> None:
     ep = Episode.open(tmp_path / "out" / "episode_0000")
     assert ep.meta.complete and len(ep) >= 15 and ep.meta.extra["task"] == "pick"
     assert ep.meta.extra["stats"]["stop_reason"] == "stopped"
-    assert validate(ep.path).ok
+    assert validate(ep.path).ok and (ep.path / "rgb" / "000000.jpg").is_file()
 
 
 def test_kill_9_then_recover_keeps_every_written_frame(tmp_path: Path, source: Path,
