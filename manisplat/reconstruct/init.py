@@ -36,7 +36,8 @@ def backproject(depth: torch.Tensor, K: torch.Tensor, T_base_cam: torch.Tensor, 
     return (cam @ T[:3, :3].T + T[:3, 3]).float(), rows, cols
 
 
-def background_gaussians(data: EpisodeData, *, stride: int = 2, frames: list[int] | None = None) -> GaussianSet:
+def background_gaussians(data: EpisodeData, *, stride: int = 2, frames: list[int] | None = None,
+                         sh_degree: int = 0) -> GaussianSet:
     """Static Gaussians from the depth of a few frames, robot and object pixels excluded.
 
     Frame 0 gives most points; later frames only add pixels that no earlier frame saw as static
@@ -58,10 +59,12 @@ def background_gaussians(data: EpisodeData, *, stride: int = 2, frames: list[int
         seen |= static
     pts = torch.cat(points)
     log.info("background: %d Gaussians from depth of frames %s", len(pts), frames)
-    return GaussianSet.from_points(pts, torch.cat(colors), torch.cat(spacing), scene_scale=_extent(pts))
+    return GaussianSet.from_points(pts, torch.cat(colors), torch.cat(spacing), scene_scale=_extent(pts),
+                                   sh_degree=sh_degree)
 
 
-def object_gaussians(data: EpisodeData, label: int, frame: int = 0, *, stride: int = 1) -> tuple[GaussianSet, torch.Tensor]:
+def object_gaussians(data: EpisodeData, label: int, frame: int = 0, *, stride: int = 1,
+                     sh_degree: int = 0) -> tuple[GaussianSet, torch.Tensor]:
     """Canonical Gaussians of one object from its masked depth in ``frame``.
 
     The canonical frame has the base's axes and its origin at the points' centroid. Returns the
@@ -77,11 +80,13 @@ def object_gaussians(data: EpisodeData, label: int, frame: int = 0, *, stride: i
     T = torch.eye(4, dtype=torch.float64)
     T[:3, 3] = center
     spacing = data.depth[frame][rows, cols] / float(data.K_opencv[0, 0]) * stride
-    gs = GaussianSet.from_points((p.double() - center).float(), data.image(frame)[rows, cols], spacing, opacity=0.8)
+    gs = GaussianSet.from_points((p.double() - center).float(), data.image(frame)[rows, cols], spacing, opacity=0.8,
+                                 sh_degree=sh_degree)
     return gs, T
 
 
-def link_gaussians(robot: RobotModel, links: list[str], *, total: int = 20_000, seed: int = 0) -> dict[str, GaussianSet]:
+def link_gaussians(robot: RobotModel, links: list[str], *, total: int = 20_000, seed: int = 0,
+                   sh_degree: int = 0) -> dict[str, GaussianSet]:
     """Surface samples of each link's geometry (link frame), as flat discs along the surface.
 
     The ``total`` budget is shared in proportion to surface area; colours start mid-grey.
@@ -94,17 +99,32 @@ def link_gaussians(robot: RobotModel, links: list[str], *, total: int = 20_000, 
     areas = {name: float(m.area) for name, m in meshes.items()}
     total_area = sum(areas.values())
     out = {}
+    trimesh_log = logging.getLogger("trimesh")
+    level = trimesh_log.level
+    trimesh_log.setLevel(logging.ERROR)  # even sampling returning fewer points is expected (handled below)
+    try:
+        samples = {name: _surface_samples(mesh, max(64, int(total * areas[name] / total_area)), seed)
+                   for name, mesh in meshes.items()}
+    finally:
+        trimesh_log.setLevel(level)
     for name, mesh in meshes.items():
-        n = max(64, int(total * areas[name] / total_area))
-        points, faces = trimesh.sample.sample_surface_even(mesh, n, seed=seed)
-        if len(points) < n // 2:  # even sampling can reject many on thin parts
-            points, faces = trimesh.sample.sample_surface(mesh, n, seed=seed)
+        points, faces = samples[name]
         pts = torch.as_tensor(np.asarray(points), dtype=torch.float32)
         normals = torch.as_tensor(np.asarray(mesh.face_normals[faces]), dtype=torch.float32)
         spacing = float(np.sqrt(areas[name] / max(len(pts), 1)))
-        out[name] = GaussianSet.from_points(pts, torch.full((len(pts), 3), 0.5), spacing, normals=normals, opacity=0.8)
+        out[name] = GaussianSet.from_points(pts, torch.full((len(pts), 3), 0.5), spacing, normals=normals, opacity=0.8,
+                                            sh_degree=sh_degree)
     log.info("robot: %s Gaussians on links %s", sum(len(g) for g in out.values()), list(out))
     return out
+
+
+def _surface_samples(mesh: trimesh.Trimesh, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """About ``n`` evenly spread surface points and their faces; plain area sampling when even
+    sampling (Poisson-disc rejection) returns fewer than half, as on thin parts."""
+    points, faces = trimesh.sample.sample_surface_even(mesh, n, seed=seed)
+    if len(points) < n // 2:
+        points, faces = trimesh.sample.sample_surface(mesh, n, seed=seed)
+    return points, faces
 
 
 def _extent(points: torch.Tensor) -> float:

@@ -46,12 +46,12 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
             "reconstruction currently needs the episode's depth and masks; "
             "episodes without them are not supported yet"
         )
-    background = background_gaussians(data)
-    links = link_gaussians(data.robot, plan.links, total=robot_gaussians)
+    background = background_gaussians(data, sh_degree=config.sh_degree)
+    links = link_gaussians(data.robot, plan.links, total=robot_gaussians, sh_degree=config.sh_degree)
     objects, trajectories, alignments = {}, {}, {}
     tcp = data.tcp.double().numpy()
     for obj in plan.objects:
-        gaussians, T_start = object_gaussians(data, obj.label, 0)
+        gaussians, T_start = object_gaussians(data, obj.label, 0, sh_degree=config.sh_degree)
         objects[obj.name] = gaussians
         alignment = align_object(data, obj.label, T_start.numpy(), tcp, moves=obj.moves, tau=tau)
         alignments[obj.name] = alignment

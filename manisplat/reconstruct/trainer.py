@@ -43,8 +43,12 @@ class TrainConfig:
         lambda_app, lambda_mask, lambda_pose: loss weights (paper: 1.0 each).
         ssim_weight: D-SSIM share of the render and appearance losses.
         densify: clone/split/prune (gsplat defaults; refine every ``refine_every`` from
-            ``refine_start`` to ``refine_stop_fraction`` of the iterations).
+            ``refine_start`` to ``refine_stop_fraction`` of the iterations), each node growing to
+            at most ``growth_cap`` times its initial size (unbounded growth on these sharp
+            synthetic images multiplied the Gaussians by 6 and the time with them).
         shadows: learn cast shadows of the moving parts (searched at ``shadow_start``).
+        sh_degree, sh_every: view-dependent colour bands (evaluated in each node's frame), one
+            more band switched on every ``sh_every`` iterations.
         refine_camera: also optimise a correction of the camera extrinsic.
         backend: rasterizer backend ("auto", "cpu", "torch", "gsplat").
         eval_every: iterations between held-out PSNR estimates (for the progress bar).
@@ -61,8 +65,11 @@ class TrainConfig:
     refine_every: int = 100
     refine_stop_fraction: float = 0.7
     grow_grad2d: float = 0.0002
+    growth_cap: float = 2.0
     shadows: bool = True
     shadow_start: int = 300
+    sh_degree: int = 2
+    sh_every: int = 500
     refine_camera: bool = False
     backend: str = "auto"
     eval_every: int = 250
@@ -85,14 +92,17 @@ class Reconstruction:
         self.background_optimizer = torch.optim.Adam([self.background_logit], lr=1e-2)
         self.camera_optimizer = torch.optim.Adam([self.camera_delta], lr=1e-4) if config.refine_camera else None
         self.light_optimizer: torch.optim.Optimizer | None = None
-        self.strategy = DefaultStrategy(
-            refine_start_iter=config.refine_start, refine_every=config.refine_every,
-            refine_stop_iter=int(config.iters * config.refine_stop_fraction), reset_every=10 ** 9,
-            grow_grad2d=config.grow_grad2d,
-        )
         self.scene_scale = graph.background.scene_scale if graph.background is not None else 1.0
+        self.strategies = {
+            node.name: DefaultStrategy(
+                refine_start_iter=config.refine_start, refine_every=config.refine_every,
+                refine_stop_iter=int(config.iters * config.refine_stop_fraction), reset_every=10 ** 9,
+                grow_grad2d=config.grow_grad2d, cap_max=int(config.growth_cap * len(node.gaussians)),
+            )
+            for node in graph.nodes()
+        }
         for node in graph.nodes():
-            node.gaussians.strategy_state = self.strategy.initialize_state(self.scene_scale)
+            node.gaussians.strategy_state = self.strategies[node.name].initialize_state(self.scene_scale)
         self._dynamic = torch.tensor(sorted(set(data.labels.robot) | set(data.labels.objects)), dtype=torch.uint8)
         self._rng = random.Random(config.seed)
         torch.manual_seed(config.seed)
@@ -112,11 +122,13 @@ class Reconstruction:
     def render(self, frame: int, evaluation: dict[str, np.ndarray] | None = None):
         """(image [H, W, 3], alpha [H, W], dynamic alpha [H, W], meta, composed) at ``frame``."""
         W, H = self.data.size
+        V = self.viewmat()
+        camera_center = -(V[:3, :3].transpose(0, 1) @ V[:3, 3])
         composed = self.graph.compose(self.data.link_poses[frame], self.object_poses(frame, evaluation),
-                                      self.data.link_quats[frame])
+                                      self.data.link_quats[frame], camera_center)
         colors, alphas, meta = rasterization(
             composed.means, composed.quats, composed.scales, composed.opacities, composed.colors,
-            self.viewmat()[None], self.data.K[None], W, H, group_ids=composed.groups,
+            V[None], self.data.K[None], W, H, group_ids=composed.groups,
             num_groups=self.graph.num_groups, backend=self.config.backend,
             backgrounds=torch.sigmoid(self.background_logit)[None],
         )
@@ -149,6 +161,9 @@ class Reconstruction:
         while self.step < c.iters:
             if c.shadows and self.graph.shadows is None and self.step >= c.shadow_start and self.data.masks is not None:
                 self.start_shadows()
+            degree = min(c.sh_degree, self.step // max(c.sh_every, 1))
+            for node in self.graph.nodes():
+                node.gaussians.active_degree = min(degree, node.gaussians.sh_degree)
             frame = self._rng.choice(states)
             terms, meta, composed = self.losses(frame)
             loss = sum(terms.values())
@@ -173,7 +188,7 @@ class Reconstruction:
             if self.config.densify:
                 info = {"means2d_grad": grad[:, start:end], "radii": meta["radii"][:, start:end],
                         "width": meta["width"], "height": meta["height"], "n_cameras": meta["n_cameras"]}
-                self.strategy.step_post_backward(g.params, g.optimizers, g.strategy_state, self.step, info)
+                self.strategies[node.name].step_post_backward(g.params, g.optimizers, g.strategy_state, self.step, info)
             g.step()
         for opt in (self.pose_optimizer, self.camera_optimizer, self.light_optimizer, self.background_optimizer):
             if opt is not None:
@@ -263,6 +278,7 @@ class Reconstruction:
             saved = state["nodes"][node.name]
             g = GaussianSet(saved["params"], scene_scale=node.gaussians.scene_scale)
             g.optimizer.load_state_dict(saved["optimizer"])
+            g.active_degree = node.gaussians.active_degree
             g.strategy_state = saved["strategy_state"]
             _replace_node(self.graph, node.name, g)
         for name, t in self.trajectories.items():

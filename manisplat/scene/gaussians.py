@@ -2,8 +2,13 @@
 
 Parameters (per Gaussian, first dimension N): ``means`` [N, 3] (m, local frame), ``scales``
 [N, 3] log of the standard deviations, ``quats`` [N, 4] (w, x, y, z, any norm), ``opacities``
-[N] logits, ``sh0`` [N, 3] the degree-0 SH coefficient (colour = 0.5 + C0 * sh0). Kept as a dict
-of ``torch.nn.Parameter`` so :class:`manisplat.splat.DefaultStrategy` can densify it.
+[N] logits, ``sh0`` [N, 3] the degree-0 SH coefficient (colour = 0.5 + C0 * sh0) and, with a
+``sh_degree`` above 0, ``shN`` [N, (degree + 1)^2 - 1, 3]. Kept as a dict of
+``torch.nn.Parameter`` so :class:`manisplat.splat.DefaultStrategy` can densify it.
+
+View-dependent colour is evaluated on the view direction in the node's own frame: for a link or
+an object seen by a fixed camera, that direction turns as the part turns, so the bands also
+capture how the part's shading changes with its orientation under the scene's fixed lights.
 """
 
 from __future__ import annotations
@@ -12,9 +17,9 @@ import math
 
 import torch
 
-from manisplat.splat.sh import C0
+from manisplat.splat.sh import C0, spherical_harmonics
 
-LEARNING_RATES = {"means": 1.6e-4, "scales": 5e-3, "quats": 1e-3, "opacities": 5e-2, "sh0": 2.5e-3}
+LEARNING_RATES = {"means": 1.6e-4, "scales": 5e-3, "quats": 1e-3, "opacities": 5e-2, "sh0": 2.5e-3, "shN": 2.5e-3 / 20}
 
 
 class GaussianSet:
@@ -36,11 +41,13 @@ class GaussianSet:
         )
         self.optimizers = {k: self.optimizer for k in self.params}
         self.strategy_state: dict | None = None
+        self.sh_degree = 0 if "shN" not in self.params else int(round((self.params["shN"].shape[1] + 1) ** 0.5)) - 1
+        self.active_degree = 0  # bands in use (raised during training up to sh_degree)
 
     @classmethod
     def from_points(
         cls, points: torch.Tensor, colors: torch.Tensor, spacing: torch.Tensor | float, *,
-        normals: torch.Tensor | None = None, opacity: float = 0.5, scene_scale: float = 1.0,
+        normals: torch.Tensor | None = None, opacity: float = 0.5, scene_scale: float = 1.0, sh_degree: int = 0,
     ) -> "GaussianSet":
         """Gaussians at ``points`` [N, 3] with RGB ``colors`` [N, 3] in [0, 1].
 
@@ -63,15 +70,24 @@ class GaussianSet:
             "opacities": torch.full((n,), math.log(opacity / (1 - opacity))),
             "sh0": sh0,
         }
+        if sh_degree > 0:
+            params["shN"] = torch.zeros(n, (sh_degree + 1) ** 2 - 1, 3)
         return cls(params, scene_scale=scene_scale)
 
     def __len__(self) -> int:
         return len(self.params["means"])
 
-    def activated(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(means [N, 3], quats [N, 4], scales [N, 3], opacities [N], colours [N, 3]) for rendering."""
+    def activated(self, camera_center: torch.Tensor | None = None) -> tuple[torch.Tensor, ...]:
+        """(means [N, 3], quats [N, 4], scales [N, 3], opacities [N], colours [N, 3]) for rendering.
+
+        ``camera_center`` [3], in this node's frame, enables the view-dependent bands.
+        """
         p = self.params
-        colors = (0.5 + C0 * p["sh0"]).clamp_min(0.0)
+        if self.active_degree > 0 and camera_center is not None:
+            coeffs = torch.cat([p["sh0"][:, None], p["shN"][:, : (self.active_degree + 1) ** 2 - 1]], dim=1)
+            colors = (spherical_harmonics(self.active_degree, p["means"] - camera_center, coeffs) + 0.5).clamp_min(0.0)
+        else:
+            colors = (0.5 + C0 * p["sh0"]).clamp_min(0.0)
         return p["means"], p["quats"], torch.exp(p["scales"]), torch.sigmoid(p["opacities"]), colors
 
     def step(self) -> None:
@@ -87,8 +103,11 @@ class GaussianSet:
     def ply_dict(self) -> dict[str, torch.Tensor]:
         """The raw parameters in the layout :func:`manisplat.splat.save_ply` writes."""
         p = self.params
-        return {"means": p["means"], "scales": p["scales"], "quats": p["quats"],
-                "opacities": p["opacities"], "sh0": p["sh0"][:, None, :]}
+        out = {"means": p["means"], "scales": p["scales"], "quats": p["quats"],
+               "opacities": p["opacities"], "sh0": p["sh0"][:, None, :]}
+        if "shN" in p:
+            out["shN"] = p["shN"]
+        return out
 
 
 def _quats_aligning_z(normals: torch.Tensor) -> torch.Tensor:

@@ -75,21 +75,27 @@ class SceneGraph:
         return 2 + len(self.objects)
 
     def compose(self, link_poses: torch.Tensor, object_poses: dict[str, torch.Tensor],
-                link_quats: torch.Tensor | None = None) -> Composed:
+                link_quats: torch.Tensor | None = None, camera_center: torch.Tensor | None = None) -> Composed:
         """G(t) for link poses [L, 4, 4] (T_base_link, FK order) and object poses name -> [4, 4].
 
         ``link_quats`` [L, 4], the links' rotations as quaternions, may be passed precomputed.
+        ``camera_center`` [3] (base frame) enables view-dependent colour, evaluated in each
+        node's own frame.
         """
         parts, slices, start = [], {}, 0
         for node in self.nodes():
-            means, quats, scales, opacities, colors = node.gaussians.activated()
             kind, _, name = node.name.partition("/")
+            pose = link_poses[self.link_index[name]] if kind == "robot" else object_poses.get(name) if kind == "object" else None
+            center = None
+            if camera_center is not None:
+                center = camera_center if pose is None else (camera_center - pose[:3, 3]) @ pose[:3, :3].to(camera_center.dtype)
+            means, quats, scales, opacities, colors = node.gaussians.activated(center)
             if kind == "robot":
                 i = self.link_index[name]
                 q = None if link_quats is None else link_quats[i]
-                means, quats = transform_gaussians(link_poses[i], means, quats, q)
+                means, quats = transform_gaussians(pose, means, quats, q)
             elif kind == "object":
-                means, quats = transform_gaussians(object_poses[name], means, quats)
+                means, quats = transform_gaussians(pose, means, quats)
             n = len(means)
             parts.append([means, quats, scales, opacities, colors, torch.full((n,), node.group, dtype=torch.long)])
             slices[node.name] = (start, start + n)

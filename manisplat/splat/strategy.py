@@ -41,6 +41,8 @@ class DefaultStrategy:
         refine_every: 100. Refinement period (steps).
         pause_refine_after_reset: 0. Steps without refinement after a reset.
         revised_opacity: False. Splits keep the parent's total opacity (Rota Bulo et al. 2024).
+        cap_max: None. Grow no further than this many Gaussians; when growth would pass it, the
+            candidates with the highest gradients grow first (as MCMC's cap).
         verbose: False. Log every refinement.
     """
 
@@ -57,6 +59,7 @@ class DefaultStrategy:
     refine_every: int = 100
     pause_refine_after_reset: int = 0
     revised_opacity: bool = False
+    cap_max: int | None = None
     verbose: bool = False
 
     REQUIRED = ("means", "scales", "quats", "opacities")
@@ -131,6 +134,13 @@ class DefaultStrategy:
     def _grow(self, params, optimizers, state: dict, step: int) -> tuple[int, int]:
         grads = state["grad2d"] / state["count"].clamp_min(1)
         high = grads > self.grow_grad2d
+        if self.cap_max is not None:
+            room = max(self.cap_max - len(grads), 0)  # every clone or split adds one Gaussian
+            if int(high.sum()) > room:
+                keep = torch.zeros_like(high)
+                if room:
+                    keep[torch.topk(torch.where(high, grads, torch.zeros_like(grads)), room).indices] = True
+                high = keep
         small = torch.exp(params["scales"]).max(dim=-1).values <= self.grow_scale3d * state["scene_scale"]
         clone = high & small
         split = high & ~small

@@ -128,3 +128,11 @@ def test_sanity_checks_name_the_problem():
     del params["quats"]
     with pytest.raises(ValueError, match="quats"):
         strategy.check_sanity(params, optimizers)
+
+
+def test_cap_limits_growth_to_the_strongest_gradients():
+    strategy = DefaultStrategy(refine_start_iter=5, refine_every=10, reset_every=1000, grow_grad2d=1e-4,
+                               refine_stop_iter=1000, cap_max=230)
+    params, state, history = train(strategy, 25)
+    assert max(n for _, n, _, _ in history) <= 230
+    assert len(params["means"]) == 230 or any(n == 230 for _, n, _, _ in history)
