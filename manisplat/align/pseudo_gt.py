@@ -18,7 +18,7 @@ from typing import Callable
 import numpy as np
 
 from manisplat.align.phases import GripperEvents, Segment
-from manisplat.align.tracking import TrackerSettings, track_object
+from manisplat.align.tracking import ObjectView, TrackerSettings, track_object
 
 STATIC, ATTACHED, TRACKED = "static", "attached", "tracked"
 
@@ -105,13 +105,14 @@ def _shift(events: list[GripperEvents], start: int) -> list[GripperEvents]:
 
 
 def make_tracker(gray, mask, depth, K: np.ndarray, T_base_cam: np.ndarray,
-                 settings: TrackerSettings = TrackerSettings()):
-    """A ``tracker(frames, T_first)`` closure over an episode's images, masks and depth."""
+                 settings: TrackerSettings = TrackerSettings(), model: ObjectView | None = None):
+    """A ``tracker(frames, T_first)`` closure over an episode's images, masks and depth (``model``
+    stands in where they are missing: :func:`manisplat.align.tracking.track_object`)."""
 
     def tracker(frames: range, T_first: np.ndarray, prior: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         if len(frames) == 1:
             return np.asarray(T_first)[None], np.array([False])
-        track = track_object(gray, mask, depth, K, T_base_cam, frames, T_first, settings, prior)
+        track = track_object(gray, mask, depth, K, T_base_cam, frames, T_first, settings, prior, model)
         return track.poses, track.from_tracking
 
     return tracker

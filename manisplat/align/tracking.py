@@ -13,6 +13,10 @@ and then for as long as it stays confident; otherwise the prior (corrected where
 off) stands. A grasped object is mostly hidden by the fingers, which is exactly where an
 unguided tracker drifts.
 
+Without depth (or without a mask) in a frame, the object's model seen at the predicted pose
+stands in: new points are lifted onto the model's rendered depth, and poses are solved from the
+2D tracks by RANSAC PnP; the mask is the model's silhouette, grown by a few pixels.
+
 Limits: frame-to-frame LK under-reads in-plane rotation (by about 7 % of the turn in the tests,
 at 0.7 and 2 deg per frame); the gripper prior carries the pose wherever it holds.
 """
@@ -21,7 +25,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Protocol
 
 import cv2
 import numpy as np
@@ -123,14 +127,17 @@ def track_object(
     T_start: np.ndarray,
     settings: TrackerSettings = TrackerSettings(),
     prior: np.ndarray | None = None,
+    model: ObjectView | None = None,
 ) -> Track:
     """Poses of an object over ``frames``, starting from its pose ``T_start`` in the first one.
 
     Args:
         gray, mask, depth: frame index -> uint8 image [H, W], bool object mask [H, W] (the visible
-            object), z-depth [H, W] in metres (0 invalid).
+            object), z-depth [H, W] in metres (0 invalid). ``mask`` and ``depth`` may return None
+            for a frame without them: then ``model`` stands in (see :class:`ObjectView`).
         K: OpenCV intrinsics [3, 3]; T_base_cam: camera-to-base [4, 4].
         prior: [n, 4, 4] poses the frames take unless tracking confidently disagrees (module doc).
+        model: the object's model seen at a pose, for frames without mask or depth.
     """
     first = frames[0]
     poses = [np.asarray(T_start, dtype=np.float64)]
@@ -139,14 +146,18 @@ def track_object(
     streak = 0  # consecutive frames where tracking confidently disagreed with the prior
     following = False  # tracking has overridden the prior and is still confident
     T_obj_base = np.linalg.inv(poses[0])
-    pts = _detect(gray(first), mask(first), np.zeros((0, 2)), settings)
-    X, ok = _lift(pts, depth(first), K, T_base_cam)
+    view = _Inputs(mask, depth, model)
+    pts = _detect(gray(first), view.mask(first, poses[0]), np.zeros((0, 2)), settings)
+    X, ok = _lift(pts, view.depth(first, poses[0]), K, T_base_cam)
     pts, canon = pts[ok], X[ok] @ T_obj_base[:3, :3].T + T_obj_base[:3, 3]
     prev = gray(first)
     lk = dict(winSize=(settings.window, settings.window), maxLevel=settings.levels,
               criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
     for f in frames[1:]:
-        cur, m = gray(f), mask(f)
+        k = len(poses)
+        predicted = prior[k] @ correction if prior is not None else poses[-1]
+        cur, m = gray(f), view.mask(f, predicted)
+        measured = depth(f)
         pose = poses[-1]
         if len(pts):
             fwd, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, pts.reshape(-1, 1, 2).astype(np.float32), None, **lk)
@@ -157,22 +168,27 @@ def track_object(
             xi = np.clip(np.round(fwd[:, 0]).astype(int), 0, W - 1)
             yi = np.clip(np.round(fwd[:, 1]).astype(int), 0, H - 1)
             good &= m[yi, xi]
-            X, ok = _lift(fwd, depth(f), K, T_base_cam)
-            good &= ok
-            pts, canon, X = fwd[good], canon[good], X[good]
-        k = len(poses)
-        n_in, tracked, rms = 0, None, np.inf
+            X = None
+            if measured is not None:
+                X, ok = _lift(fwd, measured, K, T_base_cam)
+                good &= ok
+                X = X[good]
+            pts, canon = fwd[good], canon[good]
+        n_in, tracked, rms, keep = 0, None, np.inf, None
         if len(pts) >= settings.min_inliers:
-            try:
-                fit = kabsch_ransac(torch.from_numpy(canon), torch.from_numpy(X), settings.ransac_threshold,
-                                    min_inliers=settings.min_inliers)
-                tracked, n_in, rms = fit.T.numpy(), int(fit.inliers.sum()), float(fit.rms)
-                keep = fit.inliers.numpy()
+            if measured is not None:
+                try:
+                    fit = kabsch_ransac(torch.from_numpy(canon), torch.from_numpy(X), settings.ransac_threshold,
+                                        min_inliers=settings.min_inliers)
+                    tracked, n_in, rms, keep = fit.T.numpy(), int(fit.inliers.sum()), float(fit.rms), fit.inliers.numpy()
+                except GeometryError:
+                    pass
+            else:
+                tracked, n_in, rms, keep = _solve_pnp(canon, pts, predicted, K, T_base_cam, settings)
+            if tracked is not None:
                 pts, canon = pts[keep], canon[keep]
                 # re-anchor each point on the rigid model: single tracks cannot drift away from it
                 pts = _project(canon, tracked, K, T_base_cam).astype(np.float32)
-            except GeometryError:
-                pass
         use_track = tracked is not None
         if prior is not None:
             pose = prior[k] @ correction
@@ -191,7 +207,7 @@ def track_object(
         inliers.append(n_in)
         if len(pts) < settings.max_points // 2 and m.any():
             new = _detect(cur, m, pts, settings)
-            Xn, okn = _lift(new, depth(f), K, T_base_cam)
+            Xn, okn = _lift(new, measured if measured is not None else view.depth(f, pose), K, T_base_cam)
             inv = np.linalg.inv(pose)
             pts = np.concatenate([pts, new[okn]])
             canon = np.concatenate([canon, Xn[okn] @ inv[:3, :3].T + inv[:3, 3]])
@@ -200,6 +216,62 @@ def track_object(
     log.info("tracking frames %d-%d: solved %d of %d, %d took the tracked pose", first, frames[-1],
              int(track.solved[1:].sum()), len(frames) - 1, int(track.from_tracking.sum()))
     return track
+
+
+class ObjectView(Protocol):
+    """The object's model seen at a pose: ``view(T_base_obj [4, 4])`` -> (z-depth [H, W] in metres,
+    0 off the object; visible mask [H, W] bool). Stands in for a frame's depth (points are lifted
+    onto the model, and poses solved by PnP) or its mask (the model's silhouette, grown)."""
+
+    def __call__(self, T_base_obj: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+class _Inputs:
+    """A frame's object mask and depth, or the model's where the frame has none."""
+
+    def __init__(self, mask, depth, model: ObjectView | None, grow: int = 5) -> None:
+        self._mask, self._depth, self._model = mask, depth, model
+        self._kernel = np.ones((2 * grow + 1, 2 * grow + 1), np.uint8)
+
+    def _need_model(self, what: str, f: int) -> ObjectView:
+        if self._model is None:
+            raise ValueError(f"tracking: frame {f} has no {what} and no object model stands in")
+        return self._model
+
+    def mask(self, f: int, pose: np.ndarray) -> np.ndarray:
+        m = self._mask(f)
+        if m is None:
+            m = cv2.dilate(self._need_model("mask", f)(pose)[1].astype(np.uint8), self._kernel).astype(bool)
+        return m
+
+    def depth(self, f: int, pose: np.ndarray) -> np.ndarray:
+        d = self._depth(f)
+        return self._need_model("depth", f)(pose)[0] if d is None else d
+
+
+def _solve_pnp(canon: np.ndarray, pts: np.ndarray, guess: np.ndarray, K: np.ndarray, T_base_cam: np.ndarray,
+               settings: TrackerSettings, reprojection_px: float = 2.0):
+    """Pose from 2D tracks of canonical points (no depth): RANSAC PnP (OpenCV) from ``guess``.
+
+    Returns (T_base_obj or None, inlier count, RMS residual converted to metres at the object's
+    distance, inliers [M] bool or None)."""
+    T_cam_obj = np.linalg.inv(T_base_cam) @ guess
+    rvec, _ = cv2.Rodrigues(T_cam_obj[:3, :3])
+    tvec = T_cam_obj[:3, 3].copy()
+    ok, rvec, tvec, idx = cv2.solvePnPRansac(
+        canon.astype(np.float64), pts.astype(np.float64), K, None, rvec, tvec.reshape(3, 1), useExtrinsicGuess=True,
+        reprojectionError=reprojection_px, iterationsCount=100, flags=cv2.SOLVEPNP_ITERATIVE)
+    if not ok or idx is None or len(idx) < settings.min_inliers:
+        return None, 0, np.inf, None
+    keep = np.zeros(len(pts), dtype=bool)
+    keep[idx[:, 0]] = True
+    R, _ = cv2.Rodrigues(rvec)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, tvec[:, 0]
+    tracked = T_base_cam @ T
+    residual = np.linalg.norm(_project(canon[keep], tracked, K, T_base_cam) - pts[keep], axis=1)
+    rms_m = float(np.sqrt(np.mean(residual ** 2)) * tvec[2, 0] / K[0, 0])
+    return tracked, int(keep.sum()), rms_m, keep
 
 
 def _project(canon: np.ndarray, T_base_obj: np.ndarray, K: np.ndarray, T_base_cam: np.ndarray) -> np.ndarray:

@@ -17,6 +17,7 @@ import torch
 from manisplat.align.phases import DEFAULT_TAU
 from manisplat.episode import EpisodeFormatError
 from manisplat.reconstruct.data import ReconstructionInputError, load_episode_data
+from manisplat.reconstruct.masks import ObjectPrompt, complete_masks
 from manisplat.reconstruct.outputs import write_outputs
 from manisplat.reconstruct.pipeline import build
 from manisplat.reconstruct.plan import make_plan
@@ -53,6 +54,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lambda-app", type=float, default=1.0, help="weight of the masked appearance loss (default 1)")
     p.add_argument("--lambda-mask", type=float, default=1.0, help="weight of the dynamic-mask loss (default 1)")
     p.add_argument("--lambda-pose", type=float, default=1.0, help="weight of the pose prior loss (default 1)")
+    inputs = p.add_argument_group(
+        "episodes without depth or masks",
+        "Without masks, the robot's are drawn from its meshes at each frame's forward kinematics and the "
+        "object is segmented from a prompt in the first frame: with depth, the region above the table plane "
+        "(not robot) at the point or in the box, followed through the frames; without depth, GrabCut in the "
+        "box, then the object's model at its tracked pose. Without depth, the table is the plane z = "
+        "--table-z of the base frame and objects start as billboards standing on it.")
+    inputs.add_argument("--object-point", type=_pixel_pair, metavar="U,V",
+                        help="a pixel on the object in the first frame (column, row)")
+    inputs.add_argument("--object-box", type=_pixel_box, metavar="X0,Y0,X1,Y1",
+                        help="a box around the object in the first frame (pixels, inclusive)")
+    inputs.add_argument("--object-name", default="object",
+                        help="name of the prompted object when the episode lists none (default 'object')")
+    inputs.add_argument("--no-depth", action="store_true", help="ignore the episode's depth (monocular reconstruction)")
+    inputs.add_argument("--no-masks", action="store_true",
+                        help="ignore the episode's masks and draw/segment them (the episode's still score the regions)")
+    inputs.add_argument("--table-z", type=float, default=0.0,
+                        help="table height in the base frame, metres, for a start without depth (default 0)")
     p.add_argument("--plan", action="store_true", help="print the plan (what is reconstructed, what is skipped) and exit")
     p.add_argument("--resume", action="store_true", help=f"continue from OUT/{CHECKPOINT} if it exists")
     p.add_argument("--checkpoint-every", type=int, default=500, help="iterations between checkpoints (default 500)")
@@ -66,7 +85,21 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="%(message)s")
     start = time.perf_counter()
     try:
-        data = load_episode_data(args.episode, robot=args.robot)
+        prompt = _prompt(args)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    try:
+        data = load_episode_data(args.episode, robot=args.robot, use_depth=not args.no_depth,
+                                 use_masks=not args.no_masks)
+        masks_from_model = False
+        if data.masks is None:
+            links = [name for name in data.robot.link_names if data.robot.visuals.get(name)]
+            masks_from_model = complete_masks(data, links, prompt, progress=not args.quiet)
+        elif prompt is not None:
+            print("error: the episode has masks; --object-point/--object-box are for episodes without "
+                  "(add --no-masks to segment anew)", file=sys.stderr)
+            return 2
         plan = make_plan(data)
         if args.plan:
             print(plan.summary())
@@ -77,7 +110,8 @@ def main(argv: list[str] | None = None) -> int:
             refine_camera=args.refine_camera, lambda_app=args.lambda_app, lambda_mask=args.lambda_mask,
             lambda_pose=args.lambda_pose, seed=args.seed,
         )
-        rec, alignments = build(data, plan, config, tau=args.tau)
+        rec, alignments = build(data, plan, config, tau=args.tau, table_z=args.table_z,
+                                masks_from_model=masks_from_model)
     except (ReconstructionInputError, EpisodeFormatError, RobotModelError, FileNotFoundError, NotImplementedError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -104,6 +138,35 @@ def main(argv: list[str] | None = None) -> int:
     metrics = write_outputs(rec, alignments, args.out, wall_s=time.perf_counter() - start)
     print(_summary(metrics, args.out))
     return 0
+
+
+def _prompt(args: argparse.Namespace) -> ObjectPrompt | None:
+    if args.object_point is not None and args.object_box is not None:
+        raise ValueError("give --object-point or --object-box, not both")
+    if args.object_point is None and args.object_box is None:
+        return None
+    return ObjectPrompt(args.object_name, point=args.object_point, box=args.object_box)
+
+
+def _numbers(text: str, n: int) -> tuple[float, ...]:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != n:
+        raise argparse.ArgumentTypeError(f"expected {n} comma-separated numbers, got {text!r}")
+    return values
+
+
+def _pixel_pair(text: str) -> tuple[float, float]:
+    return _numbers(text, 2)
+
+
+def _pixel_box(text: str) -> tuple[int, int, int, int]:
+    x0, y0, x1, y1 = (int(round(v)) for v in _numbers(text, 4))
+    if not (x0 < x1 and y0 < y1):
+        raise argparse.ArgumentTypeError(f"box {text!r}: need X0 < X1 and Y0 < Y1")
+    return x0, y0, x1, y1
 
 
 def _summary(metrics: dict, out: Path) -> str:

@@ -54,6 +54,9 @@ class EpisodeData:
         K: [3, 3] intrinsics in the rasterizer's half-pixel convention. viewmat: [4, 4] base-to-camera.
         link_poses: [T, L, 4, 4] T_base_link. link_quats: [T, L, 4] their rotations as quaternions.
         tcp: [T, 4, 4] T_base_tcp.
+        mask_source: where ``masks`` came from ("episode", or what :mod:`manisplat.reconstruct.masks` drew).
+        eval_masks, eval_labels: the episode's own masks and labels when reconstruction ignores
+            them (region metrics still use them).
     """
 
     path: Path
@@ -73,6 +76,9 @@ class EpisodeData:
     labels: Labels
     objects: list[str]
     gt: dict | None
+    mask_source: str = "episode"
+    eval_masks: torch.Tensor | None = None
+    eval_labels: Labels | None = None
 
     @property
     def n_frames(self) -> int:
@@ -93,12 +99,24 @@ class EpisodeData:
             return torch.zeros(self.rgb.shape[1:3], dtype=torch.bool)
         return torch.isin(self.masks[i], torch.tensor(sorted(values), dtype=torch.uint8))
 
+    def eval_region(self, i: int, role: str) -> torch.Tensor:
+        """[H, W] bool: the ground-truth ``role`` ("robot" or "object") region of frame ``i``, from the
+        episode's own masks when it has them (even when reconstruction ignored them), else ``masks``."""
+        masks, labels = (self.eval_masks, self.eval_labels) if self.eval_masks is not None else (self.masks, self.labels)
+        if masks is None:
+            return torch.zeros(self.rgb.shape[1:3], dtype=torch.bool)
+        values = labels.robot if role == "robot" else labels.objects
+        return torch.isin(masks[i], torch.tensor(sorted(values), dtype=torch.uint8))
 
-def load_episode_data(path: str | Path, *, robot: str | None = None, load_meshes: bool = True) -> EpisodeData:
+
+def load_episode_data(path: str | Path, *, robot: str | None = None, load_meshes: bool = True,
+                      use_depth: bool = True, use_masks: bool = True) -> EpisodeData:
     """Read an episode for reconstruction.
 
     Args:
         robot: a robot description overriding the episode's ``robot.description``.
+        use_depth, use_masks: False ignores the episode's depth (monocular reconstruction) or masks
+            (drawn and segmented instead; the episode's are kept in ``eval_masks`` for metrics).
 
     Raises:
         ReconstructionInputError: the camera is not calibrated (no ``T_mount_cam``), is not fixed
@@ -119,7 +137,7 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, load_meshes
     frames = episode.frames
     n = len(episode)
     rgb = torch.empty(n, cam.height, cam.width, 3, dtype=torch.uint8)
-    depth = torch.empty(n, cam.height, cam.width) if episode.has_depth else None
+    depth = torch.empty(n, cam.height, cam.width) if episode.has_depth and use_depth else None
     masks = torch.empty(n, cam.height, cam.width, dtype=torch.uint8) if episode.has_masks else None
     for i in tqdm(range(n), desc="loading frames", unit="frame", leave=False):
         rgb[i] = torch.from_numpy(episode.rgb(i))
@@ -133,12 +151,17 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, load_meshes
     tcp = model.tcp_pose(q).float()
     K = torch.as_tensor(cam.K, dtype=torch.float64)
     T_base_cam = torch.as_tensor(cam.T_mount_cam, dtype=torch.float64)
+    labels = Labels.from_meta(episode.meta.labels, episode.meta.objects)
+    eval_masks = None
+    if masks is not None and not use_masks:
+        eval_masks, masks, labels = masks, None, Labels()
     log.info("loaded %s: %d frames %dx%d, depth %s, masks %s, robot %s", episode.path, n, cam.width, cam.height,
              depth is not None, masks is not None, model.name)
     return EpisodeData(
         path=episode.path, robot=model, rgb=rgb, depth=depth, masks=masks,
         t=torch.as_tensor(frames.t, dtype=torch.float64), q=q, gripper=gripper,
         K=opencv_to_splat_K(K).float(), K_opencv=K, viewmat=torch.linalg.inv(T_base_cam).float(),
-        link_poses=link_poses, link_quats=matrix_to_quat(link_poses[..., :3, :3].double()).float(), tcp=tcp, labels=Labels.from_meta(episode.meta.labels, episode.meta.objects),
-        objects=list(episode.meta.objects), gt=episode.gt(),
+        link_poses=link_poses, link_quats=matrix_to_quat(link_poses[..., :3, :3].double()).float(), tcp=tcp, labels=labels,
+        objects=list(episode.meta.objects), gt=episode.gt(), eval_masks=eval_masks,
+        eval_labels=Labels.from_meta(episode.meta.labels, episode.meta.objects) if eval_masks is not None else None,
     )

@@ -1,5 +1,12 @@
 """Initial Gaussians for each node: the background and objects from back-projected depth, robot
-links from samples of their meshes (or the built-in primitives)."""
+links from samples of their meshes (or the built-in primitives).
+
+Without depth (monocular), the depth is assumed: the table is the plane ``z = table_z`` of the
+base frame (the arm stands on it) out to ``radius`` from the base, everything else a backdrop
+behind; an object is a billboard standing on the table, facing the camera, through the points
+where its mask's lowest pixels meet the table. The camera does not move, so a background's shape
+matters little to its images; an object's is refined by training.
+"""
 
 from __future__ import annotations
 
@@ -9,7 +16,7 @@ import numpy as np
 import torch
 import trimesh
 
-from manisplat.reconstruct.data import EpisodeData
+from manisplat.reconstruct.data import EpisodeData, ReconstructionInputError
 from manisplat.robot import RobotModel
 from manisplat.scene import GaussianSet
 
@@ -36,15 +43,81 @@ def backproject(depth: torch.Tensor, K: torch.Tensor, T_base_cam: torch.Tensor, 
     return (cam @ T[:3, :3].T + T[:3, 3]).float(), rows, cols
 
 
+def monocular_depth(data: EpisodeData, *, table_z: float = 0.0, radius: float = 1.5,
+                    backdrop: float = 1.25) -> torch.Tensor:
+    """The z-depth [H, W] a monocular start assumes: where a pixel's ray meets the table plane
+    ``z = table_z`` (base frame, m) within ``radius`` m of the base origin, else a backdrop
+    parallel to the image at ``backdrop`` times the farthest table depth.
+
+    Raises:
+        ReconstructionInputError: the camera sees no table there (it looks up, or from below).
+    """
+    W, H = data.size
+    rays_cam, centre, R = _pixel_rays(data, W, H)
+    rays = rays_cam @ R.T  # base frame, z-depth 1
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (table_z - centre[2]) / rays[..., 2]
+    hit = centre + s[..., None] * rays
+    on_table = (s > 0) & np.isfinite(s) & (np.linalg.norm(hit[..., :2], axis=-1) < radius)
+    if not on_table.any():
+        raise ReconstructionInputError(
+            f"monocular start: no pixel sees the table plane z = {table_z} m within {radius} m of the base")
+    depth = np.where(on_table, s, backdrop * s[on_table].max())
+    return torch.from_numpy(depth.astype(np.float32))
+
+
+def billboard_depth(data: EpisodeData, mask: torch.Tensor, *, table_z: float = 0.0) -> torch.Tensor:
+    """The z-depth [H, W] (0 outside ``mask`` [H, W] bool) of an object seen without depth: a
+    vertical plane facing the camera through the points where the mask's lowest pixel in each
+    column meets the table ``z = table_z``.
+
+    Raises:
+        ReconstructionInputError: the mask is empty or its foot does not meet the table.
+    """
+    W, H = data.size
+    m = mask.numpy()
+    cols = np.nonzero(m.any(0))[0]
+    if not len(cols):
+        raise ReconstructionInputError("billboard: the object mask is empty")
+    rows = H - 1 - np.argmax(m[::-1, cols], axis=0)  # lowest mask pixel per column
+    rays_cam, centre, R = _pixel_rays(data, W, H)
+    foot_rays = rays_cam[rows, cols] @ R.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (table_z - centre[2]) / foot_rays[:, 2]
+    if not np.all(np.isfinite(s) & (s > 0)):
+        raise ReconstructionInputError("billboard: the object's foot does not meet the table plane")
+    foot = (centre + s[:, None] * foot_rays).mean(0)
+    normal = foot - centre
+    normal[2] = 0.0
+    if np.linalg.norm(normal) < 1e-6:
+        raise ReconstructionInputError("billboard: the camera looks straight down on the object")
+    normal /= np.linalg.norm(normal)
+    rays = rays_cam @ R.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth = (normal @ (foot - centre)) / (rays @ normal)
+    depth = np.where(m & np.isfinite(depth) & (depth > 0), depth, 0.0)
+    return torch.from_numpy(depth.astype(np.float32))
+
+
+def _pixel_rays(data: EpisodeData, W: int, H: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Camera-frame rays [H, W, 3] with z = 1 through the pixel centres, the camera centre [3] and
+    rotation [3, 3] in the base frame."""
+    K = data.K_opencv.double().numpy()
+    u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+    T = torch.linalg.inv(data.viewmat.double()).numpy()
+    return rays, T[:3, 3], T[:3, :3]
+
+
 def background_gaussians(data: EpisodeData, *, stride: int = 2, frames: list[int] | None = None,
-                         sh_degree: int = 0) -> GaussianSet:
-    """Static Gaussians from the depth of a few frames, robot and object pixels excluded.
+                         sh_degree: int = 0, table_z: float = 0.0) -> GaussianSet:
+    """Static Gaussians from the depth of a few frames (or :func:`monocular_depth`), robot and
+    object pixels excluded.
 
     Frame 0 gives most points; later frames only add pixels that no earlier frame saw as static
     (the table the arm hid), so nothing is duplicated.
     """
-    if data.depth is None:
-        raise ValueError("background_gaussians needs depth; use monocular_background_gaussians")
+    assumed = monocular_depth(data, table_z=table_z) if data.depth is None else None
     frames = frames or sorted({0, data.n_frames // 2, data.n_frames - 1})
     T_base_cam = torch.linalg.inv(data.viewmat.double())
     seen = torch.zeros(data.rgb.shape[1:3], dtype=torch.bool)
@@ -52,34 +125,38 @@ def background_gaussians(data: EpisodeData, *, stride: int = 2, frames: list[int
     for i in frames:
         static = data.region(i, data.labels.static) if data.masks is not None else torch.ones_like(seen)
         new = static & ~seen
-        p, rows, cols = backproject(data.depth[i], data.K_opencv, T_base_cam, new, stride)
+        depth = data.depth[i] if assumed is None else assumed
+        p, rows, cols = backproject(depth, data.K_opencv, T_base_cam, new, stride)
         points.append(p)
         colors.append(data.image(i)[rows, cols])
-        spacing.append(data.depth[i][rows, cols] / float(data.K_opencv[0, 0]) * stride)
+        spacing.append(depth[rows, cols] / float(data.K_opencv[0, 0]) * stride)
         seen |= static
     pts = torch.cat(points)
-    log.info("background: %d Gaussians from depth of frames %s", len(pts), frames)
+    log.info("background: %d Gaussians from %s of frames %s", len(pts),
+             "depth" if assumed is None else "the monocular table and backdrop", frames)
     return GaussianSet.from_points(pts, torch.cat(colors), torch.cat(spacing), scene_scale=_extent(pts),
                                    sh_degree=sh_degree)
 
 
 def object_gaussians(data: EpisodeData, label: int, frame: int = 0, *, stride: int = 1,
-                     sh_degree: int = 0) -> tuple[GaussianSet, torch.Tensor]:
-    """Canonical Gaussians of one object from its masked depth in ``frame``.
+                     sh_degree: int = 0, table_z: float = 0.0) -> tuple[GaussianSet, torch.Tensor]:
+    """Canonical Gaussians of one object from its masked depth in ``frame`` (or its
+    :func:`billboard_depth` without depth).
 
     The canonical frame has the base's axes and its origin at the points' centroid. Returns the
     set and ``T_base_obj`` [4, 4] of that frame (the object's pose at ``frame``).
     """
-    if data.depth is None or data.masks is None:
-        raise ValueError("object_gaussians needs depth and masks")
+    if data.masks is None:
+        raise ValueError("object_gaussians needs the object's mask")
     keep = data.masks[frame] == label
-    p, rows, cols = backproject(data.depth[frame], data.K_opencv, torch.linalg.inv(data.viewmat.double()), keep, stride)
+    depth = data.depth[frame] if data.depth is not None else billboard_depth(data, keep, table_z=table_z)
+    p, rows, cols = backproject(depth, data.K_opencv, torch.linalg.inv(data.viewmat.double()), keep, stride)
     if len(p) < 10:
         raise ValueError(f"object label {label}: only {len(p)} pixels with depth in frame {frame}")
     center = p.double().mean(0)
     T = torch.eye(4, dtype=torch.float64)
     T[:3, 3] = center
-    spacing = data.depth[frame][rows, cols] / float(data.K_opencv[0, 0]) * stride
+    spacing = depth[rows, cols] / float(data.K_opencv[0, 0]) * stride
     gs = GaussianSet.from_points((p.double() - center).float(), data.image(frame)[rows, cols], spacing, opacity=0.8,
                                  sh_degree=sh_degree)
     return gs, T

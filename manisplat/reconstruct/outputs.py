@@ -26,7 +26,7 @@ import torch
 
 from manisplat.align.phases import phase_of_frames
 from manisplat.reconstruct.metrics import fit_constant_offset, pose_errors, psnr, ssim
-from manisplat.reconstruct.pipeline import ObjectAlignment, region_labels
+from manisplat.reconstruct.pipeline import ObjectAlignment
 from manisplat.reconstruct.trainer import Reconstruction
 from manisplat.splat import save_ply
 
@@ -73,7 +73,6 @@ def _image_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], out: 
     renders, sheets = out / "renders" / "test", out / "renders" / "sheets"
     renders.mkdir(parents=True, exist_ok=True)
     sheets.mkdir(parents=True, exist_ok=True)
-    regions = region_labels(rec.data)
     scores = {k: {"full": [], "robot": [], "object": []} for k in ("psnr", "ssim")}
     for f in rec.plan.test_frames:
         image = rec.render(f, evaluation)[0].clamp(0, 1)
@@ -84,8 +83,8 @@ def _image_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], out: 
         sheet = (torch.cat([target, image, error], dim=1).numpy() * 255 + 0.5).astype(np.uint8)
         cv2.imwrite(str(sheets / f"{f:06d}.png"), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
         masks = {"full": None}
-        if rec.data.masks is not None:
-            masks.update({k: rec.data.region(f, v) for k, v in regions.items()})
+        if rec.data.masks is not None or rec.data.eval_masks is not None:
+            masks.update({k: rec.data.eval_region(f, k) for k in ("robot", "object")})
         for key, region in masks.items():
             scores["psnr"][key].append(psnr(image, target, region))
             scores["ssim"][key].append(ssim(image, target, region))

@@ -8,15 +8,19 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+import torch
 
 from manisplat.align.phases import DEFAULT_TAU, GripperEvents, Segment, gripper_events, segment_phases
 from manisplat.align.pseudo_gt import PseudoPoses, hybrid_pseudo_poses, make_tracker, tracked_baseline
-from manisplat.reconstruct.data import EpisodeData
+from manisplat.align.tracking import ObjectView
+from manisplat.reconstruct.data import EpisodeData, ReconstructionInputError
 from manisplat.reconstruct.init import background_gaussians, link_gaussians, object_gaussians
 from manisplat.reconstruct.plan import Plan
 from manisplat.reconstruct.poses import ObjectTrajectory
 from manisplat.reconstruct.trainer import Reconstruction, TrainConfig
-from manisplat.scene import SceneGraph
+from manisplat.scene import GaussianSet, SceneGraph
+from manisplat.scene.transforms import transform_gaussians
+from manisplat.splat import rasterization
 
 log = logging.getLogger(__name__)
 
@@ -32,29 +36,35 @@ class ObjectAlignment:
 
 
 def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DEFAULT_TAU,
-          robot_gaussians: int | None = None) -> tuple[Reconstruction, dict[str, ObjectAlignment]]:
+          robot_gaussians: int | None = None, table_z: float = 0.0,
+          masks_from_model: bool = False) -> tuple[Reconstruction, dict[str, ObjectAlignment]]:
     """Initialise every node and align every object (see the plan for what is skipped).
 
-    ``robot_gaussians`` (default: a quarter of the image's pixels, 2 000 to 20 000) is the
-    budget shared by the link meshes: more Gaussians than the robot has pixels add no detail.
+    Args:
+        robot_gaussians: the budget shared by the link meshes (default: a quarter of the image's
+            pixels, 2 000 to 20 000): more Gaussians than the robot has pixels add no detail.
+        table_z: the table's height in the base frame (m), for a start without depth.
+        masks_from_model: the objects' masks exist in frame 0 only (no depth to follow them): the
+            other frames' come from each object's model at its pseudo pose.
     """
     if robot_gaussians is None:
         W, H = data.size
         robot_gaussians = int(min(max(W * H // 4, 2_000), 20_000))
-    if data.depth is None or data.masks is None:
-        raise NotImplementedError(
-            "reconstruction currently needs the episode's depth and masks; "
-            "episodes without them are not supported yet"
-        )
-    background = background_gaussians(data, sh_degree=config.sh_degree)
+    if data.masks is None:
+        raise ReconstructionInputError(f"{data.path}: no masks; draw them first (manisplat.reconstruct.masks)")
+    background = background_gaussians(data, sh_degree=config.sh_degree, table_z=table_z)
     links = link_gaussians(data.robot, plan.links, total=robot_gaussians, sh_degree=config.sh_degree)
     objects, trajectories, alignments = {}, {}, {}
     tcp = data.tcp.double().numpy()
     for obj in plan.objects:
-        gaussians, T_start = object_gaussians(data, obj.label, 0, sh_degree=config.sh_degree)
+        gaussians, T_start = object_gaussians(data, obj.label, 0, sh_degree=config.sh_degree, table_z=table_z)
         objects[obj.name] = gaussians
-        alignment = align_object(data, obj.label, T_start.numpy(), tcp, moves=obj.moves, tau=tau)
+        model = object_view(gaussians, data) if data.depth is None or masks_from_model else None
+        alignment = align_object(data, obj.label, T_start.numpy(), tcp, moves=obj.moves, tau=tau, model=model,
+                                 masks_from_model=masks_from_model)
         alignments[obj.name] = alignment
+        if masks_from_model:
+            _draw_object_masks(data, obj.label, alignment.pseudo.poses, model)
         trajectories[obj.name] = ObjectTrajectory(alignment.pseudo.poses, alignment.pseudo.source, static=not obj.moves)
         log.info("object %s: %d pose parameters; phases %s", obj.name, trajectories[obj.name].n_params,
                  ", ".join(f"{s.name} {s.start}-{s.end - 1}" for s in alignment.segments))
@@ -65,8 +75,13 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
 
 
 def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.ndarray, *, moves: bool,
-                 tau: float = DEFAULT_TAU) -> ObjectAlignment:
-    """Phases, hybrid pseudo poses and (for moving objects) the tracking-only baseline."""
+                 tau: float = DEFAULT_TAU, model: ObjectView | None = None,
+                 masks_from_model: bool = False) -> ObjectAlignment:
+    """Phases, hybrid pseudo poses and (for moving objects) the tracking-only baseline.
+
+    ``model`` stands in for the depth (monocular) and, with ``masks_from_model``, for the masks
+    of frames after the first.
+    """
     events = gripper_events(data.gripper.numpy())
     segments = segment_phases(tcp[:, :3, 3], data.gripper.numpy(), T_start[:3, 3], tau=tau)
     if not moves:
@@ -75,19 +90,39 @@ def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.nda
         return ObjectAlignment(segments, events, pseudo, None)
     tracker = make_tracker(
         lambda i: cv2.cvtColor(data.rgb[i].numpy(), cv2.COLOR_RGB2GRAY),
-        lambda i: (data.masks[i] == label).numpy(),
-        lambda i: data.depth[i].numpy(),
+        lambda i: None if masks_from_model and i > 0 else (data.masks[i] == label).numpy(),
+        lambda i: None if data.depth is None else data.depth[i].numpy(),
         data.K_opencv.numpy(),
         np.linalg.inv(data.viewmat.double().numpy()),
+        model=model,
     )
     pseudo = hybrid_pseudo_poses(segments, T_start, tcp, events, tracker)
     baseline = tracked_baseline(tracker, data.n_frames, T_start)
     return ObjectAlignment(segments, events, pseudo, baseline)
 
 
-def region_labels(data: EpisodeData) -> dict[str, list[int]]:
-    """Mask values of the robot and of the (manipulated) objects, for region metrics."""
-    return {"robot": sorted(data.labels.robot), "object": sorted(data.labels.objects)}
+def object_view(gaussians: GaussianSet, data: EpisodeData, alpha_threshold: float = 0.5) -> ObjectView:
+    """The object's initial Gaussians rendered at a pose: (z-depth [H, W], mask [H, W]) as numpy,
+    depth 0 and mask False where the rendered alpha is below ``alpha_threshold``."""
+    means, quats, scales, opacities, _ = (x.detach() for x in gaussians.activated())
+    W, H = data.size
+
+    def view(T_base_obj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        m, q = transform_gaussians(torch.as_tensor(T_base_obj, dtype=torch.float64), means, quats)
+        with torch.no_grad():
+            depth, alpha, _ = rasterization(m, q, scales, opacities, torch.zeros_like(means), data.viewmat[None],
+                                            data.K[None], W, H, render_mode="ED")
+        visible = (alpha[0, ..., 0] > alpha_threshold).numpy()
+        return np.where(visible, depth[0, ..., 0].numpy(), 0.0).astype(np.float32), visible
+
+    return view
 
 
-__all__ = ["ObjectAlignment", "align_object", "build", "region_labels"]
+def _draw_object_masks(data: EpisodeData, label: int, poses: np.ndarray, model: ObjectView) -> None:
+    """Masks of frames after the first: the object's model at its pose, where no robot was drawn."""
+    for f in range(1, data.n_frames):
+        _, visible = model(poses[f])
+        data.masks[f][torch.from_numpy(visible) & (data.masks[f] == 0)] = label
+
+
+__all__ = ["ObjectAlignment", "align_object", "build", "object_view"]

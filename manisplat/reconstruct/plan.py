@@ -4,7 +4,9 @@
 * Frames that repeat the previous frame's state (arm, gripper, objects still) add no dynamic
   work: training draws each distinct state once, not each frame.
 * Links never visible get no Gaussians.
-* No depth means a monocular start (a table plane and a distant backdrop).
+* No depth means a monocular start (a table plane and a distant backdrop); no masks means the
+  robot's are drawn from its meshes and the object's segmented from a prompt
+  (:mod:`manisplat.reconstruct.masks`).
 * Every 8th frame is held out for evaluation.
 """
 
@@ -48,7 +50,7 @@ class Plan:
     test_frames: list[int]
     distinct_train_states: list[int]
     depth: bool
-    masks: bool
+    masks: str
     links: list[str]
     skipped_links: list[str]
     objects: list[ObjectPlan] = field(default_factory=list)
@@ -59,7 +61,8 @@ class Plan:
             f"frames        {self.frames}: {len(self.train_frames)} train, {len(self.test_frames)} held out (every {HOLDOUT_EVERY}th)",
             f"distinct      {len(self.distinct_train_states)} distinct train states "
             f"({len(self.train_frames) - len(self.distinct_train_states)} frames repeat the previous state and add no dynamic work)",
-            f"depth/masks   {'yes' if self.depth else 'no'} / {'yes' if self.masks else 'no'}; initialisation: {self.init}",
+            f"depth         {'yes' if self.depth else 'no'}; initialisation: {self.init}",
+            f"masks         {self.masks}",
             f"robot links   {', '.join(self.links)}" + (f" (never visible, no Gaussians: {', '.join(self.skipped_links)})" if self.skipped_links else ""),
         ]
         for o in self.objects:
@@ -86,7 +89,7 @@ def make_plan(data: EpisodeData) -> Plan:
     distinct = _distinct_states(data, train, objects_move=bool(moving))
     plan = Plan(
         frames=n, train_frames=train, test_frames=test, distinct_train_states=distinct,
-        depth=data.depth is not None, masks=data.masks is not None, links=links, skipped_links=skipped,
+        depth=data.depth is not None, masks=data.mask_source if data.masks is not None else "none", links=links, skipped_links=skipped,
         objects=objects, init="depth" if data.depth is not None else "monocular (table plane and backdrop)",
     )
     return plan
