@@ -42,6 +42,7 @@ def test_readme_opens_with_the_two_commands_and_ci_runs_the_test_one():
     head = readme[: readme.index(blocks[1]) + len(blocks[1])]
     assert len(head.splitlines()) <= 20, "the two commands must come first"
     assert "pip install torch==2.13.0" in install_and_run and "manisplat-episode sample" in install_and_run
+    assert "manisplat-reconstruct" in install_and_run, "the first command runs the main job on the sample"
     ci = (ROOT / ".ci" / "run").read_text()
     assert "pip install torch==2.13.0" in ci
     assert ci.strip().splitlines()[-1].strip() == test

@@ -91,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         data = load_episode_data(args.episode, robot=args.robot, use_depth=not args.no_depth,
-                                 use_masks=not args.no_masks)
+                                 use_masks=not args.no_masks, progress=not args.quiet)
         masks_from_model = False
         if data.masks is None:
             links = [name for name in data.robot.link_names if data.robot.visuals.get(name)]

@@ -110,13 +110,14 @@ class EpisodeData:
 
 
 def load_episode_data(path: str | Path, *, robot: str | None = None, load_meshes: bool = True,
-                      use_depth: bool = True, use_masks: bool = True) -> EpisodeData:
+                      use_depth: bool = True, use_masks: bool = True, progress: bool = False) -> EpisodeData:
     """Read an episode for reconstruction.
 
     Args:
         robot: a robot description overriding the episode's ``robot.description``.
         use_depth, use_masks: False ignores the episode's depth (monocular reconstruction) or masks
             (drawn and segmented instead; the episode's are kept in ``eval_masks`` for metrics).
+        progress: show a progress bar while the images load.
 
     Raises:
         ReconstructionInputError: the camera is not calibrated (no ``T_mount_cam``), is not fixed
@@ -139,7 +140,7 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, load_meshes
     rgb = torch.empty(n, cam.height, cam.width, 3, dtype=torch.uint8)
     depth = torch.empty(n, cam.height, cam.width) if episode.has_depth and use_depth else None
     masks = torch.empty(n, cam.height, cam.width, dtype=torch.uint8) if episode.has_masks else None
-    for i in tqdm(range(n), desc="loading frames", unit="frame", leave=False):
+    for i in tqdm(range(n), desc="loading frames", unit="frame", leave=False, disable=not progress):
         rgb[i] = torch.from_numpy(episode.rgb(i))
         if depth is not None:
             depth[i] = torch.from_numpy(episode.depth(i))

@@ -144,6 +144,8 @@ def _distinct_states(data: EpisodeData, train: list[int], objects_move: bool) ->
     return out
 
 
-def _images_differ(data: EpisodeData, i: int, j: int, threshold: float = 2.0) -> bool:
-    """Whether frames differ (mean absolute difference above ``threshold`` grey levels)."""
-    return float((data.rgb[i].float() - data.rgb[j].float()).abs().mean()) > threshold
+def _images_differ(data: EpisodeData, i: int, j: int, level: float = 12.0, fraction: float = 0.002) -> bool:
+    """Whether frames differ: more than ``fraction`` of the pixels changed by over ``level`` grey
+    levels in some channel (a small moving part changes few pixels, sensor noise few levels)."""
+    changed = (data.rgb[i].float() - data.rgb[j].float()).abs().amax(-1) > level
+    return float(changed.float().mean()) > fraction
