@@ -6,6 +6,7 @@ import runpy
 from pathlib import Path
 
 import cv2
+import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -24,3 +25,33 @@ def test_fit_image_example(tmp_path):
     result = module["main"](str(tmp_path), steps=120)
     assert result["psnr"] > 25.0 and result["gaussians"] > 2000  # densified and fitting
     assert len(load_ply(tmp_path / "fit.ply")["means"]) == result["gaussians"]
+
+
+def _centroid(alpha) -> np.ndarray:
+    v, u = np.nonzero(np.ones_like(alpha))
+    w = alpha.ravel()
+    return np.array([(u * w).sum(), (v * w).sum()]) / w.sum()
+
+
+def test_twin_new_poses_example(tmp_path):
+    from manisplat.episode import Episode
+
+    module = runpy.run_path(str(ROOT / "examples" / "twin_new_poses.py"))
+    r = module["main"](str(tmp_path), iters=200, frames=24, width=80, height=60)
+    twin, recorded, new = (r[k].numpy() for k in ("twin", "recorded", "new"))
+    assert np.isfinite(new).all()
+    assert 10 * np.log10(1 / ((twin - recorded) ** 2).mean()) > 22.0  # the twin reproduces the frame
+    assert np.abs(new - twin).max(-1).mean() > 0.01  # the arm and the box moved
+    # the box is drawn where its new pose projects: its alpha centroid moves by the projected shift
+    cam = Episode.open(tmp_path / "episode").camera
+    T_cam_base = np.linalg.inv(cam.T_mount_cam)
+
+    def project(p: np.ndarray) -> np.ndarray:
+        x = cam.K @ (T_cam_base[:3, :3] @ p + T_cam_base[:3, 3])
+        return x[:2] / x[2]
+
+    before, after = r["T_base_box"].numpy()[:3, 3], r["T_base_box_new"].numpy()[:3, 3]
+    expected = project(after) - project(before)
+    moved = _centroid(r["box_alpha_new"].numpy()) - _centroid(r["box_alpha"].numpy())
+    assert np.linalg.norm(expected) > 3.0 and np.linalg.norm(moved - expected) < 1.0, (moved, expected)
+    assert cv2.imread(str(tmp_path / "new_poses.png")).shape[1] == 3 * 80

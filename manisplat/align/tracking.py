@@ -15,7 +15,10 @@ unguided tracker drifts.
 
 Without depth (or without a mask) in a frame, the object's model seen at the predicted pose
 stands in: new points are lifted onto the model's rendered depth, and poses are solved from the
-2D tracks by RANSAC PnP; the mask is the model's silhouette, grown by a few pixels.
+2D tracks by RANSAC PnP; the mask is the model's silhouette, grown by a few pixels. Such poses
+never override a prior: PnP on a small, roughly modelled object is ambiguous in depth and
+rotation (on the shared pick-and-place without depth, letting it override moved the pseudo
+poses 6 cm / 17 deg off; the gripper prior alone is 0.25 cm / 0.8 deg).
 
 Limits: frame-to-frame LK under-reads in-plane rotation (by about 7 % of the turn in the tests,
 at 0.7 and 2 deg per frame); the gripper prior carries the pose wherever it holds.
@@ -192,7 +195,10 @@ def track_object(
         use_track = tracked is not None
         if prior is not None:
             pose = prior[k] @ correction
-            confident = use_track and n_in >= settings.confident_inliers and rms <= settings.confident_rms
+            # only measured depth can prove the prior wrong: PnP on the object's model is ambiguous
+            # in depth and rotation for a small object, and agrees with its own wrong guesses
+            confident = (use_track and measured is not None and n_in >= settings.confident_inliers
+                         and rms <= settings.confident_rms)
             streak = streak + 1 if confident and _disagree(tracked, pose, settings) else 0
             # once the prior is proven wrong (a push, a slip), follow tracking while it stays confident
             following = confident and (following or streak >= settings.persistence)

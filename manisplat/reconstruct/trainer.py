@@ -121,11 +121,22 @@ class Reconstruction:
 
     def render(self, frame: int, evaluation: dict[str, np.ndarray] | None = None):
         """(image [H, W, 3], alpha [H, W], dynamic alpha [H, W], meta, composed) at ``frame``."""
+        return self.render_state(self.data.link_poses[frame], self.object_poses(frame, evaluation),
+                                 self.data.link_quats[frame])
+
+    def render_state(self, link_poses: torch.Tensor, object_poses: dict[str, torch.Tensor],
+                     link_quats: torch.Tensor | None = None):
+        """The twin in any state: link poses [L, 4, 4] (``T_base_link``, FK order, e.g. FK of new
+        joint angles) and object poses name -> [4, 4] ``T_base_obj``, seen from the episode's camera.
+
+        Returns (image [H, W, 3], alpha [H, W], dynamic alpha [H, W], meta, composed); ``meta``
+        holds ``group_alphas`` [1, H, W, groups] (0 background, 1 robot, 2 + k object k).
+        """
         W, H = self.data.size
         V = self.viewmat()
         camera_center = -(V[:3, :3].transpose(0, 1) @ V[:3, 3])
-        composed = self.graph.compose(self.data.link_poses[frame], self.object_poses(frame, evaluation),
-                                      self.data.link_quats[frame], camera_center)
+        composed = self.graph.compose(link_poses.float(), {k: p.float() for k, p in object_poses.items()},
+                                      link_quats, camera_center)
         colors, alphas, meta = rasterization(
             composed.means, composed.quats, composed.scales, composed.opacities, composed.colors,
             V[None], self.data.K[None], W, H, group_ids=composed.groups,

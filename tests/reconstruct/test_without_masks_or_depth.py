@@ -134,6 +134,12 @@ def test_pnp_tracking_on_a_model_without_depth_or_masks():
     assert np.abs(err[:, 2]).max() < 0.006
     with pytest.raises(ValueError, match="no depth and no object model"):
         track_object(lambda i: grays[i], lambda i: masks[i], lambda i: None, K, np.eye(4), range(3), truth[0])
+    # without depth, tracking never overrides a prior (with depth the same evidence would)
+    static_prior = np.repeat(truth[:1], len(truth), axis=0)
+    guided = track_object(lambda i: grays[i], lambda i: masks[0] if i == 0 else None, lambda i: None, K, np.eye(4),
+                          range(len(truth)), truth[0], TrackerSettings(confident_inliers=10), static_prior, model)
+    assert guided.solved.all() and not guided.from_tracking.any()
+    np.testing.assert_array_equal(guided.poses, static_prior)
 
 
 def test_complete_masks_needs_a_prompt_when_objects_are_listed(pick):
