@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from manisplat.cli_args import positive
 from manisplat.drivers.base import DriverError
 from manisplat.drivers.piper.arm import PiperArm
 from manisplat.drivers.piper.convention import ConventionError, convention_for, tcp_discrepancy_mm
@@ -69,16 +70,6 @@ def _degrees_list(text: str) -> np.ndarray:
     return np.radians(values)
 
 
-def _positive(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number; got {text!r}") from None
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be > 0; got {text}")
-    return value
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``manisplat-replay``."""
     p = argparse.ArgumentParser(
@@ -92,7 +83,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sim", action="store_true", help="replay on a simulated PiPER (no hardware)")
     p.add_argument("--sim-start", type=_degrees_list, default=None, metavar="J1,..,J6",
                    help="--sim: the simulated arm's initial joints in degrees (arm convention)")
-    p.add_argument("--speed", type=_positive, default=1.0,
+    p.add_argument("--speed", type=positive(), default=1.0,
                    help="time scale: 0.5 replays at half speed, 2 at twice (default 1)")
     p.add_argument("--dry-run", action="store_true",
                    help="check everything (reading the arm's current state) and send nothing")
@@ -101,13 +92,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--arm-speed-pct", type=int, default=100, metavar="PCT",
                    help="MOVE J speed %% given to the arm (1..100, default 100); velocities are checked against "
                         "the speed limits times this")
-    p.add_argument("--max-tracking-error-deg", type=_positive, default=10.0, metavar="DEG",
+    p.add_argument("--max-tracking-error-deg", type=positive(), default=10.0, metavar="DEG",
                    help="stop when a joint is further than this from its target (default 10)")
-    p.add_argument("--max-start-distance-deg", type=_positive, default=30.0, metavar="DEG",
+    p.add_argument("--max-start-distance-deg", type=positive(), default=30.0, metavar="DEG",
                    help="refuse when the start is further than this from the arm's state (default 30)")
-    p.add_argument("--max-step-deg", type=_positive, default=10.0, metavar="DEG",
+    p.add_argument("--max-step-deg", type=positive(), default=10.0, metavar="DEG",
                    help="refuse a jump larger than this between two frames (default 10)")
-    p.add_argument("--feedback-timeout-ms", type=_positive, default=100.0, metavar="MS",
+    p.add_argument("--feedback-timeout-ms", type=positive(), default=100.0, metavar="MS",
                    help="stop when no joint feedback arrives for this long (default 100)")
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
     return p

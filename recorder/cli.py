@@ -18,6 +18,7 @@ import threading
 from pathlib import Path
 from typing import Any, Iterator, TextIO
 
+from manisplat.cli_args import positive
 from manisplat.drivers.base import Camera, DriverError
 from manisplat.drivers.piper import PiperArm
 from manisplat.recorder.clock import Clock, SystemClock
@@ -69,18 +70,6 @@ def _camera(text: str) -> str:
     return text
 
 
-def _positive(kind: type) -> Any:
-    def parse(text: str) -> Any:
-        try:
-            value = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a number; got {text!r}") from None
-        if not value > 0:
-            raise argparse.ArgumentTypeError(f"must be > 0; got {text}")
-        return value
-    return parse
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``manisplat-record``."""
     p = argparse.ArgumentParser(
@@ -103,7 +92,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="oak: the first OAK found (depthai); replay:PATH: replay an episode folder or a depthai "
                           "recording (.mkv/.avi/.mp4 with its .mcap and calibration.json or K.json) live")
     cam.add_argument("--loop", action="store_true", help="replay camera: repeat the recording without end")
-    cam.add_argument("--fps", type=_positive(float), default=None,
+    cam.add_argument("--fps", type=positive(float), default=None,
                      help="camera rate in Hz (oak: its rate, default 30; replay: keep at most this many frames "
                           "per second, default all)")
     cam.add_argument("--size", type=_size, default=None, metavar="WxH",
@@ -117,8 +106,8 @@ def build_parser() -> argparse.ArgumentParser:
     out.add_argument("--out", type=Path, default=Path("episodes"), metavar="DIR",
                      help="folder for the episodes (episode_0000, episode_0001, ...; default ./episodes). "
                           "Incomplete episodes found there are recovered first")
-    out.add_argument("--episodes", type=_positive(int), default=1, metavar="N", help="episodes to record (default 1)")
-    out.add_argument("--duration", type=_positive(float), default=None, metavar="S",
+    out.add_argument("--episodes", type=positive(int), default=1, metavar="N", help="episodes to record (default 1)")
+    out.add_argument("--duration", type=positive(float), default=None, metavar="S",
                      help="stop each episode after S seconds (default: stop by key or Ctrl-C)")
     out.add_argument("--start", choices=("key", "now"), default=None,
                      help="start each episode on Enter/space (key; default on a terminal) or at once (now)")
@@ -128,7 +117,7 @@ def build_parser() -> argparse.ArgumentParser:
     out.add_argument("--actions", choices=("auto", "on", "off"), default="auto",
                      help="record leader-arm commands (0x155-0x157, 0x159) as a1..a6,a_gripper: auto = when "
                           "seen on the bus before the episode starts (default)")
-    out.add_argument("--max-gap-ms", type=_positive(float), default=15.0, metavar="MS",
+    out.add_argument("--max-gap-ms", type=positive(float), default=15.0, metavar="MS",
                      help="flag frames interpolated across a longer gap between joint samples (default 15 ms: "
                           "three PiPER samples)")
     out.add_argument("--recover", type=Path, default=None, metavar="DIR",

@@ -6,30 +6,16 @@ import argparse
 import logging
 import sys
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
+from manisplat.cli_args import numbers
 from manisplat.episode.format import EpisodeFormatError
 from manisplat.episode.importers.act_hdf5 import ARM_COLUMNS, import_act_hdf5
 from manisplat.episode.reader import Episode
 from manisplat.episode.recover import recover
 from manisplat.episode.summary import describe
 from manisplat.episode.validate import validate
-
-
-def _floats(count: tuple[int, ...]) -> Callable[[str], list[float]]:
-    """An argparse type: comma-separated numbers, as many as one of ``count``."""
-    def parse(text: str) -> list[float]:
-        try:
-            values = [float(v) for v in text.split(",")] if text else []
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected comma-separated numbers; got {text!r}") from None
-        if len(values) not in count:
-            raise argparse.ArgumentTypeError(f"expected {' or '.join(map(str, count))} numbers; got {len(values)}")
-        return values
-
-    return parse
 
 
 def _cmd_info(args: argparse.Namespace) -> int:
@@ -116,7 +102,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "frame. The file holds no intrinsics: --K is required.")
     p.add_argument("file", type=Path, metavar="FILE.hdf5", help="the HDF5 episode")
     p.add_argument("--out", type=Path, required=True, help="episode folder to create")
-    p.add_argument("--K", type=_floats((4,)), required=True, metavar="fx,fy,cx,cy",
+    p.add_argument("--K", type=numbers((4,)), required=True, metavar="fx,fy,cx,cy",
                    help="camera intrinsics in pixels (required: these files store none)")
     p.add_argument("--arm", choices=sorted(ARM_COLUMNS), default="left",
                    help="which arm of a 14-column dual-arm file, or 'single' for 7 columns (default left)")
@@ -124,7 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fps", type=float, default=30.0, help="recording rate in Hz; t = index / fps (default 30)")
     p.add_argument("--gripper-scale", type=float, default=1.0,
                    help="factor from the file's gripper value to the finger gap in metres (default 1)")
-    p.add_argument("--dist", type=_floats((0, 4, 5, 8, 12, 14)), default=[], metavar="k1,k2,...",
+    p.add_argument("--dist", type=numbers((0, 4, 5, 8, 12, 14)), default=[], metavar="k1,k2,...",
                    help="OpenCV distortion coefficients (default none)")
     p.add_argument("--mount", default="base", help="'base' or the link a wrist camera is fixed to (default base)")
     p.add_argument("--bgr", action="store_true", help="the stored images are BGR (default: RGB, as Cobot Magic stores)")

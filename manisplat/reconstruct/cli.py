@@ -15,6 +15,7 @@ from pathlib import Path
 import torch
 
 from manisplat.align.phases import DEFAULT_TAU
+from manisplat.cli_args import numbers
 from manisplat.episode import EpisodeFormatError
 from manisplat.reconstruct.data import ReconstructionInputError, load_episode_data
 from manisplat.reconstruct.masks import ObjectPrompt, complete_masks
@@ -148,22 +149,13 @@ def _prompt(args: argparse.Namespace) -> ObjectPrompt | None:
     return ObjectPrompt(args.object_name, point=args.object_point, box=args.object_box)
 
 
-def _numbers(text: str, n: int) -> tuple[float, ...]:
-    try:
-        values = tuple(float(v) for v in text.split(","))
-    except ValueError:
-        values = ()
-    if len(values) != n:
-        raise argparse.ArgumentTypeError(f"expected {n} comma-separated numbers, got {text!r}")
-    return values
-
-
 def _pixel_pair(text: str) -> tuple[float, float]:
-    return _numbers(text, 2)
+    u, v = numbers((2,))(text)
+    return u, v
 
 
 def _pixel_box(text: str) -> tuple[int, int, int, int]:
-    x0, y0, x1, y1 = (int(round(v)) for v in _numbers(text, 4))
+    x0, y0, x1, y1 = (int(round(v)) for v in numbers((4,))(text))
     if not (x0 < x1 and y0 < y1):
         raise argparse.ArgumentTypeError(f"box {text!r}: need X0 < X1 and Y0 < Y1")
     return x0, y0, x1, y1
