@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 from PIL import Image
 
-from manisplat.calib.errors import CalibrationError, InputError
+from manisplat.calib.errors import CalibrationError, InputError, read_json
 
 BOARD_TYPE = "charuco"
 MM_PER_INCH = 25.4
@@ -130,13 +130,7 @@ class BoardSpec:
 def load_board(path: str | Path) -> BoardSpec:
     """Read ``board.json``; errors name the file."""
     path = Path(path)
-    try:
-        raw = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(f"{path}: board file not found") from None
-    except (OSError, json.JSONDecodeError) as exc:
-        raise InputError(f"{path}: cannot read board JSON: {exc}") from None
-    return BoardSpec.from_dict(raw, source=str(path))
+    return BoardSpec.from_dict(read_json(path, "board file"), source=str(path))
 
 
 def save_board(path: str | Path, spec: BoardSpec) -> None:

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+from typing import Any
+
 
 class CalibrationError(ValueError):
     """Calibration input or result is unusable (the message says why and what to do)."""
@@ -17,3 +21,13 @@ class DegenerateMotionError(CalibrationError):
 
 class InputError(CalibrationError):
     """An input file is missing, unreadable or does not fit (board file, intrinsics, sizes)."""
+
+
+def read_json(path: Path, what: str) -> Any:
+    """The JSON in ``path``; a missing or unreadable file raises :class:`InputError` naming it as ``what``."""
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(f"{path}: {what} not found") from None
+    except (OSError, json.JSONDecodeError) as exc:
+        raise InputError(f"{path}: cannot read {what}: {exc}") from None

@@ -18,7 +18,7 @@ import numpy as np
 from manisplat.calib.board import BoardSpec
 from manisplat.calib.camera import CameraModel
 from manisplat.calib.detect import BoardDetector, Detection
-from manisplat.calib.errors import CalibrationError, InputError, NotEnoughDataError
+from manisplat.calib.errors import CalibrationError, InputError, NotEnoughDataError, read_json
 
 MIN_VIEWS = 6
 MIN_CORNERS_PER_VIEW = 8
@@ -147,12 +147,10 @@ def intrinsics_from_oak(width: int, height: int, *, calib_json: str | Path | Non
 def load_intrinsics(path: str | Path) -> CameraModel:
     """Intrinsics from an intrinsics or calibration JSON (``K``, ``dist``, ``width``, ``height``)."""
     path = Path(path)
+    raw = read_json(path, "intrinsics file")
     try:
-        raw = json.loads(path.read_text(encoding="utf-8"))
         return CameraModel(K=raw["K"], dist=raw.get("dist", []), width=raw["width"], height=raw["height"])
-    except FileNotFoundError:
-        raise InputError(f"{path}: not found") from None
-    except (OSError, json.JSONDecodeError, KeyError, TypeError) as exc:
+    except (KeyError, TypeError) as exc:
         raise InputError(f"{path}: not an intrinsics file ({exc})") from None
     except CalibrationError as exc:
         raise InputError(f"{path}: {exc}") from None

@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from manisplat.calib.camera import CameraModel
-from manisplat.calib.errors import CalibrationError, InputError
+from manisplat.calib.errors import CalibrationError, InputError, read_json
 from manisplat.calib.handeye import is_eye_to_hand
 from manisplat.calib.poses import is_rigid
 from manisplat.episode.fsio import atomic_write_bytes
@@ -78,12 +78,7 @@ def save_calibration(path: str | Path, cal: dict[str, Any]) -> None:
 def load_calibration(path: str | Path) -> dict[str, Any]:
     """Read and check a ``calibration.json``; errors name the file and the field."""
     path = Path(path)
-    try:
-        cal = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(f"{path}: not found") from None
-    except (OSError, json.JSONDecodeError) as exc:
-        raise InputError(f"{path}: cannot read: {exc}") from None
+    cal = read_json(path, "calibration file")
     if not isinstance(cal, dict) or cal.get("format") != FORMAT:
         raise InputError(f"{path}: not a {FORMAT} file")
     missing = [k for k in ("K", "dist", "width", "height", "mount", "T_mount_cam") if k not in cal]
