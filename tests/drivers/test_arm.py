@@ -91,6 +91,7 @@ def test_leaving_the_context_holds_the_measured_position(channel, sim):
         arm.enable()
         arm.move_joints(TARGET, speed_pct=5)  # slow: still moving when we leave
         arm.wait_for_joint_state(arm.wait_for_joint_state().seq + 40)
+    sim.wait_cycles(2)  # the hold frames are queued on the sim's bus; its next full cycle reads them
     state = sim.state()
     assert np.abs(state["q"] - TARGET).max() > 0.1  # it was still on its way
     assert np.abs(state["target"] - state["q"]).max() < 0.02  # the target became the measured position
@@ -107,6 +108,7 @@ def test_an_exception_inside_the_context_still_holds(channel, sim):
             arm.move_joints(TARGET, speed_pct=5)
             arm.wait_for_joint_state(arm.wait_for_joint_state().seq + 20)
             raise RuntimeError("boom")
+    sim.wait_cycles(2)  # as above: let the simulated arm read the hold frames
     state = sim.state()
     assert np.abs(state["target"] - state["q"]).max() < 0.02 and state["enabled"].all()
 
