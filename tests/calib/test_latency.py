@@ -10,9 +10,9 @@ from manisplat.calib.latency import estimate_latency
 
 @pytest.mark.parametrize("latency, calibrated, seed", [(0.047, False, 3), (-0.012, True, 6)])
 def test_latency_recovered_within_2ms(tmp_path, spec, latency, calibrated, seed):
-    """15 s of bursty motion at 30 fps, rendered at the true exposure times, stamped late."""
+    """10 s of bursty motion at 30 fps, rendered at the true exposure times, stamped late."""
     truth = default_truth(spec, width=320, height=240, f=260.0, latency_s=latency)
-    write_latency_episode(tmp_path / "ep", spec, truth, rng=np.random.default_rng(seed), duration_s=15.0,
+    write_latency_episode(tmp_path / "ep", spec, truth, rng=np.random.default_rng(seed), duration_s=10.0,
                           calibrated=calibrated)
     est = estimate_latency(tmp_path / "ep", bootstrap=40)
     assert est.signal == ("pixels" if calibrated else "metres")
@@ -28,6 +28,21 @@ def test_no_motion_is_refused():
         fit_latency(np.arange(0.5, 4.5, 0.1), np.random.default_rng(0).random(39), robot)
     with pytest.raises(NotEnoughDataError, match="at least 9"):
         fit_latency(np.arange(5) * 0.1, np.ones(4), robot)
+
+
+def test_the_robot_signal_sees_the_gripper_open_while_the_arm_stands(tmp_path, spec):
+    """Finger motion shows in the image, so the robot signal must show it too."""
+    from manisplat.calib.latency import robot_motion
+    from manisplat.calib.synth import Q_NOMINAL, _camera_info
+    from manisplat.episode import Episode, EpisodeWriter, RobotInfo
+    truth = default_truth(spec, width=320, height=240, f=260.0)
+    with EpisodeWriter(tmp_path / "ep", _camera_info(truth), RobotInfo(), fps=30.0, source="simulation") as w:
+        for t in np.arange(0.0, 1.0, 0.005):
+            w.add_joint_sample(float(t), Q_NOMINAL, 0.07 * t)  # opens 7 cm/s, joints still
+        w.add_frame(0.5, Q_NOMINAL, 0.035, np.zeros((240, 320, 3), np.uint8))
+    motion, signal = robot_motion(Episode.open(tmp_path / "ep"))
+    moved = motion.displacement(np.array([0.2]), np.array([0.8]))[0]  # (M,) metres
+    assert signal == "metres" and moved.max() == pytest.approx(0.6 * 0.07 / 2, rel=0.05)  # one finger: half
 
 
 def test_latency_command(tmp_path, spec, capsys):
