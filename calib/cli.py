@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from manisplat.calib.errors import CalibrationError, DegenerateMotionError, InputError, NotEnoughDataError
+from manisplat.cli_args import positive
 
 EXIT_OK, EXIT_FAILED, EXIT_INPUT, EXIT_NOT_ENOUGH, EXIT_DEGENERATE = 0, 1, 2, 3, 4
 
@@ -173,13 +174,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser("board", help="write a printable ChArUco board (PNG, PDF at true scale) and board.json")
     b.add_argument("--out", default="board", help="output prefix: PREFIX.png, PREFIX.pdf, PREFIX.json (default: board)")
-    b.add_argument("--squares-x", type=int, default=7, help="squares along x (columns), default 7")
-    b.add_argument("--squares-y", type=int, default=5, help="squares along y (rows), default 5")
-    b.add_argument("--square-mm", type=float, default=30.0, help="square side, mm (default 30)")
-    b.add_argument("--marker-mm", type=float, default=22.0, help="marker side, mm (default 22)")
+    b.add_argument("--squares-x", type=positive(int), default=7, help="squares along x (columns), default 7")
+    b.add_argument("--squares-y", type=positive(int), default=5, help="squares along y (rows), default 5")
+    b.add_argument("--square-mm", type=positive(), default=30.0, help="square side, mm (default 30)")
+    b.add_argument("--marker-mm", type=positive(), default=22.0, help="marker side, mm (default 22)")
     b.add_argument("--dictionary", default="DICT_5X5_100", help="OpenCV ArUco dictionary (default DICT_5X5_100)")
     b.add_argument("--legacy", action="store_true", help="OpenCV < 4.6 marker layout (boards from calib.io)")
-    b.add_argument("--px-per-mm", type=int, default=10, help="raster resolution of the page (default 10 = 254 dpi)")
+    b.add_argument("--px-per-mm", type=positive(int), default=10, help="raster resolution of the page (default 10 = 254 dpi)")
     b.add_argument("--paper", default="a4", choices=["a4", "letter", "a3"])
     b.set_defaults(fn=cmd_board)
 
@@ -188,14 +189,14 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--oak-json", type=Path, help="an OAK calibration dump (CalibrationHandler.eepromToJsonFile)")
     i.add_argument("--device", help="OAK device id (default: the first found)")
     i.add_argument("--resize", default="crop", choices=["crop", "stretch"], help="how the stream was resized")
-    i.add_argument("--width", type=int, help="recording width (px)")
-    i.add_argument("--height", type=int, help="recording height (px)")
+    i.add_argument("--width", type=positive(int), help="recording width (px)")
+    i.add_argument("--height", type=positive(int), help="recording height (px)")
     i.add_argument("--board", type=Path, help="board.json (to solve from images)")
     i.add_argument("--images", nargs="+", help="image files or glob patterns with the board")
     i.add_argument("--episode", type=Path, help="an episode whose frames show the board")
-    i.add_argument("--step", type=int, default=1, help="use every STEP-th episode frame")
+    i.add_argument("--step", type=positive(int), default=1, help="use every STEP-th episode frame")
     i.add_argument("--model", default="k1k2k3", choices=["none", "k1k2", "k1k2k3", "rational"], help="distortion model")
-    i.add_argument("--min-coverage", type=float, default=0.6, help="fraction of 8x6 image cells with corners (0.6)")
+    i.add_argument("--min-coverage", type=positive(), default=0.6, help="fraction of 8x6 image cells with corners (0.6)")
     i.add_argument("--out", required=True, type=Path, help="intrinsics JSON to write")
     i.set_defaults(fn=cmd_intrinsics)
 
@@ -209,12 +210,12 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--link", default="link6", help="link holding the board (eye-to-hand; default link6)")
     c.add_argument("--description", default="builtin:agilex_piper", help="robot description the joints follow")
     c.add_argument("--auto", action="store_true", help="record still poses that add information without asking")
-    c.add_argument("--settle", type=float, default=1.0, help="seconds the arm must be still (1.0)")
-    c.add_argument("--frames-per-pose", type=int, default=3)
-    c.add_argument("--max-poses", type=int, default=25)
-    c.add_argument("--width", type=int, default=1280)
-    c.add_argument("--height", type=int, default=720)
-    c.add_argument("--fps", type=float, default=15.0)
+    c.add_argument("--settle", type=positive(), default=1.0, help="seconds the arm must be still (1.0)")
+    c.add_argument("--frames-per-pose", type=positive(int), default=3, help="frames kept per still pose (3)")
+    c.add_argument("--max-poses", type=positive(int), default=25, help="stop after this many poses (25)")
+    c.add_argument("--width", type=positive(int), default=1280, help="camera width, px (1280)")
+    c.add_argument("--height", type=positive(int), default=720, help="camera height, px (720)")
+    c.add_argument("--fps", type=positive(), default=15.0, help="camera frame rate (15)")
     c.add_argument("--overwrite", action="store_true")
     c.set_defaults(fn=cmd_capture)
 
@@ -228,17 +229,22 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--corner-offset", type=float, help="px subtracted from OpenCV's ChArUco corners "
                    "(default: measured for the installed OpenCV)")
     s.add_argument("--no-opencv", action="store_true", help="start only from our own closed form")
-    s.add_argument("--max-joint-speed", type=float, default=0.02,
+    s.add_argument("--max-joint-speed", type=positive(), default=0.02,
                    help="skip frames taken while a joint moves faster than this (rad/s, from joints.csv; 0.02)")
     s.add_argument("--allow-moving", action="store_true", help="use every frame, moving or not")
     s.add_argument("--latency-from", type=Path, help="also estimate the camera latency from this (moving) episode")
-    s.add_argument("--max-offset", type=float, default=0.25, help="latency search range +- s (0.25)")
+    s.add_argument("--max-offset", type=positive(), default=0.25, help="latency search range +- s (0.25)")
     s.add_argument("--report", type=Path, help="write report.html, report.png and overlays into this folder")
     s.set_defaults(fn=cmd_solve)
 
-    t = sub.add_parser("latency", help="camera-vs-joint timestamp offset of a moving episode")
-    t.add_argument("episode", type=Path)
-    t.add_argument("--max-offset", type=float, default=0.25, help="search range +- s (0.25)")
+    t = sub.add_parser("latency", help="camera-vs-joint timestamp offset of a moving episode",
+                       description="Estimate latency_s = t_frame - t_exposure (positive: the camera stamps "
+                                   "late) by aligning optical flow with the robot's motion from joints.csv. "
+                                   "Record 10-30 s of brisk moves with pauses, the arm well in view; with a "
+                                   "calibrated camera (after `apply`) the robot signal is in pixels. Prints "
+                                   "the estimate with a bootstrap 1-sigma; exit 3 when nothing moves.")
+    t.add_argument("episode", type=Path, help="a recorded episode in which the arm moves")
+    t.add_argument("--max-offset", type=positive(), default=0.25, help="search range +- s (0.25)")
     t.add_argument("--uncalibrated", action="store_true", help="ignore the episode's camera calibration")
     t.add_argument("--json", type=Path, help="also write the estimate here")
     t.set_defaults(fn=cmd_latency)

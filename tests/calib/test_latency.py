@@ -53,3 +53,20 @@ def test_latency_command(tmp_path, spec, capsys):
     import json
     est = json.loads((tmp_path / "l.json").read_text())
     assert abs(est["latency_s"] - 0.04) < max(0.01, 3 * est["latency_std_s"])
+
+
+def test_latency_command_exit_codes(tmp_path, spec, capsys):
+    """A still episode exits 3 (not enough data) and a non-positive search range exits 2."""
+    from manisplat.calib.synth import Q_NOMINAL, _camera_info
+    from manisplat.episode import EpisodeWriter, RobotInfo
+    truth = default_truth(spec, width=320, height=240, f=260.0)
+    with EpisodeWriter(tmp_path / "still", _camera_info(truth), RobotInfo(), fps=30.0, source="simulation") as w:
+        for t in np.arange(0.0, 2.0, 0.005):
+            w.add_joint_sample(float(t), Q_NOMINAL, 0.0)
+        for k in range(30):
+            w.add_frame(0.5 + k / 30, Q_NOMINAL, 0.0, np.full((240, 320, 3), 90, np.uint8))
+    assert main(["latency", str(tmp_path / "still")]) == 3
+    assert "no motion" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        main(["latency", str(tmp_path / "still"), "--max-offset", "0"])
+    assert exc.value.code == 2 and "--max-offset: must be > 0" in capsys.readouterr().err
