@@ -143,11 +143,13 @@ class CommandAudit(can.Listener):
     """Counts the commands seen on a bus (for a simulated arm's bus: proof of what was sent).
 
     Attributes: ``resets`` (0x150 B0=2), ``estops`` (0x150 B0=1), ``disables`` (0x471 B1=0x01),
-    ``enables``, ``joint_targets`` (0x155 frames), ``modes`` (0x151).
+    ``enables``, ``joint_targets`` (0x155 frames), ``modes`` (0x151), and
+    ``last_joint_target_stamp``: the bus timestamp of the latest 0x155 (s, or None).
     """
 
     def __init__(self) -> None:
         self.resets = self.estops = self.disables = self.enables = self.joint_targets = self.modes = 0
+        self.last_joint_target_stamp: float | None = None
 
     def on_message_received(self, msg: can.Message) -> None:
         frame = P.decode_message(msg)
@@ -159,6 +161,7 @@ class CommandAudit(can.Listener):
             self.disables += not frame.enable
         elif isinstance(frame, P.JointCtrl) and frame.pair == 0:
             self.joint_targets += 1
+            self.last_joint_target_stamp = msg.timestamp
         elif isinstance(frame, P.ModeCtrl):
             self.modes += 1
 
