@@ -148,9 +148,11 @@ def cmd_solve(a: argparse.Namespace) -> int:
 
 def cmd_latency(a: argparse.Namespace) -> int:
     from manisplat.calib.latency import estimate_latency
-    est = estimate_latency(a.episode, max_offset_s=a.max_offset, use_calibration=not a.uncalibrated)
+    est = estimate_latency(a.episode, max_offset_s=a.max_offset, use_calibration=not a.uncalibrated,
+                           max_span_s=a.max_span)
     print(f"{a.episode}: latency {est.latency_s * 1000:.2f} +- {est.std_s * 1000:.2f} ms (t_frame - t_exposure; "
-          f"correlation {est.correlation:.3f} over {est.intervals} frame intervals, robot signal in {est.signal})")
+          f"correlation {est.correlation:.3f} over {est.intervals} frame intervals from t = {est.window_s[0]:.2f} "
+          f"to {est.window_s[1]:.2f} s, robot signal in {est.signal})")
     if a.json:
         Path(a.json).write_text(json.dumps(est.to_dict(), indent=1) + "\n", encoding="utf-8")
     return EXIT_OK
@@ -246,6 +248,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("episode", type=Path, help="a recorded episode in which the arm moves")
     t.add_argument("--max-offset", type=positive(), default=0.25, help="search range +- s (0.25)")
     t.add_argument("--uncalibrated", action="store_true", help="ignore the episode's camera calibration")
+    t.add_argument("--max-span", type=positive(), default=30.0, metavar="S",
+                   help="analyse at most this many seconds: the stretch with the most image motion (30)")
     t.add_argument("--json", type=Path, help="also write the estimate here")
     t.set_defaults(fn=cmd_latency)
 

@@ -70,3 +70,21 @@ def test_latency_command_exit_codes(tmp_path, spec, capsys):
     with pytest.raises(SystemExit) as exc:
         main(["latency", str(tmp_path / "still"), "--max-offset", "0"])
     assert exc.value.code == 2 and "--max-offset: must be > 0" in capsys.readouterr().err
+
+
+def test_a_long_episode_is_analysed_over_its_busiest_stretch():
+    """40 s of frames, the robot moves only from 25 to 32 s: a 10 s window must cover that, and
+    exact image motion gives the offset to a fraction of a millisecond."""
+    t = np.arange(0.0, 40.0, 0.005)
+    phase = np.clip((t - 25.0) / 7.0, 0.0, 1.0)
+    x = 0.3 * (phase - np.sin(6 * np.pi * phase) / (6 * np.pi))  # three bursts, still elsewhere  [m]
+    robot = RobotMotion(t, np.stack([x, 0.2 * x ** 2, np.zeros_like(x)], axis=1)[:, None, :])
+    latency = 0.0213
+    t_frames = np.arange(1.0, 39.0, 1 / 30)
+    signals = {step: robot.displacement(t_frames[:-step] - latency, t_frames[step:] - latency)[:, 0]
+               for step in (1, 2)}
+    est = fit_latency(t_frames, signals, robot, bootstrap=10, max_span_s=10.0)
+    assert est.window_s[1] - est.window_s[0] == pytest.approx(10.0)
+    assert est.window_s[0] <= 25.0 and est.window_s[1] >= 32.0
+    assert est.intervals <= 10.0 * 30 + 1
+    assert abs(est.latency_s - latency) < 2e-4
