@@ -22,8 +22,9 @@ over ``+-max_offset_s``, then a 0.2 ms grid +-3 ms around the best with a parabo
 The uncertainty is the standard deviation over a moving-block bootstrap of the frame
 intervals (blocks of about 1 s; each resample's peak on a 1 ms grid +-8 ms, refined the same
 way). Episodes longer than ``max_span_s`` (30 s) are analysed over the window of that length
-with the most variation of the image signal (where the timing information is): time and
-memory stay bounded (a 60 s clip: 34 s and 0.5 GB, against 69 s and 1 GB in full) and 10-20 s already meet 2 ms.
+with the most variation of the image signal (where the timing information is), so time and
+memory stay bounded (a 60 s clip: 34 s and 0.5 GB, against 69 s and 1 GB in full); 10-20 s
+already meet 2 ms.
 """
 
 from __future__ import annotations
