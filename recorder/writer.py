@@ -17,6 +17,7 @@ import logging
 import queue
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -73,12 +74,19 @@ class EpisodeSink:
         can_log: the episode's CAN log sink, opened by the caller, or None.
         queue_frames: frames the queue holds before new ones are dropped.
         flush_s: the CAN log is flushed at least this often, s.
+        encode_threads: threads encoding images (PNG/JPEG) ahead of the writer, in parallel
+            (OpenCV releases the GIL); 0 encodes on the writer thread. One thread encodes
+            1280x720 RGB + depth PNG at about 27 frames/s on this project's machines.
     """
 
     def __init__(self, writer: EpisodeWriter, can_log: CanLogSink | None = None, *, queue_frames: int = 64,
-                 flush_s: float = 0.1) -> None:
+                 flush_s: float = 0.1, encode_threads: int = 2) -> None:
         if queue_frames < 1:
             raise ValueError(f"queue_frames must be >= 1, got {queue_frames}")
+        if encode_threads < 0:
+            raise ValueError(f"encode_threads must be >= 0, got {encode_threads}")
+        self._encoders = (ThreadPoolExecutor(encode_threads, thread_name_prefix=f"encode-{writer.path.name}")
+                          if encode_threads else None)
         self.writer = writer
         self.can_log = can_log
         self.flush_s = float(flush_s)
@@ -99,19 +107,32 @@ class EpisodeSink:
     # -- producer side ------------------------------------------------------------------------
 
     def put_frame(self, item: FrameItem) -> bool:
-        """Queue a frame; False when it was dropped (queue full) or the sink has failed."""
+        """Queue a frame (its images start encoding now); False when it was dropped (queue
+        full) or the sink has failed."""
         if self.failed.is_set():
             return False
+        if self._frames.full():  # checked first: a dropped frame costs no encoding
+            return self._dropped()
         try:
-            self._frames.put_nowait(item)
-        except queue.Full:
-            self.frames_dropped += 1
-            if self.frames_dropped == 1:
-                log.warning("%s: the writer falls behind (queue of %d frames full); dropping frames (counted)",
-                            self.writer.path, self._frames.maxsize)
+            encoding = None if self._encoders is None else self._encoders.submit(self.writer.encode_frame,
+                                                                                   item.rgb, item.depth)
+        except RuntimeError:  # the writer thread ended (failed or finished) just now
             return False
+        try:
+            self._frames.put_nowait((item, encoding))
+        except queue.Full:  # another producer filled it in between
+            if encoding is not None:
+                encoding.cancel()
+            return self._dropped()
         self.max_queue = max(self.max_queue, self._frames.qsize())
         return True
+
+    def _dropped(self) -> bool:
+        self.frames_dropped += 1
+        if self.frames_dropped == 1:
+            log.warning("%s: the writer falls behind (queue of %d frames full); dropping frames (counted)",
+                        self.writer.path, self._frames.maxsize)
+        return False
 
     def put_joint(self, t: float, q: np.ndarray, gripper: float) -> None:
         """Queue a joints.csv row (any thread; never dropped)."""
@@ -144,6 +165,9 @@ class EpisodeSink:
                 log.error("%s: closing the files failed too: %s", self.writer.path, again)
             if self.can_log is not None:
                 self.can_log.abandon()
+        finally:
+            if self._encoders is not None:
+                self._encoders.shutdown(wait=False, cancel_futures=True)
 
     def _loop(self) -> None:
         last_flush = time.monotonic()
@@ -153,8 +177,10 @@ class EpisodeSink:
             except queue.Empty:
                 item = None
             if item is not None and item is not _STOP:
+                frame, encoding = item
                 self._doing = f"frame {self.frames_written} (its images and frames.csv row)"
-                self.writer.add_frame(item.t, item.q, item.gripper, item.rgb, depth=item.depth, extra=item.extra)
+                self.writer.add_frame(frame.t, frame.q, frame.gripper, frame.rgb, depth=frame.depth, extra=frame.extra,
+                                      encoded=None if encoding is None else encoding.result())
                 self.frames_written += 1
             self._doing = "joints.csv"
             self._write_joints()

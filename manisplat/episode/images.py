@@ -1,5 +1,5 @@
 """Per-frame image files (``rgb/``, ``depth/``, ``masks/``): naming, full decoding with checks,
-atomic writing, and depth unit conversion. Arrays in memory are RGB; files hold BGR (OpenCV)."""
+encoding, and depth unit conversion. Arrays in memory are RGB; files hold BGR (OpenCV)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,6 @@ import cv2
 import numpy as np
 
 from manisplat.episode.format import DEPTH_DIR, MASKS_DIR, RGB_DIR, EpisodeFormatError, image_name
-from manisplat.episode.fsio import atomic_write_bytes
 
 _IMAGE_RE = re.compile(r"^(\d{6})(\.png|\.jpg)$")
 _DEPTH_MAX = np.iinfo(np.uint16).max
@@ -126,18 +125,15 @@ def load_image(path: Path, kind: ImageKind, width: int, height: int) -> np.ndarr
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB) if kind.channels == 3 else image
 
 
-def write_image(path: Path, image: np.ndarray, *, rgb: bool) -> None:
-    """Encode ``image`` by ``path``'s suffix and write it atomically (temporary file + rename).
-
-    ``rgb`` marks a (H, W, 3) RGB array, which is stored BGR as OpenCV expects. Not fsynced:
-    the writer syncs files in batches.
-    """
+def encode_image(suffix: str, image: np.ndarray, *, rgb: bool) -> bytes:
+    """``image`` encoded as ``suffix`` (".png", ".jpg"). ``rgb`` marks a (H, W, 3) RGB array,
+    stored BGR as OpenCV expects. OpenCV releases the GIL while encoding: threads run in parallel."""
     if rgb:
         image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
-    ok, data = cv2.imencode(path.suffix, image)
+    ok, data = cv2.imencode(suffix, image)
     if not ok:
-        raise OSError(f"{path}: OpenCV could not encode a {image.shape} {image.dtype} image")
-    atomic_write_bytes(path, data.tobytes(), fsync=False)
+        raise OSError(f"OpenCV could not encode a {image.shape} {image.dtype} image as {suffix}")
+    return data.tobytes()
 
 
 def depth_to_raw(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:

@@ -22,14 +22,15 @@ import numpy as np
 
 from manisplat.episode.format import (FRAME_COLUMNS, FRAMES_FILE, JOINT_COLUMNS, JOINTS_FILE, META_FILE,
                                       image_name)
-from manisplat.episode.fsio import fsync_path
-from manisplat.episode.images import DEPTH, MASK, RGB, depth_to_raw, write_image
+from manisplat.episode.fsio import atomic_write_bytes, fsync_path
+from manisplat.episode.images import DEPTH, MASK, RGB, depth_to_raw, encode_image
 from manisplat.episode.meta import CameraInfo, EpisodeMeta, RobotInfo, save_meta
 from manisplat.episode.tables import format_row
 
 log = logging.getLogger(__name__)
 
 IMAGE_FORMATS = {"png": ".png", "jpg": ".jpg"}
+_LAYER_SUFFIX = ".png"  # depth and masks are always lossless
 
 
 def _finite(name: str, value: Any) -> float:
@@ -189,8 +190,22 @@ class EpisodeWriter:
             raise ValueError("add_frame: depth given but the writer has no depth_scale (metres per unit)")
         return depth if depth.dtype == np.uint16 else depth_to_raw(depth, self.meta.depth_scale)
 
+    def encode_frame(self, rgb: np.ndarray, depth: np.ndarray | None = None,
+                     mask: np.ndarray | None = None) -> dict[str, bytes]:
+        """Check and encode one frame's images (arguments as in :meth:`add_frame`), keyed by
+        folder, for ``add_frame(..., encoded=...)``. It touches no file and no counter, so other
+        threads may encode frames in parallel while one thread adds them in order."""
+        encoded = {RGB.folder: encode_image(self._suffix, self._check_image("rgb", rgb, 3, (np.uint8,)), rgb=True)}
+        if depth is not None:
+            encoded[DEPTH.folder] = encode_image(_LAYER_SUFFIX, self._depth_raw(depth), rgb=False)
+        if mask is not None:
+            encoded[MASK.folder] = encode_image(_LAYER_SUFFIX, self._check_image("mask", mask, 1, (np.uint8,)),
+                                                rgb=False)
+        return encoded
+
     def add_frame(self, t: float, q: Any, gripper: float, rgb: np.ndarray, depth: np.ndarray | None = None,
-                  mask: np.ndarray | None = None, extra: Mapping[str, float] | None = None) -> int:
+                  mask: np.ndarray | None = None, extra: Mapping[str, float] | None = None, *,
+                  encoded: Mapping[str, bytes] | None = None) -> int:
         """Write one frame: its images first, then its ``frames.csv`` row. Returns its index.
 
         Args:
@@ -201,6 +216,8 @@ class EpisodeWriter:
             depth: (H, W) float metres (non-finite or <= 0: invalid, stored 0) or uint16 raw units.
             mask: (H, W) uint8 labels.
             extra: values of the declared ``extra_frame_columns``.
+            encoded: what :meth:`encode_frame` returned for these ``rgb``, ``depth`` and
+                ``mask`` (written as given, not encoded again), or None.
 
         Every frame must carry the same kinds of image (depth, mask) as frame 0.
         """
@@ -211,20 +228,21 @@ class EpisodeWriter:
         q = _joint_vector("add_frame: q", q)
         gripper = _finite("add_frame: gripper", gripper)
         extras = _extra_values("add_frame", extra, self._frame_columns)
-        rgb = self._check_image("rgb", rgb, 3, (np.uint8,))
-        raw_depth = None if depth is None else self._depth_raw(depth)
-        mask = None if mask is None else self._check_image("mask", mask, 1, (np.uint8,))
         layers = (depth is not None, mask is not None)
         if self._layers is not None and layers != self._layers:
             raise ValueError(f"add_frame: frame 0 had (depth, mask) = {self._layers}, this frame has {layers}; "
                              "every frame must carry the same images")
+        if encoded is None:
+            encoded = self.encode_frame(rgb, depth, mask)
+        expected = {RGB.folder} | ({DEPTH.folder} if layers[0] else set()) | ({MASK.folder} if layers[1] else set())
+        if set(encoded) != expected:
+            raise ValueError(f"add_frame: encoded images {sorted(encoded)} do not match the frame's {sorted(expected)}")
 
         index = self._frame_count
-        self._write_image(RGB.folder, image_name(index, self._suffix), rgb, rgb=True)
-        if raw_depth is not None:
-            self._write_image(DEPTH.folder, image_name(index), raw_depth, rgb=False)
-        if mask is not None:
-            self._write_image(MASK.folder, image_name(index), mask, rgb=False)
+        for folder in (RGB.folder, DEPTH.folder, MASK.folder):
+            if folder in encoded:
+                self._write_bytes(folder, image_name(index, self._suffix if folder == RGB.folder else _LAYER_SUFFIX),
+                                  encoded[folder])
         self._frames.write(format_row([index, t, *q, gripper, *extras]))
         self._frames.flush()
         self._layers = layers
@@ -233,12 +251,12 @@ class EpisodeWriter:
         self._row_written()
         return index
 
-    def _write_image(self, folder: str, name: str, image: np.ndarray, *, rgb: bool) -> None:
+    def _write_bytes(self, folder: str, name: str, data: bytes) -> None:
         path = self.path / folder / name
         if not path.parent.is_dir():
             path.parent.mkdir()
             fsync_path(self.path)
-        write_image(path, image, rgb=rgb)
+        atomic_write_bytes(path, data, fsync=False)  # synced in batches
         self._unsynced.append(path)
 
     def add_joint_sample(self, t: float, q: Any, gripper: float, extra: Mapping[str, float] | None = None) -> None:

@@ -48,15 +48,17 @@ def test_synced_joints_match_the_true_state_at_the_frame_times(tmp_path: Path, s
     for i in (0, len(ep) // 2, len(ep) - 1):
         np.testing.assert_array_equal(ep.rgb(i), source_frame(int(ep.frames.extra["seq"][i]) % 60))
     # joints.csv: every sample at 200 Hz, on the same clock, matching the truth
+    # (the rig's clock may lead the camera by up to 0.1 s, so the episode's end, not 3.0 s, is the reference)
     j = ep.joints()
-    assert 600 - 2 <= len(j) <= 600 + 60 and np.diff(j.t).max() < 0.0051  # to the end, a few past the last frame
-    assert j.t[0] < 0.0051 and j.t[-1] >= ep.frames.t[-1]
+    assert np.diff(j.t).max() < 0.0051 and j.t[0] < 0.0051  # no sample missing from the start
+    assert ep.frames.t[-1] <= j.t[-1] < ep.frames.t[-1] + 0.2  # to the end, a few past the last frame
     jt = rig.rig.truth(j.t + ep.meta.extra["clock"]["t0_monotonic"])
     assert np.degrees(np.abs(j.q - jt[:, :6])).max() < MAX_SYNC_ERROR_DEG
     # the CAN log: every frame the arm sent during the episode, time 0 = the episode's start
     log = list(can.LogReader(tmp_path / "ep" / "can.asc"))
-    assert len(log) == result.stats.can_frames_logged == pytest.approx(3040 * 3.0, rel=0.01)
-    assert 0.0 <= log[0].timestamp < 0.006 and result.stats.can_frames_dropped == 0
+    assert len(log) == result.stats.can_frames_logged and result.stats.can_frames_dropped == 0
+    assert 0.0 <= log[0].timestamp < 0.006 and log[-1].timestamp >= ep.frames.t[-1]
+    assert len(log) == pytest.approx(3040 * (log[-1].timestamp - log[0].timestamp), rel=0.005)  # none missing
     meta = ep.meta.extra
     assert meta["clock"]["camera_latency_s"] == 0.020 and meta["clock"]["offset_uncertainty_s"] == 0.0
     assert meta["stats"]["frames"] == len(ep) and meta["stats"]["flagged"] == 0

@@ -7,10 +7,11 @@ from pathlib import Path
 
 import can
 import numpy as np
+import pytest
 
 from manisplat.episode import CameraInfo, Episode, EpisodeWriter, RobotInfo, validate
 from manisplat.recorder.canlog import CanLogSink
-from manisplat.recorder.writer import EpisodeSink, FrameItem
+from manisplat.recorder.writer import EpisodeSink, FrameItem, StorageError
 from tests.recorder.helpers import K
 
 
@@ -20,15 +21,16 @@ def writer(path: Path, w: int = 64, h: int = 48) -> EpisodeWriter:
     return EpisodeWriter(path, CameraInfo("c", w, h, Kw), RobotInfo(), 30.0, extra_frame_columns=("seq",))
 
 
-def test_frames_and_joints_are_written_and_the_episode_completes_last(tmp_path: Path) -> None:
+@pytest.mark.parametrize("encode_threads", [0, 3])
+def test_frames_and_joints_are_written_and_the_episode_completes_last(tmp_path: Path, encode_threads: int) -> None:
     w = writer(tmp_path / "ep2")
     can_log = CanLogSink()
     can_log.open(tmp_path / "ep2" / "can.asc", 100.0)
     for k in range(7):
         can_log.on_message_received(can.Message(arbitration_id=0x2A5, data=bytes(8), timestamp=100.0 + k * 0.01))
-    sink = EpisodeSink(w, can_log, queue_frames=4)
+    sink = EpisodeSink(w, can_log, queue_frames=4, encode_threads=encode_threads)
     rng = np.random.default_rng(0)
-    images = [rng.integers(0, 256, (48, 64, 3), dtype=np.uint8) for _ in range(3)]
+    images = [rng.integers(0, 256, (48, 64, 3), dtype=np.uint8) for _ in range(9)]
     for i, rgb in enumerate(images):
         for k in range(4):
             sink.put_joint(i / 30 + k * 0.005, np.full(6, 0.1 * i), 0.03)
@@ -37,8 +39,8 @@ def test_frames_and_joints_are_written_and_the_episode_completes_last(tmp_path: 
     assert not Episode.open(tmp_path / "ep2").meta.complete
     sink.finish({"stats": {"note": "test"}})
     ep = Episode.open(tmp_path / "ep2")
-    assert ep.meta.complete and ep.meta.frame_count == 3 and ep.meta.extra["stats"] == {"note": "test"}
-    assert len(ep.joints()) == 12 and sink.frames_written == 3 and sink.joints_written == 12
+    assert ep.meta.complete and ep.meta.frame_count == 9 and ep.meta.extra["stats"] == {"note": "test"}
+    assert len(ep.joints()) == 36 and sink.frames_written == 9 and sink.joints_written == 36
     for i, rgb in enumerate(images):
         np.testing.assert_array_equal(ep.rgb(i), rgb)
     assert validate(tmp_path / "ep2").ok
@@ -53,3 +55,15 @@ def test_a_full_queue_drops_frames_and_counts_them(tmp_path: Path) -> None:
     sink.finish()
     assert sink.frames_dropped > 0 and accepted + sink.frames_dropped == 40
     assert sink.frames_written == accepted == Episode.open(tmp_path / "ep").meta.frame_count
+
+
+def test_a_frame_that_cannot_be_encoded_stops_the_episode_keeping_the_earlier_ones(tmp_path: Path) -> None:
+    sink = EpisodeSink(writer(tmp_path / "ep"), queue_frames=8, encode_threads=2)
+    good = np.zeros((48, 64, 3), np.uint8)
+    for i in range(3):
+        assert sink.put_frame(FrameItem(i / 30, np.zeros(6), 0.0, good, extra={"seq": float(i)}))
+    sink.put_frame(FrameItem(3 / 30, np.zeros(6), 0.0, np.zeros((48, 64), np.uint8), extra={"seq": 3.0}))
+    with pytest.raises(StorageError, match=r"rgb must be \(48, 64, 3\) uint8.*Kept 3 frames"):
+        sink.finish()
+    ep = Episode.open(tmp_path / "ep")
+    assert not ep.meta.complete and len(ep) == 3
