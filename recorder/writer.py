@@ -75,8 +75,8 @@ class EpisodeSink:
         queue_frames: frames the queue holds before new ones are dropped.
         flush_s: the CAN log is flushed at least this often, s.
         encode_threads: threads encoding images (PNG/JPEG) ahead of the writer, in parallel
-            (OpenCV releases the GIL); 0 encodes on the writer thread. One thread encodes
-            1280x720 RGB + depth PNG at about 27 frames/s on this project's machines.
+            (OpenCV releases the GIL); 0 encodes on the writer thread. 1280x720 RGB + depth
+            PNG on 2 cores: 18 frames/s with 0, 42 with 2 (``benchmarks record_write``).
     """
 
     def __init__(self, writer: EpisodeWriter, can_log: CanLogSink | None = None, *, queue_frames: int = 64,
