@@ -168,7 +168,7 @@ class Reconstruction:
         c = self.config
         states = self.plan.distinct_train_states or self.plan.train_frames
         bar = tqdm(total=c.iters, initial=self.step, desc="reconstructing", unit="it", disable=not progress)
-        last_psnr = math.nan
+        last_psnr, mean_loss = math.nan, math.nan  # mean_loss: over about the last 50 frames
         while self.step < c.iters:
             if c.shadows and self.graph.shadows is None and self.step >= c.shadow_start and self.data.masks is not None:
                 self.start_shadows()
@@ -184,7 +184,9 @@ class Reconstruction:
             self.step += 1
             if self.step % c.eval_every == 0 or self.step == c.iters:
                 last_psnr = self.quick_psnr()
-            bar.set_postfix(loss=f"{float(loss.detach()):.4f}", psnr=f"{last_psnr:.2f}",
+            value = float(loss.detach())
+            mean_loss = value if math.isnan(mean_loss) else 0.98 * mean_loss + 0.02 * value
+            bar.set_postfix(loss=f"{mean_loss:.4f}", psnr=f"{last_psnr:.2f}",
                             gaussians=sum(len(n.gaussians) for n in self.graph.nodes()))
             bar.update(1)
             if callback is not None:
