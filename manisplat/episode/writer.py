@@ -30,7 +30,6 @@ from manisplat.episode.tables import format_row
 log = logging.getLogger(__name__)
 
 IMAGE_FORMATS = {"png": ".png", "jpg": ".jpg"}
-_LAYER_SUFFIX = ".png"  # depth and masks are always lossless
 
 
 def _finite(name: str, value: Any) -> float:
@@ -119,7 +118,9 @@ class EpisodeWriter:
             raise ValueError(f"image_format must be one of {sorted(IMAGE_FORMATS)}; got {image_format!r}")
         if fsync_every < 0:
             raise ValueError(f"fsync_every must be >= 0; got {fsync_every}")
-        self._suffix = IMAGE_FORMATS[image_format]
+        # file suffix per image folder: rgb as asked, depth and masks in their one (lossless) format
+        self._suffixes = {RGB.folder: IMAGE_FORMATS[image_format], DEPTH.folder: DEPTH.suffixes[0],
+                          MASK.folder: MASK.suffixes[0]}
         self._frame_columns = _check_columns("extra_frame_columns", extra_frame_columns, FRAME_COLUMNS)
         self._joint_columns = _check_columns("joint_columns", joint_columns, JOINT_COLUMNS)
         self.meta = EpisodeMeta(complete=False, source=source, robot=robot, camera=camera, fps=fps,
@@ -195,11 +196,13 @@ class EpisodeWriter:
         """Check and encode one frame's images (arguments as in :meth:`add_frame`), keyed by
         folder, for ``add_frame(..., encoded=...)``. It touches no file and no counter, so other
         threads may encode frames in parallel while one thread adds them in order."""
-        encoded = {RGB.folder: encode_image(self._suffix, self._check_image("rgb", rgb, 3, (np.uint8,)), rgb=True)}
+        suffix = self._suffixes
+        encoded = {RGB.folder: encode_image(suffix[RGB.folder], self._check_image("rgb", rgb, 3, (np.uint8,)),
+                                            rgb=True)}
         if depth is not None:
-            encoded[DEPTH.folder] = encode_image(_LAYER_SUFFIX, self._depth_raw(depth), rgb=False)
+            encoded[DEPTH.folder] = encode_image(suffix[DEPTH.folder], self._depth_raw(depth), rgb=False)
         if mask is not None:
-            encoded[MASK.folder] = encode_image(_LAYER_SUFFIX, self._check_image("mask", mask, 1, (np.uint8,)),
+            encoded[MASK.folder] = encode_image(suffix[MASK.folder], self._check_image("mask", mask, 1, (np.uint8,)),
                                                 rgb=False)
         return encoded
 
@@ -239,10 +242,9 @@ class EpisodeWriter:
             raise ValueError(f"add_frame: encoded images {sorted(encoded)} do not match the frame's {sorted(expected)}")
 
         index = self._frame_count
-        for folder in (RGB.folder, DEPTH.folder, MASK.folder):
+        for folder, suffix in self._suffixes.items():
             if folder in encoded:
-                self._write_bytes(folder, image_name(index, self._suffix if folder == RGB.folder else _LAYER_SUFFIX),
-                                  encoded[folder])
+                self._write_bytes(folder, image_name(index, suffix), encoded[folder])
         self._frames.write(format_row([index, t, *q, gripper, *extras]))
         self._frames.flush()
         self._layers = layers
