@@ -3,9 +3,21 @@ import pytest
 
 from manisplat.calib.cli import main
 from manisplat.calib.errors import NotEnoughDataError
-from manisplat.calib.latency import RobotMotion, fit_latency
-from manisplat.calib.synth import default_truth, write_latency_episode
-from manisplat.calib.latency import estimate_latency
+from manisplat.calib.latency import RobotMotion, estimate_latency, fit_latency, robot_motion
+from manisplat.calib.synth import Q_NOMINAL, _camera_info, default_truth, write_latency_episode
+from manisplat.episode import Episode, EpisodeWriter, RobotInfo
+
+
+def standing_episode(path, spec, duration_s: float, gripper, frame_times) -> Episode:
+    """The arm standing at Q_NOMINAL: 200 Hz joints.csv with ``gripper(t)`` (m), and uniform
+    grey 320x240 frames at ``frame_times``."""
+    truth = default_truth(spec, width=320, height=240, f=260.0)
+    with EpisodeWriter(path, _camera_info(truth), RobotInfo(), fps=30.0, source="simulation") as w:
+        for t in np.arange(0.0, duration_s, 0.005):
+            w.add_joint_sample(float(t), Q_NOMINAL, gripper(t))
+        for t in frame_times:
+            w.add_frame(float(t), Q_NOMINAL, gripper(t), np.full((240, 320, 3), 90, np.uint8))
+    return Episode.open(path)
 
 
 @pytest.mark.parametrize("latency, calibrated, seed", [(0.047, False, 3), (-0.012, True, 6)])
@@ -32,15 +44,8 @@ def test_no_motion_is_refused():
 
 def test_the_robot_signal_sees_the_gripper_open_while_the_arm_stands(tmp_path, spec):
     """Finger motion shows in the image, so the robot signal must show it too."""
-    from manisplat.calib.latency import robot_motion
-    from manisplat.calib.synth import Q_NOMINAL, _camera_info
-    from manisplat.episode import Episode, EpisodeWriter, RobotInfo
-    truth = default_truth(spec, width=320, height=240, f=260.0)
-    with EpisodeWriter(tmp_path / "ep", _camera_info(truth), RobotInfo(), fps=30.0, source="simulation") as w:
-        for t in np.arange(0.0, 1.0, 0.005):
-            w.add_joint_sample(float(t), Q_NOMINAL, 0.07 * t)  # opens 7 cm/s, joints still
-        w.add_frame(0.5, Q_NOMINAL, 0.035, np.zeros((240, 320, 3), np.uint8))
-    motion, signal = robot_motion(Episode.open(tmp_path / "ep"))
+    ep = standing_episode(tmp_path / "ep", spec, 1.0, lambda t: 0.07 * t, [0.5])  # opens 7 cm/s, joints still
+    motion, signal = robot_motion(ep)
     moved = motion.displacement(np.array([0.2]), np.array([0.8]))[0]  # (M,) metres
     assert signal == "metres" and moved.max() == pytest.approx(0.6 * 0.07 / 2, rel=0.05)  # one finger: half
 
@@ -57,14 +62,7 @@ def test_latency_command(tmp_path, spec, capsys):
 
 def test_latency_command_exit_codes(tmp_path, spec, capsys):
     """A still episode exits 3 (not enough data) and a non-positive search range exits 2."""
-    from manisplat.calib.synth import Q_NOMINAL, _camera_info
-    from manisplat.episode import EpisodeWriter, RobotInfo
-    truth = default_truth(spec, width=320, height=240, f=260.0)
-    with EpisodeWriter(tmp_path / "still", _camera_info(truth), RobotInfo(), fps=30.0, source="simulation") as w:
-        for t in np.arange(0.0, 2.0, 0.005):
-            w.add_joint_sample(float(t), Q_NOMINAL, 0.0)
-        for k in range(30):
-            w.add_frame(0.5 + k / 30, Q_NOMINAL, 0.0, np.full((240, 320, 3), 90, np.uint8))
+    standing_episode(tmp_path / "still", spec, 2.0, lambda t: 0.0, 0.5 + np.arange(30) / 30)
     assert main(["latency", str(tmp_path / "still")]) == 3
     assert "no motion" in capsys.readouterr().err
     with pytest.raises(SystemExit) as exc:
