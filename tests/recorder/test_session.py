@@ -3,6 +3,7 @@ ManualClock) and a replayed camera, recorded by the real Recorder into real file
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import can
@@ -76,6 +77,9 @@ def test_without_the_latency_correction_the_error_is_larger(tmp_path: Path, sour
 def test_teleoperation_actions_are_the_leader_commands(tmp_path: Path, source: Path) -> None:
     rig = lockstep_rig(source, motion="teleop")
     try:
+        deadline = time.monotonic() + 5.0  # the first command may still be on its way to the listener
+        while not rig.recorder.leader.seen and time.monotonic() < deadline:
+            time.sleep(0.001)
         assert rig.recorder.leader.seen
         result = rig.recorder.record_episode(tmp_path / "ep", duration=2.0)
     finally:
