@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 
 from manisplat.reconstruct.data import load_episode_data
-from manisplat.reconstruct.outputs import write_outputs
+from manisplat.reconstruct.outputs import write_evaluation
 from manisplat.reconstruct.pipeline import build
 from manisplat.reconstruct.plan import make_plan
 from manisplat.reconstruct.trainer import TrainConfig
@@ -33,7 +33,7 @@ def reconstruct_row(episode: Path, config: TrainConfig, *, force_tracking: bool 
     rec.train(progress=False)
     wall = time.perf_counter() - start
     with tempfile.TemporaryDirectory() as tmp:
-        metrics = write_outputs(rec, alignments, Path(tmp), wall_s=wall)
+        metrics = write_evaluation(rec, alignments, Path(tmp), wall_s=wall)
     row = {"iters": config.iters, "setup_s": setup, "train_s": wall - setup, "wall_s": wall,
            "gaussians": sum(len(n.gaussians) for n in rec.graph.nodes()),
            "pose_params": sum(t.n_params for t in rec.trajectories.values())}

@@ -11,26 +11,27 @@ Modules (one job each): :mod:`.board` (board file, printables), :mod:`.camera` (
 convention, PnP), :mod:`.handeye` (closed forms, motion diversity), :mod:`.refine` (joint
 reprojection least squares), :mod:`.solve` (views -> result), :mod:`.episode_solve` (episode ->
 result), :mod:`.intrinsics`, :mod:`.latency`, :mod:`.capture`, :mod:`.report`, :mod:`.result`
-(calibration.json, apply), :mod:`.synth` (synthetic scenes and episodes), :mod:`.cli`.
+(calibration.json, apply), :mod:`.synth` (synthetic scenes and episodes), :mod:`.cli`. The names
+below load on first use (PEP 562): OpenCV, torch and scipy only when a name that needs them is
+used, so ``manisplat-calibrate --help`` answers at once.
 """
 
-from manisplat.calib.board import BoardSpec, load_board, save_board, write_printables
-from manisplat.calib.camera import CameraModel
-from manisplat.calib.detect import BoardDetector, BoardView, Detection, detector_corner_offset
-from manisplat.calib.episode_solve import EpisodeSolve, solve_episode
-from manisplat.calib.errors import CalibrationError, DegenerateMotionError, InputError, NotEnoughDataError
-from manisplat.calib.handeye import check_motion, closed_form, motion_diversity, opencv_closed_forms
-from manisplat.calib.intrinsics import intrinsics_from_images, intrinsics_from_oak, solve_intrinsics
-from manisplat.calib.latency import LatencyEstimate, estimate_latency
-from manisplat.calib.render import render_board
-from manisplat.calib.result import apply_calibration, build_calibration, load_calibration, save_calibration
-from manisplat.calib.solve import HandEyeResult, solve_hand_eye
+from __future__ import annotations
 
-__all__ = [
-    "BoardDetector", "BoardSpec", "BoardView", "CalibrationError", "CameraModel", "DegenerateMotionError",
-    "Detection", "EpisodeSolve", "HandEyeResult", "InputError", "LatencyEstimate", "NotEnoughDataError",
-    "apply_calibration", "build_calibration", "check_motion", "closed_form", "detector_corner_offset",
-    "estimate_latency", "intrinsics_from_images", "intrinsics_from_oak", "load_board", "load_calibration",
-    "motion_diversity", "opencv_closed_forms", "render_board", "save_board", "save_calibration", "solve_episode",
-    "solve_hand_eye", "solve_intrinsics", "write_printables",
-]
+from manisplat._lazy import lazy_exports
+
+_EXPORTS = {
+    "board": ("BoardSpec", "load_board", "save_board", "write_printables"),
+    "camera": ("CameraModel",),
+    "detect": ("BoardDetector", "BoardView", "Detection", "detector_corner_offset"),
+    "episode_solve": ("EpisodeSolve", "solve_episode"),
+    "errors": ("CalibrationError", "DegenerateMotionError", "InputError", "NotEnoughDataError"),
+    "handeye": ("check_motion", "closed_form", "motion_diversity", "opencv_closed_forms"),
+    "intrinsics": ("intrinsics_from_images", "intrinsics_from_oak", "solve_intrinsics"),
+    "latency": ("LatencyEstimate", "estimate_latency"),
+    "render": ("render_board",),
+    "result": ("apply_calibration", "build_calibration", "load_calibration", "save_calibration"),
+    "solve": ("HandEyeResult", "solve_hand_eye"),
+}
+
+__getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)

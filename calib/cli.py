@@ -1,9 +1,7 @@
 """``manisplat-calibrate``: boards, intrinsics, capture, hand-eye solve, latency, apply.
 
-Exit codes: 0 success; 1 the calibration failed for another reason (inconsistent data,
-divergence); 2 usage or unreadable input (missing file, bad JSON, wrong image size);
-3 not enough data (too few usable views or detections); 4 degenerate motion (the poses do not
-determine the result).
+The exit codes are in :data:`EPILOG`. Each command imports what it needs (OpenCV, torch, scipy)
+when it runs, so ``--help`` and usage errors answer without loading any of them.
 """
 
 from __future__ import annotations
@@ -13,17 +11,33 @@ import json
 import logging
 import sys
 from pathlib import Path
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from manisplat.calib.errors import CalibrationError, DegenerateMotionError, InputError, NotEnoughDataError
-from manisplat.cli_args import positive
+from manisplat.cli_args import bounded, finite, positive
+
+if TYPE_CHECKING:
+    import numpy as np
 
 EXIT_OK, EXIT_FAILED, EXIT_INPUT, EXIT_NOT_ENOUGH, EXIT_DEGENERATE = 0, 1, 2, 3, 4
 
+DESCRIPTION = ("Calibrate a camera against a PiPER: print a ChArUco board, get the intrinsics, capture still "
+               "poses, solve camera-to-base (eye-to-hand) or camera-to-flange (eye-in-hand), estimate the "
+               "camera latency, and write the result into episodes. `manisplat-calibrate COMMAND --help` "
+               "explains each command.")
+EPILOG = """\
+Exit codes:
+  0  success
+  1  the calibration failed for another reason (inconsistent data, divergence)
+  2  usage or unreadable input (missing file, bad JSON, wrong image size)
+  3  not enough data (too few usable views or detections)
+  4  degenerate motion (the poses do not determine the result)
+"""
+
 
 def _board_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--board", required=True, type=Path, help="board.json (as `manisplat-calibrate board` writes it)")
+    p.add_argument("--board", required=True, type=Path,
+                   help="board.json (as `manisplat-calibrate board` writes it; required)")
 
 
 def cmd_board(a: argparse.Namespace) -> int:
@@ -40,6 +54,8 @@ def cmd_board(a: argparse.Namespace) -> int:
 
 
 def cmd_intrinsics(a: argparse.Namespace) -> int:
+    import numpy as np
+
     from manisplat.calib.intrinsics import intrinsics_from_images, intrinsics_from_oak
     if a.oak or a.oak_json:
         if not (a.width and a.height):
@@ -112,6 +128,8 @@ def cmd_capture(a: argparse.Namespace) -> int:
 
 
 def cmd_solve(a: argparse.Namespace) -> int:
+    import numpy as np
+
     from manisplat.calib.board import load_board
     from manisplat.calib.episode_solve import solve_episode
     from manisplat.calib.result import build_calibration, save_calibration
@@ -169,99 +187,137 @@ def cmd_apply(a: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="manisplat-calibrate", description=__doc__.split("\n\n")[0],
-                                epilog=__doc__.split("\n\n", 1)[1], formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("-v", "--verbose", action="store_true")
+    """The argument parser of ``manisplat-calibrate`` and its commands."""
+    p = argparse.ArgumentParser(prog="manisplat-calibrate", description=DESCRIPTION, epilog=EPILOG,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("-v", "--verbose", action="store_true", help="log progress (default: warnings only)")
     sub = p.add_subparsers(dest="command", required=True)
 
-    b = sub.add_parser("board", help="write a printable ChArUco board (PNG, PDF at true scale) and board.json")
-    b.add_argument("--out", default="board", help="output prefix: PREFIX.png, PREFIX.pdf, PREFIX.json (default: board)")
-    b.add_argument("--squares-x", type=positive(int), default=7, help="squares along x (columns), default 7")
-    b.add_argument("--squares-y", type=positive(int), default=5, help="squares along y (rows), default 5")
+    def command(name: str, summary: str, **kwargs: str) -> argparse.ArgumentParser:
+        """A subcommand whose --help opens with its one-line summary (unless it has a description)."""
+        kwargs.setdefault("description", summary[0].upper() + summary[1:] + ".")
+        return sub.add_parser(name, help=summary, **kwargs)
+
+    b = command("board", "write a printable ChArUco board (PNG, PDF at true scale) and board.json")
+    b.add_argument("--out", default="board", help="output prefix: PREFIX.png, PREFIX.pdf, PREFIX.json (default board)")
+    b.add_argument("--squares-x", type=bounded(2, kind=int), default=7,
+                   help="squares along x (columns), at least 2 (default 7)")
+    b.add_argument("--squares-y", type=bounded(2, kind=int), default=5,
+                   help="squares along y (rows), at least 2 (default 5)")
     b.add_argument("--square-mm", type=positive(), default=30.0, help="square side, mm (default 30)")
-    b.add_argument("--marker-mm", type=positive(), default=22.0, help="marker side, mm (default 22)")
+    b.add_argument("--marker-mm", type=positive(), default=22.0,
+                   help="marker side, mm, smaller than --square-mm (default 22)")
     b.add_argument("--dictionary", default="DICT_5X5_100", help="OpenCV ArUco dictionary (default DICT_5X5_100)")
-    b.add_argument("--legacy", action="store_true", help="OpenCV < 4.6 marker layout (boards from calib.io)")
-    b.add_argument("--px-per-mm", type=positive(int), default=10, help="raster resolution of the page (default 10 = 254 dpi)")
-    b.add_argument("--paper", default="a4", choices=["a4", "letter", "a3"])
+    b.add_argument("--legacy", action="store_true",
+                   help="OpenCV < 4.6 marker layout, for boards from calib.io (default: the current layout)")
+    b.add_argument("--px-per-mm", type=positive(int), default=10,
+                   help="raster resolution of the page (default 10 = 254 dpi)")
+    b.add_argument("--paper", default="a4", choices=["a4", "letter", "a3"],
+                   help="page size of the PDF, printed at 100 %% (default a4)")
     b.set_defaults(fn=cmd_board)
 
-    i = sub.add_parser("intrinsics", help="intrinsics from the OAK factory calibration or from board images")
+    i = command("intrinsics", "intrinsics from the OAK factory calibration or from board images")
     i.add_argument("--oak", action="store_true", help="read the connected OAK's factory calibration")
     i.add_argument("--oak-json", type=Path, help="an OAK calibration dump (CalibrationHandler.eepromToJsonFile)")
     i.add_argument("--device", help="OAK device id (default: the first found)")
-    i.add_argument("--resize", default="crop", choices=["crop", "stretch"], help="how the stream was resized")
-    i.add_argument("--width", type=positive(int), help="recording width (px)")
-    i.add_argument("--height", type=positive(int), help="recording height (px)")
-    i.add_argument("--board", type=Path, help="board.json (to solve from images)")
+    i.add_argument("--resize", default="crop", choices=["crop", "stretch"],
+                   help="--oak/--oak-json: how the stream was resized from the sensor: crop (keep the aspect "
+                        "ratio, depthai's default) or stretch (default crop)")
+    i.add_argument("--width", type=positive(int), help="recording width, px (required with --oak/--oak-json)")
+    i.add_argument("--height", type=positive(int), help="recording height, px (required with --oak/--oak-json)")
+    i.add_argument("--board", type=Path, help="board.json (required to solve from images)")
     i.add_argument("--images", nargs="+", help="image files or glob patterns with the board")
     i.add_argument("--episode", type=Path, help="an episode whose frames show the board")
-    i.add_argument("--step", type=positive(int), default=1, help="use every STEP-th episode frame")
-    i.add_argument("--model", default="k1k2k3", choices=["none", "k1k2", "k1k2k3", "rational"], help="distortion model")
-    i.add_argument("--min-coverage", type=positive(), default=0.6, help="fraction of 8x6 image cells with corners (0.6)")
-    i.add_argument("--out", required=True, type=Path, help="intrinsics JSON to write")
+    i.add_argument("--step", type=positive(int), default=1, help="use every STEP-th episode frame (default 1: all)")
+    i.add_argument("--model", default="k1k2k3", choices=["none", "k1k2", "k1k2k3", "rational"],
+                   help="distortion coefficients solved for: none, k1k2 (k1 k2 p1 p2), k1k2k3 (k1 k2 p1 p2 k3) "
+                        "or rational (OpenCV's 8) (default k1k2k3)")
+    i.add_argument("--min-coverage", type=bounded(0.0, 1.0), default=0.6,
+                   help="refuse unless this fraction (0..1) of the cells of an 8x6 image grid hold corners "
+                        "(default 0.6)")
+    i.add_argument("--out", required=True, type=Path, help="intrinsics JSON to write (required)")
     i.set_defaults(fn=cmd_intrinsics)
 
-    c = sub.add_parser("capture", help="record (joint state, image) pairs at still poses; says which poses add information")
+    c = command("capture", "record (joint state, image) pairs at still poses; says which poses add information")
     c.add_argument("--can", default="can0", help="CAN channel of the PiPER (read only; default can0)")
     c.add_argument("--interface", default="socketcan", help="python-can interface (default socketcan)")
     c.add_argument("--replay", type=Path, help="dry run: read arm and camera from this episode instead of devices")
     _board_args(c)
-    c.add_argument("--out", required=True, type=Path, help="episode folder to write")
-    c.add_argument("--mount", default="base", help="'base' (eye-to-hand) or the camera's link (eye-in-hand, link6)")
+    c.add_argument("--out", required=True, type=Path, help="episode folder to write (required)")
+    c.add_argument("--mount", default="base",
+                   help="where the camera is: base (fixed, eye-to-hand; the board is on --link) or the link "
+                        "holding it, e.g. link6 (eye-in-hand) (default base)")
     c.add_argument("--link", default="link6", help="link holding the board (eye-to-hand; default link6)")
-    c.add_argument("--description", default="builtin:agilex_piper", help="robot description the joints follow")
-    c.add_argument("--auto", action="store_true", help="record still poses that add information without asking")
-    c.add_argument("--settle", type=positive(), default=1.0, help="seconds the arm must be still (1.0)")
-    c.add_argument("--frames-per-pose", type=positive(int), default=3, help="frames kept per still pose (3)")
-    c.add_argument("--max-poses", type=positive(int), default=25, help="stop after this many poses (25)")
-    c.add_argument("--width", type=positive(int), default=1280, help="camera width, px (1280)")
-    c.add_argument("--height", type=positive(int), default=720, help="camera height, px (720)")
-    c.add_argument("--fps", type=positive(), default=15.0, help="camera frame rate (15)")
-    c.add_argument("--overwrite", action="store_true")
+    c.add_argument("--description", default="builtin:agilex_piper",
+                   help="robot description the joints follow (default builtin:agilex_piper)")
+    c.add_argument("--auto", action="store_true",
+                   help="record still poses that add information without asking (default: on Enter)")
+    c.add_argument("--settle", type=positive(), default=1.0, help="seconds the arm must be still (default 1)")
+    c.add_argument("--frames-per-pose", type=positive(int), default=3, help="frames kept per still pose (default 3)")
+    c.add_argument("--max-poses", type=positive(int), default=25, help="stop after this many poses (default 25)")
+    c.add_argument("--width", type=positive(int), default=1280, help="camera width, px (default 1280)")
+    c.add_argument("--height", type=positive(int), default=720, help="camera height, px (default 720)")
+    c.add_argument("--fps", type=positive(), default=15.0, help="camera frame rate, Hz (default 15)")
+    c.add_argument("--overwrite", action="store_true",
+                   help="replace an episode already at --out (default: refuse to touch it)")
     c.set_defaults(fn=cmd_capture)
 
-    s = sub.add_parser("solve", help="camera-to-base / camera-to-flange from a calibration episode")
-    s.add_argument("episode", type=Path)
+    s = command("solve", "camera-to-base / camera-to-flange from a calibration episode")
+    s.add_argument("episode", type=Path, help="the calibration episode (as `capture` writes it)")
     _board_args(s)
-    s.add_argument("--out", required=True, type=Path, help="calibration.json to write")
-    s.add_argument("--mount", default="base", help="'base' (eye-to-hand, default) or the camera's link, e.g. link6")
+    s.add_argument("--out", required=True, type=Path, help="calibration.json to write (required)")
+    s.add_argument("--mount", default="base",
+                   help="base (eye-to-hand) or the camera's link, e.g. link6 (eye-in-hand) (default base)")
     s.add_argument("--link", default="link6", help="link holding the board for eye-to-hand (default link6)")
     s.add_argument("--intrinsics", type=Path, help="intrinsics JSON (default: the episode's K and dist)")
-    s.add_argument("--corner-offset", type=float, help="px subtracted from OpenCV's ChArUco corners "
-                   "(default: measured for the installed OpenCV)")
-    s.add_argument("--no-opencv", action="store_true", help="start only from our own closed form")
+    s.add_argument("--corner-offset", type=finite(), metavar="PX",
+                   help="px subtracted from OpenCV's ChArUco corners (default: measured for the installed OpenCV)")
+    s.add_argument("--no-opencv", action="store_true",
+                   help="start only from our own closed form (default: also try OpenCV's closed forms)")
     s.add_argument("--max-joint-speed", type=positive(), default=0.02,
-                   help="skip frames taken while a joint moves faster than this (rad/s, from joints.csv; 0.02)")
-    s.add_argument("--allow-moving", action="store_true", help="use every frame, moving or not")
-    s.add_argument("--latency-from", type=Path, help="also estimate the camera latency from this (moving) episode")
-    s.add_argument("--max-offset", type=positive(), default=0.25, help="latency search range +- s (0.25)")
-    s.add_argument("--report", type=Path, help="write report.html, report.png and overlays into this folder")
+                   help="skip frames taken while a joint moves faster than this, rad/s, from joints.csv "
+                        "(default 0.02)")
+    s.add_argument("--allow-moving", action="store_true",
+                   help="use every frame, moving or not (default: skip moving frames)")
+    s.add_argument("--latency-from", type=Path,
+                   help="also estimate the camera latency from this (moving) episode (default: no latency)")
+    s.add_argument("--max-offset", type=positive(), default=0.25,
+                   help="--latency-from: latency search range +- s (default 0.25)")
+    s.add_argument("--report", type=Path,
+                   help="write report.html, report.png and overlays into this folder (default: no report)")
     s.set_defaults(fn=cmd_solve)
 
-    t = sub.add_parser("latency", help="camera-vs-joint timestamp offset of a moving episode",
+    t = command("latency", "camera-vs-joint timestamp offset of a moving episode",
                        description="Estimate latency_s = t_frame - t_exposure (positive: the camera stamps "
                                    "late) by aligning optical flow with the robot's motion from joints.csv. "
                                    "Record 10-30 s of brisk moves with pauses, the arm well in view; with a "
                                    "calibrated camera (after `apply`) the robot signal is in pixels. Prints "
                                    "the estimate with a bootstrap 1-sigma; exit 3 when nothing moves.")
     t.add_argument("episode", type=Path, help="a recorded episode in which the arm moves")
-    t.add_argument("--max-offset", type=positive(), default=0.25, help="search range +- s (0.25)")
-    t.add_argument("--uncalibrated", action="store_true", help="ignore the episode's camera calibration")
+    t.add_argument("--max-offset", type=positive(), default=0.25, help="search range +- s (default 0.25)")
+    t.add_argument("--uncalibrated", action="store_true",
+                   help="ignore the episode's camera calibration: the robot signal in metres (default: pixels "
+                        "when calibrated)")
     t.add_argument("--max-span", type=positive(), default=30.0, metavar="S",
-                   help="analyse at most this many seconds: the stretch with the most image motion (30)")
-    t.add_argument("--json", type=Path, help="also write the estimate here")
+                   help="analyse at most this many seconds: the stretch with the most image motion (default 30)")
+    t.add_argument("--json", type=Path, help="also write the estimate here (default: print only)")
     t.set_defaults(fn=cmd_latency)
 
-    ap = sub.add_parser("apply", help="write calibration.json into episodes (atomically, keeps the rest)")
-    ap.add_argument("calibration", type=Path)
-    ap.add_argument("episodes", type=Path, nargs="+")
+    ap = command("apply", "write calibration.json into episodes (atomically, keeps the rest)")
+    ap.add_argument("calibration", type=Path, help="calibration.json (as `solve` writes it)")
+    ap.add_argument("episodes", type=Path, nargs="+",
+                    help="episode folders whose episode.json gets the camera K, dist, mount, T_mount_cam and "
+                         "latency_s (the image size must match)")
     ap.set_defaults(fn=cmd_apply)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    """Run ``manisplat-calibrate`` with ``argv``; returns the exit status (:data:`EPILOG`)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command == "board" and args.marker_mm >= args.square_mm:
+        parser.error(f"--marker-mm ({args.marker_mm:g}) must be smaller than --square-mm ({args.square_mm:g})")
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(message)s")
     from manisplat.drivers.base import DriverError
     from manisplat.episode import EpisodeFormatError

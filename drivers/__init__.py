@@ -3,9 +3,16 @@
 The recorder talks to the :class:`Arm` and :class:`Camera` interfaces (:mod:`.base`);
 :mod:`.piper` (``PiperArm``, ``SimulatedPiper``), :mod:`.replay` (``CanLogPlayer``,
 ``EpisodeArm``, ``EpisodeCamera``) and :mod:`.oak` (``OakCamera``, ``DepthaiReplayCamera``)
-implement them.
+implement them. The names below load on first use (PEP 562), so importing the package (as every
+command line does before parsing its arguments) costs nothing.
 """
 
-from manisplat.drivers.base import Arm, ArmHealth, Camera, CameraFrame, DriverError, JointState, SequenceTracker
+from __future__ import annotations
 
-__all__ = ["Arm", "ArmHealth", "Camera", "CameraFrame", "DriverError", "JointState", "SequenceTracker"]
+from manisplat._lazy import lazy_exports
+
+_EXPORTS = {
+    "base": ("Arm", "ArmHealth", "Camera", "CameraFrame", "DriverError", "JointState", "SequenceTracker"),
+}
+
+__getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)

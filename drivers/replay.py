@@ -207,7 +207,7 @@ class EpisodeArm:
 
 
 class EpisodeCamera:
-    """An episode's frames (EPISODE.md) as a :class:`~manisplat.drivers.base.Camera`: RGB, depth
+    """An episode's frames (docs/episode-format.md) as a :class:`~manisplat.drivers.base.Camera`: RGB, depth
     when present, the episode's ``t`` (its monotonic clock, mid-exposure where the recorder knew
     it), ``seq`` from the ``seq`` column when present (else the frame index) and drops from its
     gaps. ``realtime`` paces frames at their recorded spacing; otherwise as fast as read."""

@@ -2,7 +2,9 @@
 
 The pieces: :mod:`.piper.convention` (the episode's joint convention -> the arm's),
 :mod:`.piper.trajectory` (targets and every check before anything moves), :mod:`.piper.streamer`
-(the approach, the stream, the stops, the hold).
+(the approach, the stream, the stops, the hold). Nothing beyond the standard library and
+:mod:`manisplat.cli_args` is imported before the arguments are parsed, so ``--help`` and usage
+errors answer at once.
 """
 
 from __future__ import annotations
@@ -14,18 +16,14 @@ import signal
 import sys
 import threading
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
+from manisplat.cli_args import bounded, finite_numbers, positive
 
-from manisplat.cli_args import positive
-from manisplat.drivers.base import DriverError
-from manisplat.drivers.piper.arm import PiperArm
-from manisplat.drivers.piper.convention import ConventionError, convention_for, tcp_discrepancy_mm
-from manisplat.drivers.piper.streamer import CommandAudit, ReplayReport, StreamConfig, replay
-from manisplat.drivers.piper.trajectory import (ReplayLimits, check_trajectory, trajectory_figures,
-                                                trajectory_from_episode)
-from manisplat.episode import Episode, EpisodeFormatError
-from manisplat.robot import builtin_piper
+if TYPE_CHECKING:
+    import numpy as np
+
+    from manisplat.drivers.piper.streamer import ReplayReport
 
 log = logging.getLogger("manisplat.replay")
 
@@ -60,36 +58,29 @@ Exit status:
 """
 
 
-def _degrees_list(text: str) -> np.ndarray:
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected 6 comma-separated angles in degrees; got {text!r}") from None
-    if len(values) != 6:
-        raise argparse.ArgumentTypeError(f"expected 6 angles (J1..J6, deg); got {len(values)}")
-    return np.radians(values)
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``manisplat-replay``."""
     p = argparse.ArgumentParser(
         prog="manisplat-replay", formatter_class=argparse.RawDescriptionHelpFormatter, epilog=EPILOG,
         description="Play an episode's joint and gripper targets back on a PiPER over CAN, checked first, "
                     "stopped safely.")
-    p.add_argument("episode", type=Path, help="the episode folder (EPISODE.md format)")
+    p.add_argument("episode", type=Path, help="the episode folder (docs/episode-format.md)")
     p.add_argument("--can", default="can0", metavar="CHANNEL", help="CAN channel of the arm (default can0)")
     p.add_argument("--interface", default="socketcan", metavar="NAME",
                    help="python-can interface: socketcan, slcan, gs_usb, pcan, virtual, ... (default socketcan)")
-    p.add_argument("--sim", action="store_true", help="replay on a simulated PiPER (no hardware)")
-    p.add_argument("--sim-start", type=_degrees_list, default=None, metavar="J1,..,J6",
-                   help="--sim: the simulated arm's initial joints in degrees (arm convention)")
+    p.add_argument("--sim", action="store_true",
+                   help="replay on a simulated PiPER (no hardware; default: the arm on --can)")
+    p.add_argument("--sim-start", type=finite_numbers((6,)), default=None, metavar="J1,..,J6",
+                   help="--sim: the simulated arm's initial joints, 6 angles in degrees (arm convention; default "
+                        "3 deg from the episode's start on every joint)")
     p.add_argument("--speed", type=positive(), default=1.0,
                    help="time scale: 0.5 replays at half speed, 2 at twice (default 1)")
     p.add_argument("--dry-run", action="store_true",
                    help="check everything (reading the arm's current state) and send nothing")
     p.add_argument("--source", choices=("auto", "actions", "joints"), default="auto",
-                   help="targets from the action columns (auto: when present) or the measured joints")
-    p.add_argument("--arm-speed-pct", type=int, default=100, metavar="PCT",
+                   help="targets from the action columns (actions), the measured joints (joints), or the actions "
+                        "when frames.csv has them, else the joints (default auto)")
+    p.add_argument("--arm-speed-pct", type=bounded(1, 100, int), default=100, metavar="PCT",
                    help="MOVE J speed %% given to the arm (1..100, default 100); velocities are checked against "
                         "the speed limits times this")
     p.add_argument("--max-tracking-error-deg", type=positive(), default=10.0, metavar="DEG",
@@ -100,7 +91,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="refuse a jump larger than this between two frames (default 10)")
     p.add_argument("--feedback-timeout-ms", type=positive(), default=100.0, metavar="MS",
                    help="stop when no joint feedback arrives for this long (default 100)")
-    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
+    p.add_argument("-v", "--verbose", action="count", default=0,
+                   help="more log output: -v info, -vv debug (default: warnings only)")
     return p
 
 
@@ -113,7 +105,8 @@ class SimArm:
 
         import can
 
-        from manisplat.drivers.piper import SimConfig, SimulatedPiper
+        from manisplat.drivers.piper import PiperArm, SimConfig, SimulatedPiper
+        from manisplat.drivers.piper.streamer import CommandAudit
 
         channel = f"manisplat-replay-sim-{uuid.uuid4().hex}-bus"
         self.sim_bus = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
@@ -147,12 +140,21 @@ def _describe_checks(figures: dict[str, float], speed: float, source: str, conve
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    """Run ``manisplat-replay`` with ``argv``; returns the exit status (``--help`` lists them)."""
+    args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING if args.verbose == 0 else logging.INFO if args.verbose == 1
                         else logging.DEBUG, format="%(levelname)s %(name)s: %(message)s")
-    if not 1 <= args.arm_speed_pct <= 100:
-        parser.error(f"--arm-speed-pct must be in 1..100; got {args.arm_speed_pct}")
+    import numpy as np
+
+    from manisplat.drivers.base import DriverError
+    from manisplat.drivers.piper.arm import PiperArm
+    from manisplat.drivers.piper.convention import ConventionError, convention_for, tcp_discrepancy_mm
+    from manisplat.drivers.piper.streamer import StreamConfig, replay
+    from manisplat.drivers.piper.trajectory import (ReplayLimits, check_trajectory, trajectory_figures,
+                                                    trajectory_from_episode)
+    from manisplat.episode import Episode, EpisodeFormatError
+    from manisplat.robot import builtin_piper
+
     try:
         episode = Episode.open(args.episode)
         description = episode.meta.robot.description
@@ -191,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         try:
             if args.sim:
-                start = args.sim_start if args.sim_start is not None else np.clip(
+                start = np.radians(args.sim_start) if args.sim_start is not None else np.clip(
                     traj.q[0] + math.radians(SIM_START_OFFSET_DEG), robot.lower, robot.upper)
                 sim = SimArm(start, float(traj.gripper[0]))
                 arm = sim.arm

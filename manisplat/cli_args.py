@@ -23,13 +23,60 @@ def numbers(count: tuple[int, ...]) -> Callable[[str], list[float]]:
 
 def positive(kind: type = float) -> Callable[[str], Any]:
     """An argparse type: one finite number of ``kind`` (float or int) above 0."""
+    return _checked(kind, lambda v: v > 0, "must be > 0")
+
+
+def non_negative(kind: type = float) -> Callable[[str], Any]:
+    """An argparse type: one finite number of ``kind`` (float or int) at or above 0."""
+    return _checked(kind, lambda v: v >= 0, "must be >= 0")
+
+
+def finite(kind: type = float) -> Callable[[str], Any]:
+    """An argparse type: one finite number of ``kind`` (float or int), any sign."""
+    return _checked(kind, lambda v: True, "must be a finite number")
+
+
+def _checked(kind: type, accept: Callable[[Any], bool], requirement: str) -> Callable[[str], Any]:
     def parse(text: str) -> Any:
         try:
             value = kind(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a number; got {text!r}") from None
-        if not (math.isfinite(value) and value > 0):
-            raise argparse.ArgumentTypeError(f"must be > 0; got {text}")
+            raise argparse.ArgumentTypeError(f"expected {'an integer' if kind is int else 'a number'}; "
+                                             f"got {text!r}") from None
+        if not (math.isfinite(value) and accept(value)):
+            raise argparse.ArgumentTypeError(f"{requirement}; got {text}")
         return value
+
+    return parse
+
+
+def bounded(low: float, high: float = math.inf, kind: type = float) -> Callable[[str], Any]:
+    """An argparse type: one finite number of ``kind`` (float or int) from ``low`` to ``high``, both included."""
+    requirement = f"must be >= {low:g}" if high == math.inf else f"must be in {low:g}..{high:g}"
+    return _checked(kind, lambda v: low <= v <= high, requirement)
+
+
+def finite_numbers(count: tuple[int, ...]) -> Callable[[str], list[float]]:
+    """An argparse type: comma-separated finite numbers (no NaN or infinity), as many as one of ``count``."""
+    parse_numbers = numbers(count)
+
+    def parse(text: str) -> list[float]:
+        values = parse_numbers(text)
+        if not all(math.isfinite(v) for v in values):
+            raise argparse.ArgumentTypeError(f"every number must be finite; got {text!r}")
+        return values
+
+    return parse
+
+
+def pinhole_intrinsics() -> Callable[[str], list[float]]:
+    """An argparse type: ``fx,fy,cx,cy`` in pixels, four finite numbers with fx and fy above 0."""
+    parse_numbers = finite_numbers((4,))
+
+    def parse(text: str) -> list[float]:
+        values = parse_numbers(text)
+        if not (values[0] > 0 and values[1] > 0):
+            raise argparse.ArgumentTypeError(f"fx and fy must be > 0; got {text!r}")
+        return values
 
     return parse

@@ -8,18 +8,21 @@ Modules, one job each: :mod:`.clock` (one monotonic timeline, measured wall offs
 :mod:`.sync` (joint state at frame times), :mod:`.actions` (leader-arm commands),
 :mod:`.canlog` (the raw CAN log), :mod:`.writer` (the writer thread), :mod:`.session` (an
 episode), :mod:`.recovery`, :mod:`.replaycam` and :mod:`.simrig` (replayed camera, simulated
-arm), :mod:`.cli` (``manisplat-record``).
+arm), :mod:`.cli` (``manisplat-record``). The names below load on first use (PEP 562), so
+``manisplat-record --help`` imports none of them.
 """
 
-from manisplat.recorder.clock import ClockMap, ManualClock, ScaledClock, SystemClock, measure_offset
-from manisplat.recorder.recovery import recover_all, recover_episode
-from manisplat.recorder.session import EpisodeResult, EpisodeStats, Recorder, RecorderConfig
-from manisplat.recorder.sync import (FLAG_ACTION_STALE, FLAG_BEFORE, FLAG_GAP, FLAG_HELD, JointHistory,
-                                     latest_at_arrival, nearest_sample, sync_joints)
-from manisplat.recorder.writer import StorageError
+from __future__ import annotations
 
-__all__ = [
-    "FLAG_ACTION_STALE", "FLAG_BEFORE", "FLAG_GAP", "FLAG_HELD", "ClockMap", "EpisodeResult", "EpisodeStats",
-    "JointHistory", "ManualClock", "Recorder", "RecorderConfig", "ScaledClock", "StorageError", "SystemClock",
-    "latest_at_arrival", "measure_offset", "nearest_sample", "recover_all", "recover_episode", "sync_joints",
-]
+from manisplat._lazy import lazy_exports
+
+_EXPORTS = {
+    "clock": ("ClockMap", "ManualClock", "ScaledClock", "SystemClock", "measure_offset"),
+    "recovery": ("recover_all", "recover_episode"),
+    "session": ("EpisodeResult", "EpisodeStats", "Recorder", "RecorderConfig"),
+    "sync": ("FLAG_ACTION_STALE", "FLAG_BEFORE", "FLAG_GAP", "FLAG_HELD", "JointHistory", "latest_at_arrival",
+             "nearest_sample", "sync_joints"),
+    "writer": ("StorageError",),
+}
+
+__getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)

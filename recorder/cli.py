@@ -2,7 +2,9 @@
 
 See ``manisplat-record --help``; the pieces are :mod:`.session` (one episode), :mod:`.clock`,
 :mod:`.sync`, :mod:`.writer`, :mod:`.canlog`, :mod:`.actions`, :mod:`.recovery`, and for
-``--sim`` / ``--camera replay:`` :mod:`.simrig` and :mod:`.replaycam`.
+``--sim`` / ``--camera replay:`` :mod:`.simrig` and :mod:`.replaycam`. Nothing beyond the
+standard library and :mod:`manisplat.cli_args` is imported before the arguments are parsed, so
+``--help`` and usage errors answer at once.
 """
 
 from __future__ import annotations
@@ -16,18 +18,20 @@ import signal
 import sys
 import threading
 from pathlib import Path
-from typing import Any, Iterator, TextIO
+from typing import TYPE_CHECKING, Any, Iterator, TextIO
 
-from manisplat.cli_args import positive
-from manisplat.drivers.base import Camera, DriverError
-from manisplat.drivers.piper import PiperArm
-from manisplat.recorder.clock import Clock, SystemClock
-from manisplat.recorder.recovery import recover_all
-from manisplat.recorder.session import EpisodeResult, Recorder, RecorderConfig, Status
+from manisplat.cli_args import bounded, positive
+
+if TYPE_CHECKING:
+    from manisplat.drivers.base import Camera
+    from manisplat.drivers.piper import PiperArm
+    from manisplat.recorder.clock import Clock
+    from manisplat.recorder.session import EpisodeResult, Recorder, Status
 
 log = logging.getLogger("manisplat.recorder")
 
 EXIT_OK, EXIT_EPISODE_ERROR, EXIT_USAGE, EXIT_DEVICE, EXIT_RECOVERY = 0, 1, 2, 3, 4
+MAX_LATENCY_MS = 1000.0  # RecorderConfig accepts camera latencies within +-1 s
 
 EPILOG = """\
 Start and stop:
@@ -35,22 +39,27 @@ Start and stop:
   once (--start now), and stops after --duration seconds, on Enter/space, or on Ctrl-C / SIGTERM
   (which also end the session after the current episode has been closed cleanly). Press q to quit.
 
-What is written (one folder per episode, --out/episode_NNNN, format v1 of EPISODE.md):
+What is written (one folder per episode, --out/episode_NNNN, format v1 of docs/episode-format.md):
   episode.json   complete:false while recording; the clock mapping, sync settings, task, stats
   frames.csv     index,t,q1..q6,gripper,seq,sync_gap,sync_flags[,a1..a6,a_gripper]
                  sync_flags: 1 interpolated across a gap > --max-gap-ms, 2 no joint sample after
                  the frame (last state held, never extrapolated), 4 before the first sample,
                  8 no fresh leader command (action = measured state)
   joints.csv     every joint sample (200 Hz on a PiPER) on the same clock
-  rgb/ depth/    images (depth in uint16 millimetres, depth_scale 0.001)
+  rgb/ depth/    images; depth/ (uint16 millimetres, depth_scale 0.001) with --depth on an OAK, and
+                 from a replayed recording that has depth unless --no-depth
   can.asc        every CAN frame as received (python-can ASC; time 0 = the episode's t 0)
+  An episode that ends before its first frame is written is removed (it holds no frame), and so
+  is an --out folder this run created and left empty.
 
 Exit status:
   0  every episode was recorded completely and validates
-  1  an episode ended with an error (disk full, write error, camera failure); what was written is
-     kept (run --recover on it)
+  1  an episode ended with an error (disk full, write error, camera failure, no frame recorded);
+     every frame written is kept: after a storage error the episode is left incomplete and the
+     message says what to do (free space, run --recover)
   2  bad arguments
-  3  the arm or the camera could not be opened (or the arm sends no feedback)
+  3  the arm or the camera could not be opened (or the arm sends no feedback, or --depth was asked
+     of a replayed recording without depth)
   4  --recover (or the recovery at start) could not make an episode valid
 """
 
@@ -83,25 +92,34 @@ def build_parser() -> argparse.ArgumentParser:
                      help="python-can interface: socketcan, slcan, gs_usb, pcan, kvaser, virtual, ... "
                           "(default socketcan; the bus runs at 1 Mbit/s, the PiPER's rate)")
     arm.add_argument("--sim", action="store_true",
-                     help="use a simulated PiPER on a private virtual bus instead of a real arm (no hardware)")
+                     help="use a simulated PiPER on a private virtual bus instead of a real arm (no hardware; "
+                          "default: the arm on --can)")
     arm.add_argument("--sim-motion", choices=("wave", "teleop", "still"), default="wave",
-                     help="--sim: the arm waves (default), follows a simulated leader arm that sends "
-                          "0x155-0x157 (so actions are recorded), or stands still")
+                     help="--sim: the arm waves (default wave), follows a simulated leader arm that sends "
+                          "0x155-0x157 (teleop: actions are recorded), or stands still (still)")
     cam = p.add_argument_group("camera")
     cam.add_argument("--camera", type=_camera, default="oak", metavar="{oak,replay:PATH}",
                      help="oak: the first OAK found (depthai); replay:PATH: replay an episode folder or a depthai "
-                          "recording (.mkv/.avi/.mp4 with its .mcap and calibration.json or K.json) live")
-    cam.add_argument("--loop", action="store_true", help="replay camera: repeat the recording without end")
+                          "recording (.mkv/.avi/.mp4 with its .mcap and calibration.json or K.json) live "
+                          "(default oak)")
+    cam.add_argument("--loop", action="store_true",
+                     help="replay camera: repeat the recording without end (default: stop the episode at its end)")
     cam.add_argument("--fps", type=positive(float), default=None,
                      help="camera rate in Hz (oak: its rate, default 30; replay: keep at most this many frames "
                           "per second, default all)")
     cam.add_argument("--size", type=_size, default=None, metavar="WxH",
-                     help="image size (oak: output size, default 640x400; replay: must match the recording)")
-    cam.add_argument("--depth", action="store_true",
-                     help="also record depth aligned to the colour image (oak: stereo depth; replay: its depth)")
-    cam.add_argument("--latency-ms", type=float, default=0.0, metavar="MS",
-                     help="camera latency from calibration, ms: a frame's true time is its stamp minus this "
-                          "(default 0; depthai stamps are already mid-exposure times)")
+                     help="image size (oak: output size, default 640x400; replay: must match the recording, "
+                          "default its size)")
+    depth = cam.add_mutually_exclusive_group()
+    depth.add_argument("--depth", action="store_const", const=True, default=None,
+                       help="record depth aligned to the colour image (oak: turns stereo depth on; replay: the "
+                            "recording must have depth). Default: an OAK records no depth, a replay records its "
+                            "depth when it has any")
+    depth.add_argument("--no-depth", dest="depth", action="store_const", const=False,
+                       help="record no depth, dropping a replayed recording's depth (the default for an OAK)")
+    cam.add_argument("--latency-ms", type=bounded(-MAX_LATENCY_MS, MAX_LATENCY_MS), default=0.0, metavar="MS",
+                     help=f"camera latency from calibration, ms, within +-{MAX_LATENCY_MS:g}: a frame's true time "
+                          "is its stamp minus this (default 0; depthai stamps are already mid-exposure times)")
     out = p.add_argument_group("episodes")
     out.add_argument("--out", type=Path, default=Path("episodes"), metavar="DIR",
                      help="folder for the episodes (episode_0000, episode_0001, ...; default ./episodes). "
@@ -110,26 +128,31 @@ def build_parser() -> argparse.ArgumentParser:
     out.add_argument("--duration", type=positive(float), default=None, metavar="S",
                      help="stop each episode after S seconds (default: stop by key or Ctrl-C)")
     out.add_argument("--start", choices=("key", "now"), default=None,
-                     help="start each episode on Enter/space (key; default on a terminal) or at once (now)")
+                     help="start each episode on Enter/space (key) or at once (now); default key on a terminal, "
+                          "now otherwise")
     out.add_argument("--image-format", choices=("png", "jpg"), default="png",
-                     help="rgb image format: png (lossless, default) or jpg (smaller, lossy)")
-    out.add_argument("--task", default=None, metavar="TEXT", help="task description stored in episode.json")
+                     help="rgb image format: png (lossless, default png) or jpg (smaller, lossy)")
+    out.add_argument("--task", default=None, metavar="TEXT",
+                     help="task description stored in episode.json (default: none)")
     out.add_argument("--actions", choices=("auto", "on", "off"), default="auto",
-                     help="record leader-arm commands (0x155-0x157, 0x159) as a1..a6,a_gripper: auto = when "
-                          "seen on the bus before the episode starts (default)")
+                     help="record leader-arm commands (0x155-0x157, 0x159) as a1..a6,a_gripper: on, off, or auto "
+                          "= when seen on the bus before the episode starts (default auto)")
     out.add_argument("--max-gap-ms", type=positive(float), default=15.0, metavar="MS",
                      help="flag frames interpolated across a longer gap between joint samples (default 15 ms: "
                           "three PiPER samples)")
     out.add_argument("--recover", type=Path, default=None, metavar="DIR",
-                     help="only recover the incomplete episode DIR (or every incomplete episode in DIR) and exit")
-    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+                     help="only recover the incomplete episode DIR (or every incomplete episode in DIR) and exit "
+                          "(default: record)")
+    p.add_argument("-v", "--verbose", action="count", default=0,
+                   help="more log output: -v info, -vv debug (default: warnings and the recorder's progress)")
     return p
 
 
 # -- devices ------------------------------------------------------------------------------------
 
 class Devices:
-    """The arm, the camera and (with --sim) the simulator, closed together."""
+    """The arm, the camera and (with --sim) the simulator, closed together; ``depth``: whether
+    the camera's depth is recorded (--depth / --no-depth, else what the camera gives)."""
 
     def __init__(self) -> None:
         self.arm: PiperArm | None = None
@@ -137,6 +160,7 @@ class Devices:
         self.rig: Any = None
         self.info: dict[str, Any] = {}
         self.nominal_fps: float | None = None
+        self.depth = False
 
     def close(self) -> None:
         for name, thing in (("camera", self.camera), ("arm", self.arm), ("simulator", self.rig)):
@@ -150,6 +174,8 @@ class Devices:
 
 def open_devices(args: argparse.Namespace, clock: Clock, stop: threading.Event) -> Devices:
     """Open the arm (or simulator) and the camera the arguments name; DriverError when one fails."""
+    from manisplat.drivers.piper import PiperArm
+
     dev = Devices()
     try:
         if args.sim:
@@ -169,14 +195,20 @@ def open_devices(args: argparse.Namespace, clock: Clock, stop: threading.Event) 
 
 
 def open_camera(args: argparse.Namespace, clock: Clock, stop: threading.Event, dev: Devices) -> Camera:
+    """Open the camera ``--camera`` names and decide whether its depth is recorded (``dev.depth``):
+    an OAK streams depth only with --depth; a replay's depth is recorded when it has any, unless
+    --no-depth. --depth for a replay without depth is a DriverError."""
+    from manisplat.drivers.base import DriverError
+
     if args.camera == "oak":
         from manisplat.drivers.oak import OakCamera, OakConfig
 
         width, height = args.size or (640, 400)
         fps = args.fps or 30.0
-        camera = OakCamera(OakConfig(width=width, height=height, fps=fps, depth=args.depth))
+        dev.depth = bool(args.depth)
+        camera = OakCamera(OakConfig(width=width, height=height, fps=fps, depth=dev.depth))
         dev.nominal_fps = fps
-        dev.info["camera"] = f"OAK {width}x{height} @ {fps:g} fps{' + depth' if args.depth else ''}"
+        dev.info["camera"] = f"OAK {width}x{height} @ {fps:g} fps{' + depth' if dev.depth else ''}"
         return camera
     from manisplat.recorder.replaycam import ReplayCamera, open_replay_source
 
@@ -186,8 +218,14 @@ def open_camera(args: argparse.Namespace, clock: Clock, stop: threading.Event, d
         camera.close()
         raise DriverError(f"--size {args.size[0]}x{args.size[1]} does not match the replayed recording "
                           f"({camera.width}x{camera.height}); leave --size out or pick that size")
+    if args.depth and not camera.has_depth:
+        camera.close()
+        raise DriverError(f"--depth: the replayed recording {path} has no depth; leave --depth out")
+    dev.depth = camera.has_depth if args.depth is None else args.depth
     dev.nominal_fps = args.fps or _source_fps(path)
-    dev.info["camera"] = f"replay of {path}{' (looped)' if args.loop else ''}"
+    dropped = " (its depth dropped: --no-depth)" if camera.has_depth and not dev.depth else ""
+    dev.info["camera"] = (f"replay of {path}{' (looped)' if args.loop else ''}{' + depth' if dev.depth else ''}"
+                          f"{dropped}")
     return camera
 
 
@@ -288,7 +326,8 @@ def summary(results: list[EpisodeResult]) -> str:
     for r in results:
         s = r.stats
         fps = s.frames / s.duration_s if s.duration_s > 0 else 0.0
-        outcome = "valid" if r.valid and not r.error else "ERROR (see above)" if r.error else "invalid"
+        outcome = ("removed: no frame (see above)" if r.removed else "valid" if r.valid and not r.error
+                   else "ERROR (see above)" if r.error else "invalid")
         rows.append((r.path.name, str(s.frames), f"{s.duration_s:.1f}", f"{fps:.1f}", str(s.frames_lost),
                      str(s.flagged), f"{s.max_sync_gap_s * 1e3:.1f}", str(s.joint_samples),
                      str(s.can_frames_logged), outcome))
@@ -305,6 +344,8 @@ def _setup_logging(verbose: int) -> None:
 
 
 def _recover(folder: Path) -> int:
+    from manisplat.recorder.recovery import recover_all
+
     results = recover_all(folder)
     if not results:
         print(f"{folder}: no incomplete episode")
@@ -313,7 +354,24 @@ def _recover(folder: Path) -> int:
     return EXIT_RECOVERY if any(r.error for r in results) else EXIT_OK
 
 
+def _make_folder(path: Path) -> list[Path]:
+    """Create ``path`` with its missing parents; returns the folders created, outermost first."""
+    missing = [folder for folder in (path, *path.parents) if not folder.exists()][::-1]
+    path.mkdir(parents=True, exist_ok=True)
+    return missing
+
+
+def _remove_if_empty(created: list[Path]) -> None:
+    """Remove the folders of ``created`` (outermost first) that were left empty, innermost first."""
+    for folder in reversed(created):
+        try:
+            folder.rmdir()  # refuses a folder that holds anything
+        except OSError:
+            return
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run ``manisplat-record`` with ``argv``; returns the exit status (``--help`` lists them)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     _setup_logging(args.verbose)
@@ -322,21 +380,27 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--recover: {args.recover} does not exist")
         return _recover(args.recover)
     try:
-        config = RecorderConfig(fps=args.fps, latency_s=args.latency_ms / 1e3, max_gap_s=args.max_gap_ms / 1e3,
-                                image_format=args.image_format, depth=args.depth, task=args.task, actions=args.actions)
-    except ValueError as exc:
-        parser.error(str(exc))
-    start = args.start or ("key" if sys.stdin.isatty() else "now")
-
-    try:
-        args.out.mkdir(parents=True, exist_ok=True)
+        created = _make_folder(args.out)
     except OSError as exc:
         parser.error(f"--out {args.out}: cannot create the folder: {exc}")
+    try:
+        return _session(args)
+    finally:
+        _remove_if_empty(created)
+
+
+def _session(args: argparse.Namespace) -> int:
+    """Recover what a crash left in --out, open the devices, record the episodes, print the summary."""
+    from manisplat.drivers.base import DriverError
+    from manisplat.recorder.clock import SystemClock
+    from manisplat.recorder.recovery import recover_all
+    from manisplat.recorder.session import Recorder, RecorderConfig
+
     if any(r.error for r in recover_all(args.out)):
         print(f"an incomplete episode in {args.out} could not be recovered (see above); fix it or move it away",
               file=sys.stderr)
         return EXIT_RECOVERY
-
+    start = args.start or ("key" if sys.stdin.isatty() else "now")
     stop = threading.Event()      # ends the session
     episode_stop = threading.Event()
 
@@ -355,6 +419,9 @@ def main(argv: list[str] | None = None) -> int:
         except (DriverError, OSError) as exc:
             print(f"manisplat-record: {exc}", file=sys.stderr)
             return EXIT_DEVICE
+        config = RecorderConfig(fps=args.fps, latency_s=args.latency_ms / 1e3, max_gap_s=args.max_gap_ms / 1e3,
+                                image_format=args.image_format, depth=devices.depth, task=args.task,
+                                actions=args.actions)
         try:
             recorder = Recorder(devices.arm, devices.camera, clock, config, source_info=devices.info,
                                 nominal_fps=devices.nominal_fps)

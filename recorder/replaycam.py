@@ -43,6 +43,8 @@ class ReplayCamera:
         delivery_delay_s: exposure-to-host delay, s; stamp_latency_s: stamp minus true
             mid-exposure time, s (module docstring).
         stop: an event that makes a waiting :meth:`read` return None.
+
+    ``has_depth`` says whether the stream's frames carry depth (its first frame is read at once).
     """
 
     def __init__(self, open_source: Callable[[], Camera], clock: Clock, *, loop: bool = False, fps: float | None = None,
@@ -61,10 +63,19 @@ class ReplayCamera:
         self.K = np.asarray(self._source.K, dtype=np.float64)
         self.dist = np.asarray(self._source.dist, dtype=np.float64)
         self._frames: list[CameraFrame] | None = None
+        self._first: CameraFrame | None = None  # read ahead to tell whether the stream has depth
         if preload:
             self._frames = self._read_all()
             if not self._frames:
                 raise DriverError("the replayed camera stream holds no frames")
+            first = self._frames[0]
+        else:
+            try:
+                first = self._first = self._source.read(timeout=10.0)
+            except TimeoutError:
+                self._source.close()
+                raise DriverError("the replayed camera stream sent no frame within 10 s") from None
+        self.has_depth = first is not None and first.depth is not None
         self._pending: CameraFrame | None = None
         self._t_src0: float | None = None
         self._t_start: float | None = None
@@ -102,7 +113,10 @@ class ReplayCamera:
             f = self._frames[self._index]
             self._index += 1
             return f
-        f = self._source.read(timeout=10.0)
+        if self._first is not None:
+            f, self._first = self._first, None
+        else:
+            f = self._source.read(timeout=10.0)
         if f is None and self.loop and self._index > 0:
             self._source.close()
             self._source = self._open()

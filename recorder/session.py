@@ -18,7 +18,8 @@ Per episode (:meth:`Recorder.record_episode`):
 4. At the end (duration, stop event, a camera that ended, a write error) the pending frames are
    resolved, everything queued is written, the statistics are added to ``episode.json`` and
    ``complete: true`` is written last. A write error instead leaves the episode incomplete with
-   everything written before it (:class:`~.writer.StorageError`).
+   everything written before it (:class:`~.writer.StorageError`). An episode that ends before
+   its first frame was written holds nothing to keep: its folder is removed (and said so).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from __future__ import annotations
 import collections
 import logging
 import math
+import shutil
 import threading
 import time
 from dataclasses import asdict, dataclass, field
@@ -63,7 +65,7 @@ class RecorderConfig:
         max_wait_s: how long a frame waits for a joint sample after it before it is written
             with the last state held (flagged), s.
         image_format: ``"png"`` or ``"jpg"``.
-        depth: record depth (the camera must give it).
+        depth: record depth (the camera must give it); False drops any depth the camera gives.
         task: the task text for ``episode.json``.
         actions: ``"auto"`` (record leader commands as actions when seen before the episode
             starts), ``"on"`` or ``"off"``.
@@ -143,12 +145,14 @@ class EpisodeResult:
         stats: :class:`EpisodeStats`.
         error: why the episode could not be completed (None when complete).
         valid: whether ``validate`` (quick) found no error (False when incomplete).
+        removed: the folder was removed because no frame had been written (``error`` says so).
     """
 
     path: Path
     stats: EpisodeStats
     error: str | None = None
     valid: bool = False
+    removed: bool = False
 
 
 @dataclass
@@ -337,6 +341,7 @@ class Recorder:
         cam = CameraInfo(name=self.camera_name, width=self.camera.width, height=self.camera.height, K=self.camera.K,
                          dist=_opencv_dist(self.camera.dist), mount="base", T_mount_cam=None)
         fps = c.fps or self.nominal_fps or 30.0
+        created = not path.exists()
         writer: EpisodeWriter | None = None
         try:
             writer = EpisodeWriter(path, cam, RobotInfo(), fps, source="recorder",
@@ -349,7 +354,8 @@ class Recorder:
                 writer.__exit__(type(exc), exc, exc.__traceback__)
             error = f"{path}: cannot start the episode: {describe_write_error(exc)}"
             log.error("%s", error)
-            return EpisodeResult(path, EpisodeStats(stop_reason="write error"), error)
+            result = EpisodeResult(path, EpisodeStats(stop_reason="write error"), error)
+            return _remove_empty(result) if created else result
         sink = EpisodeSink(writer, self.can_log, queue_frames=c.queue_frames)
         active = _Active(t0, sink)
         self._activate(active)
@@ -380,6 +386,8 @@ class Recorder:
             error = str(exc)
         stats.frames = sink.frames_written
         result = EpisodeResult(path, stats, error)
+        if not stats.frames and created:
+            return _remove_empty(result)
         if sink.complete:
             report = validate(path, decode_images=False)
             result.valid = report.ok
@@ -498,7 +506,8 @@ class _EpisodeLoop:
                         self.stats.flag_counts[name] = self.stats.flag_counts.get(name, 0) + 1
             self.stats.max_sync_gap_s = max(self.stats.max_sync_gap_s, gap)
             self.last_gap = gap
-            item = FrameItem(t - self.active.t0, values[:6], float(values[6]), frame.rgb, frame.depth, extra)
+            item = FrameItem(t - self.active.t0, values[:6], float(values[6]), frame.rgb,
+                             frame.depth if c.depth else None, extra)
             if self.active.sink.put_frame(item):
                 self.queued += 1
                 self.recent.append(rec.clock.monotonic())
@@ -529,6 +538,22 @@ class _EpisodeLoop:
                       frames=sink.frames_written, lost=self.stats.dropped_camera + sink.frames_dropped,
                       sync_gap_ms=self.last_gap * 1e3, flagged=self.stats.flagged, queue=sink.queued_frames,
                       camera_silent_s=now - self.last_frame_host, arm=rec.arm.health().state)
+
+
+def _remove_empty(result: EpisodeResult) -> EpisodeResult:
+    """Remove the folder of an episode in which no frame was written (the joint samples and CAN
+    frames before a first frame are no episode), saying so in ``result.error``; a folder that
+    cannot be removed stays."""
+    try:
+        shutil.rmtree(result.path)
+    except OSError as exc:
+        note = f"no frame was recorded; the episode folder could not be removed: {exc}"
+    else:
+        result.removed = True
+        note = f"no frame was recorded: removed the episode folder {result.path}"
+    result.error = f"{result.error.rstrip('.')}; {note}" if result.error else note
+    log.error("%s", note)
+    return result
 
 
 def _opencv_dist(dist: np.ndarray) -> np.ndarray:

@@ -33,7 +33,8 @@ DISK_FULL_ERRNOS = {errno.ENOSPC: "the disk is full", errno.EDQUOT: "the disk qu
 
 
 class StorageError(RuntimeError):
-    """Writing the episode failed (disk full, I/O error); what was written before is kept."""
+    """Writing the episode failed (disk full, I/O error, or an unexpected error in the writer);
+    what was written before is kept. The message gives the advice that fits the error."""
 
 
 def describe_write_error(exc: BaseException) -> str:
@@ -222,7 +223,16 @@ class EpisodeSink:
                                f"({self._frames.qsize()} frames still queued); the episode stays incomplete")
         if self.error is not None:
             raise StorageError(f"{self.writer.path}: {describe_write_error(self.error)} (writing {self._doing}); "
-                               f"recording stopped. "
-                               f"Kept {self.frames_written} frames and {self.joints_written} joint samples "
-                               f"(episode left incomplete: free space, then run `manisplat-record --recover "
-                               f"{self.writer.path}`)") from self.error
+                               f"recording stopped.{self._kept()}") from self.error
+
+    def _kept(self) -> str:
+        """What a failed episode kept, with the advice that fits its error (nothing when no frame was written)."""
+        if not isinstance(self.error, OSError):
+            return (" This is an unexpected error, not a storage problem: please report it."
+                    + (f" Kept {self.frames_written} frames and {self.joints_written} joint samples (the episode "
+                       f"is left incomplete)" if self.frames_written else ""))
+        if not self.frames_written:
+            return ""
+        free = "free space, then " if self.error.errno in (errno.ENOSPC, errno.EDQUOT) else ""
+        return (f" Kept {self.frames_written} frames and {self.joints_written} joint samples (episode left "
+                f"incomplete: {free}run `manisplat-record --recover {self.writer.path}`)")

@@ -1,4 +1,4 @@
-"""Episodes (``shared/EPISODE.md``, format version 1): read, write crash-safely, validate,
+"""Episodes (``docs/episode-format.md``, format version 1): read, write crash-safely, validate,
 recover after a crash, and import from other formats.
 
     >>> from manisplat.episode import Episode, validate
@@ -6,21 +6,22 @@ recover after a crash, and import from other formats.
     >>> ep.frames.q.shape, ep.rgb(0).shape       # (T, 6) radians, (H, W, 3) uint8 RGB
     >>> print(validate("data/pick"))             # every problem, with file and row
 
-The command line is ``manisplat-episode`` (:mod:`manisplat.episode.cli`).
+The command line is ``manisplat-episode`` (:mod:`manisplat.episode.cli`). Names are imported
+from their submodules on first use (PEP 562), so that ``import manisplat.episode`` (and the
+command line's ``--help``) stays free of OpenCV, h5py and torch.
 """
 
-from manisplat.episode.format import (ACTION_COLUMNS, FORMAT, FRAME_COLUMNS, JOINT_COLUMNS, VERSION,
-                                      DamagedEpisodeError, EpisodeFormatError)
-from manisplat.episode.importers.act_hdf5 import import_act_hdf5
-from manisplat.episode.meta import CameraInfo, EpisodeMeta, RobotInfo, load_meta, save_meta
-from manisplat.episode.reader import Episode, Frame, FrameTable, JointTable, read_episode
-from manisplat.episode.recover import RecoveryReport, recover
-from manisplat.episode.validate import Problem, ValidationReport, validate
-from manisplat.episode.writer import EpisodeWriter
+from __future__ import annotations
 
-__all__ = [
-    "ACTION_COLUMNS", "FORMAT", "FRAME_COLUMNS", "JOINT_COLUMNS", "VERSION",
-    "CameraInfo", "DamagedEpisodeError", "Episode", "EpisodeFormatError", "EpisodeMeta", "EpisodeWriter",
-    "Frame", "FrameTable", "JointTable", "Problem", "RecoveryReport", "RobotInfo", "ValidationReport",
-    "import_act_hdf5", "load_meta", "read_episode", "recover", "save_meta", "validate",
-]
+from manisplat._lazy import lazy_exports
+
+__getattr__, __dir__, __all__ = lazy_exports(__name__, {
+    "format": ("ACTION_COLUMNS", "FORMAT", "FRAME_COLUMNS", "JOINT_COLUMNS", "VERSION", "DamagedEpisodeError",
+               "EpisodeFormatError"),
+    "importers.act_hdf5": ("import_act_hdf5",),
+    "meta": ("CameraInfo", "EpisodeMeta", "RobotInfo", "load_meta", "save_meta"),
+    "reader": ("Episode", "Frame", "FrameTable", "JointTable", "read_episode"),
+    "recovery": ("RecoveryReport", "recover"),
+    "validation": ("Problem", "ValidationReport", "validate"),
+    "writer": ("EpisodeWriter",),
+})

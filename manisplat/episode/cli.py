@@ -1,4 +1,8 @@
-"""``manisplat-episode``: inspect, validate, recover, import and synthesize episodes."""
+"""``manisplat-episode``: inspect, validate, recover, import, synthesize, copy episodes and set their robot.
+
+Only argparse and the shared argument checks are imported up front: each command imports what it
+needs (OpenCV, h5py, torch) after the arguments parsed, so ``--help`` and usage errors are quick.
+"""
 
 from __future__ import annotations
 
@@ -7,23 +11,26 @@ import logging
 import sys
 from pathlib import Path
 
-import numpy as np
+from manisplat.cli_args import bounded, finite_numbers, non_negative, pinhole_intrinsics, positive
+from manisplat.episode.format import DIST_LENGTHS, EpisodeFormatError
 
-from manisplat.cli_args import numbers
-from manisplat.episode.format import EpisodeFormatError
-from manisplat.episode.importers.act_hdf5 import ARM_COLUMNS, import_act_hdf5
-from manisplat.episode.reader import Episode
-from manisplat.episode.recover import recover
-from manisplat.episode.summary import describe
-from manisplat.episode.validate import validate
+ACT_ARMS = ("left", "right", "single")
+"""``--arm`` choices of ``import-act`` (the keys of the importer's ``ARM_COLUMNS``)."""
+SAMPLE_MIN_FRAMES = 8
+"""The fewest frames ``write_sample_episode`` accepts."""
 
 
 def _cmd_info(args: argparse.Namespace) -> int:
+    from manisplat.episode.reader import Episode
+    from manisplat.episode.summary import describe
+
     print(describe(Episode.open(args.episode)))
     return 0
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
+    from manisplat.episode.validation import validate
+
     status = 0
     for path in args.episodes:
         report = validate(path, decode_images=not args.quick, progress=sys.stderr.isatty())
@@ -33,12 +40,18 @@ def _cmd_validate(args: argparse.Namespace) -> int:
 
 
 def _cmd_recover(args: argparse.Namespace) -> int:
+    from manisplat.episode.recovery import recover
+
     report = recover(args.episode, drop_damaged=args.drop_damaged)
     print(report)
     return 0 if report.validation is None or report.validation.ok else 1
 
 
 def _cmd_import_act(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from manisplat.episode.importers.act_hdf5 import import_act_hdf5
+
     fx, fy, cx, cy = args.K
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     episode = import_act_hdf5(args.file, args.out, K=K, arm=args.arm, camera=args.camera, fps=args.fps,
@@ -58,13 +71,39 @@ def _cmd_sample(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_set_robot(args: argparse.Namespace) -> int:
+    from manisplat.episode.relocate import set_robot
+
+    try:
+        old, new = set_robot(args.episode, args.description, embed=args.embed, overwrite=args.overwrite)
+    except ValueError as exc:  # RobotModelError included: an unknown builtin, a URDF that does not load
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print(f"{args.episode}: robot.description {old!r} -> {new!r}")
+    return 0
+
+
+def _cmd_copy(args: argparse.Namespace) -> int:
+    from manisplat.episode.relocate import copy_episode
+
+    try:
+        old, new = copy_episode(args.source, args.destination, embed=args.embed, overwrite=args.overwrite)
+    except ValueError as exc:  # RobotModelError included
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    changed = f"; robot.description {old!r} -> {new!r}" if new != old else ""
+    print(f"copied {args.source} to {args.destination}{changed}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``manisplat-episode`` and its subcommands."""
     parser = argparse.ArgumentParser(
         prog="manisplat-episode",
-        description="Inspect, validate, recover, import and synthesize ManiSplat episodes (format v1).")
+        description="Inspect, validate, recover, import, synthesize and copy ManiSplat episodes (format v1, "
+                    "docs/episode-format.md).")
     parser.add_argument("-v", "--verbose", action="count", default=0,
-                        help="log more (-v: info, -vv: debug); default: warnings only")
+                        help="log more: -v info, -vv debug (default: warnings only)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("info", help="print a summary of an episode",
@@ -81,19 +120,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("episodes", type=Path, nargs="+", metavar="EPISODE", help="episode folder(s)")
     p.add_argument("--quick", action="store_true",
                    help="only check that image files exist and are not empty, without decoding them "
-                        "(misses truncated or wrong-size images)")
+                        "(misses truncated or wrong-size images; default: off, every image is decoded)")
     p.set_defaults(func=_cmd_validate)
 
     p = sub.add_parser("recover", help="make an interrupted episode valid again without losing complete frames",
                        description="Make an episode whose writer was killed valid again. Crash artefacts "
                                    "(temporary files, a torn last row, images without a row, trailing rows with "
-                                   "missing or truncated images) and the original CSV files are moved into "
-                                   "EPISODE/.recovered/<time>/; nothing is deleted. A complete, valid episode is "
-                                   "left unchanged. Damage followed by good frames is refused unless "
-                                   "--drop-damaged.")
+                                   "missing or truncated images) and the originals of the rewritten files "
+                                   "(frames.csv, joints.csv, gt.npz) are moved into EPISODE/.recovered/<time>/; "
+                                   "nothing is deleted. Every per-frame file follows the kept frames. A complete, "
+                                   "valid episode is left unchanged. Damage followed by good frames is refused "
+                                   "unless --drop-damaged. Exit status 1 when the result is still invalid, e.g. "
+                                   "when no frame could be kept.")
     p.add_argument("episode", type=Path, help="episode folder")
     p.add_argument("--drop-damaged", action="store_true",
-                   help="also move aside damaged frames in the middle and renumber the remaining ones")
+                   help="also move aside damaged frames in the middle and renumber the remaining ones "
+                        "(default: off, such damage is refused)")
     p.set_defaults(func=_cmd_recover)
 
     p = sub.add_parser("import-act", help="convert an ACT / ALOHA / Cobot Magic HDF5 episode",
@@ -101,24 +143,30 @@ def build_parser() -> argparse.ArgumentParser:
                                    "<cam>, optional images_depth and action) into an episode folder, frame by "
                                    "frame. The file holds no intrinsics: --K is required.")
     p.add_argument("file", type=Path, metavar="FILE.hdf5", help="the HDF5 episode")
-    p.add_argument("--out", type=Path, required=True, help="episode folder to create")
-    p.add_argument("--K", type=numbers((4,)), required=True, metavar="fx,fy,cx,cy",
+    p.add_argument("--out", type=Path, required=True, help="episode folder to create (required)")
+    p.add_argument("--K", type=pinhole_intrinsics(), required=True, metavar="fx,fy,cx,cy",
                    help="camera intrinsics in pixels (required: these files store none)")
-    p.add_argument("--arm", choices=sorted(ARM_COLUMNS), default="left",
-                   help="which arm of a 14-column dual-arm file, or 'single' for 7 columns (default left)")
-    p.add_argument("--camera", default="cam_high", help="image dataset under observations/images (default cam_high)")
-    p.add_argument("--fps", type=float, default=30.0, help="recording rate in Hz; t = index / fps (default 30)")
-    p.add_argument("--gripper-scale", type=float, default=1.0,
-                   help="factor from the file's gripper value to the finger gap in metres (default 1)")
-    p.add_argument("--dist", type=numbers((0, 4, 5, 8, 12, 14)), default=[], metavar="k1,k2,...",
-                   help="OpenCV distortion coefficients (default none)")
-    p.add_argument("--mount", default="base", help="'base' or the link a wrist camera is fixed to (default base)")
-    p.add_argument("--bgr", action="store_true", help="the stored images are BGR (default: RGB, as Cobot Magic stores)")
+    p.add_argument("--arm", choices=ACT_ARMS, default="left",
+                   help="which arm of a 14-column dual-arm file, or 'single' for 7 columns (default: %(default)s)")
+    p.add_argument("--camera", default="cam_high",
+                   help="image dataset under observations/images (default: %(default)s)")
+    p.add_argument("--fps", type=positive(float), default=30.0,
+                   help="recording rate in Hz; t = index / fps (default: %(default)s)")
+    p.add_argument("--gripper-scale", type=positive(float), default=1.0,
+                   help="factor from the file's gripper value to the finger gap in metres (default: %(default)s)")
+    p.add_argument("--dist", type=finite_numbers(DIST_LENGTHS), default=[], metavar="k1,k2,...",
+                   help="OpenCV distortion coefficients, 0/4/5/8/12/14 of them (default: none)")
+    p.add_argument("--mount", default="base",
+                   help="'base' or the link a wrist camera is fixed to (default: %(default)s)")
+    p.add_argument("--bgr", action="store_true",
+                   help="the stored images are BGR (default: off, RGB as Cobot Magic stores them)")
     p.add_argument("--robot-description", default="builtin:agilex_piper",
-                   help="how to read the joint angles: URDF path or builtin:agilex_piper (default)")
-    p.add_argument("--task", help="task description stored in episode.json")
-    p.add_argument("--image-format", choices=("png", "jpg"), default="png", help="rgb file format (default png)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing episode at --out")
+                   help="how to read the joint angles: a URDF path or a builtin: name (default: %(default)s)")
+    p.add_argument("--task", help="task description stored in episode.json (default: none)")
+    p.add_argument("--image-format", choices=("png", "jpg"), default="png",
+                   help="rgb file format (default: %(default)s)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing episode at --out (default: off, refused)")
     p.set_defaults(func=_cmd_import_act)
 
     p = sub.add_parser("sample", help="write the built-in synthetic pick-and-place episode",
@@ -126,15 +174,49 @@ def build_parser() -> argparse.ArgumentParser:
                                    "18 cm away, seen by a fixed camera, with RGB, depth, masks, 200 Hz joints, "
                                    "actions and exact ground truth (gt.npz). Needs no files or devices.")
     p.add_argument("out", type=Path, metavar="OUT", help="episode folder to create")
-    p.add_argument("--frames", type=int, default=64, help="number of frames; the motion is stretched over them (default 64)")
-    p.add_argument("--fps", type=float, default=16.0, help="frame rate in Hz (default 16)")
-    p.add_argument("--width", type=int, default=160, help="image width in pixels (default 160)")
-    p.add_argument("--height", type=int, default=120, help="image height in pixels (default 120)")
-    p.add_argument("--seed", type=int, default=0, help="0: the nominal camera; others move it by up to 5 cm (default 0)")
+    p.add_argument("--frames", type=bounded(SAMPLE_MIN_FRAMES, kind=int), default=64,
+                   help=f"number of frames, at least {SAMPLE_MIN_FRAMES}; the motion is stretched over them "
+                        "(default: %(default)s)")
+    p.add_argument("--fps", type=positive(float), default=16.0, help="frame rate in Hz (default: %(default)s)")
+    p.add_argument("--width", type=positive(int), default=160, help="image width in pixels (default: %(default)s)")
+    p.add_argument("--height", type=positive(int), default=120, help="image height in pixels (default: %(default)s)")
+    p.add_argument("--seed", type=non_negative(int), default=0,
+                   help="0: the nominal camera; others move it by up to 5 cm (default: %(default)s)")
     p.add_argument("--task", choices=("pick_place", "reach"), default="pick_place",
-                   help="pick_place: the box is picked and placed; reach: the arm hovers over it (default pick_place)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing episode at OUT")
+                   help="pick_place: the box is picked and placed; reach: the arm hovers over it "
+                        "(default: %(default)s)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing episode at OUT (default: off, refused)")
     p.set_defaults(func=_cmd_sample)
+
+    p = sub.add_parser("set-robot", help="point robot.description at a URDF or built-in robot, or embed it",
+                       description="Rewrite the episode's robot.description (how its joint angles read) after "
+                                   "checking that it loads. A URDF path is stored relative to the episode when it "
+                                   "lies inside it, absolute otherwise. --embed copies the URDF and the meshes it "
+                                   "references (relative and package:// paths) into EPISODE/robot/ and points "
+                                   "there, so the episode can be copied anywhere.")
+    p.add_argument("episode", type=Path, metavar="EPISODE", help="episode folder")
+    p.add_argument("description", nargs="?", metavar="DESCRIPTION",
+                   help="a URDF path (relative to the current folder) or builtin:agilex_piper "
+                        "(default: the episode's current robot.description, e.g. to --embed it)")
+    p.add_argument("--embed", action="store_true",
+                   help="copy the URDF and its meshes into EPISODE/robot/ (default: off, point at it)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing EPISODE/robot/ when embedding (default: off, refused)")
+    p.set_defaults(func=_cmd_set_robot)
+
+    p = sub.add_parser("copy", help="copy an episode so that its robot description still resolves",
+                       description="Copy every file of an episode (.recovered/ included). A relative "
+                                   "robot.description pointing outside SRC is rewritten as an absolute path, or "
+                                   "with --embed the URDF and its meshes are copied into DST/robot/. The copy is "
+                                   "made beside DST and renamed into place.")
+    p.add_argument("source", type=Path, metavar="SRC", help="episode folder to copy")
+    p.add_argument("destination", type=Path, metavar="DST", help="episode folder to create")
+    p.add_argument("--embed", action="store_true",
+                   help="embed the robot description in DST/robot/ (default: off, an absolute path)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing episode at DST (default: off, refused)")
+    p.set_defaults(func=_cmd_copy)
     return parser
 
 

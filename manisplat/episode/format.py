@@ -1,4 +1,4 @@
-"""Names and constants of the episode format, version 1 (``shared/EPISODE.md``), and its errors."""
+"""Names and constants of the episode format, version 1 (``docs/episode-format.md``), and its errors."""
 
 from __future__ import annotations
 
@@ -25,6 +25,9 @@ ACTION_COLUMNS = ("a1", "a2", "a3", "a4", "a5", "a6", "a_gripper")
 IMAGE_SUFFIXES = (".png", ".jpg")
 """RGB images may be PNG or JPEG; depth and masks must be PNG (lossless)."""
 INDEX_DIGITS = 6
+
+DIST_LENGTHS = (0, 4, 5, 8, 12, 14)
+"""Numbers of distortion coefficients OpenCV accepts (an empty list means none)."""
 
 GRIPPER_RANGE_M = (0.0, 0.1)
 """Plausible finger-pad gap in metres; values outside get a warning from ``validate``."""

@@ -17,13 +17,11 @@ from typing import Any
 
 import numpy as np
 
-from manisplat.episode.format import FORMAT, VERSION, EpisodeFormatError
+from manisplat.episode.format import DIST_LENGTHS, FORMAT, VERSION, EpisodeFormatError
 from manisplat.episode.fsio import atomic_write_bytes
 
 RIGID_TOL = 1e-6
 """Tolerance of the rigid-transform checks: max |R^T R - I|, |det R - 1| and the last row."""
-DIST_LENGTHS = (0, 4, 5, 8, 12, 14)
-"""Numbers of distortion coefficients OpenCV accepts (an empty list means none)."""
 
 _CAMERA_KEYS = ("name", "width", "height", "K", "dist", "mount", "T_mount_cam")
 _ROBOT_KEYS = ("model", "joint_names", "description")
@@ -281,7 +279,7 @@ class RobotInfo:
 
 @dataclass(eq=False, kw_only=True)
 class EpisodeMeta:
-    """The content of ``episode.json`` (EPISODE.md).
+    """The content of ``episode.json`` (``docs/episode-format.md``).
 
     Attributes:
         format, version: ``"manisplat-episode"``, 1.
@@ -333,7 +331,7 @@ class EpisodeMeta:
                    extra={k: v for k, v in raw.items() if k not in _META_KEYS})
 
     def to_dict(self) -> dict[str, Any]:
-        """The JSON object in EPISODE.md's key order (unknown keys from ``extra`` last)."""
+        """The JSON object in the documented key order (unknown keys from ``extra`` last)."""
         return {"format": self.format, "version": self.version, "complete": self.complete,
                 "source": self.source, "created": self.created, "robot": self.robot.to_dict(),
                 "camera": self.camera.to_dict(), "fps": self.fps, "frame_count": self.frame_count,

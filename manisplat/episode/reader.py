@@ -12,6 +12,7 @@ import numpy as np
 
 from manisplat.episode.format import (ACTION_COLUMNS, FRAME_COLUMNS, FRAMES_FILE, GT_FILE, JOINT_COLUMNS,
                                       JOINTS_FILE, META_FILE, EpisodeFormatError)
+from manisplat.episode.groundtruth import read_gt
 from manisplat.episode.images import DEPTH, MASK, RGB, ImageKind, find_image, has_images, load_image, raw_to_depth
 from manisplat.episode.meta import CameraInfo, EpisodeMeta, load_meta
 from manisplat.episode.tables import CsvScan, scan_csv
@@ -122,7 +123,7 @@ def _columns(columns: tuple[str, ...], values: np.ndarray, required: tuple[str, 
 
 
 class Episode:
-    """An episode folder opened for reading (EPISODE.md, version 1).
+    """An episode folder opened for reading (``docs/episode-format.md``, version 1).
 
     ``Episode.open(path)`` reads ``episode.json`` and ``frames.csv`` and checks that frame
     indices run 0..T-1; images are decoded only when asked for (``rgb(i)``, ``frame(i)``,
@@ -227,12 +228,10 @@ class Episode:
         return self._joints
 
     def gt(self) -> dict[str, np.ndarray] | None:
-        """The arrays of ``gt.npz`` (simulation ground truth), or None without one."""
+        """The arrays of ``gt.npz`` (simulation ground truth), or None without one; raises
+        :class:`EpisodeFormatError` naming the file when it cannot be read."""
         path = self.path / GT_FILE
-        if not path.is_file():
-            return None
-        with np.load(path, allow_pickle=False) as data:
-            return {k: data[k] for k in data.files}
+        return read_gt(path) if path.is_file() else None
 
 
 def read_episode(path: str | Path) -> Episode:

@@ -10,7 +10,6 @@ from :mod:`manisplat.render.painter` (flat shading, a checkered table). Written 
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,6 +17,8 @@ import numpy as np
 import torch
 import trimesh
 
+from manisplat.episode.format import GT_FILE
+from manisplat.episode.groundtruth import write_gt
 from manisplat.episode.meta import CameraInfo, RobotInfo
 from manisplat.episode.writer import EpisodeWriter
 from manisplat.robot import builtin_piper, solve_ik
@@ -206,16 +207,10 @@ def _posed(mesh: trimesh.Trimesh, T: np.ndarray, color, label: int) -> MeshItem:
 
 
 def _write_gt(out: Path, t, q, g, T_tcp, T_box, phase, K, T_cam_base, links, link_names) -> None:
-    """``gt.npz`` as EPISODE.md lists it, written to a temporary name and renamed."""
-    tmp = out / "gt.npz.tmp"
-    with open(tmp, "wb") as fh:
-        np.savez(
-            fh, t=t, q=q, gripper=g, T_base_tcp=T_tcp, T_base_box=T_box, phase=phase.astype(str), K=K,
-            T_cam_base=T_cam_base, T_base_links=links, link_names=np.array(link_names),
-        )
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, out / "gt.npz")
+    """``gt.npz`` as ``docs/episode-format.md`` lists it, written atomically."""
+    arrays = {"t": t, "q": q, "gripper": g, "T_base_tcp": T_tcp, "T_base_box": T_box, "phase": phase.astype(str),
+              "K": K, "T_cam_base": T_cam_base, "T_base_links": links, "link_names": np.array(link_names)}
+    write_gt(out / GT_FILE, arrays, compressed=False)
 
 
 __all__ = ["SampleTrajectory", "sample_trajectory", "write_sample_episode"]

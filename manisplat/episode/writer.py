@@ -70,21 +70,36 @@ def _check_columns(name: str, columns: Sequence[str], required: tuple[str, ...])
     return columns
 
 
+def check_destination(path: Path, overwrite: bool) -> bool:
+    """Whether a new episode may go to ``path``: True when an episode there is to be replaced,
+    False when ``path`` is free (missing or an empty folder).
+
+    Raises:
+        FileExistsError: ``path`` is a file, a non-empty folder that holds no episode (always
+            refused), or an episode and not ``overwrite``.
+    """
+    if not path.exists():
+        return False
+    if not path.is_dir():
+        raise FileExistsError(f"{path}: exists and is not a folder")
+    if not any(path.iterdir()):
+        return False
+    if not (path / META_FILE).exists():
+        raise FileExistsError(f"{path}: folder is not empty and holds no episode; refusing to write into it")
+    if not overwrite:
+        raise FileExistsError(f"{path}: an episode already exists here; replace it with --overwrite "
+                              "(overwrite=True in Python)")
+    return True
+
+
 def _prepare_folder(path: Path, overwrite: bool) -> None:
-    if path.exists():
-        if not path.is_dir():
-            raise FileExistsError(f"{path}: exists and is not a folder")
-        if any(path.iterdir()):
-            if not (path / META_FILE).exists():
-                raise FileExistsError(f"{path}: folder is not empty and holds no episode; refusing to write into it")
-            if not overwrite:
-                raise FileExistsError(f"{path}: an episode already exists here; pass overwrite=True to replace it")
-            shutil.rmtree(path)
+    if check_destination(path, overwrite):
+        shutil.rmtree(path)
     path.mkdir(parents=True, exist_ok=True)
 
 
 class EpisodeWriter:
-    """Writes one episode folder (EPISODE.md); use it as a context manager.
+    """Writes one episode folder (``docs/episode-format.md``); use it as a context manager.
 
     Args:
         path: episode folder to create. An existing episode there is refused unless
@@ -321,4 +336,6 @@ class EpisodeWriter:
         self.meta.complete = True
         self.meta.frame_count = self._frame_count
         save_meta(self.path / META_FILE, self.meta)
+        if not self._frame_count:
+            log.warning("%s: closed without a frame; an episode needs at least one, so it is not valid", self.path)
         log.info("%s: wrote %d frames, %d joint samples", self.path, self._frame_count, self._joint_count)

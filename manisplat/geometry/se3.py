@@ -1,6 +1,6 @@
 """Rigid transforms as 4x4 homogeneous matrices: build, invert, compose, apply, exp/log, errors.
 
-Convention (EPISODE.md): ``T_a_b`` maps coordinates in frame b to frame a, ``X_a = T_a_b @ X_b``;
+Convention (docs/episode-format.md): ``T_a_b`` maps coordinates in frame b to frame a, ``X_a = T_a_b @ X_b``;
 composition is matrix multiplication ``T_a_c = T_a_b @ T_b_c``. A twist ``xi`` [..., 6] is
 ``(v, w)``: translational part first, rotational part (axis-angle, rad) last, as in kornia and
 Sophus. Exp/log call kornia's ``Se3`` (passes our stress tests at 0 and pi); its results are

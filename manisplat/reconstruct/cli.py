@@ -1,7 +1,11 @@
 """manisplat-reconstruct: train the Gaussian scene graph of one episode and write the twin.
 
-Exit status: 0 done; 1 the episode cannot be reconstructed (a clear message says why);
-2 usage error.
+Exit status: 0 done; 1 the episode cannot be reconstructed (a clear message says why), or the
+evaluation failed after the twin was written; 2 usage error (including an ``--out`` that holds
+earlier results, without ``--overwrite`` or ``--resume``); 130 interrupted (checkpoint saved).
+
+Only argparse and light modules are imported until the arguments are accepted: ``--help`` and
+usage errors answer at once; torch and OpenCV load when the work starts.
 """
 
 from __future__ import annotations
@@ -12,22 +16,29 @@ import sys
 import time
 from pathlib import Path
 
-import torch
-
 from manisplat.align.phases import DEFAULT_TAU
-from manisplat.cli_args import numbers
-from manisplat.episode import EpisodeFormatError
-from manisplat.reconstruct.data import ReconstructionInputError, load_episode_data
-from manisplat.reconstruct.masks import ObjectPrompt, complete_masks
-from manisplat.reconstruct.outputs import write_outputs
-from manisplat.reconstruct.pipeline import build
-from manisplat.reconstruct.plan import make_plan
-from manisplat.reconstruct.trainer import TrainConfig
-from manisplat.robot import RobotModelError
-from manisplat.splat import BackendUnavailable
+from manisplat.cli_args import finite, non_negative, numbers, positive
+from manisplat.reconstruct.config import TrainConfig
 
 log = logging.getLogger("manisplat.reconstruct")
 CHECKPOINT = "checkpoint.pt"
+
+EPILOG = f"""\
+output folder: --out must be new or empty. One that holds anything is refused (exit 2) unless
+  --overwrite (the files an earlier run wrote there are removed first: twin.json, twin.pt, PLYs,
+  object_poses*.csv, phases.csv, renders/, pose_plot.png, metrics.json, {CHECKPOINT}; other files
+  are kept) or --resume (continue from OUT/{CHECKPOINT}).
+
+outputs: twin.json + twin.pt (the twin: manisplat.twin.Twin.load(OUT) renders any state),
+  background.ply, robot_<link>.ply, object_<name>.ply (3DGS PLY), object_poses.csv,
+  phases.csv, renders/test/ (held-out renders), renders/sheets/ (ground truth | render | error),
+  pose_plot.png, metrics.json (PSNR dB, SSIM, pose error cm/deg), {CHECKPOINT}.
+  The episode format: docs/episode-format.md.
+
+exit status: 0 done; 1 the episode cannot be reconstructed (the file and field are named), or
+  the evaluation failed after the trained twin was written; 2 usage error; 130 interrupted
+  (a checkpoint is saved: continue with --resume).
+"""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -36,25 +47,29 @@ def build_parser() -> argparse.ArgumentParser:
         description="Reconstruct one episode as a Gaussian scene graph (static background, robot links driven "
                     "by forward kinematics, objects with per-frame poses), aligned with the task's Motion/Skill "
                     "phases. Writes PLYs, object poses, phases, held-out renders, a pose plot and metrics.json.",
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("episode", type=Path, help="episode folder (EPISODE.md v1)")
-    p.add_argument("--out", type=Path, required=True, help="output folder (created)")
+    p.add_argument("episode", type=Path, help="episode folder (format v1: docs/episode-format.md)")
+    p.add_argument("--out", type=Path, required=True,
+                   help="output folder: created; must be new or empty unless --overwrite or --resume")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the results of an earlier run in --out (its files are removed first)")
     p.add_argument("--robot", help="robot description: a URDF path or builtin:agilex_piper "
                                    "(default: the episode's robot.description)")
-    p.add_argument("--iters", type=int, default=TrainConfig.iters, help=f"training iterations (default {TrainConfig.iters})")
+    p.add_argument("--iters", type=positive(int), default=TrainConfig.iters, help=f"training iterations (default {TrainConfig.iters})")
     p.add_argument("--backend", default="auto", choices=("auto", "cpu", "torch", "gsplat"),
                    help="rasterizer: auto (gsplat on CUDA, else the C++ CPU backend), cpu, torch (slow reference), gsplat")
     p.add_argument("--device", default="cpu", choices=("cpu",),
                    help="torch device for training; only cpu for now (GPU training is not implemented)")
-    p.add_argument("--tau", type=float, default=DEFAULT_TAU,
+    p.add_argument("--tau", type=positive(), default=DEFAULT_TAU,
                    help=f"Skill distance threshold in metres between the TCP and the object (default {DEFAULT_TAU}; "
                         "the paper's 0.2 is in its own scene units)")
     p.add_argument("--no-shadows", action="store_true", help="do not model the moving parts' cast shadows")
     p.add_argument("--no-densify", action="store_true", help="keep the initial Gaussians (no clone/split/prune)")
     p.add_argument("--refine-camera", action="store_true", help="also optimise a correction of the camera extrinsic")
-    p.add_argument("--lambda-app", type=float, default=1.0, help="weight of the masked appearance loss (default 1)")
-    p.add_argument("--lambda-mask", type=float, default=1.0, help="weight of the dynamic-mask loss (default 1)")
-    p.add_argument("--lambda-pose", type=float, default=1.0, help="weight of the pose prior loss (default 1)")
+    p.add_argument("--lambda-app", type=non_negative(), default=1.0, help="weight of the masked appearance loss (default 1)")
+    p.add_argument("--lambda-mask", type=non_negative(), default=1.0, help="weight of the dynamic-mask loss (default 1)")
+    p.add_argument("--lambda-pose", type=non_negative(), default=1.0, help="weight of the pose prior loss (default 1)")
     inputs = p.add_argument_group(
         "episodes without depth or masks",
         "Without masks, the robot's are drawn from its meshes at each frame's forward kinematics and the "
@@ -71,32 +86,69 @@ def build_parser() -> argparse.ArgumentParser:
     inputs.add_argument("--no-depth", action="store_true", help="ignore the episode's depth (monocular reconstruction)")
     inputs.add_argument("--no-masks", action="store_true",
                         help="ignore the episode's masks and draw/segment them (the episode's still score the regions)")
-    inputs.add_argument("--table-z", type=float, default=0.0,
+    inputs.add_argument("--table-z", type=finite(), default=0.0,
                         help="table height in the base frame, metres, for a start without depth (default 0)")
     p.add_argument("--plan", action="store_true", help="print the plan (what is reconstructed, what is skipped) and exit")
-    p.add_argument("--resume", action="store_true", help=f"continue from OUT/{CHECKPOINT} if it exists")
-    p.add_argument("--checkpoint-every", type=int, default=500, help="iterations between checkpoints (default 500)")
+    p.add_argument("--resume", action="store_true",
+                   help=f"continue from OUT/{CHECKPOINT} (a new run when OUT is new or empty)")
+    p.add_argument("--checkpoint-every", type=positive(int), default=500, help="iterations between checkpoints (default 500)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar, warnings only")
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="%(message)s")
-    start = time.perf_counter()
+    parser = build_parser()
+    args = parser.parse_args(argv)
     try:
         prompt = _prompt(args)
+        if not args.plan:
+            _check_out(args)
     except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        parser.error(str(exc))
+    logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="%(message)s")
+    return _run(args, prompt)
+
+
+def _check_out(args: argparse.Namespace) -> None:
+    """Refuse an ``--out`` holding anything, unless ``--overwrite`` or ``--resume`` says what to do."""
+    if args.overwrite and args.resume:
+        raise ValueError("--overwrite and --resume exclude each other")
+    out: Path = args.out
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} exists and is not a folder")
+    if not out.is_dir() or not any(out.iterdir()) or args.overwrite:
+        return
+    if args.resume:
+        if not (out / CHECKPOINT).is_file():
+            raise ValueError(f"--resume: {out} holds no {CHECKPOINT} to continue from")
+        return
+    raise ValueError(f"--out {out} is not empty (an earlier run's results?); pass --overwrite to replace them, "
+                     f"--resume to continue its training, or choose another folder")
+
+
+def _run(args: argparse.Namespace, prompt: tuple[str, tuple | None, tuple | None] | None) -> int:
+    """Load, plan, align, train, write the twin, then evaluate it."""
+    import torch
+
+    from manisplat.episode import EpisodeFormatError
+    from manisplat.reconstruct.data import ReconstructionInputError, load_episode_data
+    from manisplat.reconstruct.masks import ObjectPrompt, complete_masks
+    from manisplat.reconstruct.outputs import remove_outputs, write_evaluation, write_twin
+    from manisplat.reconstruct.pipeline import build
+    from manisplat.reconstruct.plan import make_plan
+    from manisplat.robot import RobotModelError
+    from manisplat.splat import BackendUnavailable
+
+    start = time.perf_counter()
     try:
         data = load_episode_data(args.episode, robot=args.robot, use_depth=not args.no_depth,
                                  use_masks=not args.no_masks, progress=not args.quiet)
         masks_from_model = False
         if data.masks is None:
             links = [name for name in data.robot.link_names if data.robot.visuals.get(name)]
-            masks_from_model = complete_masks(data, links, prompt, progress=not args.quiet)
+            object_prompt = ObjectPrompt(prompt[0], point=prompt[1], box=prompt[2]) if prompt else None
+            masks_from_model = complete_masks(data, links, object_prompt, progress=not args.quiet)
         elif prompt is not None:
             print("error: the episode has masks; --object-point/--object-box are for episodes without "
                   "(add --no-masks to segment anew)", file=sys.stderr)
@@ -116,6 +168,10 @@ def main(argv: list[str] | None = None) -> int:
     except (ReconstructionInputError, EpisodeFormatError, RobotModelError, FileNotFoundError, NotImplementedError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
+    if args.overwrite:
+        removed = remove_outputs(args.out)
+        if removed:
+            log.info("--overwrite: removed %d files of an earlier run from %s", removed, args.out)
     args.out.mkdir(parents=True, exist_ok=True)
     checkpoint = args.out / CHECKPOINT
     if args.resume and checkpoint.exists():
@@ -136,17 +192,26 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\ninterrupted at iteration {rec.step}; continue with --resume", file=sys.stderr)
         return 130
     rec.save_checkpoint(checkpoint)
-    metrics = write_outputs(rec, alignments, args.out, wall_s=time.perf_counter() - start)
+    write_twin(rec, alignments, args.out)
+    try:
+        metrics = write_evaluation(rec, alignments, args.out, wall_s=time.perf_counter() - start)
+    except Exception as exc:  # the trained twin is on disk: report, keep it, exit 1
+        log.debug("evaluation failed", exc_info=True)
+        print(f"error: the twin is trained and written to {args.out} (twin.json/.pt, PLYs, object poses, phases, "
+              f"{CHECKPOINT}), "
+              f"but its evaluation failed: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 1
     print(_summary(metrics, args.out))
     return 0
 
 
-def _prompt(args: argparse.Namespace) -> ObjectPrompt | None:
+def _prompt(args: argparse.Namespace) -> tuple[str, tuple | None, tuple | None] | None:
+    """The object prompt as (name, point, box), or None; both a point and a box is a usage error."""
     if args.object_point is not None and args.object_box is not None:
         raise ValueError("give --object-point or --object-box, not both")
     if args.object_point is None and args.object_box is None:
         return None
-    return ObjectPrompt(args.object_name, point=args.object_point, box=args.object_box)
+    return args.object_name, args.object_point, args.object_box
 
 
 def _pixel_pair(text: str) -> tuple[float, float]:
@@ -162,14 +227,21 @@ def _pixel_box(text: str) -> tuple[int, int, int, int]:
 
 
 def _summary(metrics: dict, out: Path) -> str:
-    lines = [f"done in {metrics['wall_s']:.0f} s, {metrics['iters']} iterations; outputs in {out}"]
-    for key in ("psnr", "ssim"):
-        if metrics.get(key):
-            lines.append(f"{key:5s} held-out: " + ", ".join(f"{k} {v}" for k, v in metrics[key].items()))
+    """The closing lines: time, held-out quality, pose error (with units) and the files to open."""
+    lines = [f"done in {metrics['wall_s']:.0f} s, {metrics['iters']} iterations; outputs in {out}/"]
+    regions = ("full", "robot", "object")
+    psnr, ssim = metrics.get("psnr") or {}, metrics.get("ssim") or {}
+    if psnr:
+        lines.append("held-out PSNR: " + ", ".join(f"{k} {psnr[k]:.2f} dB" for k in regions if psnr.get(k) is not None))
+    if ssim:
+        lines.append("held-out SSIM: " + ", ".join(f"{k} {ssim[k]:.3f}" for k in regions if ssim.get(k) is not None))
     for obj, err in metrics.get("pose", {}).items():
         base = metrics.get("pose_baseline", {}).get(obj)
-        extra = f" (per-frame baseline: {base['et_cm']} cm, {base['er_deg']} deg)" if base else ""
-        lines.append(f"pose  {obj}: {err['et_cm']} cm, {err['er_deg']} deg{extra}")
+        extra = f" (per-frame baseline: {base['et_cm']:.2f} cm, {base['er_deg']:.2f} deg)" if base else ""
+        lines.append(f"pose error {obj}: {err['et_cm']:.2f} cm, {err['er_deg']:.2f} deg, mean over frames after "
+                     f"a constant offset{extra}")
+    look = [name for name in ("pose_plot.png", "renders/sheets/", "metrics.json") if (out / name.rstrip("/")).exists()]
+    lines.append("look at: " + ", ".join(str(out / name) + ("/" if name.endswith("/") else "") for name in look))
     return "\n".join(lines)
 
 

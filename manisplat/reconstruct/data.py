@@ -13,8 +13,9 @@ from tqdm import tqdm
 
 from manisplat.episode import Episode
 from manisplat.geometry import matrix_to_quat
-from manisplat.robot import RobotModel, load_robot
+from manisplat.robot import BUILTIN_NAME, RobotModel, load_robot
 from manisplat.splat import opencv_to_splat_K
+from manisplat.twin.twin import resolve_description
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +55,10 @@ class EpisodeData:
         K: [3, 3] intrinsics in the rasterizer's half-pixel convention. viewmat: [4, 4] base-to-camera.
         link_poses: [T, L, 4, 4] T_base_link. link_quats: [T, L, 4] their rotations as quaternions.
         tcp: [T, 4, 4] T_base_tcp.
+        robot_description: the robot description used, independent of the episode folder (a
+            built-in name, or an absolute URDF path).
+        label_names: mask value -> name of ``masks`` (the episode's ``labels``, or the drawn ones).
+        fps: the episode's declared frame rate.
         mask_source: where ``masks`` came from ("episode", or what :mod:`manisplat.reconstruct.masks` drew).
         eval_masks, eval_labels: the episode's own masks and labels when reconstruction ignores
             them (region metrics still use them).
@@ -76,6 +81,9 @@ class EpisodeData:
     labels: Labels
     objects: list[str]
     gt: dict | None
+    robot_description: str = BUILTIN_NAME
+    label_names: dict[int, str] = field(default_factory=dict)
+    fps: float = 0.0
     mask_source: str = "episode"
     eval_masks: torch.Tensor | None = None
     eval_labels: Labels | None = None
@@ -133,6 +141,9 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, load_meshes
         raise ReconstructionInputError(f"{episode.path}: camera mount {cam.mount!r}: only a base-fixed camera is supported")
     if len(cam.dist) and np.any(np.abs(cam.dist) > 0):
         raise ReconstructionInputError(f"{episode.path}: the camera has distortion {cam.dist.tolist()}; undistort first")
+    gt = episode.gt()
+    if gt is not None:
+        _check_ground_truth(gt, episode)
     description = robot or episode.meta.robot.description
     model = load_robot(description, base_dir=episode.path, load_meshes=load_meshes)
     frames = episode.frames
@@ -163,6 +174,22 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, load_meshes
         t=torch.as_tensor(frames.t, dtype=torch.float64), q=q, gripper=gripper,
         K=opencv_to_splat_K(K).float(), K_opencv=K, viewmat=torch.linalg.inv(T_base_cam).float(),
         link_poses=link_poses, link_quats=matrix_to_quat(link_poses[..., :3, :3].double()).float(), tcp=tcp, labels=labels,
-        objects=list(episode.meta.objects), gt=episode.gt(), eval_masks=eval_masks,
+        objects=list(episode.meta.objects), gt=gt, eval_masks=eval_masks,
+        robot_description=resolve_description(description, episode.path), fps=float(episode.meta.fps),
+        label_names={} if eval_masks is not None else dict(episode.meta.labels),
         eval_labels=Labels.from_meta(episode.meta.labels, episode.meta.objects) if eval_masks is not None else None,
     )
+
+
+def _check_ground_truth(gt: dict[str, np.ndarray], episode: Episode) -> None:
+    """Refuse, before any training, object poses in gt.npz that do not match the frames (e.g. an
+    episode recovered with frames dropped but gt.npz left as it was): metrics would fail after it."""
+    n = len(episode)
+    for name in episode.meta.objects:
+        poses = gt.get(f"T_base_{name}")
+        if poses is not None and poses.shape != (n, 4, 4):
+            raise ReconstructionInputError(
+                f"{episode.path / 'gt.npz'}: T_base_{name} has shape {tuple(poses.shape)} but frames.csv has {n} "
+                f"frames (expected ({n}, 4, 4)); run `manisplat-episode validate {episode.path}`, and fix or "
+                "remove gt.npz (without it the pose error is not measured)")
+

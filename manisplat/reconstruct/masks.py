@@ -317,6 +317,7 @@ def complete_masks(data: EpisodeData, links: list[str], prompt: ObjectPrompt | N
         names[OBJECT_LABEL] = f"object/{name}"
         data.objects = [name]
     data.masks = masks
+    data.label_names = dict(names)
     data.labels = Labels.from_meta(names, data.objects)
     data.mask_source = "drawn robot" + (", object from depth" if prompt and data.depth is not None
                                         else ", object by GrabCut and its model" if prompt else "")

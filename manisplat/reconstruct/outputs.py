@@ -1,11 +1,12 @@
 """What ``manisplat-reconstruct`` writes into its output folder.
 
+* ``twin.json`` + ``twin.pt``: the twin, loadable with :meth:`manisplat.twin.Twin.load`.
 * ``<node>.ply`` per node (background in the base frame, ``robot_<link>.ply`` in link frames,
   ``object_<name>.ply`` in the canonical object frame), 3DGS layout.
 * ``object_poses.csv`` per object: ``frame, t, source, T_base_obj`` (16 numbers, row-major).
 * ``phases.csv``: ``frame, t, phase`` per object.
 * ``renders/test/NNNNNN.png``: the rendered RGB of every held-out frame, named by frame index;
-  ``renders/sheets/NNNNNN.png``: ground truth | render | error.
+  ``renders/sheets/NNNNNN.png``: ground truth | render | error x4, labelled, with the frame and time.
 * ``pose_plot.png``: rotation and translation per frame (ours, the phase-free baseline, ground truth).
 * ``metrics.json``: ``psnr`` / ``ssim`` ({"full", "robot", "object"}), ``pose`` and
   ``pose_baseline`` ({object: {"et_cm", "er_deg"}}) when ground truth exists, ``wall_s``,
@@ -18,6 +19,7 @@ import csv
 import json
 import logging
 import math
+import shutil
 from pathlib import Path
 
 import cv2
@@ -29,12 +31,32 @@ from manisplat.reconstruct.metrics import fit_constant_offset, pose_errors, psnr
 from manisplat.reconstruct.pipeline import ObjectAlignment
 from manisplat.reconstruct.trainer import Reconstruction
 from manisplat.splat import save_ply
+from manisplat.twin import Phase, Twin
 
 log = logging.getLogger(__name__)
 
 
-def write_outputs(rec: Reconstruction, alignments: dict[str, ObjectAlignment], out: Path, *, wall_s: float) -> dict:
-    """Write everything listed in the module docstring; return the metrics dict."""
+# What a run writes into --out (globs), removed by --overwrite; nothing else there is touched.
+OWNED_OUTPUTS = ("twin.json", "twin.pt", "background.ply", "robot_*.ply", "object_*.ply", "object_poses*.csv", "phases.csv", "renders",
+                 "pose_plot.png", "metrics.json", "checkpoint.pt", "checkpoint.pt.tmp")
+
+
+def remove_outputs(out: Path) -> int:
+    """Remove what an earlier run wrote into ``out`` (:data:`OWNED_OUTPUTS`); return how many files."""
+    removed = 0
+    for pattern in OWNED_OUTPUTS:
+        for path in sorted(out.glob(pattern)):
+            if path.is_dir():
+                removed += sum(1 for f in path.rglob("*") if f.is_file())
+                shutil.rmtree(path)
+            else:
+                path.unlink()
+                removed += 1
+    return removed
+
+
+def write_twin(rec: Reconstruction, alignments: dict[str, ObjectAlignment], out: Path) -> None:
+    """The trained twin: every node's PLY, the object poses and the phases (no evaluation)."""
     out.mkdir(parents=True, exist_ok=True)
     for node in rec.graph.nodes():
         save_ply(out / f"{node.name.replace('/', '_')}.ply", node.gaussians.ply_dict())
@@ -43,6 +65,26 @@ def write_outputs(rec: Reconstruction, alignments: dict[str, ObjectAlignment], o
         _write_poses(out / (f"object_poses_{name}.csv" if len(evaluation) > 1 else "object_poses.csv"),
                      rec.data.t.numpy(), poses, alignments[name].pseudo.source)
     _write_phases(out / "phases.csv", rec.data.t.numpy(), alignments)
+    twin_of(rec, alignments).save(out)
+
+
+def twin_of(rec: Reconstruction, alignments: dict[str, ObjectAlignment]) -> Twin:
+    """The trained reconstruction as a :class:`~manisplat.twin.Twin` (evaluation poses per frame)."""
+    d = rec.data
+    T_base_cam = np.linalg.inv(rec.viewmat().detach().double().numpy())
+    return Twin(
+        graph=rec.graph, background_rgb=torch.sigmoid(rec.background_logit.detach()), robot=d.robot,
+        robot_description=d.robot_description, K=d.K_opencv.numpy(), width=d.size[0], height=d.size[1],
+        T_base_cam=T_base_cam, labels=d.label_names, t=d.t.numpy(), q=d.q.numpy(), gripper=d.gripper.numpy(),
+        object_poses=rec.evaluation_poses(), pose_sources={k: list(a.pseudo.source) for k, a in alignments.items()},
+        phases={k: [Phase(s.kind, s.name, s.start, s.end) for s in a.segments] for k, a in alignments.items()},
+        fps=d.fps, episode=Path(d.path).name, backend=rec.config.backend,
+    )
+
+
+def write_evaluation(rec: Reconstruction, alignments: dict[str, ObjectAlignment], out: Path, *, wall_s: float) -> dict:
+    """Held-out renders and sheets, the pose plot and ``metrics.json``; return the metrics dict."""
+    evaluation = rec.evaluation_poses()
     metrics = {"psnr": {}, "ssim": {}, "iters": rec.step, "wall_s": round(wall_s, 1), "plan": rec.plan.to_dict()}
     metrics.update(_image_metrics(rec, evaluation, out))
     if rec.data.gt is not None:
@@ -81,6 +123,7 @@ def _image_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], out: 
         cv2.imwrite(str(renders / f"{f:06d}.png"), cv2.cvtColor(rgb8, cv2.COLOR_RGB2BGR))
         error = ((image - target).abs().mean(-1, keepdim=True).expand(-1, -1, 3) * 4).clamp(0, 1)
         sheet = (torch.cat([target, image, error], dim=1).numpy() * 255 + 0.5).astype(np.uint8)
+        sheet = labelled_sheet(sheet, SHEET_COLUMNS, f"frame {f}  t = {float(rec.data.t[f]):.2f} s")
         cv2.imwrite(str(sheets / f"{f:06d}.png"), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
         masks = {"full": None}
         if rec.data.masks is not None or rec.data.eval_masks is not None:
@@ -92,6 +135,23 @@ def _image_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], out: 
     for metric, by_region in scores.items():
         summary[metric] = {k: _nanmean(v) for k, v in by_region.items() if v}
     return summary
+
+
+SHEET_COLUMNS = ("ground truth", "render", "|error| x4")
+
+
+def labelled_sheet(sheet: np.ndarray, columns: tuple[str, ...], caption: str) -> np.ndarray:
+    """``sheet`` [H, W, 3] uint8 (equal-width panels side by side) under a header strip naming each
+    panel, the caption (frame number, time) in its first panel."""
+    height, width = sheet.shape[:2]
+    panel = width // len(columns)
+    scale = max(0.3, min(0.6, panel / 400))
+    line = int(round(22 * scale / 0.4))
+    header = np.full((2 * line, width, 3), 255, np.uint8)
+    for k, name in enumerate(columns):
+        cv2.putText(header, name, (k * panel + 4, line - 6), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(header, caption, (4, 2 * line - 6), cv2.FONT_HERSHEY_SIMPLEX, scale, (90, 90, 90), 1, cv2.LINE_AA)
+    return np.concatenate([header, sheet], axis=0)
 
 
 def _nanmean(values: list[float]) -> float | None:
@@ -121,32 +181,48 @@ def _pose_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], alignm
 
 
 def _pose_plot(path: Path, t: np.ndarray, plots: dict) -> None:
-    """Per object: translation (x, y, z, cm) and rotation angle from the start (deg) per frame."""
+    import matplotlib.pyplot as plt
+
+    fig = pose_figure(t, plots)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def pose_figure(t: np.ndarray, plots: dict):
+    """Per object (``plots``: name -> (ours, baseline or None, ground truth), each [T, 4, 4]):
+    translation (x, y, z, cm) and rotation angle from the start (deg) against ``t`` [T] (s).
+    Colours name the axis, line styles the source; the ground truth is drawn wide and pale under
+    the estimates so that both stay visible where they agree. Returns the matplotlib figure."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
 
     from manisplat.geometry import rotation_error
 
-    fig, axes = plt.subplots(len(plots), 2, figsize=(11, 3.2 * len(plots)), squeeze=False)
+    styles = {"ground truth": {"linestyle": "-", "linewidth": 4.0, "alpha": 0.3},
+              "per-frame baseline": {"linestyle": ":", "linewidth": 1.0, "alpha": 0.9},
+              "ours": {"linestyle": "-", "linewidth": 1.2, "alpha": 1.0}}
+    fig, axes = plt.subplots(len(plots), 2, figsize=(11, 3.4 * len(plots)), squeeze=False)
     for row, (name, (ours, base, gt)) in enumerate(plots.items()):
-        series = {"ours": ours, "per-frame baseline": base, "ground truth": gt}
+        series = {"ground truth": gt, "per-frame baseline": base, "ours": ours}
         for label, poses in series.items():
             if poses is None:
                 continue
             aligned = poses if label == "ground truth" else poses @ fit_constant_offset(poses, gt)
-            style = {"ours": "-", "per-frame baseline": ":", "ground truth": "--"}[label]
             trans = aligned[:, :3, 3] * 100
-            for k, axis in enumerate("xyz"):
-                axes[row, 0].plot(t, trans[:, k], style, color=f"C{k}", label=f"{axis} {label}" if k == 0 or label == "ours" else None)
+            for k in range(3):
+                axes[row, 0].plot(t, trans[:, k], color=f"C{k}", **styles[label])
             angle = np.degrees(rotation_error(torch.as_tensor(aligned[:1, :3, :3]).expand(len(aligned), 3, 3),
                                               torch.as_tensor(aligned[:, :3, :3])).numpy())
-            axes[row, 1].plot(t, angle, style, color="k", label=label)
-        axes[row, 0].set(title=f"{name}: translation", xlabel="t (s)", ylabel="cm")
+            axes[row, 1].plot(t, angle, color="k", **styles[label])
+        present = [label for label, poses in series.items() if poses is not None]
+        source_handles = [Line2D([], [], color="k", label=label, **styles[label]) for label in present]
+        axis_handles = [Line2D([], [], color=f"C{k}", label=axis) for k, axis in enumerate("xyz")]
+        axes[row, 0].set(title=f"{name}: translation (after the constant offset)", xlabel="t (s)", ylabel="cm")
         axes[row, 1].set(title=f"{name}: rotation from the first frame", xlabel="t (s)", ylabel="deg")
-        axes[row, 0].legend(fontsize=7, ncol=2)
-        axes[row, 1].legend(fontsize=7)
+        axes[row, 0].legend(handles=axis_handles + source_handles, fontsize=7, ncol=2)
+        axes[row, 1].legend(handles=source_handles, fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    return fig

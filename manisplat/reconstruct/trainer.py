@@ -14,7 +14,7 @@ import logging
 import math
 import random
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 
 import kornia
@@ -22,58 +22,19 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from manisplat.reconstruct.config import TrainConfig
 from manisplat.reconstruct.data import EpisodeData
 from manisplat.reconstruct.metrics import psnr
 from manisplat.reconstruct.plan import Plan
 from manisplat.reconstruct.poses import ObjectTrajectory
 from manisplat.scene import ROBOT, GaussianSet, SceneGraph
+from manisplat.scene.render import render_graph
 from manisplat.scene.shadows import DirectionalShadows, search_direction
 from manisplat.geometry import se3_exp
-from manisplat.splat import DefaultStrategy, rasterization
+from manisplat.splat import DefaultStrategy
+from manisplat.splat.backends import resolve_backend
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class TrainConfig:
-    """Optimisation settings (defaults used for the measurements in the README).
-
-    Attributes:
-        iters: training iterations (one frame each).
-        lambda_app, lambda_mask, lambda_pose: loss weights (paper: 1.0 each).
-        ssim_weight: D-SSIM share of the render and appearance losses.
-        densify: clone/split/prune (gsplat defaults; refine every ``refine_every`` from
-            ``refine_start`` to ``refine_stop_fraction`` of the iterations), each node growing to
-            at most ``growth_cap`` times its initial size (unbounded growth on these sharp
-            synthetic images multiplied the Gaussians by 6 and the time with them).
-        shadows: learn cast shadows of the moving parts (searched at ``shadow_start``).
-        sh_degree, sh_every: view-dependent colour bands (evaluated in each node's frame), one
-            more band switched on every ``sh_every`` iterations.
-        refine_camera: also optimise a correction of the camera extrinsic.
-        backend: rasterizer backend ("auto", "cpu", "torch", "gsplat").
-        eval_every: iterations between held-out PSNR estimates (for the progress bar).
-        seed: random seed (frame order, densification samples).
-    """
-
-    iters: int = 3000
-    lambda_app: float = 1.0
-    lambda_mask: float = 1.0
-    lambda_pose: float = 1.0
-    ssim_weight: float = 0.2
-    densify: bool = True
-    refine_start: int = 300
-    refine_every: int = 100
-    refine_stop_fraction: float = 0.7
-    grow_grad2d: float = 0.0002
-    growth_cap: float = 2.0
-    shadows: bool = True
-    shadow_start: int = 300
-    sh_degree: int = 2
-    sh_every: int = 500
-    refine_camera: bool = False
-    backend: str = "auto"
-    eval_every: int = 250
-    seed: int = 0
 
 
 class Reconstruction:
@@ -133,18 +94,11 @@ class Reconstruction:
         holds ``group_alphas`` [1, H, W, groups] (0 background, 1 robot, 2 + k object k).
         """
         W, H = self.data.size
-        V = self.viewmat()
-        camera_center = -(V[:3, :3].transpose(0, 1) @ V[:3, 3])
-        composed = self.graph.compose(link_poses.float(), {k: p.float() for k, p in object_poses.items()},
-                                      link_quats, camera_center)
-        colors, alphas, meta = rasterization(
-            composed.means, composed.quats, composed.scales, composed.opacities, composed.colors,
-            V[None], self.data.K[None], W, H, group_ids=composed.groups,
-            num_groups=self.graph.num_groups, backend=self.config.backend,
-            backgrounds=torch.sigmoid(self.background_logit)[None],
-        )
-        dynamic = meta["group_alphas"][0, ..., ROBOT:].sum(-1)
-        return colors[0], alphas[0, ..., 0], dynamic, meta, composed
+        view = render_graph(self.graph, link_poses, object_poses, viewmat=self.viewmat(), K=self.data.K, width=W,
+                            height=H, background=torch.sigmoid(self.background_logit), backend=self.config.backend,
+                            link_quats=link_quats)
+        dynamic = view.group_alphas[..., ROBOT:].sum(-1)
+        return view.rgb, view.alpha, dynamic, view.meta, view.composed
 
     # ------------------------------------------------------------------ losses
     def losses(self, frame: int) -> tuple[dict[str, torch.Tensor], dict, object]:
@@ -167,6 +121,7 @@ class Reconstruction:
         """Run the remaining iterations (``config.iters - step``)."""
         c = self.config
         states = self.plan.distinct_train_states or self.plan.train_frames
+        resolve_backend(c.backend, self.data.rgb.device)  # a first build of the C++ rasterizer logs before the bar
         bar = tqdm(total=c.iters, initial=self.step, desc="reconstructing", unit="it", disable=not progress)
         last_psnr, mean_loss = math.nan, math.nan  # mean_loss: over about the last 50 frames
         while self.step < c.iters:
@@ -186,8 +141,7 @@ class Reconstruction:
                 last_psnr = self.quick_psnr()
             value = float(loss.detach())
             mean_loss = value if math.isnan(mean_loss) else 0.98 * mean_loss + 0.02 * value
-            bar.set_postfix(loss=f"{mean_loss:.4f}", psnr=f"{last_psnr:.2f}",
-                            gaussians=sum(len(n.gaussians) for n in self.graph.nodes()))
+            bar.set_postfix(_progress_fields(mean_loss, last_psnr, sum(len(n.gaussians) for n in self.graph.nodes())))
             bar.update(1)
             if callback is not None:
                 callback(self)
@@ -320,6 +274,15 @@ class Reconstruction:
         tmp = path.with_name(path.name + ".tmp")
         torch.save(self.state_dict(), tmp)
         tmp.replace(path)
+
+
+def _progress_fields(mean_loss: float, held_out_psnr: float, gaussians: int) -> dict[str, str | int]:
+    """The progress bar's fields; the held-out PSNR (dB) appears once it has been measured."""
+    fields: dict[str, str | int] = {"loss": f"{mean_loss:.4f}"}
+    if not math.isnan(held_out_psnr):
+        fields["held-out PSNR"] = f"{held_out_psnr:.2f} dB"
+    fields["gaussians"] = gaussians
+    return fields
 
 
 def _replace_node(graph: SceneGraph, name: str, g: GaussianSet) -> None:

@@ -13,9 +13,10 @@ Built-in model (``builtin:agilex_piper``), what a real arm reports on CAN (firmw
   the older URDF carries placeholders 0 and 1). Replay should still scale these down.
 * Acceleration limits: 5 rad/s^2 per joint, the SDK's default ``max_joint_acc=500`` in units
   of 0.01 rad/s^2 (``JointMaxAccConfig``); the factory value is not documented.
-* TCP (EPISODE.md): midway between the finger pads, 0.12 m along the flange z axis. In the
-  DH flange frame its axes are the flange axes (z approach, y closing): AgileX's URDF ``link6``
-  is the DH flange rotated by +90 deg about z, and EPISODE.md puts the TCP at Rz(-90 deg) there.
+* TCP (docs/episode-format.md): midway between the finger pads, 0.12 m along the flange z
+  axis. In the DH flange frame its axes are the flange axes (z approach, y closing): AgileX's
+  URDF ``link6`` is the DH flange rotated by +90 deg about z, and the episode format puts the
+  TCP at Rz(-90 deg) there.
 * Gripper: two fingers sliding along the flange y axis, each by half the opening width.
 * Geometry: simple primitives sized from AgileX's meshes (capsules, cylinders, boxes), so the
   model works with no mesh files; accurate to a few millimetres, not a CAD model.
@@ -146,7 +147,7 @@ def is_agilex_piper_urdf(path: str | Path) -> bool:
 def load_agilex_piper_urdf(path: str | Path, *, load_meshes: bool = True) -> RobotModel:
     """AgileX's ``piper_description`` URDF with the settings its file lacks.
 
-    * TCP: ``link6`` @ [Rz(-90 deg), (0, 0, 0.12)] (EPISODE.md).
+    * TCP: ``link6`` @ [Rz(-90 deg), (0, 0, 0.12)] (docs/episode-format.md).
     * Fingers: joint7 = +width/2, joint8 = -width/2. These lie outside the limits the file
       declares (their signs are wrong for its own geometry); the model follows the geometry.
     * Speed and acceleration limits: the PiPER's real ones (the file has placeholders).

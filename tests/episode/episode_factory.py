@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
@@ -68,6 +69,12 @@ def write_episode(path: Path, frames: int = 8, *, depth: bool = True, masks: boo
                 for k in range(4 * i, 4 * i + 4):
                     writer.add_joint_sample(**joint_data(k))
     return path
+
+
+def mark_incomplete(path: Path) -> None:
+    """Set ``complete: false`` in the episode's ``episode.json``, as a crashed writer leaves it."""
+    meta = json.loads((path / "episode.json").read_text())
+    (path / "episode.json").write_text(json.dumps({**meta, "complete": False}))
 
 
 def write_act(path: Path, *, arms: int = 2, compress: bool = False, depth: bool = True,

@@ -56,7 +56,7 @@ def test_import_act(tmp_path, capsys):
     assert main([*argv[:8], "--K", "30,30,16", "--overwrite"]) == 2
 
 
-@pytest.mark.parametrize("command", ["info", "validate", "recover", "import-act", "sample"])
+@pytest.mark.parametrize("command", ["info", "validate", "recover", "import-act", "sample", "set-robot", "copy"])
 def test_help(command, capsys):
     assert main([command, "--help"]) == 0
     assert "usage: manisplat-episode " + command in capsys.readouterr().out
@@ -64,3 +64,70 @@ def test_help(command, capsys):
 
 def test_no_command(capsys):
     assert main([]) == 2
+
+
+BAD_NUMBERS = [
+    ["sample", "out", "--frames", "0"],
+    ["sample", "out", "--frames", "7"],  # the sample needs 8
+    ["sample", "out", "--frames", "2.5"],
+    ["sample", "out", "--fps", "-16"],
+    ["sample", "out", "--fps", "nan"],
+    ["sample", "out", "--width", "nan"],
+    ["sample", "out", "--height", "0"],
+    ["sample", "out", "--seed", "-1"],
+    ["import-act", "f.hdf5", "--out", "o", "--K", "30,30,16,12", "--fps", "0"],
+    ["import-act", "f.hdf5", "--out", "o", "--K", "30,30,16,12", "--fps", "inf"],
+    ["import-act", "f.hdf5", "--out", "o", "--K", "30,30,16,12", "--gripper-scale", "nan"],
+    ["import-act", "f.hdf5", "--out", "o", "--K", "30,nan,16,12"],
+    ["import-act", "f.hdf5", "--out", "o", "--K", "0,30,16,12"],
+    ["import-act", "f.hdf5", "--out", "o", "--K", "30,30,16,12", "--dist", "0.1,nan,0,0"],
+]
+
+
+@pytest.mark.parametrize("argv", BAD_NUMBERS, ids=" ".join)
+def test_bad_numbers_are_usage_errors(argv, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "error: argument" in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists() and not (tmp_path / "o").exists()
+
+
+def _subparsers():
+    import argparse
+
+    from manisplat.episode.cli import build_parser
+
+    parser = build_parser()
+    (sub,) = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    return parser, sub.choices
+
+
+def test_every_argument_has_help_and_shows_its_default():
+    import argparse
+
+    parser, commands = _subparsers()
+    for name, p in [("", parser), *commands.items()]:
+        for action in p._actions:
+            if isinstance(action, (argparse._HelpAction, argparse._SubParsersAction)):
+                continue
+            text = action.help or ""
+            assert text, f"{name} {action.dest} has no help"
+            needs_default = action.option_strings and not action.required or action.nargs == "?"
+            assert not needs_default or "default" in text, f"{name} {action.dest}: help does not show its default"
+
+
+def test_help_shows_the_defaults(capsys):
+    assert main(["sample", "--help"]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert "(default: 64)" in out and "(default: 16.0)" in out and "(default: off," in out
+    assert main(["--help"]) == 0
+    assert "-v, --verbose" in capsys.readouterr().out
+
+
+def test_import_act_arm_choices_are_the_importers():
+    from manisplat.episode.importers.act_hdf5 import ARM_COLUMNS
+
+    _, commands = _subparsers()
+    (arm,) = [a for a in commands["import-act"]._actions if a.dest == "arm"]
+    assert sorted(arm.choices) == sorted(ARM_COLUMNS)

@@ -11,14 +11,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from episode_factory import frame_data, joint_data, open_writer
+from episode_factory import frame_data, joint_data, mark_incomplete, open_writer
 
 from manisplat.episode import DamagedEpisodeError, Episode, recover, validate
 
 CHILD = """
 import sys
 sys.path.insert(0, {helpers!r})
-from episode_factory import frame_data, joint_data, open_writer
+from episode_factory import frame_data, joint_data, mark_incomplete, open_writer
 writer = open_writer({path!r}, fsync_every=5)
 i = 0
 while True:
@@ -37,12 +37,6 @@ def assert_frames_intact(path: Path, count: int) -> None:
         d = frame_data(i)
         assert ep.frames.t[i] == d["t"] and np.array_equal(ep.frames.q[i], d["q"])
         assert np.array_equal(ep.rgb(i), d["rgb"]) and np.array_equal(ep.mask(i), d["mask"])
-
-
-def mark_incomplete(path: Path) -> None:
-    meta = json.loads((path / "episode.json").read_text())
-    meta["complete"] = False
-    (path / "episode.json").write_text(json.dumps(meta))
 
 
 @pytest.mark.parametrize("frames_before_kill", [3, 12])

@@ -18,9 +18,15 @@ import pytest
 from manisplat.episode import Episode, validate
 from manisplat.episode.images import find_image
 from manisplat.recorder.cli import main
-from tests.recorder.helpers import source_frame
+from tests.recorder.helpers import source_frame, write_source
 
 RECORD = [sys.executable, "-m", "manisplat.recorder.cli"]
+
+
+@pytest.fixture(scope="module")
+def depth_source(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Like ``source`` with depth: frame i is 1 m + i mm everywhere."""
+    return write_source(tmp_path_factory.mktemp("depth") / "source", depth=True)
 
 
 def record_args(source: Path, out: Path, duration: float = 60.0) -> list[str]:
@@ -102,6 +108,58 @@ def test_devices_that_cannot_be_opened_exit_3(tmp_path: Path, source: Path, caps
     assert "does not match" in capsys.readouterr().err
 
 
+def test_the_readme_command_records_the_depth_of_a_replayed_episode(tmp_path: Path, depth_source: Path) -> None:
+    out = tmp_path / "out"
+    assert main(["--sim", "--sim-motion", "teleop", "--camera", f"replay:{depth_source}", "--loop", "--start", "now",
+                 "--duration", "1", "--out", str(out)]) == 0
+    ep = Episode.open(out / "episode_0000")
+    assert ep.meta.complete and len(ep) >= 10 and ep.has_depth and validate(ep.path).ok
+    for i in (0, len(ep) - 1):
+        seq = int(ep.frames.extra["seq"][i]) % 60
+        np.testing.assert_allclose(ep.depth(i), 1.0 + seq * 1e-3, atol=1e-6)
+
+
+def test_no_depth_records_a_replayed_episode_without_its_depth(tmp_path: Path, depth_source: Path) -> None:
+    out = tmp_path / "out"
+    assert main(["--sim", "--camera", f"replay:{depth_source}", "--no-depth", "--start", "now", "--duration", "0.5",
+                 "--out", str(out)]) == 0
+    ep = Episode.open(out / "episode_0000")
+    assert ep.meta.complete and len(ep) > 0 and not ep.has_depth and ep.meta.depth_scale is None
+    assert validate(ep.path).ok
+
+
+def test_depth_from_a_replay_without_depth_is_refused_before_anything_is_written(
+        tmp_path: Path, source: Path, capsys: pytest.CaptureFixture) -> None:
+    out = tmp_path / "out"
+    assert main(["--sim", "--camera", f"replay:{source}", "--depth", "--start", "now", "--duration", "1",
+                 "--out", str(out)]) == 3
+    assert "--depth" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_a_failed_start_leaves_no_empty_out_folder(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    out = tmp_path / "new" / "episodes"
+    assert main(["--sim", "--camera", f"replay:{tmp_path / 'none'}", "--out", str(out), "--start", "now",
+                 "--duration", "1"]) == 3
+    assert "neither an episode folder" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()
+
+
+def test_an_episode_that_fails_before_its_first_frame_is_removed_and_reported(tmp_path: Path, source: Path) -> None:
+    def limit() -> None:  # in the child: episode.json (2 kB) fits, no 9 kB image and no CAN log beyond 5 kB
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (5_000, 5_000))
+
+    out = tmp_path / "out"
+    done = subprocess.run(RECORD + record_args(source, out), capture_output=True, text=True, timeout=180,
+                          preexec_fn=limit)
+    assert done.returncode == 1, done.stderr
+    assert "a file reached the size limit" in done.stderr
+    assert "no frame was recorded: removed" in done.stderr and "--recover" not in done.stderr
+    assert "removed" in done.stdout  # the summary table
+    assert not out.exists()
+
+
 def test_sigterm_ends_the_episode_cleanly(tmp_path: Path, source: Path) -> None:
     proc = subprocess.Popen(RECORD + record_args(source, tmp_path / "out") + ["--task", "pick", "--image-format", "jpg"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -139,9 +197,9 @@ def test_kill_9_then_recover_keeps_every_written_frame(tmp_path: Path, source: P
     assert Episode.open(out / "episode_0001").meta.complete
 
 
-def _disk_full_checks(tmp_path: Path, rc: int, err: str, episode: Path, why: str) -> None:
+def _disk_full_checks(tmp_path: Path, rc: int, err: str, episode: Path, why: str, advice: str) -> None:
     assert rc == 1, err
-    assert why in err and "--recover" in err
+    assert why in err and advice in err
     assert not Episode.open(episode).meta.complete
     expected = complete_frames(episode)
     assert main(["--recover", str(episode)]) == 0
@@ -165,7 +223,8 @@ def test_a_full_disk_stops_recording_and_keeps_what_was_written(tmp_path: Path, 
     done = subprocess.run(["unshare", "--user", "--map-root-user", "--mount", "sh", "-c", script],
                           capture_output=True, text=True, timeout=180)
     rc = int(done.stdout.strip().splitlines()[-1].removeprefix("rc="))
-    _disk_full_checks(tmp_path, rc, (tmp_path / "err.txt").read_text(), saved / "episode_0000", "the disk is full")
+    _disk_full_checks(tmp_path, rc, (tmp_path / "err.txt").read_text(), saved / "episode_0000", "the disk is full",
+                      "free space, then run `manisplat-record --recover")
 
 
 def test_a_file_size_limit_stops_recording_the_same_way(tmp_path: Path, source: Path) -> None:
@@ -176,4 +235,5 @@ def test_a_file_size_limit_stops_recording_the_same_way(tmp_path: Path, source: 
     done = subprocess.run(RECORD + record_args(source, tmp_path / "out"), capture_output=True, text=True,
                           timeout=180, preexec_fn=limit)
     _disk_full_checks(tmp_path, done.returncode, done.stderr, tmp_path / "out" / "episode_0000",
-                      "a file reached the size limit")
+                      "a file reached the size limit", "run `manisplat-record --recover")
+    assert "free space" not in done.stderr

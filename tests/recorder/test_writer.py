@@ -3,7 +3,9 @@ complete only at the end; a full queue drops and counts."""
 
 from __future__ import annotations
 
+import errno
 from pathlib import Path
+from typing import Any
 
 import can
 import numpy as np
@@ -63,7 +65,29 @@ def test_a_frame_that_cannot_be_encoded_stops_the_episode_keeping_the_earlier_on
     for i in range(3):
         assert sink.put_frame(FrameItem(i / 30, np.zeros(6), 0.0, good, extra={"seq": float(i)}))
     sink.put_frame(FrameItem(3 / 30, np.zeros(6), 0.0, np.zeros((48, 64), np.uint8), extra={"seq": 3.0}))
-    with pytest.raises(StorageError, match=r"rgb must be \(48, 64, 3\) uint8.*Kept 3 frames"):
+    with pytest.raises(StorageError, match=r"rgb must be \(48, 64, 3\) uint8.*Kept 3 frames") as exc:
         sink.finish()
+    assert "not a storage problem" in str(exc.value)
+    assert "free space" not in str(exc.value) and "--recover" not in str(exc.value)  # advice for storage errors only
     ep = Episode.open(tmp_path / "ep")
     assert not ep.meta.complete and len(ep) == 3
+
+
+class FullDiskWriter(EpisodeWriter):
+    """An episode writer on a disk that fills up after two frames."""
+
+    def add_frame(self, *args: Any, **kwargs: Any) -> None:
+        if self.frame_count == 2:
+            raise OSError(errno.ENOSPC, "No space left on device", str(self.path / "rgb" / "000002.png"))
+        super().add_frame(*args, **kwargs)
+
+
+def test_a_full_disk_stops_the_episode_with_advice_to_free_space_and_recover(tmp_path: Path) -> None:
+    w = FullDiskWriter(tmp_path / "ep", CameraInfo("c", 64, 48, K), RobotInfo(), 30.0, extra_frame_columns=("seq",))
+    sink = EpisodeSink(w, queue_frames=8)
+    for i in range(4):
+        sink.put_frame(FrameItem(i / 30, np.zeros(6), 0.0, np.zeros((48, 64, 3), np.uint8), extra={"seq": float(i)}))
+    with pytest.raises(StorageError, match=r"the disk is full \(.*000002.png\).*Kept 2 frames") as exc:
+        sink.finish()
+    assert f"free space, then run `manisplat-record --recover {tmp_path / 'ep'}`" in str(exc.value)
+    assert len(Episode.open(tmp_path / "ep")) == 2

@@ -4,11 +4,13 @@ A frame is complete when its ``frames.csv`` row is whole and its rgb image (and 
 mask, when the episode has them) decodes at the camera size. Crash artefacts are what an
 interrupted :class:`~manisplat.episode.writer.EpisodeWriter` leaves behind: temporary files, a
 torn last CSV line, images whose row was never written, rows at the end whose images are
-missing or truncated. ``recover`` moves them, and the original CSV files, into
-``<episode>/.recovered/<UTC time>/`` (nothing is deleted), rewrites the CSV files, and marks
+missing or truncated. ``recover`` moves them, and the original of every file it rewrites, into
+``<episode>/.recovered/<UTC time>/`` (nothing is deleted), rewrites those files, and marks
 the episode complete with a ``recovery`` entry in ``episode.json``. Damage that is not a crash
 artefact (a broken frame followed by good ones, or any broken frame in an episode that was
-closed as complete) is refused unless ``drop_damaged``.
+closed as complete) is refused unless ``drop_damaged``. Every per-frame file follows the kept
+frames: ``frames.csv`` (with its action columns), the images, and the per-frame arrays of
+``gt.npz``; ``joints.csv`` is a stream of its own and only loses damaged samples.
 """
 
 from __future__ import annotations
@@ -20,18 +22,24 @@ import os
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
-from manisplat.episode.format import (FRAME_COLUMNS, FRAMES_FILE, JOINT_COLUMNS, JOINTS_FILE, META_FILE,
-                                      RECOVERED_DIR, DamagedEpisodeError, image_name)
+import numpy as np
+
+from manisplat.episode.format import (FRAME_COLUMNS, FRAMES_FILE, GT_FILE, JOINT_COLUMNS, JOINTS_FILE, META_FILE,
+                                      RECOVERED_DIR, DamagedEpisodeError, EpisodeFormatError, image_name)
 from manisplat.episode.fsio import TMP_SUFFIX, atomic_write_bytes, fsync_path
+from manisplat.episode.groundtruth import is_compressed, per_frame_names, read_gt, write_gt
 from manisplat.episode.images import (DEPTH, KINDS, MASK, RGB, ImageKind, decode_image, find_image, has_images,
                                       image_problem, list_images)
 from manisplat.episode.meta import CameraInfo, load_meta, save_meta
 from manisplat.episode.tables import CsvRow, CsvScan, scan_csv
-from manisplat.episode.validate import ValidationReport, validate
+from manisplat.episode.validation import ValidationReport, validate
 
 log = logging.getLogger(__name__)
+
+GT_TIME_TOL = 1e-6
+"""Seconds within which a ``gt.npz`` ``t`` matches a ``frames.csv`` ``t`` (CSV files may round to 1 us)."""
 
 
 @dataclass
@@ -46,6 +54,7 @@ class RecoveryReport:
         moved: files moved out of the episode, relative to it (they are now under ``backup_dir``).
         saved: files rewritten, whose original is kept under ``backup_dir``.
         renamed: ``(old, new)`` image paths when frames were renumbered (``drop_damaged``).
+        gt_cut: the ``gt.npz`` arrays cut to the kept frames (its original is under ``backup_dir``).
         backup_dir: ``<episode>/.recovered/<time>``, or None when nothing was moved.
         validation: :func:`validate` of the result (None when nothing changed).
     """
@@ -57,19 +66,26 @@ class RecoveryReport:
     moved: list[str] = field(default_factory=list)
     saved: list[str] = field(default_factory=list)
     renamed: list[tuple[str, str]] = field(default_factory=list)
+    gt_cut: list[str] = field(default_factory=list)
     backup_dir: Path | None = None
     validation: ValidationReport | None = None
 
     def __str__(self) -> str:
         if not self.changed:
             return f"{self.path}: already complete and valid ({self.frames_kept} frames); nothing to do"
-        lines = [f"{self.path}: recovered {self.frames_kept} frames"
-                 + (f"; dropped the {FRAMES_FILE} line(s) {self.dropped}" if self.dropped else "")]
+        dropped = f"; dropped the {FRAMES_FILE} line(s) {self.dropped}" if self.dropped else ""
+        if self.frames_kept:
+            lines = [f"{self.path}: recovered {self.frames_kept} frames{dropped}"]
+        else:
+            lines = [f"{self.path}: nothing could be kept: no frame is complete (a whole {FRAMES_FILE} row whose "
+                     f"images decode at the camera size){dropped}. The episode holds no frame and is not valid"]
         if self.backup_dir is not None:
             originals = ", ".join(self.saved) or "no rewritten file"
             lines.append(f"  moved {len(self.moved)} file(s) and the original of {originals} to {self.backup_dir}")
         if self.renamed:
             lines.append(f"  renumbered {len(self.renamed)} image(s)")
+        if self.gt_cut:
+            lines.append(f"  cut the per-frame arrays of {GT_FILE} ({', '.join(self.gt_cut)}) to the kept frames")
         if self.validation is not None and not self.validation.ok:
             lines.append(f"  still invalid:\n{self.validation}")
         return "\n".join(lines)
@@ -211,6 +227,70 @@ def _renames(path: Path, old_indices: list[int], kinds: list[ImageKind]) -> list
 
 
 @dataclass
+class _GtCut:
+    """``gt.npz`` with its per-frame arrays cut to the kept frames."""
+
+    arrays: dict[str, np.ndarray]
+    names: list[str]  # the per-frame arrays
+    compressed: bool
+
+
+def _rows_by_time(gt_t: np.ndarray, t: np.ndarray) -> list[int] | None:
+    """For each time of ``t`` (increasing), the row of ``gt_t`` within :data:`GT_TIME_TOL` of it,
+    or None when one has no such row or ``gt_t`` is not strictly increasing."""
+    if gt_t.ndim != 1 or not len(gt_t) or np.any(np.diff(gt_t) <= 0):
+        return None
+    right = np.searchsorted(gt_t, t).clip(0, len(gt_t) - 1)
+    left = (right - 1).clip(0)
+    rows = np.where(np.abs(gt_t[left] - t) < np.abs(gt_t[right] - t), left, right)
+    if np.any(np.abs(gt_t[rows] - t) > GT_TIME_TOL) or np.any(np.diff(rows) <= 0):
+        return None
+    return rows.tolist()
+
+
+def _plan_gt(path: Path, objects: Sequence[str], *, complete: bool, rows_before: int, old_indices: list[int],
+             kept_t: np.ndarray) -> _GtCut | None:
+    """How ``gt.npz`` follows the kept frames; None without one, or when it already fits them.
+
+    Row i of a per-frame array belongs to frame i. When a closed episode's ``gt.npz`` is not as
+    long as its ``frames.csv`` (an older recovery cut only ``frames.csv``), its rows are matched to
+    the frames by ``t`` instead. Raises :class:`DamagedEpisodeError` when it cannot be read or
+    does not cover the kept frames.
+    """
+    file = path / GT_FILE
+    if not file.is_file():
+        return None
+    advice = (f"{GT_FILE} (simulation ground truth) is optional: repair it, or move it out of the episode and run "
+              "recover again")
+    try:
+        arrays = read_gt(file)
+    except EpisodeFormatError as exc:
+        raise DamagedEpisodeError(f"{exc}; {advice}") from None
+    names = per_frame_names(arrays, objects)
+    sizes = {name: len(arrays[name]) if arrays[name].ndim else 0 for name in names}
+    if len(set(sizes.values())) > 1:
+        raise DamagedEpisodeError(f"{file}: the per-frame arrays differ in length "
+                                  f"({', '.join(f'{n}: {s}' for n, s in sizes.items())}); {advice}")
+    if not names:
+        return None
+    length = next(iter(sizes.values()))
+    if complete and length != rows_before:
+        rows = _rows_by_time(arrays["t"], kept_t) if "t" in arrays else None
+        if rows is None:
+            raise DamagedEpisodeError(f"{file}: {length} rows but {FRAMES_FILE} has {rows_before}, and its t do not "
+                                      f"match the frames' t; {advice}")
+    else:
+        rows = old_indices
+        if rows and max(rows) >= length:
+            raise DamagedEpisodeError(f"{file}: {length} rows, but {FRAMES_FILE} keeps frame {max(rows)}; {advice}")
+    if rows == list(range(length)):
+        return None
+    take = np.asarray(rows, dtype=np.intp)
+    cut = {name: a[take] if name in names else a for name, a in arrays.items()}
+    return _GtCut(cut, names, is_compressed(file))
+
+
+@dataclass
 class _Plan:
     """What :func:`recover` will change, decided before anything is touched."""
 
@@ -220,12 +300,14 @@ class _Plan:
     dropped: list[int]
     joints: CsvScan | None
     joint_keep: list[int]
+    gt: _GtCut | None
     moved: list[str]
     saved: list[str]
     renamed: list[tuple[str, str]]
 
 
-def _plan(path: Path, camera: CameraInfo, *, drop_damaged: bool, complete: bool) -> _Plan:
+def _plan(path: Path, camera: CameraInfo, objects: Sequence[str], *, drop_damaged: bool,
+          complete: bool) -> _Plan:
     kinds = [RGB] + [k for k in (DEPTH, MASK) if has_images(path / k.folder)]
     frames, rewrite_frames = _scan_frames(path)
     kept = _select_frames(frames, _row_faults(frames, path, kinds, camera), drop_damaged=drop_damaged,
@@ -241,13 +323,17 @@ def _plan(path: Path, camera: CameraInfo, *, drop_damaged: bool, complete: bool)
     if joints is not None and joints.header_problem and not torn_joints_header:
         raise DamagedEpisodeError(f"{joints_file}: line 1: {joints.header_problem}; repair the header by hand")
     joint_keep = _select_joints(joints, drop_damaged) if joints is not None else []
+    gt = _plan_gt(path, objects, complete=complete, rows_before=len(frames.rows), old_indices=old_indices,
+                  kept_t=np.array([r.values[1] for r in kept_rows], dtype=np.float64))
 
     moved = _stray_files(path, set(old_indices)) + ([JOINTS_FILE] if torn_joints_header else [])
     renamed = _renames(path, old_indices, kinds)
     saved = [FRAMES_FILE] if rewrite_frames or dropped or renamed else []
     if joints is not None and not torn_joints_header and len(joint_keep) != len(joints.rows):
         saved.append(JOINTS_FILE)
-    return _Plan(frames, kept_rows, old_indices, dropped, None if torn_joints_header else joints, joint_keep,
+    if gt is not None:
+        saved.append(GT_FILE)
+    return _Plan(frames, kept_rows, old_indices, dropped, None if torn_joints_header else joints, joint_keep, gt,
                  moved, saved, renamed)
 
 
@@ -271,6 +357,8 @@ def _apply(path: Path, plan: _Plan, backup: Path, entry: dict[str, Any]) -> None
     if JOINTS_FILE in plan.saved:
         rows = [plan.joints.rows[k].text for k in plan.joint_keep]
         atomic_write_bytes(path / JOINTS_FILE, _csv_text(plan.joints.columns, rows))
+    if plan.gt is not None:
+        write_gt(path / GT_FILE, plan.gt.arrays, compressed=plan.gt.compressed)
     for folder in {path / k.folder for k in KINDS if (path / k.folder).is_dir()} | {path}:
         fsync_path(folder)
 
@@ -286,10 +374,12 @@ def recover(path: str | Path, *, drop_damaged: bool = False) -> RecoveryReport:
 
     Returns:
         a :class:`RecoveryReport`; ``changed`` is False for an already complete, valid episode.
+        When no frame is complete, the debris is moved aside all the same and the report says
+        that nothing could be kept (``frames_kept`` 0, ``validation`` not ok).
 
     Raises:
-        DamagedEpisodeError: damage that is not a crash artefact, without ``drop_damaged``;
-            nothing is changed then.
+        DamagedEpisodeError: damage that is not a crash artefact, without ``drop_damaged``, or a
+            ``gt.npz`` that cannot follow the kept frames; nothing is changed then.
         EpisodeFormatError: ``episode.json`` is missing or invalid.
     """
     path = Path(path)
@@ -299,12 +389,13 @@ def recover(path: str | Path, *, drop_damaged: bool = False) -> RecoveryReport:
         if report.ok:
             return RecoveryReport(path, changed=False, frames_kept=report.frame_rows)
 
-    plan = _plan(path, meta.camera, drop_damaged=drop_damaged, complete=meta.complete)
+    plan = _plan(path, meta.camera, meta.objects, drop_damaged=drop_damaged, complete=meta.complete)
     backup = _backup_dir(path)
     has_backup = bool(plan.moved or plan.saved)
     entry = {"date": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
              "frames_kept": len(plan.kept_rows), "dropped_lines": plan.dropped, "moved": plan.moved,
              "saved": plan.saved, "renamed": [list(r) for r in plan.renamed],
+             "gt_cut": plan.gt.names if plan.gt is not None else [],
              "backup": str(backup.relative_to(path)) if has_backup else None}
     _apply(path, plan, backup, entry)
 
@@ -314,6 +405,7 @@ def recover(path: str | Path, *, drop_damaged: bool = False) -> RecoveryReport:
     save_meta(path / META_FILE, meta)
     report = RecoveryReport(path, changed=True, frames_kept=len(plan.kept_rows), dropped=plan.dropped,
                             moved=plan.moved, saved=plan.saved, renamed=plan.renamed,
+                            gt_cut=plan.gt.names if plan.gt is not None else [],
                             backup_dir=backup if has_backup else None, validation=validate(path))
     log.info("%s", report)
     return report

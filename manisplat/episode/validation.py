@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import os
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -11,9 +12,10 @@ from typing import Any, Literal
 import numpy as np
 from tqdm import tqdm
 
-from manisplat.episode.format import (FRAME_COLUMNS, FRAMES_FILE, GRIPPER_RANGE_M, JOINT_COLUMNS, JOINTS_FILE,
-                                      META_FILE, EpisodeFormatError, image_name)
+from manisplat.episode.format import (FRAME_COLUMNS, FRAMES_FILE, GRIPPER_RANGE_M, GT_FILE, JOINT_COLUMNS,
+                                      JOINTS_FILE, META_FILE, EpisodeFormatError, image_name)
 from manisplat.episode.fsio import TMP_SUFFIX
+from manisplat.episode.groundtruth import frame_count_problems, read_gt
 from manisplat.episode.images import DEPTH, KINDS, MASK, RGB, ImageKind, decode_image, image_problem, list_images
 from manisplat.episode.meta import meta_problems, parse_meta_text
 from manisplat.episode.tables import CsvRow, scan_csv
@@ -92,6 +94,7 @@ class _Facts:
     frame_count: int | None = None
     depth_scale: float | None = None
     labels: set[int] | None = None
+    objects: list[str] | None = None
 
 
 def _valid_int(x: Any) -> bool:
@@ -121,7 +124,25 @@ def _check_meta(path: Path) -> tuple[list[Problem], _Facts]:
     labels = raw.get("labels", {})
     if isinstance(labels, dict) and all(isinstance(k, str) and k.isdigit() for k in labels):
         facts.labels = {int(k) for k in labels}
+    objects = raw.get("objects", [])
+    if isinstance(objects, list) and all(isinstance(o, str) for o in objects):
+        facts.objects = objects
+    robot = raw.get("robot") if isinstance(raw.get("robot"), dict) else {}
+    problems += _check_robot_description(path, robot.get("description"))
     return problems, facts
+
+
+def _check_robot_description(path: Path, description: Any) -> list[Problem]:
+    """A warning when ``robot.description`` names a URDF that is not there (e.g. a relative path
+    in a copied episode): the joint data stay valid, but nothing can draw or move the robot."""
+    if not isinstance(description, str) or not description or description.startswith("builtin:"):
+        return []
+    urdf = Path(os.path.abspath(path / description))
+    if urdf.is_file():
+        return []
+    return [Problem(META_FILE, None, f"robot.description {description!r} not found (looked at {urdf}); point it "
+                                     f"at the URDF with `manisplat-episode set-robot {path} DESCRIPTION [--embed]`",
+                    "warning")]
 
 
 def _indices(rows: list[CsvRow]) -> list[tuple[int, int]]:
@@ -152,6 +173,9 @@ def _check_frames(path: Path, facts: _Facts) -> tuple[list[Problem], dict[int, i
                                                    f"frame_count is {facts.frame_count}"))
     if scan.header_problem:
         return problems, None, len(scan.rows)
+    if not scan.rows:
+        problems.append(Problem(FRAMES_FILE, None, "holds no frame (only its header): an episode needs at least "
+                                                   "one frame"))
 
     rows: dict[int, int] = {}
     previous = -1
@@ -258,13 +282,26 @@ def _check_joints(path: Path) -> list[Problem]:
     return problems
 
 
+def _check_gt(path: Path, facts: _Facts, frame_rows: int) -> list[Problem]:
+    """Problems of ``gt.npz``: unreadable, or a per-frame array not as long as ``frames.csv``."""
+    if not (path / GT_FILE).is_file():
+        return []
+    try:
+        arrays = read_gt(path / GT_FILE)
+    except EpisodeFormatError as exc:
+        return [Problem(GT_FILE, None, str(exc).removeprefix(f"{path / GT_FILE}: "))]
+    return [Problem(GT_FILE, None, m) for m in frame_count_problems(arrays, facts.objects or [], frame_rows)]
+
+
 def validate(path: str | Path, *, decode_images: bool = True, progress: bool = False) -> ValidationReport:
     """Check every file of the episode folder ``path`` and report all problems found.
 
     Checks ``episode.json`` (fields, K, T_mount_cam, complete flag), ``frames.csv`` (header, every
     row, indices 0..T-1, strictly increasing t, row count, gripper range), the images of every
     row in ``rgb/`` and, when present, ``depth/`` and ``masks/`` (present, no extra ones, fully
-    decodable, channels, bit depth and size; mask values in ``labels``), and ``joints.csv``.
+    decodable, channels, bit depth and size; mask values in ``labels``), ``joints.csv``, and the
+    per-frame arrays of ``gt.npz`` (one row per ``frames.csv`` row). A ``robot.description``
+    URDF that is not there is a warning.
 
     Args:
         path: episode folder.
@@ -283,4 +320,6 @@ def validate(path: str | Path, *, decode_images: bool = True, progress: bool = F
     for kind in KINDS:
         report.problems += _check_images(path, kind, rows, facts, decode_images, progress)
     report.problems += _check_joints(path)
+    if rows is not None:
+        report.problems += _check_gt(path, facts, report.frame_rows)
     return report

@@ -1,0 +1,194 @@
+"""Keep an episode's ``robot.description`` resolving when the episode moves: point it elsewhere
+(``set_robot``), copy an episode with it rewritten (``copy_episode``), or embed the URDF and its
+meshes in the episode (``embed_urdf``), so that the episode is self-contained.
+
+A relative description is read from the episode folder, so it breaks when the episode is copied
+elsewhere. An embedded robot lives in ``<episode>/robot/``: the URDF at its top, every mesh and
+texture it references under ``robot/meshes/``, the copy's paths rewritten to them.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+from lxml import etree
+
+from manisplat.episode.format import META_FILE
+from manisplat.episode.meta import load_meta, save_meta
+from manisplat.episode.writer import check_destination
+from manisplat.robot import description_file, load_robot
+
+ROBOT_DIR = "robot"
+"""Folder of an embedded robot description inside the episode."""
+_REFERENCING = ("mesh", "texture")  # URDF elements whose ``filename`` names a file
+
+
+def _referenced_file(filename: str, urdf: Path) -> Path:
+    """The file a URDF ``filename`` attribute names: relative to the URDF, ``file://``, absolute,
+    or ``package://<package>/...`` with the package being a folder named so above the URDF (or
+    beside one of its parent folders), as in a ROS workspace."""
+    if filename.startswith("package://"):
+        package, _, rest = filename[len("package://"):].partition("/")
+        folders = [urdf.parent, *urdf.parent.parents]
+        roots = [f for f in folders if f.name == package] + [f / package for f in folders if (f / package).is_dir()]
+        if not roots:
+            raise FileNotFoundError(f"{urdf}: {filename}: no folder named {package!r} above the URDF or beside "
+                                    "one of its parent folders")
+        file = roots[0] / rest
+    elif filename.startswith("file://"):
+        file = Path(filename[len("file://"):])
+    else:
+        file = urdf.parent / filename
+    if not file.is_file():
+        raise FileNotFoundError(f"{urdf}: {filename} not found (looked at {file})")
+    return file
+
+
+def embed_urdf(urdf: Path, folder: Path) -> Path:
+    """Copy ``urdf`` into the new ``folder`` and every mesh and texture it references into
+    ``folder/meshes/``, rewriting the copy's paths to them; returns the copied URDF."""
+    try:
+        tree = etree.parse(str(urdf), etree.XMLParser(recover=False))
+    except etree.XMLSyntaxError as exc:
+        raise ValueError(f"{urdf}: not a readable URDF ({exc})") from None
+    folder.mkdir(parents=True)
+    copies: dict[Path, str] = {}
+    for element in tree.getroot().iter(*_REFERENCING):
+        filename = element.get("filename")
+        if not filename:
+            continue
+        source = _referenced_file(filename, urdf).resolve()
+        if source not in copies:
+            name, n = source.name, 1
+            while name in {Path(c).name for c in copies.values()}:
+                name, n = f"{source.stem}_{n}{source.suffix}", n + 1
+            (folder / "meshes").mkdir(exist_ok=True)
+            shutil.copy2(source, folder / "meshes" / name)
+            copies[source] = f"meshes/{name}"
+        element.set("filename", copies[source])
+    tree.write(str(folder / urdf.name), xml_declaration=True, encoding="utf-8")
+    return folder / urdf.name
+
+
+def _reference(file: Path, episode: Path) -> str:
+    """How ``episode.json`` names ``file``: relative when it lies inside the episode (it moves
+    with it), absolute otherwise."""
+    file, episode = file.resolve(), episode.resolve()
+    return str(file.relative_to(episode)) if file.is_relative_to(episode) else str(file)
+
+
+def _replace_folder(new: Path, target: Path) -> None:
+    """Put the folder ``new`` at ``target``, replacing what is there (removed only once ``new`` is in place)."""
+    old = target.with_name(f".{target.name}.old")
+    if target.exists():
+        if old.exists():
+            shutil.rmtree(old)
+        os.replace(target, old)
+    os.replace(new, target)
+    if old.exists():
+        shutil.rmtree(old)
+
+
+def _fresh(path: Path) -> Path:
+    """``path`` for a temporary folder of ours: what an interrupted run left there is removed."""
+    if path.exists():
+        shutil.rmtree(path)
+    return path
+
+
+def set_robot(episode: str | Path, description: str | None = None, *, embed: bool = False,
+              overwrite: bool = False) -> tuple[str, str]:
+    """Point the episode's ``robot.description`` at another robot description, or embed it.
+
+    Args:
+        episode: episode folder.
+        description: a ``builtin:`` name or a URDF path (relative to the current folder); it is
+            stored relative to the episode when it lies inside it, absolute otherwise. Default:
+            the episode's current description.
+        embed: copy the URDF and its meshes into ``<episode>/robot/`` and point there.
+        overwrite: replace an existing ``<episode>/robot/`` when embedding.
+
+    The description is loaded first (with its meshes when embedded); ``episode.json`` is then
+    rewritten atomically. Returns ``(old, new)`` descriptions.
+
+    Raises:
+        FileNotFoundError, RobotModelError: the description does not resolve or load.
+        FileExistsError: ``robot/`` exists and not ``overwrite``.
+        ValueError: ``embed`` with a built-in description (nothing to embed).
+    """
+    path = Path(episode)
+    meta = load_meta(path / META_FILE)
+    old = meta.robot.description
+    base = path if description is None else Path.cwd()
+    description = old if description is None else description
+    file = description_file(description, base)
+    if not embed:
+        new = description if file is None else _reference(file, path)
+        load_robot(new, base_dir=path, load_meshes=False)
+    else:
+        if file is None:
+            raise ValueError(f"{description} is built in: nothing to embed")
+        target = path / ROBOT_DIR
+        if target.exists() and not overwrite:
+            raise FileExistsError(f"{target}: exists (an embedded robot); replace it with --overwrite")
+        staging = _fresh(path / f".{ROBOT_DIR}.tmp")
+        try:
+            load_robot(str(embed_urdf(file, staging)))
+            _replace_folder(staging, target)
+        finally:
+            if staging.exists():
+                shutil.rmtree(staging)
+        new = f"{ROBOT_DIR}/{file.name}"
+    meta.robot.description = new
+    save_meta(path / META_FILE, meta)
+    return old, new
+
+
+def copy_episode(source: str | Path, destination: str | Path, *, embed: bool = False,
+                 overwrite: bool = False) -> tuple[str, str]:
+    """Copy the episode ``source`` (every file, ``.recovered/`` included) to ``destination`` so
+    that its ``robot.description`` still resolves there.
+
+    A relative description pointing outside ``source`` becomes absolute; with ``embed`` the URDF
+    and its meshes are copied into ``destination/robot/`` instead. Built-in names, absolute paths
+    and files inside ``source`` are kept. The copy is made in a temporary folder beside
+    ``destination`` and renamed into place; an episode already there is replaced only with
+    ``overwrite`` (after the copy succeeded). Returns ``(old, new)`` descriptions.
+
+    Raises:
+        FileNotFoundError, RobotModelError: the source's description does not resolve.
+        FileExistsError: ``destination`` is refused (see :func:`check_destination`).
+        ValueError: ``destination`` is ``source`` or inside it.
+    """
+    src, dst = Path(source), Path(destination)
+    meta = load_meta(src / META_FILE)
+    if dst.resolve().is_relative_to(src.resolve()):
+        raise ValueError(f"{dst} is {src} or inside it: copy the episode elsewhere")
+    old = meta.robot.description
+    file = description_file(old, src)
+    inside = file is not None and file.resolve().is_relative_to(src.resolve())
+    check_destination(dst, overwrite)
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    staging = _fresh(dst.with_name(f".{dst.name}.copy.tmp"))
+    try:
+        shutil.copytree(src, staging)
+        new = old
+        if file is not None and not inside:
+            if embed:
+                if (staging / ROBOT_DIR).exists():
+                    raise FileExistsError(f"{src / ROBOT_DIR}: exists but robot.description points elsewhere "
+                                          f"({old}); embed into the copy with `manisplat-episode set-robot`")
+                new = f"{ROBOT_DIR}/{embed_urdf(file, staging / ROBOT_DIR).name}"
+            elif not Path(old).is_absolute():
+                new = str(file.resolve())
+        if new != old:
+            meta.robot.description = new
+            save_meta(staging / META_FILE, meta)
+        load_robot(new, base_dir=staging, load_meshes=embed)
+        _replace_folder(staging, dst)
+    finally:
+        if staging.exists():
+            shutil.rmtree(staging)
+    return old, new

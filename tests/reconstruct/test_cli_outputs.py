@@ -1,0 +1,138 @@
+"""manisplat-reconstruct's output folder: earlier results are never overwritten silently, a bad
+ground truth is refused before training, an evaluation failure keeps the trained twin, and the
+summary, sheets, plot and progress bar say what they show."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from manisplat.episode.synthetic import write_sample_episode
+from manisplat.reconstruct import outputs
+from manisplat.reconstruct.cli import main
+from manisplat.reconstruct.outputs import SHEET_COLUMNS, labelled_sheet, pose_figure
+from manisplat.reconstruct.trainer import _progress_fields
+
+
+@pytest.fixture(scope="module")
+def pick(tmp_path_factory):
+    return write_sample_episode(tmp_path_factory.mktemp("pick") / "ep", frames=16, width=64, height=48)
+
+
+@pytest.fixture(scope="module")
+def finished(pick, tmp_path_factory):
+    """One short run's output folder and its printed summary (shared, read only)."""
+    out = tmp_path_factory.mktemp("finished") / "twin"
+    import contextlib
+    import io
+
+    text = io.StringIO()
+    with contextlib.redirect_stdout(text):
+        assert main([str(pick), "--out", str(out), "--iters", "6", "-q"]) == 0
+    return out, text.getvalue()
+
+
+def test_a_folder_with_results_is_refused_without_overwrite(pick, finished, tmp_path, capsys):
+    out, _ = finished
+    before = {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file()}
+    with pytest.raises(SystemExit) as exc:
+        main([str(pick), "--out", str(out), "--iters", "6", "-q"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "not empty" in err and "--overwrite" in err and "--resume" in err
+    assert {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file()} == before
+
+
+def test_overwrite_replaces_what_the_run_owns_and_keeps_the_rest(pick, tmp_path):
+    out = tmp_path / "twin"
+    stale = out / "renders" / "test" / "999999.png"
+    stale.parent.mkdir(parents=True)
+    stale.write_bytes(b"an earlier run's render")
+    (out / "metrics.json").write_text('{"psnr": "stale"}')
+    (out / "notes.txt").write_text("mine")
+    assert main([str(pick), "--out", str(out), "--iters", "6", "-q", "--overwrite"]) == 0
+    assert not stale.exists(), "a stale render of an earlier run was left among the new ones"
+    assert json.loads((out / "metrics.json").read_text())["iters"] == 6
+    assert (out / "notes.txt").read_text() == "mine"
+
+
+def test_resume_needs_a_checkpoint_in_a_used_folder(pick, tmp_path, capsys):
+    out = tmp_path / "twin"
+    out.mkdir()
+    (out / "metrics.json").write_text("{}")
+    with pytest.raises(SystemExit) as exc:
+        main([str(pick), "--out", str(out), "--resume", "-q"])
+    assert exc.value.code == 2 and "checkpoint.pt" in capsys.readouterr().err
+
+
+def test_ground_truth_of_another_length_is_refused_before_training(pick, tmp_path, capsys):
+    import shutil
+
+    copy = tmp_path / "recovered"
+    shutil.copytree(pick, copy)
+    with np.load(copy / "gt.npz") as gt:
+        arrays = {k: gt[k] for k in gt.files}
+    arrays["T_base_box"] = np.concatenate([arrays["T_base_box"], arrays["T_base_box"][-1:]])
+    np.savez(copy / "gt.npz", **arrays)
+    out = tmp_path / "twin"
+    assert main([str(copy), "--out", str(out), "--iters", "6", "-q"]) == 1
+    err = capsys.readouterr().err
+    assert "gt.npz" in err and "T_base_box" in err and "17" in err and "16" in err
+    assert not out.exists(), "nothing should be trained or written for an episode refused at loading"
+
+
+def test_a_failed_evaluation_keeps_the_trained_twin(pick, tmp_path, capsys, monkeypatch):
+    def broken(*args, **kwargs):
+        raise OSError("simulated failure while rendering the held-out frames")
+
+    monkeypatch.setattr(outputs, "write_evaluation", broken)
+    out = tmp_path / "twin"
+    assert main([str(pick), "--out", str(out), "--iters", "6", "-q"]) == 1
+    err = capsys.readouterr().err
+    assert "twin is trained" in err and "simulated failure" in err
+    for name in ("checkpoint.pt", "background.ply", "object_box.ply", "object_poses.csv", "phases.csv"):
+        assert (out / name).is_file(), name
+
+
+def test_summary_has_units_and_names_the_files_to_look_at(finished):
+    out, text = finished
+    assert "held-out PSNR: full" in text and " dB" in text and "held-out SSIM" in text
+    assert "pose error box:" in text and " cm, " in text and " deg" in text
+    assert str(out / "pose_plot.png") in text and f"{out / 'renders' / 'sheets'}/" in text
+    assert "nan" not in text
+
+
+def test_sheets_are_labelled_with_columns_and_frame(finished):
+    import cv2
+
+    out, _ = finished
+    sheet = cv2.imread(str(out / "renders" / "sheets" / "000008.png"))
+    height, width = sheet.shape[:2]
+    assert width == 3 * 64 and height > 48, "no header strip above the panels"
+    header = sheet[: height - 48]
+    for k in range(len(SHEET_COLUMNS)):
+        assert (header[:, k * 64:(k + 1) * 64] < 128).any(), f"column {k} has no label"
+    blank = labelled_sheet(np.zeros((48, 192, 3), np.uint8), SHEET_COLUMNS, "frame 8")
+    plain = labelled_sheet(np.zeros((48, 192, 3), np.uint8), SHEET_COLUMNS, "frame 16")
+    assert not np.array_equal(blank, plain), "the frame number is not drawn"
+
+
+def test_pose_plot_legend_names_every_axis_and_source_with_ground_truth_visible():
+    t = np.linspace(0, 1, 10)
+    poses = np.tile(np.eye(4), (10, 1, 1))
+    poses[:, 0, 3] = t * 0.1
+    fig = pose_figure(t, {"box": (poses, poses.copy(), poses.copy())})
+    labels = [text.get_text() for text in fig.axes[0].get_legend().get_texts()]
+    assert {"x", "y", "z", "ours", "per-frame baseline", "ground truth"} <= set(labels)
+    lines = {line.get_label(): line for line in fig.axes[0].get_legend().get_lines()}
+    assert lines["ground truth"].get_linewidth() > 2 * lines["ours"].get_linewidth(), \
+        "ground truth must stay visible under an estimate that agrees with it"
+
+
+def test_progress_bar_shows_no_psnr_before_it_is_measured():
+    assert "held-out PSNR" not in _progress_fields(0.1, math.nan, 100)
+    fields = _progress_fields(0.1, 31.234, 100)
+    assert fields["held-out PSNR"] == "31.23 dB"

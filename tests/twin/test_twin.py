@@ -1,0 +1,109 @@
+"""The twin a reconstruction writes: loaded from its folder alone, it renders the training states
+as the trainer does, and new states (objects moved) where geometry says they are."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from manisplat.episode import Episode
+from manisplat.episode.synthetic import write_sample_episode
+from manisplat.reconstruct.data import load_episode_data
+from manisplat.reconstruct.outputs import write_twin
+from manisplat.reconstruct.pipeline import build
+from manisplat.reconstruct.plan import make_plan
+from manisplat.reconstruct.trainer import TrainConfig
+from manisplat.twin import Twin, TwinFormatError
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """A briefly trained reconstruction of a small sample, its twin folder, and its episode (moved
+    away after writing, so that loading cannot lean on it)."""
+    root = tmp_path_factory.mktemp("twin")
+    episode = write_sample_episode(root / "ep", frames=16, width=80, height=60)
+    data = load_episode_data(episode)
+    rec, alignments = build(data, make_plan(data), TrainConfig(iters=30, shadow_start=10, eval_every=1000))
+    rec.train(progress=False)
+    out = root / "twin"
+    write_twin(rec, alignments, out)
+    moved = shutil.move(str(episode), str(root / "elsewhere"))
+    return rec, out, Episode.open(moved)
+
+
+def test_the_twin_renders_the_training_state_as_the_trainer_does(trained):
+    rec, out, _ = trained
+    twin = Twin.load(out)
+    assert twin.graph.shadows is not None, "the learned light must travel with the twin"
+    evaluation = rec.evaluation_poses()
+    for frame in (0, 7, 15):
+        with torch.no_grad():
+            expected = rec.render(frame, evaluation)[0].clamp(0, 1).numpy()
+        view = twin.render_frame(frame)
+        assert view.rgb.shape == (60, 80, 3) and view.rgb.dtype == np.uint8
+        assert np.abs(view.rgb / 255.0 - expected).max() <= 1 / 255 + 1e-6
+
+
+def test_depth_and_labels_agree_with_the_episode(trained):
+    _, out, episode = trained
+    twin = Twin.load(out)
+    robot_values = [v for v, name in episode.meta.labels.items() if name.startswith("robot/")]
+    for frame in (3, 12):
+        view = twin.render_frame(frame)
+        truth = episode.mask(frame)
+        robot_true, robot_ours = np.isin(truth, robot_values), np.isin(view.labels, robot_values)
+        iou = (robot_true & robot_ours).sum() / (robot_true | robot_ours).sum()
+        assert iou > 0.7, f"robot label IoU {iou:.2f} at frame {frame}"
+        depth = episode.depth(frame)
+        valid = (depth > 0) & (view.depth > 0)
+        assert valid.sum() > 0.9 * (depth > 0).sum(), "the twin renders no depth where the episode has some"
+        assert np.median(np.abs(view.depth[valid] - depth[valid])) < 0.01  # m
+
+
+def test_a_moved_object_is_rendered_where_it_was_moved(trained):
+    _, out, episode = trained
+    twin = Twin.load(out)
+    box = [v for v, name in episode.meta.labels.items() if name == "object/box"][0]
+    frame = 0  # resting on the table, in view
+    pose = twin.object_poses["box"][frame].copy()
+    shifted = pose.copy()
+    shifted[:2, 3] += [0.05, -0.04]
+    views = [twin.render(twin.q[frame], twin.gripper[frame], {"box": T}) for T in (pose, shifted)]
+    centres = []
+    for view in views:
+        rows, cols = np.nonzero(view.labels == box)
+        assert len(rows) > 5
+        centres.append(np.array([cols.mean(), rows.mean()]))
+    # where the camera model says the box's centre moved (its canonical origin, projected)
+    K, V = twin.K, np.linalg.inv(twin.T_base_cam)
+    centre_obj = np.array([*np.asarray(twin.graph.objects["box"].params["means"].detach().mean(0)), 1.0])
+    projected = []
+    for T in (pose, shifted):
+        cam = V @ T @ centre_obj
+        projected.append((K @ (cam[:3] / cam[2]))[:2])
+    moved_image, moved_model = centres[1] - centres[0], projected[1] - projected[0]
+    assert np.linalg.norm(moved_image - moved_model) < 0.25 * np.linalg.norm(moved_model) + 1.0
+
+
+def test_the_twin_file_holds_tensors_only(trained):
+    _, out, _ = trained
+    tensors = torch.load(out / "twin.pt", weights_only=True)
+    assert all(isinstance(v, torch.Tensor) for v in tensors.values())
+
+
+def test_a_missing_or_damaged_twin_is_named(trained, tmp_path):
+    _, out, _ = trained
+    with pytest.raises(TwinFormatError, match="twin.json"):
+        Twin.load(tmp_path)
+    copy = tmp_path / "damaged"
+    shutil.copytree(out, copy)
+    data = (copy / "twin.pt").read_bytes()
+    (copy / "twin.pt").write_bytes(data[: len(data) // 2])
+    with pytest.raises(TwinFormatError, match="twin.pt"):
+        Twin.load(copy)
+    (copy / "twin.pt").unlink()
+    with pytest.raises(TwinFormatError, match="missing"):
+        Twin.load(copy)
