@@ -17,6 +17,7 @@ ENTRY_POINTS = {
     "manisplat-record": "manisplat.recorder.cli",
     "manisplat-replay": "manisplat.drivers.replay_cli",
     "manisplat-calibrate": "manisplat.calib.cli",
+    "manisplat-augment": "manisplat.augment.cli",
 }
 
 # (entry point, argv): every --help, top level and per subcommand, and argument errors.
@@ -25,6 +26,7 @@ HELP_CALLS = [
     *[("manisplat-episode", [cmd, "--help"]) for cmd in ("info", "validate", "recover", "import-act", "sample",
                                                                  "set-robot", "copy")],
     ("manisplat-reconstruct", ["--help"]),
+    ("manisplat-augment", ["--help"]),
     ("manisplat-record", ["--help"]),
     ("manisplat-replay", ["--help"]),
     ("manisplat-calibrate", ["--help"]),
@@ -34,6 +36,9 @@ HELP_CALLS = [
 
 BAD_ARGUMENTS = [
     ("manisplat-reconstruct", ["ep", "--out", "o", "--iters", "-5"]),
+    ("manisplat-augment", ["recon", "--out", "o", "--n", "0"]),
+    ("manisplat-augment", ["recon", "--out", "o", "--speed", "1.5"]),
+    ("manisplat-augment", ["recon", "--out", "o", "--object-range", "0.1,nan,3"]),
     ("manisplat-reconstruct", ["ep", "--out", "o", "--checkpoint-every", "0"]),
     ("manisplat-reconstruct", ["ep", "--out", "o", "--tau", "nan"]),
     ("manisplat-reconstruct", ["ep", "--out", "o", "--lambda-pose", "-1"]),

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from manisplat.align.phases import DEFAULT_TAU
 from manisplat.cli_args import finite, non_negative, numbers, positive
-from manisplat.reconstruct.config import TrainConfig
+from manisplat.reconstruct.config import DeviceUnavailable, TrainConfig, resolve_device
 
 log = logging.getLogger("manisplat.reconstruct")
 CHECKPOINT = "checkpoint.pt"
@@ -59,8 +59,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--iters", type=positive(int), default=TrainConfig.iters, help=f"training iterations (default {TrainConfig.iters})")
     p.add_argument("--backend", default="auto", choices=("auto", "cpu", "torch", "gsplat"),
                    help="rasterizer: auto (gsplat on CUDA, else the C++ CPU backend), cpu, torch (slow reference), gsplat")
-    p.add_argument("--device", default="cpu", choices=("cpu",),
-                   help="torch device for training; only cpu for now (GPU training is not implemented)")
+    p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
+                   help="where training runs: auto (CUDA when available, else cpu; the default), cpu, or cuda "
+                        "(needs a CUDA build of torch and gsplat: pip install 'manisplat[gpu]'); exit 1 if unusable")
     p.add_argument("--tau", type=positive(), default=DEFAULT_TAU,
                    help=f"Skill distance threshold in metres between the TCP and the object (default {DEFAULT_TAU}; "
                         "the paper's 0.2 is in its own scene units)")
@@ -141,6 +142,13 @@ def _run(args: argparse.Namespace, prompt: tuple[str, tuple | None, tuple | None
     from manisplat.splat import BackendUnavailable
 
     start = time.perf_counter()
+    if not args.plan:
+        try:
+            device = resolve_device(args.device, args.backend)
+        except DeviceUnavailable as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 1
+        log.info("training on %s (rasterizer backend %s)", device, args.backend)
     try:
         data = load_episode_data(args.episode, robot=args.robot, use_depth=not args.no_depth,
                                  use_masks=not args.no_masks, progress=not args.quiet)
@@ -161,7 +169,7 @@ def _run(args: argparse.Namespace, prompt: tuple[str, tuple | None, tuple | None
         config = TrainConfig(
             iters=args.iters, backend=args.backend, shadows=not args.no_shadows, densify=not args.no_densify,
             refine_camera=args.refine_camera, lambda_app=args.lambda_app, lambda_mask=args.lambda_mask,
-            lambda_pose=args.lambda_pose, seed=args.seed,
+            lambda_pose=args.lambda_pose, seed=args.seed, device=device,
         )
         rec, alignments = build(data, plan, config, tau=args.tau, table_z=args.table_z,
                                 masks_from_model=masks_from_model)
@@ -175,7 +183,8 @@ def _run(args: argparse.Namespace, prompt: tuple[str, tuple | None, tuple | None
     args.out.mkdir(parents=True, exist_ok=True)
     checkpoint = args.out / CHECKPOINT
     if args.resume and checkpoint.exists():
-        rec.load_state_dict(torch.load(checkpoint, weights_only=False))
+        # on the host first, whichever device wrote it; load_state_dict moves it to this run's device
+        rec.load_state_dict(torch.load(checkpoint, weights_only=False, map_location="cpu"))
         log.info("resumed from %s at iteration %d", checkpoint, rec.step)
 
     def save(r) -> None:

@@ -22,8 +22,15 @@ class TrainConfig:
         sh_degree, sh_every: view-dependent colour bands (evaluated in each node's frame), one
             more band switched on every ``sh_every`` iterations.
         refine_camera: also optimise a correction of the camera extrinsic.
-        backend: rasterizer backend ("auto", "cpu", "torch", "gsplat").
+        backend: rasterizer backend ("auto": gsplat on CUDA, the C++ one on the CPU; "cpu",
+            "torch", "gsplat").
+        device: torch device of training ("cpu", "cuda", "cuda:N", or "auto": CUDA when
+            available); resolved by :func:`resolve_device` (a string here: no torch import).
         eval_every: iterations between held-out PSNR estimates (for the progress bar).
+        log_every: iterations between reads of the running loss for the progress bar. The
+            training iteration never reads a value back from the device otherwise (no
+            host-device synchronisation) except on densification steps (``refine_every``:
+            the Gaussians change number) and every ``eval_every`` iterations.
         seed: random seed (frame order, densification samples).
     """
 
@@ -44,5 +51,52 @@ class TrainConfig:
     sh_every: int = 500
     refine_camera: bool = False
     backend: str = "auto"
+    device: str = "auto"
     eval_every: int = 250
+    log_every: int = 50
     seed: int = 0
+
+
+DEVICES = ("auto", "cpu", "cuda")
+GPU_HINT = "pip install 'manisplat[gpu]'"
+
+
+class DeviceUnavailable(RuntimeError):
+    """The requested device (or the backend it needs) cannot be used here; the message says why."""
+
+
+def resolve_device(name: str, backend: str = "auto") -> str:
+    """The torch device string training runs on, for ``name`` ("auto", "cpu", "cuda", "cuda:N").
+
+    "auto" is "cuda" when torch sees a CUDA device (and ``backend`` is not "cpu"), else "cpu". For a CUDA device with the
+    ``gsplat`` rasterizer (``backend`` "auto" or "gsplat"), gsplat must import. Nothing falls
+    back: an unusable device raises :class:`DeviceUnavailable` naming what is missing.
+    """
+    import torch
+
+    if name not in DEVICES and not name.startswith("cuda:"):
+        raise ValueError(f"unknown device {name!r}; choose one of {', '.join(DEVICES)} (or cuda:N)")
+    if name == "auto":  # the C++ backend asked for by name keeps training on the CPU
+        name = "cuda" if torch.cuda.is_available() and backend != "cpu" else "cpu"
+    if name == "cpu":
+        if backend == "gsplat":
+            raise DeviceUnavailable("the 'gsplat' backend runs on CUDA only; pass --device cuda or another --backend")
+        return "cpu"
+    if not torch.cuda.is_available():
+        built = torch.version.cuda
+        raise DeviceUnavailable(
+            f"--device {name}: CUDA is not available here (torch {torch.__version__}, "
+            f"{'built with CUDA ' + built + ' but no GPU/driver found' if built else 'a CPU-only build'}); "
+            f"use --device cpu, or install a CUDA build of torch and {GPU_HINT}")
+    index = int(name.partition(":")[2] or 0)
+    if index >= torch.cuda.device_count():
+        raise DeviceUnavailable(f"--device {name}: only {torch.cuda.device_count()} CUDA device(s) here")
+    if backend == "cpu":
+        raise DeviceUnavailable("the 'cpu' backend takes CPU tensors; with --device cuda use --backend auto/gsplat/torch")
+    if backend in ("auto", "gsplat"):
+        try:
+            import gsplat  # noqa: F401
+        except ImportError as exc:
+            raise DeviceUnavailable(f"--device {name} renders with gsplat, which is not installed ({exc}); "
+                                    f"{GPU_HINT} (or --backend torch, ~80x slower)") from exc
+    return name

@@ -4,7 +4,7 @@ convention, every link pose by forward kinematics, and which mask labels are whi
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -58,7 +58,7 @@ class EpisodeData:
         robot_description: the robot description used, independent of the episode folder (a
             built-in name, or an absolute URDF path).
         label_names: mask value -> name of ``masks`` (the episode's ``labels``, or the drawn ones).
-        fps: the episode's declared frame rate.
+        fps, robot_info (``robot.model``, ``robot.joint_names``), camera_name, task: the episode's.
         mask_source: where ``masks`` came from ("episode", or what :mod:`manisplat.reconstruct.masks` drew).
         eval_masks, eval_labels: the episode's own masks and labels when reconstruction ignores
             them (region metrics still use them).
@@ -84,6 +84,9 @@ class EpisodeData:
     robot_description: str = BUILTIN_NAME
     label_names: dict[int, str] = field(default_factory=dict)
     fps: float = 0.0
+    robot_info: dict = field(default_factory=dict)
+    camera_name: str = "camera"
+    task: str | None = None
     mask_source: str = "episode"
     eval_masks: torch.Tensor | None = None
     eval_labels: Labels | None = None
@@ -91,6 +94,19 @@ class EpisodeData:
     @property
     def n_frames(self) -> int:
         return len(self.t)
+
+    @property
+    def device(self) -> torch.device:
+        """Where the images (and every other tensor, after :meth:`to`) are."""
+        return self.rgb.device
+
+    def to(self, device: torch.device | str) -> "EpisodeData":
+        """A copy with every tensor on ``device`` (dtypes kept: images stay uint8, poses float64
+        where they were); the robot model, labels and ground truth (numpy) stay as they are."""
+        device = torch.device(device)
+        moved = {f.name: getattr(self, f.name).to(device) for f in fields(self)
+                 if isinstance(getattr(self, f.name), torch.Tensor)}
+        return replace(self, **moved)
 
     @property
     def size(self) -> tuple[int, int]:
@@ -104,17 +120,17 @@ class EpisodeData:
     def region(self, i: int, values) -> torch.Tensor:
         """[H, W] bool: pixels of frame ``i`` whose label is in ``values`` (False without masks)."""
         if self.masks is None:
-            return torch.zeros(self.rgb.shape[1:3], dtype=torch.bool)
-        return torch.isin(self.masks[i], torch.tensor(sorted(values), dtype=torch.uint8))
+            return torch.zeros(self.rgb.shape[1:3], dtype=torch.bool, device=self.device)
+        return torch.isin(self.masks[i], torch.tensor(sorted(values), dtype=torch.uint8).to(self.device))
 
     def eval_region(self, i: int, role: str) -> torch.Tensor:
         """[H, W] bool: the ground-truth ``role`` ("robot" or "object") region of frame ``i``, from the
         episode's own masks when it has them (even when reconstruction ignored them), else ``masks``."""
         masks, labels = (self.eval_masks, self.eval_labels) if self.eval_masks is not None else (self.masks, self.labels)
         if masks is None:
-            return torch.zeros(self.rgb.shape[1:3], dtype=torch.bool)
+            return torch.zeros(self.rgb.shape[1:3], dtype=torch.bool, device=self.device)
         values = labels.robot if role == "robot" else labels.objects
-        return torch.isin(masks[i], torch.tensor(sorted(values), dtype=torch.uint8))
+        return torch.isin(masks[i], torch.tensor(sorted(values), dtype=torch.uint8).to(masks.device))
 
 
 def load_episode_data(path: str | Path, *, robot: str | None = None, load_meshes: bool = True,
@@ -176,6 +192,8 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, load_meshes
         link_poses=link_poses, link_quats=matrix_to_quat(link_poses[..., :3, :3].double()).float(), tcp=tcp, labels=labels,
         objects=list(episode.meta.objects), gt=gt, eval_masks=eval_masks,
         robot_description=resolve_description(description, episode.path), fps=float(episode.meta.fps),
+        robot_info={"model": episode.meta.robot.model, "joint_names": list(episode.meta.robot.joint_names)},
+        camera_name=cam.name, task=episode.meta.extra.get("task"),
         label_names={} if eval_masks is not None else dict(episode.meta.labels),
         eval_labels=Labels.from_meta(episode.meta.labels, episode.meta.objects) if eval_masks is not None else None,
     )

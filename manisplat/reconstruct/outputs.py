@@ -63,22 +63,23 @@ def write_twin(rec: Reconstruction, alignments: dict[str, ObjectAlignment], out:
     evaluation = rec.evaluation_poses()
     for name, poses in evaluation.items():
         _write_poses(out / (f"object_poses_{name}.csv" if len(evaluation) > 1 else "object_poses.csv"),
-                     rec.data.t.numpy(), poses, alignments[name].pseudo.source)
-    _write_phases(out / "phases.csv", rec.data.t.numpy(), alignments)
+                     rec.data.t.cpu().numpy(), poses, alignments[name].pseudo.source)
+    _write_phases(out / "phases.csv", rec.data.t.cpu().numpy(), alignments)
     twin_of(rec, alignments).save(out)
 
 
 def twin_of(rec: Reconstruction, alignments: dict[str, ObjectAlignment]) -> Twin:
     """The trained reconstruction as a :class:`~manisplat.twin.Twin` (evaluation poses per frame)."""
     d = rec.data
-    T_base_cam = np.linalg.inv(rec.viewmat().detach().double().numpy())
+    T_base_cam = np.linalg.inv(rec.viewmat().detach().double().cpu().numpy())
     return Twin(
         graph=rec.graph, background_rgb=torch.sigmoid(rec.background_logit.detach()), robot=d.robot,
-        robot_description=d.robot_description, K=d.K_opencv.numpy(), width=d.size[0], height=d.size[1],
-        T_base_cam=T_base_cam, labels=d.label_names, t=d.t.numpy(), q=d.q.numpy(), gripper=d.gripper.numpy(),
+        robot_description=d.robot_description, K=d.K_opencv.cpu().numpy(), width=d.size[0], height=d.size[1],
+        T_base_cam=T_base_cam, labels=d.label_names, t=d.t.cpu().numpy(), q=d.q.cpu().numpy(), gripper=d.gripper.cpu().numpy(),
         object_poses=rec.evaluation_poses(), pose_sources={k: list(a.pseudo.source) for k, a in alignments.items()},
         phases={k: [Phase(s.kind, s.name, s.start, s.end) for s in a.segments] for k, a in alignments.items()},
-        fps=d.fps, episode=Path(d.path).name, backend=rec.config.backend,
+        fps=d.fps, episode=Path(d.path).name, backend=rec.config.backend, robot_info=d.robot_info,
+        camera_name=d.camera_name, task=d.task,
     )
 
 
@@ -119,10 +120,10 @@ def _image_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], out: 
     for f in rec.plan.test_frames:
         image = rec.render(f, evaluation)[0].clamp(0, 1)
         target = rec.data.image(f)
-        rgb8 = (image.numpy() * 255 + 0.5).astype(np.uint8)
+        rgb8 = (image.cpu().numpy() * 255 + 0.5).astype(np.uint8)
         cv2.imwrite(str(renders / f"{f:06d}.png"), cv2.cvtColor(rgb8, cv2.COLOR_RGB2BGR))
         error = ((image - target).abs().mean(-1, keepdim=True).expand(-1, -1, 3) * 4).clamp(0, 1)
-        sheet = (torch.cat([target, image, error], dim=1).numpy() * 255 + 0.5).astype(np.uint8)
+        sheet = (torch.cat([target, image, error], dim=1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
         sheet = labelled_sheet(sheet, SHEET_COLUMNS, f"frame {f}  t = {float(rec.data.t[f]):.2f} s")
         cv2.imwrite(str(sheets / f"{f:06d}.png"), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
         masks = {"full": None}
@@ -173,7 +174,7 @@ def _pose_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], alignm
             baseline[name] = {k: round(v, 4) for k, v in pose_errors(base, gt[key]).items()}
         plots[name] = (ours, base, gt[key])
     if plots:
-        _pose_plot(out / "pose_plot.png", rec.data.t.numpy(), plots)
+        _pose_plot(out / "pose_plot.png", rec.data.t.cpu().numpy(), plots)
     result = {"pose": pose}
     if baseline:
         result["pose_baseline"] = baseline

@@ -14,6 +14,7 @@ import torch
 
 from manisplat.align.pseudo_gt import STATIC
 from manisplat.geometry import se3_exp
+from manisplat.geometry.rotation import hat
 
 SIGMA_T = 0.01  # m
 SIGMA_R = 0.05  # rad (about 3 deg)
@@ -39,6 +40,7 @@ class ObjectTrajectory(torch.nn.Module):
             index[i] = k
         self.register_buffer("pseudo", torch.as_tensor(np.asarray(pseudo), dtype=torch.float64))
         self.register_buffer("index", torch.as_tensor(index))
+        self._twist_of = index.tolist()  # frame -> twist on the host: looking one up reads nothing back from a GPU
         self.xi = torch.nn.Parameter(torch.zeros(k + 1, 6, dtype=torch.float64))
 
     @property
@@ -46,22 +48,23 @@ class ObjectTrajectory(torch.nn.Module):
         return len(self.xi)
 
     def pose(self, t: int) -> torch.Tensor:
-        """T_base_obj [4, 4] (float64) at frame ``t``."""
-        return self.pseudo[t] @ se3_exp(self.xi[self.index[t]])
+        """T_base_obj [4, 4] (float64, on the trajectory's device) at frame ``t``."""
+        return self.pseudo[t] @ twist_exp(self.xi[self._twist_of[t]])
 
     def pose_loss(self, t: int) -> torch.Tensor:
-        xi = self.xi[self.index[t]]
+        """[] float64: the squared SE(3) distance of frame ``t``'s correction, in sigma units."""
+        xi = self.xi[self._twist_of[t]]
         return (xi[:3].norm() / SIGMA_T) ** 2 + (xi[3:].norm() / SIGMA_R) ** 2
 
     @torch.no_grad()
     def evaluation_poses(self, trained: list[int]) -> np.ndarray:
         """Poses [T, 4, 4] for every frame; frames whose own twist was never trained take the
         twist interpolated (linearly, in time) between the nearest trained frames."""
-        trained_twists = {int(self.index[j]) for j in trained}
+        trained_twists = {self._twist_of[j] for j in trained}
         anchors = sorted(trained)
-        xi = self.xi[self.index].clone()  # [T, 6]
+        xi = self.xi.detach().cpu()[self.index.cpu()]  # [T, 6] (a copy), on the host: a per-frame loop
         for i in range(len(xi)):
-            if int(self.index[i]) in trained_twists or not anchors:
+            if self._twist_of[i] in trained_twists or not anchors:
                 continue
             left = max((j for j in anchors if j < i), default=None)
             right = min((j for j in anchors if j > i), default=None)
@@ -70,4 +73,27 @@ class ObjectTrajectory(torch.nn.Module):
             else:
                 w = (i - left) / (right - left)
                 xi[i] = (1 - w) * xi[left] + w * xi[right]
-        return (self.pseudo @ se3_exp(xi)).numpy()
+        return (self.pseudo.cpu() @ se3_exp(xi)).numpy()
+
+
+def twist_exp(xi: torch.Tensor) -> torch.Tensor:
+    """[4, 4] exp of one twist ``xi`` [6] = (v, w), as :func:`manisplat.geometry.se3_exp`, in a few
+    element-wise operations (Rodrigues; Taylor series below 1e-4 rad, both branches finite and
+    differentiable). Used in every training iteration: kornia's generic version issues about ten
+    times the GPU kernels."""
+    v, w = xi[:3], xi[3:]
+    theta2 = (w * w).sum()
+    small = theta2 < 1e-8
+    safe2 = torch.where(small, torch.ones_like(theta2), theta2)
+    theta = safe2.sqrt()
+    sin, cos = torch.sin(theta), torch.cos(theta)
+    a = torch.where(small, 1 - theta2 / 6, sin / theta)
+    b = torch.where(small, 0.5 - theta2 / 24, (1 - cos) / safe2)
+    c = torch.where(small, 1 / 6 - theta2 / 120, (theta - sin) / (safe2 * theta))
+    W = hat(w)
+    W2 = W @ W
+    eye = torch.eye(3, dtype=xi.dtype, device=xi.device)
+    R = eye + a * W + b * W2
+    t = (eye + b * W + c * W2) @ v
+    bottom = torch.eye(4, dtype=xi.dtype, device=xi.device)[3:]
+    return torch.cat([torch.cat([R, t[:, None]], dim=1), bottom])

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from manisplat.reconstruct.config import TrainConfig
+from manisplat.reconstruct.config import TrainConfig, resolve_device
 from manisplat.reconstruct.data import EpisodeData
 from manisplat.reconstruct.metrics import psnr
 from manisplat.reconstruct.plan import Plan
@@ -31,28 +31,38 @@ from manisplat.scene import ROBOT, GaussianSet, SceneGraph
 from manisplat.scene.render import render_graph
 from manisplat.scene.shadows import DirectionalShadows, search_direction
 from manisplat.geometry import se3_exp
-from manisplat.splat import DefaultStrategy
+from manisplat.splat import DefaultStrategy, value_checks
 from manisplat.splat.backends import resolve_backend
 
 log = logging.getLogger(__name__)
 
 
+class TrainingDiverged(FloatingPointError):
+    """The loss became NaN or infinite (checked every ``log_every`` iterations)."""
+
+
 class Reconstruction:
-    """The trainable twin of one episode: scene graph, object trajectories, light, camera."""
+    """The trainable twin of one episode: scene graph, object trajectories, light, camera.
+
+    Everything it trains and reads in the iteration lives on ``config.device`` (resolved by
+    :func:`~manisplat.reconstruct.config.resolve_device`): the episode's tensors (moved after
+    alignment, images kept uint8), the Gaussians, the trajectories, the light. One Adam
+    optimizer updates every parameter (one group per parameter kind and learning rate across all
+    nodes, plus the object poses, background colour, camera and light): one step per iteration,
+    fused on CUDA.
+    """
 
     def __init__(self, data: EpisodeData, plan: Plan, graph: SceneGraph, trajectories: dict[str, ObjectTrajectory],
                  config: TrainConfig) -> None:
-        self.data, self.plan, self.graph, self.trajectories, self.config = data, plan, graph, trajectories, config
+        self.device = torch.device(resolve_device(config.device, config.backend))
+        self.data, self.plan, self.graph, self.trajectories, self.config = data.to(self.device), plan, graph, trajectories, config
+        self.graph.to(self.device)
+        for t in trajectories.values():
+            t.to(self.device)
         self.step = 0
-        self.pose_optimizer = (
-            torch.optim.Adam([t.xi for t in trajectories.values()], lr=5e-4) if trajectories else None
-        )
-        self.camera_delta = torch.nn.Parameter(torch.zeros(6, dtype=torch.float64))
+        self.camera_delta = torch.nn.Parameter(torch.zeros(6, dtype=torch.float64, device=self.device))
         # colour behind everything (sky, depth holes): learned, starts mid-grey
-        self.background_logit = torch.nn.Parameter(torch.zeros(3))
-        self.background_optimizer = torch.optim.Adam([self.background_logit], lr=1e-2)
-        self.camera_optimizer = torch.optim.Adam([self.camera_delta], lr=1e-4) if config.refine_camera else None
-        self.light_optimizer: torch.optim.Optimizer | None = None
+        self.background_logit = torch.nn.Parameter(torch.zeros(3, device=self.device))
         self.scene_scale = graph.background.scene_scale if graph.background is not None else 1.0
         self.strategies = {
             node.name: DefaultStrategy(
@@ -64,19 +74,65 @@ class Reconstruction:
         }
         for node in graph.nodes():
             node.gaussians.strategy_state = self.strategies[node.name].initialize_state(self.scene_scale)
-        self._dynamic = torch.tensor(sorted(set(data.labels.robot) | set(data.labels.objects)), dtype=torch.uint8)
+        self.optimizer = self._make_optimizer()
+        dynamic = torch.tensor(sorted(set(data.labels.robot) | set(data.labels.objects)), dtype=torch.uint8)
+        # [T, H, W] bool: the dynamic pixels of every frame, computed once (no label look-ups per iteration)
+        self._dynamic_masks = (torch.isin(self.data.masks, dynamic.to(self.device))
+                               if self.data.masks is not None else None)
         self._rng = random.Random(config.seed)
         torch.manual_seed(config.seed)
+        self._loss_average: torch.Tensor | None = None  # running mean of the loss, on the device
+
+    def _make_optimizer(self) -> torch.optim.Adam:
+        """One Adam over every trained tensor: the Gaussians of all nodes, one group per parameter
+        kind (learning rate from the first node's own optimizer; the means' from the schedule of
+        :meth:`_densify_and_step` when there is a background), then the object poses, the
+        background colour, the camera correction (with ``refine_camera``) and the light (once
+        shadows start). Fused kernels on CUDA, ``foreach`` on the CPU."""
+        groups: dict[str, dict] = {}
+        for node in self.graph.nodes():
+            for group in node.gaussians.optimizer.param_groups:
+                name = group["name"]
+                groups.setdefault(name, {"params": [], "lr": float(group["lr"]), "name": name, "eps": group["eps"]})
+                groups[name]["params"] += group["params"]
+        if "means" in groups and self.graph.background is not None:
+            groups["means"]["lr"] = self._means_lr()
+        param_groups = list(groups.values())
+        if self.trajectories:
+            param_groups.append({"params": [t.xi for t in self.trajectories.values()], "lr": 5e-4, "name": "poses"})
+        param_groups.append({"params": [self.background_logit], "lr": 1e-2, "name": "background"})
+        if self.config.refine_camera:
+            param_groups.append({"params": [self.camera_delta], "lr": 1e-4, "name": "camera"})
+        if self.graph.shadows is not None:
+            param_groups += self._light_groups(self.graph.shadows)
+        fused = self.device.type == "cuda"
+        optimizer = torch.optim.Adam(param_groups, fused=fused, foreach=None if fused else True)
+        for node in self.graph.nodes():
+            node.gaussians.use_optimizer(optimizer)
+        return optimizer
+
+    @property
+    def light_optimizer(self) -> torch.optim.Optimizer | None:
+        """The optimizer that updates the light (the shared one), or None before shadows start."""
+        names = {g["name"] for g in self.optimizer.param_groups}
+        return self.optimizer if "light_direction" in names else None
+
+    @staticmethod
+    def _light_groups(model: DirectionalShadows) -> list[dict]:
+        return [{"params": [model.direction], "lr": 1e-3, "name": "light_direction"},
+                {"params": [model.strength_logit], "lr": 1e-2, "name": "light_strength"}]
 
     # ------------------------------------------------------------------ rendering
     def object_poses(self, frame: int, evaluation: dict[str, np.ndarray] | None = None) -> dict[str, torch.Tensor]:
+        """name -> T_base_obj [4, 4] float32 on the device: trained, or from ``evaluation`` poses."""
         if evaluation is not None:
-            return {name: torch.as_tensor(p[frame]).float() for name, p in evaluation.items()}
+            return {name: torch.as_tensor(p[frame]).float().to(self.device) for name, p in evaluation.items()}
         return {name: traj.pose(frame).float() for name, traj in self.trajectories.items()}
 
     def viewmat(self) -> torch.Tensor:
+        """[4, 4] float32 base-to-camera, with the learned correction when ``refine_camera``."""
         V = self.data.viewmat
-        if self.camera_optimizer is None:
+        if not self.config.refine_camera:
             return V
         return (se3_exp(self.camera_delta) @ V.double()).float()
 
@@ -94,6 +150,9 @@ class Reconstruction:
         holds ``group_alphas`` [1, H, W, groups] (0 background, 1 robot, 2 + k object k).
         """
         W, H = self.data.size
+        link_poses = link_poses.to(self.device)
+        link_quats = None if link_quats is None else link_quats.to(self.device)
+        object_poses = {k: v.to(self.device) for k, v in object_poses.items()}
         view = render_graph(self.graph, link_poses, object_poses, viewmat=self.viewmat(), K=self.data.K, width=W,
                             height=H, background=torch.sigmoid(self.background_logit), backend=self.config.backend,
                             link_quats=link_quats)
@@ -107,23 +166,31 @@ class Reconstruction:
         target = self.data.image(frame)
         l1, ssim_map = _error_maps(image, target)  # computed once for the render and appearance terms
         terms = {"render": _photometric(l1, ssim_map, None, c.ssim_weight)}
-        if self.data.masks is not None:
-            dyn_mask = torch.isin(self.data.masks[frame], self._dynamic)
-            if bool(dyn_mask.any()):
-                terms["app"] = c.lambda_app * _photometric(l1, ssim_map, dyn_mask, c.ssim_weight)
-            terms["mask"] = c.lambda_mask * (dynamic_alpha - dyn_mask.float()).abs().mean()
+        if self._dynamic_masks is not None:
+            dyn_mask = self._dynamic_masks[frame].float()
+            # 0 in a frame without dynamic pixels (a weighted mean: nothing is read back to decide)
+            terms["app"] = c.lambda_app * _photometric(l1, ssim_map, dyn_mask, c.ssim_weight)
+            terms["mask"] = c.lambda_mask * (dynamic_alpha - dyn_mask).abs().mean()
         if self.trajectories:
             terms["pose"] = c.lambda_pose * sum(t.pose_loss(frame) for t in self.trajectories.values()).float()
         return terms, meta, composed
 
     # ------------------------------------------------------------------ training
     def train(self, *, progress: bool = True, callback=None) -> None:
-        """Run the remaining iterations (``config.iters - step``)."""
+        """Run the remaining iterations (``config.iters - step``).
+
+        The iteration reads nothing back from the device (no host-device synchronisation), except
+        on densification steps (the Gaussians change number), every ``log_every`` iterations (the
+        running loss for the progress bar, checked to be finite) and every ``eval_every`` (the
+        held-out PSNR). On CUDA the rasterizer's input value checks, each a synchronisation, are
+        off inside the iteration; the loss check stands in for them.
+        """
         c = self.config
         states = self.plan.distinct_train_states or self.plan.train_frames
-        resolve_backend(c.backend, self.data.rgb.device)  # a first build of the C++ rasterizer logs before the bar
+        resolve_backend(c.backend, self.device)  # a first build of the C++ rasterizer logs before the bar
         bar = tqdm(total=c.iters, initial=self.step, desc="reconstructing", unit="it", disable=not progress)
         last_psnr, mean_loss = math.nan, math.nan  # mean_loss: over about the last 50 frames
+        check_values = self.device.type == "cpu"  # free there; a synchronisation each on a GPU
         while self.step < c.iters:
             if c.shadows and self.graph.shadows is None and self.step >= c.shadow_start and self.data.masks is not None:
                 self.start_shadows()
@@ -131,41 +198,61 @@ class Reconstruction:
             for node in self.graph.nodes():
                 node.gaussians.active_degree = min(degree, node.gaussians.sh_degree)
             frame = self._rng.choice(states)
-            terms, meta, composed = self.losses(frame)
-            loss = sum(terms.values())
-            meta["means2d"].retain_grad()
-            loss.backward()
-            self._densify_and_step(meta, composed)
+            with value_checks(check_values):
+                terms, meta, composed = self.losses(frame)
+                loss = sum(terms.values())
+                meta["means2d"].retain_grad()
+                loss.backward()
+                self._densify_and_step(meta, composed)
+            self._average_loss(loss.detach())
             self.step += 1
+            if self.step % max(c.log_every, 1) == 0 or self.step % c.eval_every == 0 or self.step == c.iters:
+                mean_loss = self._read_loss()
             if self.step % c.eval_every == 0 or self.step == c.iters:
                 last_psnr = self.quick_psnr()
-            value = float(loss.detach())
-            mean_loss = value if math.isnan(mean_loss) else 0.98 * mean_loss + 0.02 * value
-            bar.set_postfix(_progress_fields(mean_loss, last_psnr, sum(len(n.gaussians) for n in self.graph.nodes())))
+            bar.set_postfix(_progress_fields(mean_loss, last_psnr, sum(len(n.gaussians) for n in self.graph.nodes())),
+                            refresh=False)
             bar.update(1)
             if callback is not None:
                 callback(self)
         bar.close()
 
+    def _average_loss(self, loss: torch.Tensor) -> None:
+        """Fold this iteration's loss into the running mean (weight 0.02, about 50 frames), on the device."""
+        if self._loss_average is None:
+            self._loss_average = loss.clone()
+        else:
+            self._loss_average.mul_(0.98).add_(loss, alpha=0.02)
+
+    def _read_loss(self) -> float:
+        """The running mean of the loss (a synchronisation); raise :class:`TrainingDiverged` if not finite."""
+        value = float(self._loss_average) if self._loss_average is not None else math.nan
+        if not math.isfinite(value):
+            raise TrainingDiverged(f"the loss is {value} at iteration {self.step} (training diverged); "
+                                   "try another --seed or smaller learning rates")
+        return value
+
     def _densify_and_step(self, meta: dict, composed) -> None:
         grad = meta["means2d"].grad
-        for node in self.graph.nodes():
-            start, end = composed.slices[node.name]
-            g = node.gaussians
-            if self.config.densify:
+        if self.config.densify:
+            for node in self.graph.nodes():
+                start, end = composed.slices[node.name]
+                g = node.gaussians
                 info = {"means2d_grad": grad[:, start:end], "radii": meta["radii"][:, start:end],
                         "width": meta["width"], "height": meta["height"], "n_cameras": meta["n_cameras"]}
                 self.strategies[node.name].step_post_backward(g.params, g.optimizers, g.strategy_state, self.step, info)
-            g.step()
-        for opt in (self.pose_optimizer, self.camera_optimizer, self.light_optimizer, self.background_optimizer):
-            if opt is not None:
-                opt.step()
-                opt.zero_grad(set_to_none=True)
-        if self.graph.background is not None:  # position learning rate decays 100x over training
-            frac = min(self.step / max(self.config.iters, 1), 1.0)
-            base = 1.6e-4 * self.scene_scale
-            for node in self.graph.nodes():
-                node.gaussians.set_learning_rate("means", base * 0.01 ** frac)
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        if self.graph.background is not None:
+            lr = self._means_lr()
+            for group in self.optimizer.param_groups:
+                if group["name"] == "means":
+                    group["lr"] = lr
+
+    def _means_lr(self) -> float:
+        """The positions' learning rate at the current step: 1.6e-4 x scene scale, decaying 100x over training."""
+        frac = min(self.step / max(self.config.iters, 1), 1.0)
+        return 1.6e-4 * self.scene_scale * 0.01 ** frac
 
     @torch.no_grad()
     def quick_psnr(self, frames: int = 3) -> float:
@@ -175,6 +262,7 @@ class Reconstruction:
         return float(np.mean([psnr(self.render(f, evaluation)[0], self.data.image(f)) for f in chosen]))
 
     def evaluation_poses(self) -> dict[str, np.ndarray]:
+        """name -> [T, 4, 4] float64 (numpy, host) poses of every frame, held-out ones interpolated."""
         return {name: t.evaluation_poses(self.plan.train_frames) for name, t in self.trajectories.items()}
 
     # ------------------------------------------------------------------ shadows
@@ -185,7 +273,7 @@ class Reconstruction:
         links = d.link_poses[:, :, :3, 3].reshape(-1, 3)
         center = links.mean(0)
         extent = 2.2 * float((links - center).norm(dim=-1).max())
-        model = DirectionalShadows(torch.tensor([0.0, 0.0, 1.0]), center, extent)
+        model = DirectionalShadows(torch.tensor([0.0, 0.0, 1.0]), center.cpu(), extent).to(self.device)
         points, _, _, _, colors = (x.detach() for x in self.graph.background.activated())
         V, K = self.viewmat().detach(), d.K
         cam = points @ V[:3, :3].T + V[:3, 3]
@@ -211,64 +299,65 @@ class Reconstruction:
         model.direction.copy_(direction)
         model.strength_logit.copy_(torch.logit(strength.clamp(0.05, 0.95)))
         self.graph.shadows = model
-        self.light_optimizer = torch.optim.Adam(
-            [{"params": [model.direction], "lr": 1e-3}, {"params": [model.strength_logit], "lr": 1e-2}]
-        )
+        for group in self._light_groups(model):
+            self.optimizer.add_param_group(group)
         log.info("shadows: light direction %s, strength %s (searched in %.1f s)",
-                 np.round(direction.numpy(), 3).tolist(), np.round(strength.numpy(), 3).tolist(),
+                 np.round(direction.cpu().numpy(), 3).tolist(), np.round(strength.cpu().numpy(), 3).tolist(),
                  time.perf_counter() - t0)
 
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict:
+        """Everything needed to continue training (tensors on the training device; load with
+        ``torch.load(..., map_location="cpu")`` anywhere, then :meth:`load_state_dict` moves them)."""
         nodes = {}
         for node in self.graph.nodes():
             g = node.gaussians
-            nodes[node.name] = {
-                "params": {k: v.detach() for k, v in g.params.items()},
-                "optimizer": g.optimizer.state_dict(),
-                "strategy_state": g.strategy_state,
-            }
+            nodes[node.name] = {"params": {k: v.detach() for k, v in g.params.items()}, "strategy_state": g.strategy_state}
         return {
             "step": self.step, "config": asdict(self.config), "nodes": nodes,
+            "optimizer": self.optimizer.state_dict(),
             "trajectories": {k: t.state_dict() for k, t in self.trajectories.items()},
-            "pose_optimizer": self.pose_optimizer.state_dict() if self.pose_optimizer else None,
-            "camera_delta": self.camera_delta.detach(),
-            "background": self.background_logit.detach(), "background_optimizer": self.background_optimizer.state_dict(),
+            "camera_delta": self.camera_delta.detach(), "background": self.background_logit.detach(),
             "shadows": self.graph.shadows.state_dict() if self.graph.shadows is not None else None,
             "shadow_geometry": (self.graph.shadows.extent, self.graph.shadows.resolution) if self.graph.shadows else None,
-            "light_optimizer": self.light_optimizer.state_dict() if self.light_optimizer else None,
             "rng": self._rng.getstate(), "torch_rng": torch.get_rng_state(),
+            "cuda_rng": torch.cuda.get_rng_state(self.device) if self.device.type == "cuda" else None,
         }
 
     def load_state_dict(self, state: dict) -> None:
+        """Continue from :meth:`state_dict`, saved on this or another device (tensors are moved here)."""
+        if "optimizer" not in state:
+            raise ValueError("the checkpoint was written by an older manisplat-reconstruct (one optimizer per node); "
+                             "start a new run (--overwrite)")
+        dev = self.device
+
+        def here(x):
+            return x.to(dev) if isinstance(x, torch.Tensor) else x
+
         for node in self.graph.nodes():
             saved = state["nodes"][node.name]
-            g = GaussianSet(saved["params"], scene_scale=node.gaussians.scene_scale)
-            g.optimizer.load_state_dict(saved["optimizer"])
+            g = GaussianSet(saved["params"], scene_scale=node.gaussians.scene_scale, device=dev)
             g.active_degree = node.gaussians.active_degree
-            g.strategy_state = saved["strategy_state"]
+            g.strategy_state = {k: here(v) for k, v in saved["strategy_state"].items()}
             _replace_node(self.graph, node.name, g)
         for name, t in self.trajectories.items():
             t.load_state_dict(state["trajectories"][name])
-        if self.pose_optimizer is not None:
-            self.pose_optimizer = torch.optim.Adam([t.xi for t in self.trajectories.values()], lr=5e-4)
-            self.pose_optimizer.load_state_dict(state["pose_optimizer"])
         with torch.no_grad():
             self.camera_delta.copy_(state["camera_delta"])
             self.background_logit.copy_(state["background"])
-        self.background_optimizer.load_state_dict(state["background_optimizer"])
+        self.graph.shadows = None
         if state["shadows"] is not None:
             extent, resolution = state["shadow_geometry"]
             sh = DirectionalShadows(torch.tensor([0.0, 0.0, 1.0]), torch.zeros(3), extent, resolution=resolution)
             sh.load_state_dict(state["shadows"])
-            self.graph.shadows = sh
-            self.light_optimizer = torch.optim.Adam(
-                [{"params": [sh.direction], "lr": 1e-3}, {"params": [sh.strength_logit], "lr": 1e-2}]
-            )
-            self.light_optimizer.load_state_dict(state["light_optimizer"])
+            self.graph.shadows = sh.to(dev)
+        self.optimizer = self._make_optimizer()
+        self.optimizer.load_state_dict(state["optimizer"])  # moves the moments to the parameters' device
         self.step = state["step"]
         self._rng.setstate(state["rng"])
-        torch.set_rng_state(state["torch_rng"])
+        torch.set_rng_state(state["torch_rng"].cpu())
+        if dev.type == "cuda" and state.get("cuda_rng") is not None:
+            torch.cuda.set_rng_state(state["cuda_rng"].cpu(), dev)
 
     def save_checkpoint(self, path: Path) -> None:
         tmp = path.with_name(path.name + ".tmp")
@@ -277,8 +366,8 @@ class Reconstruction:
 
 
 def _progress_fields(mean_loss: float, held_out_psnr: float, gaussians: int) -> dict[str, str | int]:
-    """The progress bar's fields; the held-out PSNR (dB) appears once it has been measured."""
-    fields: dict[str, str | int] = {"loss": f"{mean_loss:.4f}"}
+    """The progress bar's fields; the loss and the held-out PSNR (dB) appear once they have been read."""
+    fields: dict[str, str | int] = {} if math.isnan(mean_loss) else {"loss": f"{mean_loss:.4f}"}
     if not math.isnan(held_out_psnr):
         fields["held-out PSNR"] = f"{held_out_psnr:.2f} dB"
     fields["gaussians"] = gaussians
@@ -296,14 +385,48 @@ def _replace_node(graph: SceneGraph, name: str, g: GaussianSet) -> None:
 
 
 def _error_maps(image: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-pixel L1 [H, W] and SSIM [H, W] (11 x 11 Gaussian window, kornia) of [H, W, 3] images."""
+    """Per-pixel L1 [H, W] and SSIM [H, W] (11 x 11 Gaussian window, sigma 1.5) of [H, W, 3] images:
+    kornia's on the CPU, :func:`ssim_map` elsewhere (the same map; kornia builds its window on
+    every call, a host-to-device copy that waits for the GPU)."""
     l1 = (image - target).abs().mean(-1)
-    ssim_map = kornia.metrics.ssim(image.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None], 11)[0].mean(0)
-    return l1, ssim_map
+    if image.device.type == "cpu":
+        ssim = kornia.metrics.ssim(image.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None], 11)[0].mean(0)
+    else:
+        ssim = ssim_map(image, target)
+    return l1, ssim
+
+
+_WINDOWS: dict[tuple[str, torch.dtype], torch.Tensor] = {}
+
+
+def ssim_map(x: torch.Tensor, y: torch.Tensor, window_size: int = 11) -> torch.Tensor:
+    """SSIM [H, W] (channel mean) of images [H, W, C] in [0, 1], as ``kornia.metrics.ssim`` computes it
+    (Gaussian window sigma 1.5, reflect padding, C1 = 0.01^2, C2 = 0.03^2, eps 1e-12), with the
+    window made once per device and the five local moments filtered in one grouped convolution."""
+    key = (str(x.device), x.dtype)
+    if key not in _WINDOWS:
+        _WINDOWS[key] = kornia.filters.get_gaussian_kernel1d(window_size, 1.5, device=x.device, dtype=x.dtype)[0]
+    k = _WINDOWS[key]
+    H, W, C = x.shape
+    stack = torch.stack([x, y, x * x, y * y, x * y]).permute(0, 3, 1, 2).reshape(1, 5 * C, H, W)
+    pad = window_size // 2
+    stack = torch.nn.functional.pad(stack, (pad, pad, pad, pad), mode="reflect")
+    stack = torch.nn.functional.conv2d(stack, k.view(1, 1, 1, -1).expand(5 * C, 1, 1, window_size), groups=5 * C)
+    stack = torch.nn.functional.conv2d(stack, k.view(1, 1, -1, 1).expand(5 * C, 1, window_size, 1), groups=5 * C)
+    mu1, mu2, xx, yy, xy = stack.view(5, C, H, W)
+    mu1_sq, mu2_sq, mu12 = mu1 * mu1, mu2 * mu2, mu1 * mu2
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    num = (2.0 * mu12 + c1) * (2.0 * (xy - mu12) + c2)
+    den = (mu1_sq + mu2_sq + c1) * ((xx - mu1_sq) + (yy - mu2_sq) + c2)
+    return (num / (den + 1e-12)).mean(0)
 
 
 def _photometric(l1: torch.Tensor, ssim_map: torch.Tensor, region: torch.Tensor | None, ssim_weight: float) -> torch.Tensor:
-    """(1 - w) L1 + w (1 - SSIM) over the image, or averaged over ``region`` [H, W] pixels."""
+    """(1 - w) L1 + w (1 - SSIM) over the image, or averaged over the pixels of ``region`` [H, W]
+    (float weights 0/1; 0 when it is empty), without selecting them (no synchronisation)."""
     if region is None:
         return (1 - ssim_weight) * l1.mean() + ssim_weight * (1 - ssim_map.mean())
-    return (1 - ssim_weight) * l1[region].mean() + ssim_weight * (1 - ssim_map[region].mean())
+    count = region.sum()
+    mean_l1 = (l1 * region).sum() / count.clamp_min(1)
+    mean_dssim = ((1 - ssim_map) * region).sum() / count.clamp_min(1)
+    return (1 - ssim_weight) * mean_l1 + ssim_weight * mean_dssim

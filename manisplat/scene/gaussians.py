@@ -30,8 +30,9 @@ class GaussianSet:
     :class:`manisplat.splat.DefaultStrategy` expects.
     """
 
-    def __init__(self, params: dict[str, torch.Tensor], *, scene_scale: float = 1.0, lr_scale: float = 1.0) -> None:
-        self.params = {k: torch.nn.Parameter(v.detach().clone().float()) for k, v in params.items()}
+    def __init__(self, params: dict[str, torch.Tensor], *, scene_scale: float = 1.0, lr_scale: float = 1.0,
+                 device: torch.device | str | None = None) -> None:
+        self.params = {k: torch.nn.Parameter(v.detach().to(device).clone().float()) for k, v in params.items()}
         self.scene_scale = scene_scale
         lrs = dict(LEARNING_RATES)
         lrs["means"] *= scene_scale
@@ -76,6 +77,40 @@ class GaussianSet:
 
     def __len__(self) -> int:
         return len(self.params["means"])
+
+    @property
+    def device(self) -> torch.device:
+        return self.params["means"].device
+
+    def to(self, device: torch.device | str) -> "GaussianSet":
+        """Move the parameters, their Adam moments and the densification statistics to
+        ``device`` in place (new ``Parameter`` objects, registered with the optimizer); returns self."""
+        device = torch.device(device)
+        if self.device == device:
+            return self
+        if len(self.optimizer.param_groups) != len(self.params):
+            raise ValueError("GaussianSet.to moves a set with its own optimizer; this one shares an optimizer "
+                             "(move the sets before sharing it)")
+        saved = self.optimizer.state_dict()
+        self.params = {k: torch.nn.Parameter(v.detach().to(device)) for k, v in self.params.items()}
+        self.use_optimizer(torch.optim.Adam(
+            [{**{k: v for k, v in g.items() if k != "params"}, "params": [self.params[g["name"]]]}
+             for g in self.optimizer.param_groups]))
+        self.optimizer.load_state_dict(saved)  # moves the moments to the parameters' device
+        if self.strategy_state is not None:
+            self.strategy_state = {k: v.to(device) if isinstance(v, torch.Tensor) else v
+                                   for k, v in self.strategy_state.items()}
+        return self
+
+    def use_optimizer(self, optimizer: torch.optim.Optimizer) -> None:
+        """Let ``optimizer`` (which must hold every parameter of this set, e.g. one optimizer
+        shared by all nodes of a scene graph) update these parameters instead of the own one."""
+        held = {id(p) for g in optimizer.param_groups for p in g["params"]}
+        missing = [k for k, p in self.params.items() if id(p) not in held]
+        if missing:
+            raise ValueError(f"the optimizer does not hold parameters {missing}")
+        self.optimizer = optimizer
+        self.optimizers = {k: optimizer for k in self.params}
 
     def activated(self, camera_center: torch.Tensor | None = None) -> tuple[torch.Tensor, ...]:
         """(means [N, 3], quats [N, 4], scales [N, 3], opacities [N], colours [N, 3]) for rendering.

@@ -11,9 +11,11 @@ from dataclasses import dataclass
 
 import torch
 
+from manisplat.geometry import matrix_to_quat, quat_multiply
 from manisplat.scene.gaussians import GaussianSet
 from manisplat.scene.shadows import DirectionalShadows
 from manisplat.scene.transforms import transform_gaussians
+from manisplat.splat.sh import C0, spherical_harmonics
 
 BACKGROUND, ROBOT = 0, 1
 
@@ -59,6 +61,7 @@ class SceneGraph:
         self.link_index = {name: i for i, name in enumerate(link_order)}
         self.objects = objects
         self.shadows: DirectionalShadows | None = None  # cast shadows of moving nodes on the background
+        self._index_cache: tuple | None = None  # see _node_index
 
     @property
     def object_names(self) -> list[str]:
@@ -74,6 +77,20 @@ class SceneGraph:
     def num_groups(self) -> int:
         return 2 + len(self.objects)
 
+    @property
+    def device(self) -> torch.device:
+        """Where the Gaussians are (every node is on one device)."""
+        nodes = self.nodes()
+        return nodes[0].gaussians.device if nodes else torch.device("cpu")
+
+    def to(self, device: torch.device | str) -> "SceneGraph":
+        """Move every node's Gaussians (with their optimizer state) and the light to ``device``, in place."""
+        for node in self.nodes():
+            node.gaussians.to(device)
+        if self.shadows is not None:
+            self.shadows.to(device)
+        return self
+
     def compose(self, link_poses: torch.Tensor, object_poses: dict[str, torch.Tensor],
                 link_quats: torch.Tensor | None = None, camera_center: torch.Tensor | None = None) -> Composed:
         """G(t) for link poses [L, 4, 4] (T_base_link, FK order) and object poses name -> [4, 4].
@@ -82,6 +99,9 @@ class SceneGraph:
         ``camera_center`` [3] (base frame) enables view-dependent colour, evaluated in each
         node's own frame.
         """
+        batched = self._compose_batched(link_poses, object_poses, link_quats, camera_center)
+        if batched is not None:
+            return batched
         parts, slices, start = [], {}, 0
         for node in self.nodes():
             kind, _, name = node.name.partition("/")
@@ -97,7 +117,8 @@ class SceneGraph:
             elif kind == "object":
                 means, quats = transform_gaussians(pose, means, quats)
             n = len(means)
-            parts.append([means, quats, scales, opacities, colors, torch.full((n,), node.group, dtype=torch.long)])
+            parts.append([means, quats, scales, opacities, colors,
+                          torch.full((n,), node.group, dtype=torch.long, device=means.device)])
             slices[node.name] = (start, start + n)
             start += n
         if self.shadows is not None and self.background is not None and len(parts) > 1:
@@ -105,3 +126,81 @@ class SceneGraph:
             parts[0][4] = self.shadows.shade(parts[0][4], parts[0][0], occluders)
         cat = [torch.cat(x) for x in zip(*parts)]
         return Composed(*cat, slices=slices)
+
+    def _compose_batched(self, link_poses: torch.Tensor, object_poses: dict[str, torch.Tensor],
+                         link_quats: torch.Tensor | None, camera_center: torch.Tensor | None) -> Composed | None:
+        """:meth:`compose` with every link and object placed in one set of operations: their raw
+        parameters concatenated, each Gaussian's node pose gathered by an index [M] (rebuilt
+        only when a node changes size), one activation, one SH evaluation and one transform.
+        The same values as placing node by node, with about a tenth of the operations (on a GPU
+        the per-node version is bound by kernel launches). None when the dynamic nodes differ in
+        parameters or active SH degree (then :meth:`compose` goes node by node)."""
+        nodes = self.nodes()
+        dynamic = [n for n in nodes if n.name != "background"]
+        if not dynamic:
+            return None
+        keys = set(dynamic[0].gaussians.params)
+        degree = dynamic[0].gaussians.active_degree
+        if any(set(n.gaussians.params) != keys or n.gaussians.active_degree != degree for n in dynamic):
+            return None
+        device = dynamic[0].gaussians.device
+        poses, quats_T, names = [], [], []
+        for n in dynamic:
+            kind, _, name = n.name.partition("/")
+            if kind == "robot":
+                i = self.link_index[name]
+                poses.append(link_poses[i])
+                quats_T.append(None if link_quats is None else link_quats[i])
+            else:
+                poses.append(object_poses[name])
+                quats_T.append(None)
+            names.append(n.name)
+        P = torch.stack([p.float() for p in poses])  # [K, 4, 4]
+        if any(q is None for q in quats_T):
+            Q = matrix_to_quat(P[:, :3, :3].double()).float()
+            Q = torch.stack([Q[k] if q is None else q.float() for k, q in enumerate(quats_T)])
+        else:
+            Q = torch.stack([q.float() for q in quats_T])  # [K, 4]
+        counts = tuple(len(n.gaussians) for n in dynamic)
+        index, groups = self._node_index(counts, [n.group for n in dynamic], device)
+        raw = {k: torch.cat([n.gaussians.params[k] for n in dynamic]) for k in keys}
+        R, t = P[:, :3, :3], P[:, :3, 3]
+        local = raw["means"]
+        if degree > 0 and camera_center is not None:
+            centers = torch.einsum("kj,kji->ki", camera_center.float()[None] - t, R)  # camera in each node frame
+            coeffs = torch.cat([raw["sh0"][:, None], raw["shN"][:, : (degree + 1) ** 2 - 1]], dim=1)
+            colors = (spherical_harmonics(degree, local - centers[index], coeffs) + 0.5).clamp_min(0.0)
+        else:
+            colors = (0.5 + C0 * raw["sh0"]).clamp_min(0.0)
+        means = torch.einsum("nij,nj->ni", R[index], local) + t[index]
+        quats = quat_multiply(Q[index], raw["quats"])
+        scales, opacities = torch.exp(raw["scales"]), torch.sigmoid(raw["opacities"])
+        slices, start = {}, 0
+        bg = None
+        if self.background is not None:
+            bg = list(self.background.activated(camera_center))
+            start = len(bg[0])
+            slices["background"] = (0, start)
+            if self.shadows is not None:
+                bg[4] = self.shadows.shade(bg[4], bg[0], (means, quats, scales, opacities))
+        for name, count in zip(names, counts):
+            slices[name] = (start, start + count)
+            start += count
+        dyn = [means, quats, scales, opacities, colors, groups]
+        if bg is None:
+            return Composed(*dyn, slices=slices)
+        bg_groups = torch.full((len(bg[0]),), BACKGROUND, dtype=torch.long, device=device)
+        return Composed(*[torch.cat([a, b]) for a, b in zip(bg + [bg_groups], dyn)], slices=slices)
+
+    def _node_index(self, counts: tuple[int, ...], groups: list[int], device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+        """(node index [M], group id [M]) of the dynamic nodes' Gaussians for their ``counts``,
+        cached until a count changes (built on the host, copied once)."""
+        key = (counts, tuple(groups), str(device))
+        cached = self._index_cache
+        if cached is None or cached[0] != key:
+            sizes = torch.tensor(counts)
+            index = torch.repeat_interleave(torch.arange(len(counts)), sizes)
+            group_ids = torch.repeat_interleave(torch.tensor(groups, dtype=torch.long), sizes)
+            cached = (key, index.to(device), group_ids.to(device))
+            self._index_cache = cached
+        return cached[1], cached[2]

@@ -23,19 +23,30 @@ LIGHT_DISTANCE = 100.0  # m: far enough that the pinhole light camera is nearly 
 
 
 def light_camera(direction: torch.Tensor, center: torch.Tensor, extent: float, resolution: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """(viewmat [4, 4], K [3, 3]) of a camera far along ``direction`` (towards the light) looking
-    at ``center``, whose image of ``resolution`` pixels spans ``extent`` metres there."""
+    """(viewmat [4, 4], K [3, 3]) of a camera far along ``direction`` [3] (towards the light) looking
+    at ``center`` [3], whose image of ``resolution`` pixels spans ``extent`` metres there.
+
+    Built with tensor operations on ``direction``'s device and dtype, without reading a value
+    back (no host-device synchronisation on a GPU).
+    """
+    dtype, device = direction.dtype, direction.device
     light = direction / direction.norm().clamp_min(1e-12)
-    eye = center + LIGHT_DISTANCE * light
+    eye = center.to(dtype) + LIGHT_DISTANCE * light
     z = -light
-    up = torch.tensor([0.0, 0.0, 1.0]) if float(light[2].detach().abs()) < 0.99 else torch.tensor([1.0, 0.0, 0.0])
+    axes = torch.eye(4, dtype=dtype, device=device)
+    # "up" is the base z axis unless the light is (nearly) vertical, then x
+    up = torch.where(light[2].detach().abs() < 0.99, axes[2, :3], axes[0, :3])
     x = torch.linalg.cross(z, up)
     x = x / x.norm()
     y = torch.linalg.cross(z, x)
     R = torch.stack([x, y, z])  # rows: camera axes in world coordinates (world-to-camera rotation)
-    view = torch.cat([torch.cat([R, -(R @ eye)[:, None]], dim=1), torch.tensor([[0.0, 0.0, 0.0, 1.0]])])
+    view = torch.cat([torch.cat([R, -(R @ eye)[:, None]], dim=1), axes[3:]])
     f = LIGHT_DISTANCE / (extent / 2) * (resolution / 2)
-    K = torch.tensor([[f, 0.0, resolution / 2], [0.0, f, resolution / 2], [0.0, 0.0, 1.0]])
+    # [[f, 0, c], [0, f, c], [0, 0, 1]] from the identity's rows and Python scalars: writing a
+    # scalar into a GPU tensor by index would copy it from the host and wait for the GPU
+    e = axes[:3, :3]
+    c = resolution / 2
+    K = torch.stack([f * e[0] + c * e[2], f * e[1] + c * e[2], e[2]])
     return view, K
 
 
@@ -122,9 +133,9 @@ def _best_of(model, candidates, points, colors, observations):
     """(direction, strength, residual, (azimuth, elevation)) of the best candidate angles."""
     best = (None, None, math.inf, None)
     for azimuth, elevation in candidates:
-        direction = direction_from_angles(azimuth, elevation)
+        direction = direction_from_angles(azimuth, elevation).to(model.direction.device)
         model.direction.copy_(direction)
-        num, den, terms = torch.zeros(3), torch.zeros(3), []
+        num, den, terms = points.new_zeros(3), points.new_zeros(3), []
         for occluders, observed, valid in observations:
             occ = model.occlusion(points, occluders)[valid]
             shade = colors[valid] * occ[:, None]  # predicted darkening per unit strength

@@ -7,7 +7,7 @@ backward, the default on CPU) and "gsplat" (CUDA, optional). All follow gsplat's
 from manisplat.splat.backends import BACKENDS, BackendUnavailable, available_backends
 from manisplat.splat.ply import PlyFormatError, load_ply, save_ply
 from manisplat.splat.projection import Projection, opencv_to_splat_K, project_gaussians
-from manisplat.splat.rasterization import RENDER_MODES, RasterizationError, rasterization
+from manisplat.splat.rasterization import RENDER_MODES, RasterizationError, rasterization, value_checks
 from manisplat.splat.sh import num_sh_bases, spherical_harmonics
 from manisplat.splat.strategy import DefaultStrategy
 
@@ -27,4 +27,5 @@ __all__ = [
     "rasterization",
     "save_ply",
     "spherical_harmonics",
+    "value_checks",
 ]

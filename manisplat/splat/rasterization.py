@@ -7,6 +7,10 @@ summed blending weight of that group's splats, e.g. the dynamic parts for a mask
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
+from collections.abc import Iterator
+
 import torch
 
 from manisplat.splat.backends import resolve_backend
@@ -17,6 +21,25 @@ RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 
 class RasterizationError(ValueError):
     """Inputs of the wrong shape, dtype or value (NaN, negative scales, ...)."""
+
+
+_CHECK_VALUES: contextvars.ContextVar[bool] = contextvars.ContextVar("manisplat_splat_check_values", default=True)
+
+
+@contextlib.contextmanager
+def value_checks(enabled: bool) -> Iterator[None]:
+    """Turn the checks of input *values* (NaN/Inf, negative scales, opacities outside [0, 1],
+    group ids out of range) on or off inside the block; shapes and dtypes are always checked.
+
+    Each value check reads a result back from the tensors' device: on a GPU that waits for all
+    queued work (a host-device synchronisation), about 1 ms per call. A training loop on CUDA
+    turns them off and checks its loss instead (``manisplat.reconstruct`` does).
+    """
+    token = _CHECK_VALUES.set(bool(enabled))
+    try:
+        yield
+    finally:
+        _CHECK_VALUES.reset(token)
 
 
 def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree) -> None:
@@ -36,6 +59,8 @@ def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, 
         raise RasterizationError(f"viewmats must be [C, 4, 4] and Ks [C, 3, 3], got {tuple(viewmats.shape)}, {tuple(Ks.shape)}")
     if width <= 0 or height <= 0:
         raise RasterizationError(f"image size must be positive, got {width}x{height}")
+    if not _CHECK_VALUES.get():
+        return
     for name, tensor in (("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
                          ("colors", colors), ("viewmats", viewmats), ("Ks", Ks)):
         if not bool(torch.isfinite(tensor).all()):
@@ -103,7 +128,7 @@ def rasterization(
             raise RasterizationError("group_ids needs num_groups >= 1")
         if group_ids.shape != (N,) or group_ids.dtype not in (torch.int32, torch.int64):
             raise RasterizationError(f"group_ids must be an int tensor of shape ({N},), got {tuple(group_ids.shape)} {group_ids.dtype}")
-        if N and (int(group_ids.min()) < 0 or int(group_ids.max()) >= num_groups):
+        if N and _CHECK_VALUES.get() and (int(group_ids.min()) < 0 or int(group_ids.max()) >= num_groups):
             raise RasterizationError(f"group_ids must lie in [0, {num_groups})")
         G = num_groups
     if impl.name == "gsplat":

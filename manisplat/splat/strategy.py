@@ -110,6 +110,9 @@ class DefaultStrategy:
 
     @torch.no_grad()
     def _accumulate(self, params, state: dict, info: dict) -> None:
+        """Add this step's image-space gradient norms [N], visibility counts [N] and (with the
+        screen-size rules) largest radii [N] to ``state``, with masked element-wise sums: no
+        index lists whose length would have to be read back from a GPU (no synchronisation)."""
         # "means2d_grad" lets a caller that rendered several nodes in one pass hand each node its slice
         grads = info["means2d_grad"] if "means2d_grad" in info else info["means2d"].grad  # [C, N, 2]
         if grads is None:
@@ -121,14 +124,15 @@ class DefaultStrategy:
             state["count"] = torch.zeros(n, device=device)
             state["radii"] = torch.zeros(n, device=device)
         C = info["n_cameras"]
-        scale = torch.tensor([info["width"] / 2.0 * C, info["height"] / 2.0 * C], device=grads.device)
+        sx, sy = info["width"] / 2.0 * C, info["height"] / 2.0 * C
         visible = (info["radii"] > 0).all(dim=-1)  # [C, N]
-        cams, ids = visible.nonzero(as_tuple=True)
-        state["grad2d"].index_add_(0, ids, (grads[cams, ids] * scale).norm(dim=-1).float())
-        state["count"].index_add_(0, ids, torch.ones_like(ids, dtype=torch.float32))
+        norms = torch.hypot(grads[..., 0] * sx, grads[..., 1] * sy).float()  # [C, N]
+        state["grad2d"] += torch.where(visible, norms, torch.zeros_like(norms)).sum(0)
+        state["count"] += visible.sum(0, dtype=torch.float32)
         if self.refine_scale2d_stop_iter > 0:
-            r = info["radii"][cams, ids].max(dim=-1).values.float() / max(info["width"], info["height"])
-            state["radii"][ids] = torch.maximum(state["radii"][ids], r)
+            r = info["radii"].max(dim=-1).values.float() / max(info["width"], info["height"])  # [C, N]
+            r = torch.where(visible, r, torch.zeros_like(r)).amax(0)
+            torch.maximum(state["radii"], r, out=state["radii"])
 
     @torch.no_grad()
     def _grow(self, params, optimizers, state: dict, step: int) -> tuple[int, int]:

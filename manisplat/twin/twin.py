@@ -66,12 +66,15 @@ class Twin:
         object_poses: name -> [T, 4, 4] float64 ``T_base_obj`` per frame (trained poses).
         pose_sources: name -> per frame "static", "attached" or "tracked".
         phases: name -> the Motion/Skill segments of the demonstration for that object.
+        robot_info: the episode's ``robot.model`` and ``robot.joint_names``; camera_name, task,
+            episode (folder name), fps: the source episode's.
     """
 
     def __init__(self, *, graph: SceneGraph, background_rgb: torch.Tensor, robot: RobotModel, robot_description: str,
                  K: np.ndarray, width: int, height: int, T_base_cam: np.ndarray, labels: dict[int, str],
                  t: np.ndarray, q: np.ndarray, gripper: np.ndarray, object_poses: dict[str, np.ndarray],
                  pose_sources: dict[str, list[str]], phases: dict[str, list[Phase]], fps: float, episode: str,
+                 robot_info: dict | None = None, camera_name: str = "camera", task: str | None = None,
                  backend: str = "auto") -> None:
         self.graph, self.background_rgb, self.robot = graph, background_rgb.float(), robot
         self.robot_description = robot_description
@@ -82,8 +85,12 @@ class Twin:
         self.object_poses = {k: np.asarray(v, np.float64) for k, v in object_poses.items()}
         self.pose_sources, self.phases = pose_sources, phases
         self.fps, self.episode, self.backend = float(fps), episode, backend
-        self._viewmat = torch.as_tensor(np.linalg.inv(self.T_base_cam)).float()
-        self._K_splat = opencv_to_splat_K(torch.as_tensor(self.K)).float()
+        self.robot_info = dict(robot_info or {"model": robot.name, "joint_names": list(robot.arm_joint_names)})
+        self.camera_name, self.task = camera_name, task
+        self.device = graph.device  # where it renders: the Gaussians' device
+        self.background_rgb = self.background_rgb.to(self.device)
+        self._viewmat = torch.as_tensor(np.linalg.inv(self.T_base_cam)).float().to(self.device)
+        self._K_splat = opencv_to_splat_K(torch.as_tensor(self.K)).float().to(self.device)
         self._node_labels = self._label_of_nodes()
 
     # ------------------------------------------------------------------ rendering
@@ -103,16 +110,17 @@ class Twin:
         if missing:
             raise ValueError(f"render: no pose for objects {sorted(missing)}")
         q = torch.as_tensor(np.asarray(q, np.float64))
-        link_poses = self.robot.forward_kinematics(q, torch.as_tensor(float(gripper), dtype=torch.float64))
-        poses = {k: torch.as_tensor(np.asarray(v, np.float64)) for k, v in object_poses.items() if k in self.graph.objects}
+        link_poses = self.robot.forward_kinematics(q, torch.as_tensor(float(gripper), dtype=torch.float64)).to(self.device)
+        poses = {k: torch.as_tensor(np.asarray(v, np.float64)).to(self.device) for k, v in object_poses.items()
+                 if k in self.graph.objects}
         view = render_graph(self.graph, link_poses, poses, viewmat=self._viewmat, K=self._K_splat, width=self.width,
                             height=self.height, background=self.background_rgb, backend=self.backend, depth=True,
                             groups_per_node=True)
-        rgb = (view.rgb.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
-        strongest, node = view.group_alphas.max(-1)
+        rgb = (view.rgb.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
+        strongest, node = view.group_alphas.cpu().max(-1)
         labels = self._node_labels[node]
         labels[strongest < 0.5] = self._node_labels[0] if self.graph.background is not None else 0
-        return TwinView(rgb=rgb, depth=view.depth.numpy().astype(np.float32), labels=labels.numpy().astype(np.uint8))
+        return TwinView(rgb=rgb, depth=view.depth.cpu().numpy().astype(np.float32), labels=labels.numpy().astype(np.uint8))
 
     def render_frame(self, i: int) -> TwinView:
         """The twin in the source demonstration's state at frame ``i``."""
@@ -135,24 +143,26 @@ class Twin:
         """Write ``twin.json`` and ``twin.pt`` into ``folder`` (each to a temporary name, then renamed)."""
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
-        tensors = {"background_rgb": self.background_rgb.detach().clone(),
+        # host copies: a twin trained on a GPU loads anywhere with torch.load(..., weights_only=True)
+        tensors = {"background_rgb": self.background_rgb.detach().cpu().clone(),
                    "t": torch.as_tensor(self.t), "q": torch.as_tensor(self.q), "gripper": torch.as_tensor(self.gripper)}
         nodes = []
         for node in self.graph.nodes():
             params = node.gaussians.params
             nodes.append({"name": node.name, "count": len(node.gaussians), "params": sorted(params)})
-            tensors.update({f"node/{node.name}/{k}": v.detach().clone() for k, v in params.items()})
+            tensors.update({f"node/{node.name}/{k}": v.detach().cpu().clone() for k, v in params.items()})
         for name, poses in self.object_poses.items():
             tensors[f"object_poses/{name}"] = torch.as_tensor(poses)
         light = None
         if self.graph.shadows is not None:
             sh = self.graph.shadows
             light = {"extent": sh.extent, "resolution": sh.resolution, "softness": sh.softness}
-            tensors.update({f"shadows/{k}": v.detach().clone() for k, v in sh.state_dict().items()})
+            tensors.update({f"shadows/{k}": v.detach().cpu().clone() for k, v in sh.state_dict().items()})
         meta = {
-            "format": FORMAT, "version": VERSION, "episode": self.episode, "fps": self.fps,
-            "robot": {"description": self.robot_description, "link_order": list(self.graph.link_index)},
-            "camera": {"width": self.width, "height": self.height, "K": self.K.tolist(),
+            "format": FORMAT, "version": VERSION, "episode": self.episode, "fps": self.fps, "task": self.task,
+            "robot": {"description": self.robot_description, "link_order": list(self.graph.link_index),
+                      "model": self.robot_info["model"], "joint_names": list(self.robot_info["joint_names"])},
+            "camera": {"name": self.camera_name, "width": self.width, "height": self.height, "K": self.K.tolist(),
                        "T_base_cam": self.T_base_cam.tolist()},
             "labels": {str(k): v for k, v in sorted(self.labels.items())},
             "nodes": nodes, "shadows": light,
@@ -164,8 +174,10 @@ class Twin:
         _atomic_write(folder / TWIN_JSON, lambda tmp: tmp.write_text(json.dumps(meta, indent=1) + "\n"))
 
     @classmethod
-    def load(cls, folder: str | Path, *, backend: str = "auto") -> "Twin":
-        """The twin a reconstruction folder holds (``manisplat-reconstruct --out``).
+    def load(cls, folder: str | Path, *, backend: str = "auto", device: torch.device | str = "cpu") -> "Twin":
+        """The twin a reconstruction folder holds (``manisplat-reconstruct --out``), its Gaussians on
+        ``device`` ("cpu", "cuda"; where it renders, with ``backend`` "auto" picking gsplat on CUDA),
+        whichever device it was trained on.
 
         Raises:
             TwinFormatError: ``twin.json`` or ``twin.pt`` missing, unreadable, or inconsistent.
@@ -192,7 +204,7 @@ class Twin:
                                   f"the robot {meta['robot']['description']!r} ({robot.link_names})")
         background, links, objects = None, {}, {}
         for node in meta["nodes"]:
-            g = GaussianSet({k: tensor(f"node/{node['name']}/{k}") for k in node["params"]})
+            g = GaussianSet({k: tensor(f"node/{node['name']}/{k}") for k in node["params"]}, device=device)
             if len(g) != node["count"]:
                 raise TwinFormatError(f"{tensors_path}: node {node['name']} has {len(g)} Gaussians, "
                                       f"twin.json says {node['count']}")
@@ -210,7 +222,7 @@ class Twin:
             sh = DirectionalShadows(torch.tensor([0.0, 0.0, 1.0]), torch.zeros(3), light["extent"],
                                     resolution=light["resolution"], softness=light["softness"])
             sh.load_state_dict({k: tensor(f"shadows/{k}") for k in sh.state_dict()})
-            graph.shadows = sh
+            graph.shadows = sh.to(device)
         camera = meta["camera"]
         objects_meta = meta["objects"]
         return cls(
@@ -222,7 +234,8 @@ class Twin:
             object_poses={name: tensor(f"object_poses/{name}").numpy() for name in objects_meta},
             pose_sources={name: o["pose_source"] for name, o in objects_meta.items()},
             phases={name: [Phase(**p) for p in o["phases"]] for name, o in objects_meta.items()},
-            fps=meta["fps"], episode=meta["episode"], backend=backend,
+            fps=meta["fps"], episode=meta["episode"], backend=backend, task=meta.get("task"),
+            robot_info={k: meta["robot"][k] for k in ("model", "joint_names")}, camera_name=camera["name"],
         )
 
 
@@ -245,9 +258,14 @@ def _read_meta(path: Path) -> dict:
     if meta.get("format") != FORMAT or meta.get("version") != VERSION:
         raise TwinFormatError(f"{path}: format {meta.get('format')!r} version {meta.get('version')!r}; "
                               f"expected {FORMAT!r} version {VERSION}")
-    for key in ("robot", "camera", "labels", "nodes", "shadows", "objects", "fps", "episode"):
-        if key not in meta:
-            raise TwinFormatError(f"{path}: no key {key!r}")
+    required = {"": ("robot", "camera", "labels", "nodes", "shadows", "objects", "fps", "episode"),
+                "robot": ("description", "link_order", "model", "joint_names"),
+                "camera": ("name", "width", "height", "K", "T_base_cam")}
+    for section, keys in required.items():
+        content = meta if not section else meta.get(section)
+        for key in keys:
+            if not isinstance(content, dict) or key not in content:
+                raise TwinFormatError(f"{path}: no key {'.'.join(filter(None, (section, key)))!r}")
     return meta
 
 

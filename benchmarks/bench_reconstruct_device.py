@@ -1,0 +1,198 @@
+"""Reconstruction on a device: ms per training iteration, its time split, and host-device syncs.
+
+``python -m benchmarks.bench_reconstruct_device EPISODE --device cuda --iters 1000 --out r.json``
+builds the reconstruction of EPISODE (load, plan, initialise, align: the CLI's setup), trains
+``--iters`` iterations on ``--device`` and reports the training wall time and ms per iteration
+(plain training, as ``manisplat-reconstruct`` runs it), then ``--profile-iters`` more iterations
+with every phase timed separately (each phase waits for the device before and after it, so the
+split adds up to a slower iteration than the plain one): object poses, composition (with the
+shadow map), the main rasterization, the loss, backward, densification and the optimizer step.
+On CUDA it also counts the host-device synchronisations of ``--sync-iters`` iterations
+(``torch.cuda.set_sync_debug_mode``), by source line. The held-out PSNR and pose error of the
+trained reconstruction are computed as ``metrics.json`` computes them.
+
+Through the harness (``python -m benchmarks reconstruct_device``) it runs the built-in sample
+on the CPU with the harness's thread counts.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import platform
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+
+THREADED = True
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def build_reconstruction(episode: Path, config):
+    """(Reconstruction, alignments, setup seconds) as the CLI builds them."""
+    from manisplat.reconstruct.data import load_episode_data
+    from manisplat.reconstruct.pipeline import build
+    from manisplat.reconstruct.plan import make_plan
+
+    t0 = time.perf_counter()
+    data = load_episode_data(episode)
+    rec, alignments = build(data, make_plan(data), config)
+    _sync(rec.device)
+    return rec, alignments, time.perf_counter() - t0
+
+
+class PhaseTimer:
+    """Wraps functions so that each call is timed alone (device synchronised before and after)."""
+
+    def __init__(self, device: torch.device) -> None:
+        self.device, self.totals = device, collections.defaultdict(float)
+
+    def wrap(self, name: str, fn):
+        def timed(*args, **kwargs):
+            _sync(self.device)
+            t0 = time.perf_counter()
+            out = fn(*args, **kwargs)
+            _sync(self.device)
+            self.totals[name] += time.perf_counter() - t0
+            return out
+        return timed
+
+
+def profile_split(rec, iters: int) -> dict[str, float]:
+    """ms per iteration of each phase over ``iters`` more iterations (see the module docstring)."""
+    import manisplat.reconstruct.trainer as trainer_module
+    import manisplat.scene.render as render_module
+
+    timer = PhaseTimer(rec.device)
+    originals = (rec.losses, rec._densify_and_step, rec.object_poses, rec.graph.compose, render_module.rasterization,
+                 trainer_module._error_maps, torch.Tensor.backward)
+    optimizer_step = rec.optimizer.step
+    rec.losses = timer.wrap("forward (poses + compose + rasterize + loss)", rec.losses)
+    rec.object_poses = timer.wrap("object poses (se3_exp)", rec.object_poses)
+    rec.graph.compose = timer.wrap("compose (incl. shadow map)", rec.graph.compose)
+    render_module.rasterization = timer.wrap("rasterize", render_module.rasterization)
+    trainer_module._error_maps = timer.wrap("loss maps (L1, SSIM)", trainer_module._error_maps)
+    torch.Tensor.backward = timer.wrap("backward", torch.Tensor.backward)
+    rec.optimizer.step = timer.wrap("optimizer step", rec.optimizer.step)
+    rec._densify_and_step = timer.wrap("densify + optimizer step", rec._densify_and_step)
+    rec.config.iters = rec.step + iters
+    _sync(rec.device)
+    t0 = time.perf_counter()
+    try:
+        rec.train(progress=False)
+        _sync(rec.device)
+    finally:
+        (rec.losses, rec._densify_and_step, rec.object_poses, rec.graph.compose, render_module.rasterization,
+         trainer_module._error_maps, torch.Tensor.backward) = originals
+        rec.optimizer.step = optimizer_step
+        for name in ("losses", "_densify_and_step", "object_poses"):
+            rec.__dict__.pop(name, None)
+        rec.graph.__dict__.pop("compose", None)
+    total = time.perf_counter() - t0
+    split = {k: round(v / iters * 1e3, 3) for k, v in timer.totals.items()}
+    split["iteration (phases timed apart)"] = round(total / iters * 1e3, 3)
+    return split
+
+
+def count_syncs(rec, iters: int) -> dict[str, int]:
+    """CUDA only: host-device synchronisations in ``iters`` more iterations, by source line."""
+    counts: collections.Counter = collections.Counter()
+    rec.config.iters = rec.step + iters
+    torch.cuda.set_sync_debug_mode("warn")
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            rec.train(progress=False)
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    for w in caught:
+        if "synchroniz" in str(w.message).lower():
+            counts[f"{Path(w.filename).parent.name}/{Path(w.filename).name}:{w.lineno}"] += 1
+    return dict(counts.most_common())
+
+
+def quality(rec, alignments) -> dict:
+    """Held-out PSNR/SSIM and pose error, as ``metrics.json`` (written to a temporary folder)."""
+    from manisplat.reconstruct.outputs import write_evaluation
+
+    with tempfile.TemporaryDirectory() as tmp:
+        metrics = write_evaluation(rec, alignments, Path(tmp), wall_s=0.0)
+    return {k: metrics.get(k) for k in ("psnr", "ssim", "pose", "pose_baseline")}
+
+
+def measure(episode: Path, *, device: str, iters: int, profile_iters: int, sync_iters: int, threads: int | None) -> dict:
+    """One training run on ``device`` and its measurements (see the module docstring)."""
+    from manisplat.reconstruct.config import TrainConfig
+
+    if threads:
+        torch.set_num_threads(threads)
+    config = TrainConfig(iters=iters, device=device)
+    rec, alignments, setup_s = build_reconstruction(episode, config)
+    dev = rec.device
+    if dev.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(dev)
+    _sync(dev)
+    t0 = time.perf_counter()
+    rec.train(progress=False)
+    _sync(dev)
+    train_s = time.perf_counter() - t0
+    result = {
+        "episode": str(episode), "device": str(dev), "backend": config.backend, "iters": iters,
+        "threads": torch.get_num_threads(), "setup_s": round(setup_s, 2), "train_s": round(train_s, 2),
+        "ms_per_iter": round(train_s / iters * 1e3, 2), "gaussians": sum(len(n.gaussians) for n in rec.graph.nodes()),
+        "quality": quality(rec, alignments),
+        "torch": torch.__version__, "machine": platform.node(),
+        "gpu": torch.cuda.get_device_name(dev) if dev.type == "cuda" else None,
+    }
+    if dev.type == "cuda":
+        result["peak_gpu_mib"] = round(torch.cuda.max_memory_allocated(dev) / 2 ** 20)
+    if profile_iters:
+        result["split_ms"] = profile_split(rec, profile_iters)
+    if sync_iters and dev.type == "cuda":
+        result["syncs_in_%d_iters" % sync_iters] = count_syncs(rec, sync_iters)
+    return result
+
+
+def run(ctx) -> list[dict]:
+    """Harness entry: the built-in sample on the CPU, ``ctx.threads`` threads."""
+    from manisplat.episode.synthetic import write_sample_episode
+
+    with tempfile.TemporaryDirectory() as tmp:
+        episode = write_sample_episode(Path(tmp) / "sample")
+        iters = 60 if ctx.quick else 300
+        row = measure(episode, device="cpu", iters=iters, profile_iters=20 if ctx.quick else 50, sync_iters=0,
+                      threads=ctx.threads)
+    return [row]
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.bench_reconstruct_device", description=__doc__.splitlines()[0])
+    p.add_argument("episode", type=Path)
+    p.add_argument("--device", default="auto")
+    p.add_argument("--iters", type=int, default=1000)
+    p.add_argument("--profile-iters", type=int, default=50)
+    p.add_argument("--sync-iters", type=int, default=20)
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    p.add_argument("--out", type=Path, help="write the result as JSON here")
+    args = p.parse_args(argv)
+    result = measure(args.episode, device=args.device, iters=args.iters, profile_iters=args.profile_iters,
+                     sync_iters=args.sync_iters, threads=args.threads)
+    text = json.dumps(result, indent=1, default=lambda x: float(x) if isinstance(x, np.floating) else str(x))
+    print(text)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,155 @@
+"""manisplat-augment: many new, physically feasible demonstrations from one reconstruction.
+
+Only argparse and light modules are imported until the arguments are accepted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import sys
+from pathlib import Path
+
+from manisplat.cli_args import finite_numbers, positive
+
+log = logging.getLogger("manisplat.augment")
+REPORT = "augment_report.json"
+
+EPILOG = """\
+what it does, per demonstration: sample a new start pose for each manipulated object (and a new
+  place pose for a pick-and-place) on the table plane within the ranges, or take them from
+  --poses; move each Skill segment rigidly with its object (T_tcp' = T_new inv(T_src) T_tcp) and
+  solve it by IK frame by frame; re-plan every Motion segment collision-free in joint space and
+  time it under the joint velocity/acceleration limits x --speed; validate (limits, collisions
+  along the densely sampled path, IK residuals, continuity, skill-relative poses); render RGB,
+  depth and label masks from the twin; write an episode (docs/episode-format.md, source
+  augmentation) with augmentation.json. Invalid samples are discarded and counted by reason.
+
+output: OUT/episode_NNNN/ (complete episodes only: each is written under a hidden name and
+  renamed when complete), OUT/augment_report.json (validity rate, reasons, per-sample results,
+  timings), OUT/tcp_paths.png (top view of every TCP path), OUT/sheets/ (contact sheets of the
+  first five). OUT must be new or empty unless --overwrite (its episode_* folders, report,
+  plot and sheets are removed first).
+
+--poses FILE: a JSON list, one entry per demonstration, each mapping an object name to
+  {"T_start": 4x4, "T_place": 4x4 or null} in the robot base frame (metres), in the object's
+  centre frame (its bounding box's centre, the axes of its reconstructed frame), as
+  augmentation.json writes them.
+
+exit status: 0 all requested demonstrations written; 1 fewer valid demonstrations than
+  requested (the valid ones are written), or the reconstruction cannot be augmented (named);
+  2 usage error; 130 interrupted (finished episodes stay; nothing half-written looks complete).
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="manisplat-augment",
+        description="Generate new demonstrations from one reconstruction (manisplat-reconstruct --out): the "
+                    "objects moved, the skills moved with them, the motions re-planned collision-free, every "
+                    "frame rendered from the twin, each written as an episode that manisplat-replay plays.",
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("recon", type=Path, metavar="RECON_DIR", help="a manisplat-reconstruct output folder (twin.json)")
+    p.add_argument("--n", type=positive(int), default=10, help="valid demonstrations to write (default %(default)s)")
+    p.add_argument("--out", type=Path, required=True, help="output folder: new or empty unless --overwrite")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the sampled poses (default %(default)s)")
+    p.add_argument("--object-range", type=finite_numbers((3,)), default=[0.08, 0.08, 45.0], metavar="X,Y,YAW",
+                   help="each object's start pose is moved by up to +-X, +-Y metres and +-YAW degrees on the "
+                        "table (default 0.08,0.08,45)")
+    p.add_argument("--target-range", type=finite_numbers((3,)), default=[0.05, 0.05, 45.0], metavar="X,Y,YAW",
+                   help="the place pose of a pick-and-place likewise (default 0.05,0.05,45)")
+    p.add_argument("--poses", type=Path, metavar="FILE",
+                   help="exact object poses per demonstration instead of sampling (see below; --n is ignored)")
+    p.add_argument("--max-samples", type=positive(int),
+                   help="give up after this many samples (default 3 x --n, at least 10)")
+    p.add_argument("--speed", type=positive(), default=1.0,
+                   help="fraction (0-1] of the joint velocity/acceleration limits for re-planned motions "
+                        "(default %(default)s)")
+    p.add_argument("--planner-timeout", type=positive(), default=1.0,
+                   help="seconds the planner may spend on one motion before the sample is given up (default %(default)s)")
+    p.add_argument("--workers", type=positive(int), default=1,
+                   help="processes rendering and writing demonstrations in parallel (default %(default)s)")
+    p.add_argument("--image-format", choices=("png", "jpg"), default="png", help="rgb file format (default %(default)s)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace earlier results in --out (episode_* folders, report, plot; default: refused)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar, warnings only (default: off)")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.speed > 1.0:
+        parser.error(f"--speed must be in (0, 1]; got {args.speed}")
+    if any(v < 0 for v in (*args.object_range, *args.target_range)):
+        parser.error("--object-range and --target-range take non-negative half-widths")
+    try:
+        _check_out(args.out, args.overwrite)
+    except ValueError as exc:
+        parser.error(str(exc))
+    logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="%(message)s")
+    from manisplat.augment.run import AugmentError, run_augmentation
+
+    try:
+        report = run_augmentation(args)
+    except AugmentError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("\ninterrupted: finished episodes stay in place; nothing half-written looks complete", file=sys.stderr)
+        return 130
+    print(summary(report, args.out))
+    return 0 if report["written"] >= report["requested"] else 1
+
+
+def _check_out(out: Path, overwrite: bool) -> None:
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        raise ValueError(f"--out {out} is not empty; pass --overwrite to replace its demonstrations, "
+                         "or choose another folder")
+
+
+def summary(report: dict, out: Path) -> str:
+    """The closing lines: counts, validity rate and reasons, time split, files to look at."""
+    lines = [f"{report['written']} of {report['requested']} demonstrations written to {out}/ "
+             f"({report['valid']} valid of {report['drawn']} samples, validity {100 * report['validity_rate']:.0f} %)"]
+    if report["reasons"]:
+        lines.append("discarded: " + ", ".join(f"{k} {v}" for k, v in sorted(report["reasons"].items(),
+                                                                               key=lambda kv: -kv[1])))
+    timing = report["timing_s"]
+    lines.append("time: " + ", ".join(f"{k} {v:.1f} s" for k, v in timing.items()))
+    if report.get("skill_error_max"):
+        err = report["skill_error_max"]
+        lines.append(f"skill-relative TCP error max: {err['mm']:.4f} mm, {err['deg']:.4f} deg")
+    lines.append(f"look at: {out / 'tcp_paths.png'}, {out / 'sheets'}/, {out / REPORT}")
+    return "\n".join(lines)
+
+
+def load_poses_file(path: Path) -> list[dict]:
+    """``--poses``: a JSON list of {object: {"T_start": 4x4, "T_place": 4x4 | null}}."""
+    try:
+        entries = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"--poses {path}: unreadable ({exc})") from exc
+    if not isinstance(entries, list) or not entries:
+        raise ValueError(f"--poses {path}: expected a non-empty JSON list of demonstrations")
+    for k, entry in enumerate(entries):
+        if not isinstance(entry, dict) or not entry:
+            raise ValueError(f"--poses {path}: entry {k} is not an object mapping names to poses")
+        for name, poses in entry.items():
+            for key in ("T_start", "T_place"):
+                value = poses.get(key) if isinstance(poses, dict) else None
+                if value is None and key == "T_place":
+                    continue
+                if not (isinstance(value, list) and len(value) == 4 and all(
+                        isinstance(r, list) and len(r) == 4 and all(isinstance(x, (int, float)) and math.isfinite(x)
+                                                                    for x in r) for r in value)):
+                    raise ValueError(f"--poses {path}: entry {k}, {name}.{key} must be a 4x4 list of finite numbers")
+    return entries
+
+
+if __name__ == "__main__":
+    sys.exit(main())

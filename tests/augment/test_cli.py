@@ -1,0 +1,117 @@
+"""manisplat-augment end to end on a small twin: valid episodes that replay, a report with the
+validity rate, nothing half-written, and clear errors for bad input."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from manisplat.augment.cli import main
+from manisplat.episode import Episode, validate
+from manisplat.episode.synthetic import write_sample_episode
+from manisplat.reconstruct.cli import main as reconstruct
+
+
+@pytest.fixture(scope="module")
+def recon(tmp_path_factory):
+    root = tmp_path_factory.mktemp("augment_cli")
+    episode = write_sample_episode(root / "ep", frames=32, width=64, height=48)
+    assert reconstruct([str(episode), "--out", str(root / "twin"), "--iters", "5", "-q"]) == 0
+    return root / "twin"
+
+
+@pytest.fixture(scope="module")
+def augmented(recon, tmp_path_factory):
+    out = tmp_path_factory.mktemp("augmented") / "aug"
+    code = main([str(recon), "--n", "2", "--out", str(out), "--seed", "3", "-q"])
+    return code, out
+
+
+def test_writes_valid_episodes_with_their_augmentation_record(augmented, recon):
+    code, out = augmented
+    assert code == 0
+    report = json.loads((out / "augment_report.json").read_text())
+    assert report["written"] == 2 and report["valid"] == 2 and 0 < report["validity_rate"] <= 1
+    assert sorted(p.name for p in out.iterdir() if p.is_dir()) == ["episode_0000", "episode_0001", "sheets"]
+    assert (out / "tcp_paths.png").stat().st_size > 0
+    assert sorted(p.name for p in (out / "sheets").iterdir()) == ["episode_0000.png", "episode_0001.png"]
+    for name in ("episode_0000", "episode_0001"):
+        ep = Episode.open(out / name)
+        assert ep.meta.source == "augmentation" and ep.meta.extra["parent"] == "ep"
+        assert validate(ep.path).ok, str(validate(ep.path))
+        assert ep.has_depth and ep.has_masks and len(ep) > 10
+        record = json.loads((ep.path / "augmentation.json").read_text())
+        assert record["parent"] == "ep" and {"box"} == set(record["objects"])
+        kinds = [s["kind"] for s in record["segments"]]
+        assert "skill" in kinds and "motion" in kinds
+        # the rendered box sits where augmentation.json says the demonstration starts it
+        box = [v for v, n in ep.meta.labels.items() if n == "object/box"][0]
+        rows, cols = np.nonzero(ep.mask(0) == box)
+        T_start = np.array(record["objects"]["box"]["T_start"])
+        cam = np.linalg.inv(ep.camera.T_mount_cam) @ T_start[:, 3]
+        u, v = (ep.camera.K @ (cam[:3] / cam[2]))[:2]
+        assert len(rows) > 0 and abs(cols.mean() - u) < 4 and abs(rows.mean() - v) < 4
+
+
+def test_augmented_episodes_pass_the_replay_checks(augmented):
+    from manisplat.drivers.piper.convention import convention_for
+    from manisplat.drivers.piper.trajectory import ReplayLimits, check_trajectory, trajectory_from_episode
+    from manisplat.robot import builtin_piper
+
+    _, out = augmented
+    ep = Episode.open(out / "episode_0000")
+    traj = trajectory_from_episode(ep, convention_for(ep.meta.robot.description, ep.path), 1.0)
+    assert check_trajectory(traj, builtin_piper(with_geometry=False), ReplayLimits()) == []
+
+
+def test_a_used_out_folder_is_refused(augmented, recon, capsys):
+    _, out = augmented
+    with pytest.raises(SystemExit) as exc:
+        main([str(recon), "--n", "1", "--out", str(out)])
+    assert exc.value.code == 2 and "--overwrite" in capsys.readouterr().err
+
+
+def test_explicit_poses_and_an_unreachable_one(recon, tmp_path, capsys):
+    from manisplat.twin import Twin
+
+    from manisplat.augment.frames import to_centre_frame
+
+    twin = Twin.load(recon)
+    start, place = (to_centre_frame(twin, "box", twin.object_poses["box"][k]) for k in (0, -1))
+    far = start.copy()
+    far[0, 3] += 1.5
+    poses = [{"box": {"T_start": start.tolist(), "T_place": place.tolist()}},
+             {"box": {"T_start": far.tolist(), "T_place": place.tolist()}}]
+    path = tmp_path / "poses.json"
+    path.write_text(json.dumps(poses))
+    out = tmp_path / "aug"
+    assert main([str(recon), "--poses", str(path), "--out", str(out), "-q"]) == 1  # one of two valid
+    report = json.loads((out / "augment_report.json").read_text())
+    assert report["written"] == 1 and report["reasons"] == {"ik_unreachable": 1}
+    assert "ik_unreachable 1" in capsys.readouterr().out
+
+
+def test_a_folder_without_a_twin_is_a_clear_error(tmp_path, capsys):
+    assert main([str(tmp_path), "--out", str(tmp_path / "aug"), "-q"]) == 1
+    err = capsys.readouterr().err
+    assert "twin.json" in err and "manisplat-reconstruct" in err
+
+
+def test_an_interrupted_write_leaves_nothing_that_looks_complete(recon, tmp_path, monkeypatch):
+    from manisplat.augment import writer
+
+    calls = {"n": 0}
+    original = writer.Twin.render
+
+    def render_then_stop(self, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 5:
+            raise KeyboardInterrupt
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(writer.Twin, "render", render_then_stop)
+    out = tmp_path / "aug"
+    assert main([str(recon), "--n", "1", "--out", str(out), "-q"]) == 130
+    assert not any(p.name.startswith("episode_") for p in out.iterdir())

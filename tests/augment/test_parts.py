@@ -1,0 +1,68 @@
+"""The pieces under augmentation: the Pinocchio copy of the robot, target sampling, timing."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from manisplat.augment.kinematics import PinRobot
+from manisplat.augment.sampling import sample_targets
+from manisplat.augment.skills import finite_difference_ratios
+from manisplat.augment.source import source_demo
+from manisplat.augment.timing import time_motion
+from manisplat.robot import builtin_piper
+
+
+def test_pinocchio_model_matches_the_robot_model():
+    robot = builtin_piper()
+    kin = PinRobot(robot)
+    q = robot.sample_configurations(20, generator=torch.Generator().manual_seed(0)).numpy()
+    width = np.linspace(0, 0.07, 20)
+    assert np.abs(kin.tcp_batch(q) - robot.tcp_pose(torch.as_tensor(q)).numpy()).max() < 1e-9
+    links = robot.forward_kinematics(torch.as_tensor(q), torch.as_tensor(width)).numpy()
+    for i in range(20):
+        ours = kin.link_poses(q[i], width[i])
+        for name in robot.link_names:
+            assert np.abs(ours[name] - links[i, robot.link_index(name)]).max() < 1e-9
+    # IK from a nearby start reaches the target far below the tolerance
+    T = kin.tcp(q[3])
+    sol = kin.ik(T, q[3] + 0.05, tol_pos=1e-4, tol_rot=1.75e-4)
+    assert sol.ok(1e-6, 1e-6)
+
+
+def test_targets_stay_in_their_ranges_and_follow_the_seed(twin):
+    box = source_demo(twin).objects["box"]
+    ranges, place = (0.08, 0.08, math.radians(45)), (0.05, 0.05, math.radians(45))
+    draws = [sample_targets(twin, np.random.default_rng(s), ranges, place)["box"] for s in range(40)]
+    for tgt in draws:
+        for T, T0, r in ((tgt.T_start, box.T_rest, ranges), (tgt.T_place, box.T_placed, place)):
+            d = T[:3, 3] - T0[:3, 3]
+            assert abs(d[0]) <= r[0] and abs(d[1]) <= r[1] and abs(d[2]) < 1e-12
+            R = T[:3, :3] @ T0[:3, :3].T  # a turn about the vertical only
+            assert np.allclose(R[2], [0, 0, 1], atol=1e-9)
+            assert abs(math.atan2(R[1, 0], R[0, 0])) <= r[2] + 1e-12
+    spread = np.array([t.T_start[:2, 3] - box.T_rest[:2, 3] for t in draws])
+    assert spread.std(axis=0).min() > 0.03  # actually uses the range
+    again = sample_targets(twin, np.random.default_rng(7), ranges, place)["box"]
+    assert np.array_equal(again.T_start, draws[7].T_start) and np.array_equal(again.T_place, draws[7].T_place)
+
+
+def test_timed_motions_keep_the_limits_and_the_boundary_velocities():
+    robot = builtin_piper()
+    vlim, alim, dt = robot.velocity_limits * 0.95, robot.acceleration_limits * 0.95, 1 / 16
+    a = np.array([0.0, 1.0, -1.0, 0.0, 0.3, 0.0])
+    b = np.array([0.6, 1.4, -0.8, 0.2, 0.0, 0.3])
+    v0 = np.array([0.3, 0.2, -0.1, 0.0, 0.0, 0.0])
+    v1 = np.array([0.0, -0.3, 0.1, 0.0, 0.1, 0.0])
+    timed = time_motion(np.stack([a, b]), v0, v1, vlim=vlim, alim=alim, dt=dt)
+    q = timed.q
+    assert np.allclose(q[0], a) and np.allclose(q[-1], b)
+    assert timed.duration == (len(q) - 1) * dt and timed.duration >= timed.optimal - 1e-9
+    # with a frame before at v0 and one after at v1, finite differences stay within the limits
+    padded = np.concatenate([[a - v0 * dt], q, [b + v1 * dt]])
+    rv, ra = finite_difference_ratios(padded, dt, robot.velocity_limits, robot.acceleration_limits)
+    assert rv <= 1 and ra <= 1
+    # and the leaving velocity is v0 (to first order in dt)
+    assert np.abs((q[1] - q[0]) / dt - v0).max() < 0.6 * dt * robot.acceleration_limits.max()

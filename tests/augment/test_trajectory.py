@@ -1,0 +1,201 @@
+"""New demonstrations from a small twin: skills moved rigidly with their object, motions within
+the limits the replay enforces, unreachable targets and obstacles handled, deterministic."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.interpolate import CubicSpline
+
+from manisplat.augment.collision import BoxObstacle
+from manisplat.augment.sampling import perturb
+from manisplat.augment.source import source_demo
+from manisplat.augment.trajectory import AugmentConfig, ObjectTarget, Rejected, augment_trajectory, sample_targets
+from manisplat.drivers.piper.trajectory import ReplayLimits, Trajectory, check_trajectory, trajectory_figures
+from manisplat.robot import builtin_piper
+
+TOL_M, TOL_RAD = 1e-4, math.radians(0.01)
+
+
+def _pose_errors(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Position (m) and rotation (rad, the atan2 form: accurate for tiny angles) differences."""
+    dp = np.linalg.norm(A[..., :3, 3] - B[..., :3, 3], axis=-1)
+    R = np.swapaxes(A[..., :3, :3], -1, -2) @ B[..., :3, :3]
+    skew = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+    return dp, np.arctan2(0.5 * np.linalg.norm(skew, axis=-1), 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1))
+
+
+def _source_tcp_at(twin, first: int, last: int, n: int) -> np.ndarray:
+    """The source TCP at n source times evenly from ``first`` to ``last`` (the skill's frames, or
+    the slowed skill's: a C2 spline through the source joints, as documented)."""
+    s = np.linspace(first, last, n)
+    q = CubicSpline(np.arange(len(twin.q)), twin.q, axis=0)(s)
+    exact = np.isclose(s, np.round(s))
+    q[exact] = twin.q[np.round(s[exact]).astype(int)]
+    return twin.robot.tcp_pose(torch.as_tensor(q)).numpy()
+
+
+def _tcp(twin, q: np.ndarray) -> np.ndarray:
+    return twin.robot.tcp_pose(torch.as_tensor(q)).numpy()
+
+
+def _source_targets(twin) -> dict[str, ObjectTarget]:
+    src = source_demo(twin)
+    return {k: ObjectTarget(o.T_rest, o.T_placed) for k, o in src.objects.items() if o.manipulated}
+
+
+def _replay_problems(traj) -> tuple[list[str], dict]:
+    robot = builtin_piper(with_geometry=False)
+    out = []
+    figures = {}
+    for q, g in ((traj.action_q, traj.action_gripper), (traj.q, traj.gripper)):
+        t = Trajectory(traj.t.copy(), q, g, "actions", 1.0)
+        out += check_trajectory(t, robot, ReplayLimits())
+        figures = trajectory_figures(t, robot, ReplayLimits())
+    return out, figures
+
+
+def test_zero_perturbation_reproduces_the_source_skills(twin):
+    traj = augment_trajectory(twin, _source_targets(twin), AugmentConfig())
+    skills = [s for s in traj.segments if s["kind"] == "skill"]
+    assert [s["name"] for s in skills] == ["S_pick", "S_place"]
+    for seg in skills:
+        f0, f1 = seg["frames"]
+        s0, s1 = seg["source_frames"]
+        new = _tcp(twin, traj.q[f0:f1 + 1])
+        src = _source_tcp_at(twin, s0, s1, f1 - f0 + 1)
+        dp, dr = _pose_errors(new, src)
+        assert dp.max() <= TOL_M and dr.max() <= TOL_RAD, (seg["name"], dp.max(), dr.max())
+        assert np.allclose(np.array(seg["T"]), np.eye(4), atol=1e-12)
+        # the gripper signal is the source's (at its ends, exactly)
+        assert traj.gripper[f0] == pytest.approx(twin.gripper[s0], abs=1e-9)
+        assert traj.gripper[f1] == pytest.approx(twin.gripper[s1], abs=1e-9)
+    # starts and ends where the source does
+    assert np.allclose(traj.q[0], twin.q[0]) and traj.t[0] == 0
+    assert np.allclose(np.diff(traj.t), 1 / twin.fps)
+    assert traj.validation["skill_error_mm"] <= 0.1 and traj.validation["skill_error_deg"] <= 0.01
+
+
+def test_a_shifted_object_moves_the_skills_by_exactly_its_transform(twin):
+    src = source_demo(twin)
+    box = src.objects["box"]
+    T_start = perturb(box.T_rest, 0.03, -0.04, math.radians(20))
+    T_place = perturb(box.T_placed, -0.02, 0.03, math.radians(-15))
+    traj = augment_trajectory(twin, {"box": ObjectTarget(T_start, T_place)}, AugmentConfig())
+    for seg in (s for s in traj.segments if s["kind"] == "skill"):
+        f0, f1 = seg["frames"]
+        s0, s1 = seg["source_frames"]
+        T_new, T_src = (T_start, box.T_rest) if seg["name"] == "S_pick" else (T_place, box.T_placed)
+        D = T_new @ np.linalg.inv(T_src)
+        assert np.allclose(np.array(seg["T"]), D, atol=1e-12)
+        new = _tcp(twin, traj.q[f0:f1 + 1])
+        src_tcp = _source_tcp_at(twin, s0, s1, f1 - f0 + 1)
+        dp, dr = _pose_errors(new, D @ src_tcp)
+        assert dp.max() <= TOL_M and dr.max() <= TOL_RAD
+        # relative to the object, the TCP is where it was in the source
+        dp, dr = _pose_errors(np.linalg.inv(T_new) @ new, np.linalg.inv(T_src) @ src_tcp)
+        assert dp.max() <= TOL_M and dr.max() <= TOL_RAD
+    # the object starts at T_start, ends at T_place, and is carried at the source's grasp offset
+    poses = traj.object_poses["box"]
+    assert np.allclose(poses[0], T_start) and np.allclose(poses[-1], T_place, atol=1e-9)
+    transfer = next(s for s in traj.segments if s["name"] == "M_transfer")
+    tcp = _tcp(twin, traj.q[transfer["frames"][0]:transfer["frames"][1] + 1])
+    grasp = np.linalg.inv(tcp) @ poses[transfer["frames"][0]:transfer["frames"][1] + 1]
+    assert np.allclose(grasp, box.G, atol=1e-9)
+    assert np.allclose(traj.objects["box"]["T_start"], T_start, atol=1e-12)
+
+
+def test_trajectories_pass_the_replay_checks_at_speed_one(twin):
+    for seed in range(4):
+        targets = sample_targets(twin, np.random.default_rng(seed), (0.04, 0.04, math.radians(30)),
+                                 (0.03, 0.03, math.radians(30)))
+        try:
+            traj = augment_trajectory(twin, targets, AugmentConfig(seed=seed))
+        except Rejected as exc:
+            assert exc.reason == "ik_unreachable", exc
+            continue
+        problems, figures = _replay_problems(traj)
+        assert problems == []
+        assert figures["peak_velocity_of_limit"] <= 1 and figures["peak_acceleration_of_limit"] <= 1
+        assert set(np.unique(traj.action_gripper)) <= {0.0, 0.07}
+        assert np.allclose(traj.action_q[:-1], traj.q[1:])
+        assert traj.q.shape == (len(traj.t), 6) and traj.validation["collision_free"]
+        # frames inside the joint limits
+        robot = builtin_piper(with_geometry=False)
+        assert np.all(traj.q >= robot.lower - 1e-9) and np.all(traj.q <= robot.upper + 1e-9)
+
+
+def test_slower_speed_gives_slower_motions(twin):
+    fast = augment_trajectory(twin, _source_targets(twin), AugmentConfig(speed=1.0))
+    slow = augment_trajectory(twin, _source_targets(twin), AugmentConfig(speed=0.5))
+    frames = lambda tr: sum(s["frames"][1] - s["frames"][0] + 1 for s in tr.segments if s["kind"] == "motion")  # noqa: E731
+    assert frames(slow) > 1.3 * frames(fast)
+
+
+def test_an_unreachable_target_is_rejected(twin):
+    box = source_demo(twin).objects["box"]
+    far = perturb(box.T_rest, 1.5, 0.0, 0.0)
+    with pytest.raises(Rejected) as info:
+        augment_trajectory(twin, {"box": ObjectTarget(far, box.T_placed)}, AugmentConfig())
+    assert info.value.reason == "ik_unreachable"
+
+
+def _spread_targets(twin) -> dict[str, ObjectTarget]:
+    """The box picked 6 cm to one side and placed 5 cm to the other: a long transfer."""
+    box = source_demo(twin).objects["box"]
+    return {"box": ObjectTarget(perturb(box.T_rest, 0.0, -0.06, 0.0), perturb(box.T_placed, 0.0, 0.05, 0.0))}
+
+
+def _obstacle_on_transfer(twin) -> BoxObstacle:
+    """A 3 cm cube where the TCP passes in the middle of the straight transfer."""
+    traj = augment_trajectory(twin, _spread_targets(twin), AugmentConfig())
+    seg = next(s for s in traj.segments if s["name"] == "M_transfer")
+    assert next(r for r in traj.planner["segments"] if r["segment"] == "M_transfer")["method"] == "straight"
+    f0, f1 = seg["frames"]
+    T = np.eye(4)
+    T[:3, 3] = _tcp(twin, traj.q[(f0 + f1) // 2])[:3, 3]
+    return BoxObstacle((0.03, 0.03, 0.03), T)
+
+
+def test_an_obstacle_on_the_straight_path_forces_a_collision_free_detour(twin):
+    obstacle = _obstacle_on_transfer(twin)
+    config = AugmentConfig(obstacles=(obstacle,), planner_timeout_s=5.0, seed=1)
+    traj = augment_trajectory(twin, _spread_targets(twin), config)
+    transfer = next(r for r in traj.planner["segments"] if r["segment"] == "M_transfer")
+    assert transfer["method"] == "rrtconnect"
+    # independently of the planner: the TCP stays out of the cube, densely between frames
+    seg = next(s for s in traj.segments if s["name"] == "M_transfer")
+    f0, f1 = seg["frames"][0] - 1, seg["frames"][1] + 1
+    q = traj.q[f0:f1 + 1]
+    dense = np.concatenate([a + np.linspace(0, 1, 20, endpoint=False)[:, None] * (b - a) for a, b in zip(q[:-1], q[1:])])
+    centre = obstacle.T[:3, 3]
+    tcp = _tcp(twin, dense)[:, :3, 3]
+    assert np.abs(tcp - centre).max(axis=1).min() > 0.015 + 0.005
+    assert traj.validation["collision_free"]
+    problems, _ = _replay_problems(traj)
+    assert problems == []
+
+
+def test_an_obstacle_that_blocks_everything_is_rejected(twin):
+    box = source_demo(twin).objects["box"]
+    T = np.eye(4)
+    T[:3, 3] = box.T_rest[:3, 3] + [0, 0, 0.15]
+    wall = BoxObstacle((0.3, 0.3, 0.1), T)  # over the object: the approach and the pick cannot pass
+    with pytest.raises(Rejected) as info:
+        augment_trajectory(twin, _source_targets(twin), AugmentConfig(obstacles=(wall,), planner_timeout_s=0.3))
+    assert info.value.reason in ("collision", "planner_timeout")
+
+
+def test_deterministic_for_a_seed(twin):
+    again = sample_targets(twin, np.random.default_rng(5))
+    assert np.array_equal(sample_targets(twin, np.random.default_rng(5))["box"].T_start, again["box"].T_start)
+    # with the planner in play (OMPL re-seeded from the seed)
+    config = AugmentConfig(obstacles=(_obstacle_on_transfer(twin),), planner_timeout_s=5.0, seed=11)
+    a = augment_trajectory(twin, _spread_targets(twin), config)
+    b = augment_trajectory(twin, _spread_targets(twin), config)
+    assert next(r for r in a.planner["segments"] if r["segment"] == "M_transfer")["method"] == "rrtconnect"
+    assert np.array_equal(a.q, b.q) and np.array_equal(a.gripper, b.gripper)
+    assert [s["frames"] for s in a.segments] == [s["frames"] for s in b.segments]

@@ -1,0 +1,267 @@
+"""Training on a chosen device: --device, TrainConfig.device, tensors on it, checkpoints and twins
+that load on either device, and (on CUDA) an iteration without host-device synchronisation.
+
+The CUDA tests skip without a GPU and gsplat (run them on a CUDA machine with
+pip install 'manisplat[gpu]'); the rest run anywhere.
+"""
+
+from __future__ import annotations
+
+import sys
+import warnings
+from pathlib import Path
+
+import pytest
+import torch
+
+from manisplat.episode.synthetic import write_sample_episode
+from manisplat.reconstruct.cli import main
+from manisplat.reconstruct.config import DeviceUnavailable, TrainConfig, resolve_device
+from manisplat.reconstruct.data import load_episode_data
+from manisplat.reconstruct.pipeline import build
+from manisplat.reconstruct.plan import make_plan
+from manisplat.splat.backends import gsplat_raster
+from manisplat.twin import Twin
+
+needs_cuda = pytest.mark.skipif(not gsplat_raster.available(), reason="needs CUDA and gsplat (pip install 'manisplat[gpu]')")
+no_cuda = pytest.mark.skipif(torch.cuda.is_available(), reason="checks the error shown where CUDA is missing")
+
+# short schedules so that 16 iterations run shadows, densification and SH bands
+SHORT = dict(shadow_start=4, refine_start=6, refine_every=4, sh_every=5, eval_every=100, log_every=5)
+
+
+@pytest.fixture(scope="module")
+def pick(tmp_path_factory):
+    return write_sample_episode(tmp_path_factory.mktemp("pick") / "ep", frames=24, width=80, height=60)
+
+
+def _reconstruction(episode: Path, **config):
+    data = load_episode_data(episode)
+    return build(data, make_plan(data), TrainConfig(**{**SHORT, **config}))
+
+
+def tensors_of(rec) -> dict[str, torch.Tensor]:
+    """Every tensor the training iteration reads or updates, by a readable name."""
+    out = {f"data.{k}": v for k, v in vars(rec.data).items() if isinstance(v, torch.Tensor)}
+    for node in rec.graph.nodes():
+        g = node.gaussians
+        out.update({f"{node.name}.{k}": v for k, v in g.params.items()})
+        out.update({f"{node.name}.strategy.{k}": v for k, v in (g.strategy_state or {}).items()
+                    if isinstance(v, torch.Tensor)})
+    for name, t in rec.trajectories.items():
+        out.update({f"trajectory.{name}.{k}": v for k, v in t.state_dict().items()})
+    if rec.graph.shadows is not None:
+        out.update({f"shadows.{k}": v for k, v in rec.graph.shadows.state_dict().items()})
+    for p, slot in rec.optimizer.state.items():
+        out.update({f"adam.{id(p)}.{k}": v for k, v in slot.items() if k != "step"})
+    out["background"], out["camera"] = rec.background_logit, rec.camera_delta
+    out["dynamic_masks"] = rec._dynamic_masks
+    return out
+
+
+# ---------------------------------------------------------------- choosing the device
+def test_the_config_names_a_device_as_a_string_and_auto_by_default():
+    assert TrainConfig().device == "auto" and isinstance(TrainConfig().device, str)
+    assert resolve_device("cpu") == "cpu"
+    assert resolve_device("auto") == ("cuda" if torch.cuda.is_available() else "cpu")
+    assert resolve_device("auto", backend="cpu") == "cpu"  # the C++ backend by name keeps the CPU
+    with pytest.raises(ValueError, match="unknown device"):
+        resolve_device("tpu")
+    with pytest.raises(DeviceUnavailable, match="CUDA only"):
+        resolve_device("cpu", backend="gsplat")
+
+
+@no_cuda
+def test_cuda_without_cuda_is_a_clear_error():
+    with pytest.raises(DeviceUnavailable, match="CUDA is not available") as info:
+        resolve_device("cuda")
+    assert "--device cpu" in str(info.value) and "manisplat[gpu]" in str(info.value)
+
+
+@no_cuda
+def test_cli_device_cuda_without_cuda_exits_1_before_loading(pick, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main([str(pick), "--out", str(out), "--iters", "2", "--device", "cuda", "-q"]) == 1
+    err = capsys.readouterr().err
+    assert "CUDA is not available" in err and "pip install 'manisplat[gpu]'" in err
+    assert not out.exists()  # refused before anything was written
+
+
+def test_cuda_without_gsplat_names_the_install(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    monkeypatch.setitem(sys.modules, "gsplat", None)  # import gsplat raises ImportError
+    with pytest.raises(DeviceUnavailable, match=r"pip install 'manisplat\[gpu\]'"):
+        resolve_device("cuda")
+    with pytest.raises(DeviceUnavailable, match="'cpu' backend takes CPU tensors"):
+        resolve_device("cuda", backend="cpu")
+    assert resolve_device("cuda", backend="torch") == "cuda"  # the slow reference needs no gsplat
+
+
+def test_cli_accepts_device_cpu_and_refuses_unknown_devices(pick, tmp_path):
+    assert main([str(pick), "--out", str(tmp_path / "a"), "--iters", "3", "--device", "cpu", "-q"]) == 0
+    with pytest.raises(SystemExit) as info:
+        main([str(pick), "--out", str(tmp_path / "b"), "--device", "tpu"])
+    assert info.value.code == 2
+
+
+# ---------------------------------------------------------------- every tensor on the device
+def _train_and_check_devices(episode: Path, device: str):
+    rec, alignments = _reconstruction(episode, iters=16, device=device)
+    assert rec.device.type == device
+    before = sum(len(n.gaussians) for n in rec.graph.nodes())
+    rec.train(progress=False)
+    assert rec.graph.shadows is not None and rec.step == 16
+    assert sum(len(n.gaussians) for n in rec.graph.nodes()) != before  # densification ran
+    wrong = {k: str(v.device) for k, v in tensors_of(rec).items() if v.device.type != device}
+    assert not wrong, f"tensors not on {device}: {wrong}"
+    assert rec.data.rgb.dtype == torch.uint8  # images stay compact on the device
+    assert rec.trajectories["box"].xi.dtype == torch.float64 and rec.trajectories["box"].pseudo.dtype == torch.float64
+    return rec, alignments
+
+
+def test_every_tensor_of_a_cpu_run_is_on_the_cpu(pick):
+    _train_and_check_devices(pick, "cpu")
+
+
+def test_one_optimizer_updates_every_node(pick):
+    rec, _ = _reconstruction(pick, iters=8, device="cpu")
+    before = {n.name: n.gaussians.params["sh0"].detach().clone() for n in rec.graph.nodes()}
+    rec.train(progress=False)
+    for node in rec.graph.nodes():
+        assert node.gaussians.optimizer is rec.optimizer
+        if node.name.startswith(("background", "object")):  # seen in every frame
+            assert not torch.equal(before[node.name], node.gaussians.params["sh0"]), node.name
+    held = {id(p) for g in rec.optimizer.param_groups for p in g["params"]}
+    assert all(id(p) in held for n in rec.graph.nodes() for p in n.gaussians.params.values())
+    assert id(rec.trajectories["box"].xi) in held and id(rec.background_logit) in held
+
+
+def test_a_checkpoint_continues_exactly(pick, tmp_path):
+    """Saved, read back on the host (map_location), loaded into a fresh reconstruction: the same
+    parameters and moments, and the next iterations give the same parameters as an unbroken run."""
+    rec, _ = _reconstruction(pick, iters=10, device="cpu")
+    rec.train(progress=False)
+    rec.save_checkpoint(tmp_path / "c.pt")
+    rec.config.iters = 14
+    rec.train(progress=False)
+
+    resumed, _ = _reconstruction(pick, iters=14, device="cpu")
+    resumed.load_state_dict(torch.load(tmp_path / "c.pt", weights_only=False, map_location="cpu"))
+    assert resumed.step == 10 and resumed.graph.shadows is not None
+    resumed.train(progress=False)
+    for a, b in zip(rec.graph.nodes(), resumed.graph.nodes()):
+        for k in a.gaussians.params:
+            torch.testing.assert_close(a.gaussians.params[k], b.gaussians.params[k], rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(rec.trajectories["box"].xi, resumed.trajectories["box"].xi)
+
+
+def test_a_checkpoint_of_the_older_per_node_format_is_refused_clearly(pick):
+    rec, _ = _reconstruction(pick, iters=2, device="cpu")
+    state = rec.state_dict()
+    del state["optimizer"]
+    with pytest.raises(ValueError, match="older"):
+        rec.load_state_dict(state)
+
+
+def test_no_training_diverges_silently(pick):
+    from manisplat.reconstruct.trainer import TrainingDiverged
+
+    rec, _ = _reconstruction(pick, iters=6, device="cpu", log_every=1, lambda_pose=float("nan"))
+    with pytest.raises(TrainingDiverged, match="iteration 1"):
+        rec.train(progress=False)
+
+
+# ---------------------------------------------------------------- CUDA (skipped without)
+@needs_cuda
+def test_every_tensor_of_a_cuda_run_is_on_cuda_and_its_outputs_load_on_the_cpu(pick, tmp_path):
+    from manisplat.reconstruct.outputs import write_evaluation, write_twin
+
+    rec, alignments = _train_and_check_devices(pick, "cuda")
+    write_twin(rec, alignments, tmp_path)
+    metrics = write_evaluation(rec, alignments, tmp_path, wall_s=1.0)
+    assert metrics["psnr"]["full"] > 10
+    # twin.pt holds host tensors: it loads without map_location, and renders on the CPU
+    raw = torch.load(tmp_path / "twin.pt", weights_only=True)
+    assert all(v.device.type == "cpu" for v in raw.values())
+    twin_cpu, twin_gpu = Twin.load(tmp_path), Twin.load(tmp_path, device="cuda")
+    assert twin_gpu.graph.device.type == "cuda"
+    a, b = twin_cpu.render_frame(3), twin_gpu.render_frame(3)
+    assert abs(a.rgb.astype(int) - b.rgb.astype(int)).mean() < 0.5  # C++ vs gsplat rasterizer
+    # a checkpoint written on CUDA continues on the CPU
+    rec.save_checkpoint(tmp_path / "c.pt")
+    cpu, _ = _reconstruction(pick, iters=18, device="cpu")
+    cpu.load_state_dict(torch.load(tmp_path / "c.pt", weights_only=False, map_location="cpu"))
+    assert all(v.device.type == "cpu" for v in tensors_of(cpu).values())
+    cpu.train(progress=False)
+    assert cpu.step == 18
+
+
+@needs_cuda
+def test_a_cuda_iteration_does_not_synchronise_outside_gsplat(pick):
+    """Between densification and logging steps the trainer reads nothing back from the GPU; only
+    gsplat's own tile-intersection count (one per rasterization) remains."""
+    rec, _ = _reconstruction(pick, iters=12, device="cuda", refine_start=10 ** 6, shadow_start=2)
+    rec.train(progress=False)  # warm up: shadows started, kernels loaded, the loss read once
+    rec._read_loss = lambda: float("nan")  # the reads every log_every / eval_every iterations
+    rec.quick_psnr = lambda: float("nan")
+    rec.config.iters = 20
+    torch.cuda.set_sync_debug_mode("warn")
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            rec.train(progress=False)
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    sites = {f"{w.filename}:{w.lineno}" for w in caught if "synchroniz" in str(w.message).lower()}
+    ours = sorted(s for s in sites if "gsplat" not in s)
+    assert not ours, f"host-device synchronisations in the iteration: {ours}"
+    assert rec.step == 20
+
+
+# ---------------------------------------------------------------- batched operations = the plain ones
+def test_the_batched_composition_equals_placing_node_by_node(pick):
+    rec, _ = _reconstruction(pick, iters=8, device="cpu")
+    rec.train(progress=False)  # shadows on, SH band 1 active
+    for node in rec.graph.nodes():
+        node.gaussians.active_degree = 1
+    d, f = rec.data, 5
+    V = rec.viewmat()
+    center = -(V[:3, :3].T @ V[:3, 3])
+    args = (d.link_poses[f], rec.object_poses(f), d.link_quats[f], center)
+    batched = rec.graph.compose(*args)
+    rec.graph._compose_batched = lambda *a: None  # the node-by-node path
+    plain = rec.graph.compose(*args)
+    assert batched.slices == plain.slices
+    for k in ("means", "quats", "scales", "opacities", "colors", "groups"):
+        torch.testing.assert_close(getattr(batched, k), getattr(plain, k), rtol=1e-5, atol=1e-6)
+    without_quats = type(rec.graph)._compose_batched(rec.graph, d.link_poses[f], rec.object_poses(f), None, center)
+    torch.testing.assert_close(without_quats.quats, plain.quats, rtol=1e-5, atol=1e-6)
+
+
+def test_the_gpu_ssim_map_equals_kornias():
+    import kornia
+
+    from manisplat.reconstruct.trainer import ssim_map
+
+    g = torch.Generator().manual_seed(0)
+    x, y = torch.rand(30, 41, 3, generator=g), torch.rand(30, 41, 3, generator=g)
+    y = 0.7 * x + 0.3 * y
+    ref = kornia.metrics.ssim(x.permute(2, 0, 1)[None], y.permute(2, 0, 1)[None], 11)[0].mean(0)
+    torch.testing.assert_close(ssim_map(x, y), ref, rtol=1e-5, atol=1e-6)
+
+
+def test_the_lean_twist_exp_equals_se3_exp_with_gradients():
+    from manisplat.geometry import se3_exp
+    from manisplat.reconstruct.poses import twist_exp
+
+    g = torch.Generator().manual_seed(1)
+    for scale in (0.0, 1e-9, 1e-5, 1e-3, 0.3, 2.5):
+        xi = (torch.randn(6, generator=g, dtype=torch.float64) * scale).requires_grad_(True)
+        torch.testing.assert_close(twist_exp(xi), se3_exp(xi), rtol=1e-12, atol=1e-12)
+        if scale:
+            ga, = torch.autograd.grad(twist_exp(xi).sum(), xi)
+            gb, = torch.autograd.grad(se3_exp(xi).sum(), xi)
+            torch.testing.assert_close(ga, gb, rtol=1e-7, atol=1e-9)
+    xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
+    assert torch.isfinite(torch.autograd.grad(twist_exp(xi).sum(), xi)[0]).all()
