@@ -251,6 +251,9 @@ class _Run:
 
     def approach(self, q_now: np.ndarray) -> None:
         q0, g0 = sample(self.traj, 0.0)
+        # an arm resting at a joint limit may read one wire step (0.001 deg) beyond it, and a
+        # target there is refused: the ramp starts from the nearest point inside the limits
+        q_now = np.clip(q_now, self.arm.robot.lower, self.arm.robot.upper)
         duration, at = approach(q_now, q0, self.arm.robot, self.c.approach_fraction)
         self.report.approach_s = duration
         log.info("moving to the start: %.1f deg away, %.2f s", float(np.degrees(np.abs(q0 - q_now).max())), duration)

@@ -115,3 +115,12 @@ def test_an_interrupted_write_leaves_nothing_that_looks_complete(recon, tmp_path
     out = tmp_path / "aug"
     assert main([str(recon), "--n", "1", "--out", str(out), "-q"]) == 130
     assert not any(p.name.startswith("episode_") for p in out.iterdir())
+
+
+def test_an_augmented_episode_replays_on_the_simulated_arm(augmented, capsys):
+    from manisplat.drivers.replay_cli import main as replay
+
+    _, out = augmented
+    assert replay([str(out / "episode_0000"), "--sim"]) == 0
+    text = capsys.readouterr().out
+    assert "0 resets" in text and "0 disables" in text

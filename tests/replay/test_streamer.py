@@ -60,6 +60,23 @@ def test_a_replay_runs_to_the_end_and_reports_the_tracking(sim: SimArm) -> None:
     assert sim.audit.enables >= 1  # the simulated arm started disabled: enabled, never reset
 
 
+def test_an_arm_resting_at_a_joint_limit_is_moved_to_the_start() -> None:
+    """Its measured position may read a wire step beyond the limit; the approach must not command it."""
+    traj = motion()
+    robot_upper = SimArm(traj.q[0], 0.05)
+    upper = robot_upper.arm.robot.upper.copy()
+    robot_upper.close()
+    start = traj.q[0].copy()
+    start[4] = upper[4]  # joint5 at its limit, as the simulated arm starts when clipped there
+    arm = SimArm(start, 0.05)
+    try:
+        report = replay(arm.arm, traj, StreamConfig(**RELAXED))
+        assert report.outcome == "completed", report
+        assert_never_dropped(arm)
+    finally:
+        arm.close()
+
+
 def test_a_tracking_error_stops_the_stream_and_the_arm_holds(sim: SimArm) -> None:
     traj = motion(duration=1.0, amplitude_deg=20.0)  # ~1.1 rad/s: the arm lags by more than 1 deg
     report = replay(sim.arm, traj, StreamConfig(**{**RELAXED, "max_tracking_error_deg": 1.0}))
