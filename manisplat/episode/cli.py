@@ -1,4 +1,4 @@
-"""``manisplat-episode``: inspect, validate, recover, import, synthesize, copy episodes and set their robot.
+"""``manisplat-episode``: inspect, validate, recover, import, export, synthesize, copy episodes and set their robot.
 
 Only argparse and the shared argument checks are imported up front: each command imports what it
 needs (OpenCV, h5py, torch) after the arguments parsed, so ``--help`` and usage errors are quick.
@@ -16,8 +16,17 @@ from manisplat.episode.format import DIST_LENGTHS, EpisodeFormatError
 
 ACT_ARMS = ("left", "right", "single")
 """``--arm`` choices of ``import-act`` (the keys of the importer's ``ARM_COLUMNS``)."""
+EXPORT_FORMATS = ("act-hdf5",)
+"""``--format`` choices of ``export``."""
 SAMPLE_MIN_FRAMES = 8
 """The fewest frames ``write_sample_episode`` accepts."""
+
+
+def _dataset_name(text: str) -> str:
+    """An argparse type: an HDF5 dataset name without a group path."""
+    if not text or "/" in text or text in (".", ".."):
+        raise argparse.ArgumentTypeError(f"expected a plain dataset name without '/'; got {text!r}")
+    return text
 
 
 def _cmd_info(args: argparse.Namespace) -> int:
@@ -62,6 +71,28 @@ def _cmd_import_act(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_export(args: argparse.Namespace) -> int:
+    from manisplat.episode.exporters.act_hdf5 import ExportDestinationError, export_act_hdf5
+
+    try:
+        entries = export_act_hdf5(args.episodes, args.out, camera=args.camera, image_key=args.image_key,
+                                  compress=args.compress, jpeg_quality=args.jpeg_quality,
+                                  dtype="float64" if args.float64 else "float32", overwrite=args.overwrite,
+                                  progress=sys.stderr.isatty())
+    except ExportDestinationError as exc:  # a usage error, like the other commands' --out checks
+        print(f"manisplat-episode export: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("\ninterrupted: finished files stay in place; the one being written was removed, and "
+              f"{args.out}/augmentation.json says complete: false", file=sys.stderr)
+        return 130
+    augmented = sum(e["augmented"] for e in entries)
+    frames = sum(e["frames"] for e in entries)
+    print(f"exported {len(entries)} episodes ({frames} frames, {augmented} augmented) to {args.out}/episode_*.hdf5; "
+          f"provenance in {args.out}/augmentation.json")
+    return 0
+
+
 def _cmd_sample(args: argparse.Namespace) -> int:
     from manisplat.episode.synthetic import write_sample_episode
 
@@ -100,7 +131,7 @@ def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``manisplat-episode`` and its subcommands."""
     parser = argparse.ArgumentParser(
         prog="manisplat-episode",
-        description="Inspect, validate, recover, import, synthesize and copy ManiSplat episodes (format v1, "
+        description="Inspect, validate, recover, import, export, synthesize and copy ManiSplat episodes (format v1, "
                     "docs/episode-format.md).")
     parser.add_argument("-v", "--verbose", action="count", default=0,
                         help="log more: -v info, -vv debug (default: warnings only)")
@@ -168,6 +199,42 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing episode at --out (default: off, refused)")
     p.set_defaults(func=_cmd_import_act)
+
+    p = sub.add_parser("export", help="write episodes as ACT / ALOHA / Cobot Magic HDF5 files",
+                       description="Write EPISODES as OUT/episode_0.hdf5, episode_1.hdf5, ... in the order given "
+                                   "(ACT / ALOHA layout, one arm: /observations/qpos and qvel (T, 7) [q1..q6 rad, "
+                                   "gripper m], /observations/images/<camera>, /action (T, 7), attributes sim, "
+                                   "compress, fps), streaming one frame at a time, and OUT/augmentation.json "
+                                   "naming each file's source episode, its source and, for augmented episodes, "
+                                   "their parent. qvel: backward differences over the frame times, first row "
+                                   "zero. /action: the episode's a1..a6,a_gripper, or without them the next "
+                                   "frame's qpos (attribute source says which). All episodes must be complete "
+                                   "and share one camera, fps and image size; this is checked before anything is "
+                                   "written. Each file is written under a .tmp name and renamed when closed. "
+                                   "Read back with `import-act FILE --arm single --camera NAME`. Exit status: 0 "
+                                   "done, 1 bad input, 2 usage error (a non-empty --out without --overwrite "
+                                   "included), 130 interrupted.")
+    p.add_argument("episodes", type=Path, nargs="+", metavar="EPISODE", help="episode folder(s)")
+    p.add_argument("--format", choices=EXPORT_FORMATS, required=True,
+                   help="output layout (required; act-hdf5 is the only one so far)")
+    p.add_argument("--out", type=Path, required=True,
+                   help="output folder (required): created; must be new or empty unless --overwrite")
+    p.add_argument("--camera", help="the camera every episode must have (default: the first episode's camera)")
+    p.add_argument("--image-key", type=_dataset_name, metavar="KEY",
+                   help="dataset name under /observations/images, e.g. cam_high to match an ACT task config "
+                        "(default: the camera name)")
+    p.add_argument("--compress", action="store_true",
+                   help="store JPEG bytes padded to the longest frame plus /compress_len, attribute "
+                        "compress=True, as ALOHA's recorder does (default: off, raw (T, H, W, 3) uint8 RGB)")
+    p.add_argument("--jpeg-quality", type=bounded(0, 100, kind=int), default=50,
+                   help="JPEG quality with --compress, 0..100 (default: %(default)s, as ALOHA's recorder)")
+    p.add_argument("--float64", action="store_true",
+                   help="store qpos, qvel and action as float64, so joints round-trip bit-exact (default: off, "
+                        "float32 as ACT and Cobot Magic record: ACT's training code fails on float64 files)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="allow a non-empty --out: an earlier export's episode_*.hdf5 and augmentation.json there "
+                        "are removed first, other files are kept (default: off, refused)")
+    p.set_defaults(func=_cmd_export)
 
     p = sub.add_parser("sample", help="write the built-in synthetic pick-and-place episode",
                        description="Write the built-in sample: the built-in PiPER picks a 4 cm box and places it "

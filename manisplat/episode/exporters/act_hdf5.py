@@ -1,0 +1,293 @@
+"""Export episodes as ACT / ALOHA / AgileX Cobot Magic HDF5 files (``episode_<N>.hdf5``).
+
+Layout written (``shared/reference/augmentation.md`` section 5.3, single arm, so 7 columns)::
+
+    attrs: sim (bool), compress (bool), fps (float64),
+           manisplat_source, manisplat_episode (str), manisplat_parent (str, augmented episodes only)
+    /observations/qpos          (T, 7) float32 [q1..q6 rad, gripper m] (float64 with dtype="float64")
+    /observations/qvel          (T, 7) same dtype: backward differences over frames.csv t, row 0 zero
+    /observations/images/<key>  (T, H, W, 3) uint8 RGB, chunks (1, H, W, 3); with compress: (T, L) uint8,
+                                chunks (1, L), each row the cv2.imencode JPEG bytes of the RGB array padded
+                                with zeros to the longest frame L
+    /compress_len               (1, T) float32 JPEG byte count of each frame (compress only)
+    /action                     (T, 7) same dtype [a1..a6, a_gripper]; attr ``source``: "actions" when the
+                                episode has them, else "next_qpos" (qpos of frame i+1, the last row repeats)
+
+``import-act --arm single`` reads these files back. Each file is written as ``episode_<N>.hdf5.tmp``
+and renamed when closed, and ``augmentation.json`` beside them records where every file came from.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import cv2
+import h5py
+import numpy as np
+from tqdm import tqdm
+
+from manisplat.episode.format import RGB_DIR, EpisodeFormatError
+from manisplat.episode.fsio import atomic_write_bytes, fsync_path, temp_path
+from manisplat.episode.images import find_image
+from manisplat.episode.reader import Episode
+
+log = logging.getLogger(__name__)
+
+PROVENANCE_FILE = "augmentation.json"
+"""Side file in the export folder: per output file, the source episode, its source and parent."""
+PROVENANCE_FORMAT = "manisplat-act-export"
+DEFAULT_JPEG_QUALITY = 50
+"""ALOHA's ``record_episodes.py`` encodes with ``cv2.IMWRITE_JPEG_QUALITY`` 50."""
+SIM_SOURCES = ("simulation", "augmentation")
+DTYPES = ("float32", "float64")
+_OUTPUT_RE = re.compile(r"^episode_\d+\.hdf5(\.tmp)?$")
+
+
+class ExportDestinationError(FileExistsError):
+    """``out_dir`` exists and holds files, and ``overwrite`` was not given (a usage error, exit 2)."""
+
+
+@dataclass(frozen=True)
+class _Source:
+    episode: Episode
+    parent: str | None
+    seed: Any
+
+    @property
+    def augmented(self) -> bool:
+        return self.episode.meta.source == "augmentation"
+
+    @property
+    def sim(self) -> bool:
+        meta = self.episode.meta
+        imported = meta.extra.get("import")
+        if meta.source == "import:act_hdf5" and isinstance(imported, dict):
+            return bool(imported.get("sim", False))
+        return meta.source in SIM_SOURCES
+
+
+def check_destination(out_dir: str | Path, overwrite: bool) -> None:
+    """Refuse an ``out_dir`` that is a file, or a folder holding anything without ``overwrite``."""
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ExportDestinationError(f"--out {out_dir} exists and is not a folder")
+    if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
+        raise ExportDestinationError(f"--out {out_dir} is not empty; pass --overwrite to replace its episode_*.hdf5 "
+                                     f"files and {PROVENANCE_FILE}, or choose another folder")
+
+
+def _parent_of(ep: Episode) -> tuple[str | None, Any]:
+    """``parent`` and ``seed`` of an augmented episode: its augmentation.json, else episode.json."""
+    record: dict[str, Any] = {}
+    path = ep.path / PROVENANCE_FILE
+    if path.is_file():
+        try:
+            record = json.loads(path.read_text())
+        except (OSError, ValueError) as exc:
+            raise EpisodeFormatError(f"{path}: cannot read: {exc}") from exc
+        if not isinstance(record, dict):
+            raise EpisodeFormatError(f"{path}: expected a JSON object")
+    parent = record.get("parent", ep.meta.extra.get("parent"))
+    return (None if parent is None else str(parent)), record.get("seed")
+
+
+def _open_sources(episodes: Sequence[str | Path], camera: str | None) -> list[_Source]:
+    """Open every episode and check that they can share one export; raises before anything is written."""
+    if not episodes:
+        raise ValueError("no episodes to export")
+    sources = []
+    for path in episodes:
+        ep = Episode.open(path)
+        if not ep.meta.complete:
+            raise EpisodeFormatError(f"{ep.path}: incomplete episode (its writer stopped or crashed); run "
+                                     f"`manisplat-episode recover {ep.path}` first")
+        if len(ep) == 0:
+            raise EpisodeFormatError(f"{ep.path}: no frames")
+        sources.append(_Source(ep, *_parent_of(ep)))
+    fps = {src.episode.meta.fps for src in sources}
+    if len(fps) > 1:
+        listing = ", ".join(f"{s.episode.path.name} {s.episode.meta.fps:g}" for s in sources)
+        raise EpisodeFormatError(f"episodes of different fps cannot share one ACT export (ACT assumes one "
+                                 f"control rate): {listing}")
+    sizes = {(s.episode.camera.width, s.episode.camera.height) for s in sources}
+    if len(sizes) > 1:
+        listing = ", ".join(f"{s.episode.path.name} {s.episode.camera.width}x{s.episode.camera.height}"
+                            for s in sources)
+        raise EpisodeFormatError(f"episodes of different image sizes cannot share one ACT export: {listing}")
+    first = sources[0].episode
+    camera = first.camera.name if camera is None else camera
+    for src in sources:
+        ep = src.episode
+        if ep.camera.name != camera:
+            raise EpisodeFormatError(f"{ep.path}: no camera {camera!r}; the episode's camera is "
+                                     f"{ep.camera.name!r} (every episode of one export needs the same camera)")
+        rgb = ep.path / RGB_DIR
+        missing = [i for i in range(len(ep)) if find_image(rgb, i) is None]
+        if missing:
+            raise EpisodeFormatError(f"{rgb}: no image for {len(missing)} of {len(ep)} frames (first: frame "
+                                     f"{missing[0]})")
+    return sources
+
+
+def _clear_previous(out_dir: Path) -> None:
+    """Remove what an earlier export wrote (``episode_<N>.hdf5``, their ``.tmp``, the side file)."""
+    removed = 0
+    for path in out_dir.iterdir():
+        if path.is_file() and (_OUTPUT_RE.match(path.name) or path.name in (PROVENANCE_FILE,
+                                                                            temp_path(Path(PROVENANCE_FILE)).name)):
+            path.unlink()
+            removed += 1
+    if removed:
+        log.info("--overwrite: removed %d files of an earlier export from %s", removed, out_dir)
+
+
+def velocities(t: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """(T, D) backward differences ``(v[i] - v[i-1]) / (t[i] - t[i-1])``; row 0 is zero."""
+    out = np.zeros_like(values, dtype=np.float64)
+    if len(t) > 1:
+        out[1:] = np.diff(values, axis=0) / np.diff(t)[:, None]
+    return out
+
+
+def _write_file(src: _Source, path: Path, key: str, *, compress: bool, jpeg_quality: int, dtype: np.dtype,
+                on_frame: Callable[[], None]) -> dict[str, Any]:
+    """Write one episode to ``path`` through ``path.tmp``; returns its provenance entry."""
+    ep = src.episode
+    T, width, height = len(ep), ep.camera.width, ep.camera.height
+    qpos = np.concatenate([ep.frames.q, ep.frames.gripper[:, None]], axis=1)
+    actions = ep.frames.actions
+    action_source = "actions" if actions is not None else "next_qpos"
+    if actions is None:
+        actions = np.concatenate([qpos[1:], qpos[-1:]], axis=0)
+    qvel = velocities(ep.frames.t, qpos)
+    tmp = temp_path(path)
+    try:
+        with h5py.File(tmp, "w") as f:
+            f.attrs["sim"] = src.sim
+            f.attrs["compress"] = compress
+            f.attrs["fps"] = float(ep.meta.fps)
+            f.attrs["manisplat_source"] = ep.meta.source
+            f.attrs["manisplat_episode"] = ep.path.name
+            if src.parent is not None:
+                f.attrs["manisplat_parent"] = src.parent
+            obs = f.create_group("observations")
+            obs.create_dataset("qpos", data=qpos.astype(dtype))
+            obs.create_dataset("qvel", data=qvel.astype(dtype))
+            f.create_dataset("action", data=actions.astype(dtype)).attrs["source"] = action_source
+            images = obs.create_group("images")
+            if compress:
+                _write_jpeg(f, images, key, ep, jpeg_quality, path.parent, on_frame)
+            else:
+                ds = images.create_dataset(key, (T, height, width, 3), dtype=np.uint8, chunks=(1, height, width, 3))
+                for i in range(T):
+                    ds[i] = ep.rgb(i)
+                    on_frame()
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return {"file": path.name, "episode": str(ep.path.resolve()), "source": ep.meta.source,
+            "augmented": src.augmented, "parent": src.parent, "seed": src.seed, "sim": src.sim, "frames": T,
+            "action": action_source}
+
+
+def _write_jpeg(f: h5py.File, images: h5py.Group, key: str, ep: Episode, quality: int, scratch_dir: Path,
+                on_frame: Callable[[], None]) -> None:
+    """JPEG rows padded to the longest frame, as ALOHA writes them. The padded length is known only after
+    every frame is encoded, so the bytes wait in an anonymous scratch file, never in memory."""
+    T = len(ep)
+    lengths = np.zeros(T, dtype=np.int64)
+    with tempfile.TemporaryFile(dir=scratch_dir) as scratch:
+        for i in range(T):
+            ok, data = cv2.imencode(".jpg", ep.rgb(i), [int(cv2.IMWRITE_JPEG_QUALITY), quality])
+            if not ok:
+                raise OSError(f"{ep.path}: frame {i}: OpenCV could not encode the image as JPEG")
+            lengths[i] = data.size
+            scratch.write(data.tobytes())
+            on_frame()
+        padded = int(lengths.max())
+        ds = images.create_dataset(key, (T, padded), dtype=np.uint8, chunks=(1, padded))
+        scratch.seek(0)
+        row = np.zeros(padded, dtype=np.uint8)
+        for i in range(T):
+            row[:] = 0
+            row[:lengths[i]] = np.frombuffer(scratch.read(int(lengths[i])), dtype=np.uint8)
+            ds[i] = row
+    f.create_dataset("compress_len", data=lengths[None].astype(np.float32))
+
+
+def _write_provenance(out_dir: Path, entries: list[dict[str, Any]], *, complete: bool, fps: float, camera: str,
+                      key: str, compress: bool, dtype: str) -> None:
+    record = {"format": PROVENANCE_FORMAT, "version": 1, "complete": complete, "layout": "act_hdf5",
+              "fps": fps, "camera": camera, "image_key": key, "compress": compress, "dtype": dtype,
+              "files": entries}
+    atomic_write_bytes(out_dir / PROVENANCE_FILE, (json.dumps(record, indent=2) + "\n").encode())
+
+
+def export_act_hdf5(episodes: Sequence[str | Path], out_dir: str | Path, *, camera: str | None = None,
+                    image_key: str | None = None, compress: bool = False,
+                    jpeg_quality: int = DEFAULT_JPEG_QUALITY, dtype: str = "float32", overwrite: bool = False,
+                    progress: bool = False) -> list[dict[str, Any]]:
+    """Write ``episodes`` as ``out_dir/episode_0.hdf5``, ``episode_1.hdf5``, ... in the order given.
+
+    Everything is checked before anything is written: every episode complete and with an image
+    for each frame, one camera, one fps and one image size for all. Images stream one frame at a
+    time into pre-sized datasets; each file is written under ``episode_<N>.hdf5.tmp`` and renamed
+    when closed, so an interrupted export leaves only whole files under final names (and
+    ``augmentation.json`` says ``complete: false`` until the last one is done).
+
+    Args:
+        episodes: episode folders.
+        out_dir: export folder, created; must be new or empty unless ``overwrite`` (which removes an
+            earlier export's ``episode_*.hdf5`` and ``augmentation.json``, nothing else).
+        camera: the camera every episode must have (default: the first episode's).
+        image_key: dataset name under ``/observations/images`` (default: the camera name), e.g.
+            ``cam_high`` to match an ACT task config.
+        compress: JPEG-encode the images (ALOHA's compressed variant) instead of raw arrays.
+        jpeg_quality: JPEG quality 0..100 with ``compress``.
+        dtype: ``float32`` (what ACT and Cobot Magic record; ACT's loader computes its normalisation
+            statistics in the file's dtype and feeds them to a float32 model, so float64 files make it
+            fail with "mat1 and mat2 must have the same dtype") or ``float64`` (joints round-trip
+            bit-exact through ``import-act``).
+        overwrite: allow a non-empty ``out_dir``.
+        progress: show a tqdm progress bar over all frames.
+
+    Returns:
+        the provenance entries written to ``augmentation.json``, one per file.
+    """
+    if dtype not in DTYPES:
+        raise ValueError(f"dtype must be one of {DTYPES}; got {dtype!r}")
+    if not 0 <= jpeg_quality <= 100:
+        raise ValueError(f"jpeg_quality must be in 0..100; got {jpeg_quality}")
+    out_dir = Path(out_dir)
+    check_destination(out_dir, overwrite)
+    sources = _open_sources(episodes, camera)
+    first = sources[0].episode
+    camera = first.camera.name
+    key = image_key or camera
+    if "/" in key or not key:
+        raise ValueError(f"image key must be a plain name; got {key!r}")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    _clear_previous(out_dir)
+    settings = dict(fps=first.meta.fps, camera=camera, key=key, compress=compress, dtype=dtype)
+    entries: list[dict[str, Any]] = []
+    _write_provenance(out_dir, entries, complete=False, **settings)
+    total = sum(len(s.episode) for s in sources)
+    with tqdm(total=total, desc="export act-hdf5", unit="frame", disable=not progress) as bar:
+        for n, src in enumerate(sources):
+            path = out_dir / f"episode_{n}.hdf5"
+            entries.append(_write_file(src, path, key, compress=compress, jpeg_quality=jpeg_quality,
+                                       dtype=np.dtype(dtype), on_frame=lambda: bar.update(1)))
+            _write_provenance(out_dir, entries, complete=n == len(sources) - 1, **settings)
+    fsync_path(out_dir)
+    log.info("exported %d episodes (%d frames) to %s", len(sources), total, out_dir)
+    return entries
