@@ -25,6 +25,7 @@ HELP_CALLS = [
     ("manisplat-episode", ["--help"]),
     *[("manisplat-episode", [cmd, "--help"]) for cmd in ("info", "validate", "recover", "import-act", "sample",
                                                                  "set-robot", "copy")],
+    ("manisplat-episode", ["export", "--help"]),
     ("manisplat-reconstruct", ["--help"]),
     ("manisplat-augment", ["--help"]),
     ("manisplat-record", ["--help"]),

@@ -226,8 +226,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--compress", action="store_true",
                    help="store JPEG bytes padded to the longest frame plus /compress_len, attribute "
                         "compress=True, as ALOHA's recorder does (default: off, raw (T, H, W, 3) uint8 RGB)")
-    p.add_argument("--jpeg-quality", type=bounded(0, 100, kind=int), default=50,
-                   help="JPEG quality with --compress, 0..100 (default: %(default)s, as ALOHA's recorder)")
+    p.add_argument("--jpeg-quality", type=bounded(0, 100, kind=int), default=90,
+                   help="JPEG quality with --compress, 0..100; ALOHA's recorder uses 50, smaller but visibly "
+                        "lossy (default: %(default)s)")
     p.add_argument("--float64", action="store_true",
                    help="store qpos, qvel and action as float64, so joints round-trip bit-exact (default: off, "
                         "float32 as ACT and Cobot Magic record: ACT's training code fails on float64 files)")

@@ -43,8 +43,9 @@ log = logging.getLogger(__name__)
 PROVENANCE_FILE = "augmentation.json"
 """Side file in the export folder: per output file, the source episode, its source and parent."""
 PROVENANCE_FORMAT = "manisplat-act-export"
-DEFAULT_JPEG_QUALITY = 50
-"""ALOHA's ``record_episodes.py`` encodes with ``cv2.IMWRITE_JPEG_QUALITY`` 50."""
+DEFAULT_JPEG_QUALITY = 90
+"""JPEG quality with ``compress``. ALOHA's ``record_episodes.py`` uses 50, which on the 64x48 sample
+episode gives 27.6 dB PSNR (90: 33.8 dB, 1.6x the bytes); pass 50 to match its file sizes."""
 SIM_SOURCES = ("simulation", "augmentation")
 DTYPES = ("float32", "float64")
 _OUTPUT_RE = re.compile(r"^episode_\d+\.hdf5(\.tmp)?$")
