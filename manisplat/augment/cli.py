@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 from manisplat.cli_args import finite_numbers, positive
+from manisplat.output_folder import check_output_folder
 
 log = logging.getLogger("manisplat.augment")
 REPORT = "augment_report.json"
@@ -86,7 +87,8 @@ def main(argv: list[str] | None = None) -> int:
     if any(v < 0 for v in (*args.object_range, *args.target_range)):
         parser.error("--object-range and --target-range take non-negative half-widths")
     try:
-        _check_out(args.out, args.overwrite)
+        check_output_folder(args.out, allowed=args.overwrite,
+                            refusal="; pass --overwrite to replace its demonstrations, or choose another folder")
     except ValueError as exc:
         parser.error(str(exc))
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="%(message)s")
@@ -102,14 +104,6 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     print(summary(report, args.out))
     return 0 if report["written"] >= report["requested"] else 1
-
-
-def _check_out(out: Path, overwrite: bool) -> None:
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {out} exists and is not a folder")
-    if out.is_dir() and any(out.iterdir()) and not overwrite:
-        raise ValueError(f"--out {out} is not empty; pass --overwrite to replace its demonstrations, "
-                         "or choose another folder")
 
 
 def summary(report: dict, out: Path) -> str:

@@ -6,7 +6,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
 import shutil
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -21,6 +20,7 @@ from manisplat.augment.frames import from_centre_frame, to_centre_frame
 from manisplat.augment.trajectory import (AugmentConfig, NewTrajectory, ObjectTarget, Rejected, augment_trajectory,
                                           sample_targets)
 from manisplat.augment.writer import write_demonstration
+from manisplat.episode.fsio import atomic_write_bytes
 from manisplat.twin import Twin, TwinFormatError
 
 log = logging.getLogger("manisplat.augment")
@@ -88,15 +88,15 @@ def run_augmentation(args: argparse.Namespace) -> dict:
         s.episode = f"episode_{k:04d}"
 
     t0 = time.perf_counter()
-    _render_and_write(args.recon, valid, args.out, workers=args.workers, image_format=args.image_format,
-                      quiet=args.quiet, backend=twin.backend)
+    _render_and_write(twin, args.recon, valid, args.out, workers=args.workers, image_format=args.image_format,
+                      quiet=args.quiet)
     render_s = time.perf_counter() - t0
     _plot_tcp_paths(args.out / PLOT, twin, valid)
     for s in valid[:SHEETS]:
         _contact_sheet(args.out / s.episode, args.out / "sheets" / f"{s.episode}.png")
     report = _report(twin, args, samples, wanted, {"plan": plan_s, "render_and_write": render_s,
                                                    "total": time.perf_counter() - start})
-    _write_report(args.out / REPORT, report)
+    atomic_write_bytes(args.out / REPORT, (json.dumps(report, indent=1) + "\n").encode())
     return report
 
 
@@ -162,19 +162,19 @@ def _write_one(trajectory: NewTrajectory, path: str, seed: int, image_format: st
     return path
 
 
-def _render_and_write(recon: Path, valid: list[Sample], out: Path, *, workers: int, image_format: str, quiet: bool,
-                      backend: str) -> None:
+def _render_and_write(twin: Twin, recon: Path, valid: list[Sample], out: Path, *, workers: int, image_format: str,
+                      quiet: bool) -> None:
+    """Render and write ``valid``: with ``twin`` here, or in ``workers`` processes that each load it from ``recon``."""
     frames = sum(len(s.trajectory.t) for s in valid)
     bar = tqdm(total=frames if workers == 1 else len(valid), desc="rendering",
                unit="frame" if workers == 1 else "demo", disable=quiet)
     if workers == 1:
-        twin = Twin.load(recon, backend=backend)
         for s in valid:
             write_demonstration(twin, s.trajectory, out / s.episode, seed=s.seed, image_format=image_format,
                                 on_frame=lambda: bar.update(1))
     else:
         with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker,
-                                 initargs=(str(recon), backend)) as pool:
+                                 initargs=(str(recon), twin.backend)) as pool:
             futures = [pool.submit(_write_one, s.trajectory, str(out / s.episode), s.seed, image_format) for s in valid]
             for future in as_completed(futures):
                 future.result()
@@ -203,12 +203,6 @@ def _report(twin: Twin, args: argparse.Namespace, samples: list[Sample], wanted:
         "samples": [{"index": s.index, "seed": s.seed, "valid": s.trajectory is not None, "episode": s.episode,
                      "reason": s.reason, "detail": s.detail, "plan_s": round(s.plan_s, 4)} for s in samples],
     }
-
-
-def _write_report(path: Path, report: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(report, indent=1) + "\n")
-    os.replace(tmp, path)
 
 
 def _plot_tcp_paths(path: Path, twin: Twin, valid: list[Sample]) -> None:

@@ -19,6 +19,7 @@ import numpy as np
 from manisplat.augment.frames import to_centre_frame
 from manisplat.augment.trajectory import NewTrajectory
 from manisplat.episode import ACTION_COLUMNS, CameraInfo, EpisodeWriter, RobotInfo
+from manisplat.episode.fsio import atomic_write_bytes
 from manisplat.twin import Twin
 
 DEPTH_SCALE = 1e-4  # m per uint16 unit: 0.1 mm steps up to 6.5 m
@@ -70,13 +71,7 @@ def augmentation_record(twin: Twin, traj: NewTrajectory, seed: int) -> dict[str,
 
 
 def _write_json(path: Path, content: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w") as fh:
-        json.dump(content, fh, indent=1, default=_jsonable)
-        fh.write("\n")
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    atomic_write_bytes(path, (json.dumps(content, indent=1, default=_jsonable) + "\n").encode())
 
 
 def _jsonable(value: Any) -> Any:

@@ -18,6 +18,7 @@ from pathlib import Path
 
 from manisplat.align.phases import DEFAULT_TAU
 from manisplat.cli_args import finite, non_negative, numbers, positive
+from manisplat.output_folder import check_output_folder
 from manisplat.reconstruct.config import DeviceUnavailable, TrainConfig, resolve_device
 
 log = logging.getLogger("manisplat.reconstruct")
@@ -115,17 +116,11 @@ def _check_out(args: argparse.Namespace) -> None:
     """Refuse an ``--out`` holding anything, unless ``--overwrite`` or ``--resume`` says what to do."""
     if args.overwrite and args.resume:
         raise ValueError("--overwrite and --resume exclude each other")
-    out: Path = args.out
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {out} exists and is not a folder")
-    if not out.is_dir() or not any(out.iterdir()) or args.overwrite:
-        return
-    if args.resume:
-        if not (out / CHECKPOINT).is_file():
-            raise ValueError(f"--resume: {out} holds no {CHECKPOINT} to continue from")
-        return
-    raise ValueError(f"--out {out} is not empty (an earlier run's results?); pass --overwrite to replace them, "
-                     f"--resume to continue its training, or choose another folder")
+    in_use = check_output_folder(args.out, allowed=args.overwrite or args.resume,
+                                 refusal=" (an earlier run's results?); pass --overwrite to replace them, --resume "
+                                         "to continue its training, or choose another folder")
+    if in_use and args.resume and not (args.out / CHECKPOINT).is_file():
+        raise ValueError(f"--resume: {args.out} holds no {CHECKPOINT} to continue from")
 
 
 def _run(args: argparse.Namespace, prompt: tuple[str, tuple | None, tuple | None] | None) -> int:

@@ -10,14 +10,15 @@ the recorded trajectory (``t`` [T] s, ``q`` [T, dof] rad, ``gripper`` [T] m, obj
 
 from __future__ import annotations
 
+import io
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from manisplat.episode.fsio import atomic_write_bytes
 from manisplat.robot import RobotModel, load_robot
 from manisplat.scene import GaussianSet, SceneGraph
 from manisplat.scene.render import render_graph
@@ -170,8 +171,10 @@ class Twin:
                                "phases": [vars(p) for p in self.phases.get(name, [])]}
                         for name in self.graph.objects},
         }
-        _atomic_write(folder / TWIN_TENSORS, lambda tmp: torch.save(tensors, tmp))
-        _atomic_write(folder / TWIN_JSON, lambda tmp: tmp.write_text(json.dumps(meta, indent=1) + "\n"))
+        buffer = io.BytesIO()
+        torch.save(tensors, buffer)
+        atomic_write_bytes(folder / TWIN_TENSORS, buffer.getvalue())
+        atomic_write_bytes(folder / TWIN_JSON, (json.dumps(meta, indent=1) + "\n").encode())
 
     @classmethod
     def load(cls, folder: str | Path, *, backend: str = "auto", device: torch.device | str = "cpu") -> "Twin":
@@ -267,11 +270,3 @@ def _read_meta(path: Path) -> dict:
             if not isinstance(content, dict) or key not in content:
                 raise TwinFormatError(f"{path}: no key {'.'.join(filter(None, (section, key)))!r}")
     return meta
-
-
-def _atomic_write(path: Path, write) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    write(tmp)
-    with open(tmp, "rb") as fh:
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)

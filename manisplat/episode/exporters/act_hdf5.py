@@ -37,6 +37,7 @@ from manisplat.episode.format import RGB_DIR, EpisodeFormatError
 from manisplat.episode.fsio import atomic_write_bytes, fsync_path, temp_path
 from manisplat.episode.images import find_image
 from manisplat.episode.reader import Episode
+from manisplat.output_folder import check_output_folder
 
 log = logging.getLogger(__name__)
 
@@ -76,12 +77,9 @@ class _Source:
 
 def check_destination(out_dir: str | Path, overwrite: bool) -> None:
     """Refuse an ``out_dir`` that is a file, or a folder holding anything without ``overwrite``."""
-    out_dir = Path(out_dir)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise ExportDestinationError(f"--out {out_dir} exists and is not a folder")
-    if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
-        raise ExportDestinationError(f"--out {out_dir} is not empty; pass --overwrite to replace its episode_*.hdf5 "
-                                     f"files and {PROVENANCE_FILE}, or choose another folder")
+    check_output_folder(Path(out_dir), allowed=overwrite, error=ExportDestinationError,
+                        refusal=f"; pass --overwrite to replace its episode_*.hdf5 files and {PROVENANCE_FILE}, "
+                                "or choose another folder")
 
 
 def _parent_of(ep: Episode) -> tuple[str | None, Any]:
