@@ -66,3 +66,24 @@ def test_timed_motions_keep_the_limits_and_the_boundary_velocities():
     assert rv <= 1 and ra <= 1
     # and the leaving velocity is v0 (to first order in dt)
     assert np.abs((q[1] - q[0]) / dt - v0).max() < 0.6 * dt * robot.acceleration_limits.max()
+
+
+def test_the_centre_frame_follows_the_objects_gaussians(twin):
+    """augmentation.json's object frame: the reconstructed axes, the origin at the centre of the
+    object's Gaussians (moving them moves it by as much), and the two frames convert both ways."""
+    from manisplat.augment.frames import centre_offset, from_centre_frame, to_centre_frame
+
+    means = twin.graph.objects["box"].params["means"]
+    before = centre_offset(twin, "box")
+    shift = torch.tensor([0.02, -0.01, 0.005])
+    with torch.no_grad():
+        means += shift
+    try:
+        after = centre_offset(twin, "box")
+    finally:
+        with torch.no_grad():
+            means -= shift
+    np.testing.assert_allclose(after[:3, 3] - before[:3, 3], shift.numpy(), atol=1e-6)
+    np.testing.assert_array_equal(after[:3, :3], np.eye(3))
+    pose = twin.object_poses["box"][0]
+    np.testing.assert_allclose(from_centre_frame(twin, "box", to_centre_frame(twin, "box", pose)), pose, atol=1e-12)
