@@ -57,7 +57,9 @@ def run(ctx: BenchContext) -> list[dict[str, Any]]:
     }
     row["render_frames_per_s"] = row["frames"] / max(row["render_write_s"], 1e-9)
     row.update(_checks(episodes))
-    rows = [row]
+    recon_metrics = json.loads((recon / "metrics.json").read_text())
+    rows = [row, {"row": "reconstruction (object pose, both definitions; pseudo ground truth alone)",
+                  **{k: recon_metrics.get(k) for k in ("pose", "pose_anchored", "pose_pseudo")}}]
     simenv = os.environ.get("MANISPLAT_SIMENV")
     if simenv:
         rows[0].update(_physics(Path(simenv), episodes, episode, ctx))

@@ -44,6 +44,7 @@ from manisplat.augment.skills import SkillResult, SourceSpline, solve_skill
 from manisplat.augment.source import SourceDemo, SourceError, source_demo
 from manisplat.augment.timing import TimingError, time_motion
 from manisplat.augment.validation import check_all, dense_collision, skill_relative_errors
+from manisplat.twin.support import MAX_STEP
 
 __all__ = ["AugmentConfig", "BoxObstacle", "NewTrajectory", "ObjectTarget", "Rejected", "augment_trajectory",
            "sample_targets", "Augmenter"]
@@ -64,6 +65,9 @@ class AugmentConfig:
         obstacles: extra boxes in the base frame, besides what the twin holds.
         headroom: the fraction of the limits actually planned for (finite differences at the
             frame rate overshoot a continuous profile slightly).
+        max_support_step: an object set down (start or place) where the surface under it varies by
+            more than this (m) is discarded: it would tip over the step
+            (:mod:`manisplat.twin.support`; not checked when the twin has no support map).
     """
 
     speed: float = 1.0
@@ -73,6 +77,7 @@ class AugmentConfig:
     seed: int = 0
     obstacles: tuple[BoxObstacle, ...] = ()
     headroom: float = 0.95
+    max_support_step: float = MAX_STEP
 
     def __post_init__(self) -> None:
         if not (0 < self.speed <= 1):
@@ -131,6 +136,7 @@ class Augmenter:
         self.spline = SourceSpline(self.kin, self.src.q, self.src.gripper, self.src.tcp)
         self.scene = SceneCollision(twin, self.kin, self.src, obstacles=tuple(obstacles))
         self.skill_allowed = [frozenset(self.scene.skill_allowances(s)) for s in self.src.skills]
+        self.footprints = {name: _solid_points(twin, name) for name in twin.objects}
         robot = twin.robot
         self.dt = 1.0 / self.src.fps
         # the replay also refuses a step above max_step_deg between two frames: at the parent's fps
@@ -195,6 +201,7 @@ class Augmenter:
         # objects placed where other things are
         t0 = time.perf_counter()
         self._check_placements(plan)
+        self._check_support(plan, config.max_support_step)
 
         # 1. skills
         skills: list[SkillResult] = []
@@ -280,6 +287,24 @@ class Augmenter:
                     if coal.collide(box, tf, go.geometry, coal.Transform3s(Mo.rotation, Mo.translation),
                                     coal.CollisionRequest(), coal.CollisionResult()):
                         raise Rejected("object_collision", f"{name} at its new {which[2:]} pose overlaps {go.name}")
+
+    def _check_support(self, plan: dict, max_step: float) -> None:
+        """A moved object must rest on one flat surface (no step under it) where it is set down."""
+        support = self.twin.support
+        if support is None:
+            return
+        for name, p in plan.items():
+            if not p["src"].manipulated:
+                continue
+            footprint = self.footprints[name]
+            for which in ("T_start", "T_place"):
+                T = p[which]
+                if T is None:
+                    continue
+                step = support.step_under(footprint @ T[:2, :3].T + T[:2, 3])
+                if step is not None and step > max_step:
+                    raise Rejected("unstable_support", f"{name} at its new {which[2:]} pose would stand across a "
+                                                       f"{step * 1e3:.1f} mm step (more than {max_step * 1e3:g} mm)")
 
     def _motion(self, name, q_a, q_b, v_a, v_b, width, plan, s_mid, vl, al, config, *, seed, timings, attempts) -> dict:
         world, held = self._world_at(plan, s_mid)
@@ -540,6 +565,15 @@ def augmenter_for(twin, obstacles: tuple[BoxObstacle, ...] = ()) -> Augmenter:
     if key not in per_twin:
         per_twin[key] = Augmenter(twin, obstacles)
     return per_twin[key]
+
+
+def _solid_points(twin, name: str, min_opacity: float = 0.5) -> np.ndarray:
+    """The object's Gaussian means [M, 3] (object frame) of opacity >= ``min_opacity`` (all when
+    fewer than 10 are): what it covers seen from above."""
+    params = twin.graph.objects[name].params
+    means = params["means"].detach().double().cpu().numpy()
+    solid = (1 / (1 + np.exp(-params["opacities"].detach().double().cpu().numpy()))) >= min_opacity
+    return means[solid] if solid.sum() >= 10 else means
 
 
 def augment_trajectory(twin, targets: dict[str, ObjectTarget], config: AugmentConfig | None = None) -> NewTrajectory:

@@ -243,7 +243,12 @@ def _summary(metrics: dict, out: Path) -> str:
         base = metrics.get("pose_baseline", {}).get(obj)
         extra = f" (per-frame baseline: {base['et_cm']:.2f} cm, {base['er_deg']:.2f} deg)" if base else ""
         lines.append(f"pose error {obj}: {err['et_cm']:.2f} cm, {err['er_deg']:.2f} deg, mean over frames after "
-                     f"a constant offset{extra}")
+                     f"a constant offset fitted to all frames{extra}")
+        anchored = metrics.get("pose_anchored", {}).get(obj)
+        if anchored:
+            lines.append(f"pose error {obj}, start-anchored: {anchored['et_cm']:.2f} cm, {anchored['er_deg']:.2f} deg, "
+                         f"mean over the {anchored['moved_frames']} frames after it first moves; where it is left: "
+                         f"{anchored['final']['et_cm']:.2f} cm, {anchored['final']['er_deg']:.2f} deg")
     look = [name for name in ("pose_plot.png", "renders/sheets/", "metrics.json") if (out / name.rstrip("/")).exists()]
     lines.append("look at: " + ", ".join(str(out / name) + ("/" if name.endswith("/") else "") for name in look))
     return "\n".join(lines)

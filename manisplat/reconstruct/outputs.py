@@ -27,11 +27,12 @@ import numpy as np
 import torch
 
 from manisplat.align.phases import phase_of_frames
-from manisplat.reconstruct.metrics import fit_constant_offset, pose_errors, psnr, ssim
+from manisplat.reconstruct.metrics import fit_constant_offset, pose_errors, psnr, ssim, start_anchored_errors
 from manisplat.reconstruct.pipeline import ObjectAlignment
 from manisplat.reconstruct.trainer import Reconstruction
 from manisplat.splat import save_ply
 from manisplat.twin import Phase, Twin
+from manisplat.twin.support import SupportMap, support_map
 
 log = logging.getLogger(__name__)
 
@@ -79,8 +80,24 @@ def twin_of(rec: Reconstruction, alignments: dict[str, ObjectAlignment]) -> Twin
         object_poses=rec.evaluation_poses(), pose_sources={k: list(a.pseudo.source) for k, a in alignments.items()},
         phases={k: [Phase(s.kind, s.name, s.start, s.end) for s in a.segments] for k, a in alignments.items()},
         fps=d.fps, episode=Path(d.path).name, backend=rec.config.backend, robot_info=d.robot_info,
-        camera_name=d.camera_name, task=d.task,
+        camera_name=d.camera_name, task=d.task, support=measured_support(rec, T_base_cam),
     )
+
+
+SUPPORT_FRAMES = 60  # training frames the support map's median is taken over (evenly spread)
+
+
+def measured_support(rec: Reconstruction, T_base_cam: np.ndarray) -> SupportMap | None:
+    """The support height map (:mod:`manisplat.twin.support`) from the training frames' depth
+    where neither the robot nor an object is; None without depth or masks."""
+    d = rec.data
+    if d.depth is None or d.masks is None:
+        return None
+    train = rec.plan.train_frames
+    frames = [train[int(k)] for k in np.linspace(0, len(train) - 1, min(SUPPORT_FRAMES, len(train)))]
+    moving = torch.tensor(sorted(set(d.labels.robot) | set(d.labels.objects)), dtype=torch.uint8)
+    background = ~torch.isin(d.masks[frames].cpu(), moving)
+    return support_map(d.depth[frames].cpu().numpy(), background.numpy(), d.K_opencv.cpu().numpy(), T_base_cam)
 
 
 def write_evaluation(rec: Reconstruction, alignments: dict[str, ObjectAlignment], out: Path, *, wall_s: float) -> dict:
@@ -162,23 +179,38 @@ def _nanmean(values: list[float]) -> float | None:
 
 def _pose_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], alignments: dict[str, ObjectAlignment],
                   out: Path) -> dict:
+    """Object pose errors of ours, of the pseudo ground truth alone and of the tracking-only
+    baseline, by both definitions (:mod:`manisplat.reconstruct.metrics`)."""
     gt = rec.data.gt
-    pose, baseline, plots = {}, {}, {}
+    result: dict[str, dict] = {"pose": {}, "pose_anchored": {}, "pose_pseudo": {}, "pose_baseline": {}}
+    plots = {}
     for name, ours in evaluation.items():
         key = f"T_base_{name}"
         if key not in gt:
             continue
-        pose[name] = {k: round(v, 4) for k, v in pose_errors(ours, gt[key]).items()}
-        base = alignments[name].baseline
+        alignment = alignments[name]
+        phases = [(s.name, s.start, s.end) for s in alignment.segments]
+        result["pose"][name] = _rounded(pose_errors(ours, gt[key]))
+        anchored = start_anchored_errors(ours, gt[key], phases)
+        if anchored is not None:
+            result["pose_anchored"][name] = _rounded(anchored)
+        pseudo = alignment.pseudo.poses
+        result["pose_pseudo"][name] = {"fitted": _rounded(pose_errors(pseudo, gt[key])),
+                                       "anchored": _rounded(start_anchored_errors(pseudo, gt[key], phases))}
+        base = alignment.baseline
         if base is not None:
-            baseline[name] = {k: round(v, 4) for k, v in pose_errors(base, gt[key]).items()}
+            result["pose_baseline"][name] = _rounded(pose_errors(base, gt[key]))
         plots[name] = (ours, base, gt[key])
     if plots:
         _pose_plot(out / "pose_plot.png", rec.data.t.cpu().numpy(), plots)
-    result = {"pose": pose}
-    if baseline:
-        result["pose_baseline"] = baseline
-    return result
+    return {k: v for k, v in result.items() if v}
+
+
+def _rounded(value):
+    """Floats in nested dicts rounded to 4 decimals (None kept)."""
+    if isinstance(value, dict):
+        return {k: _rounded(v) for k, v in value.items()}
+    return round(value, 4) if isinstance(value, float) else value
 
 
 def _pose_plot(path: Path, t: np.ndarray, plots: dict) -> None:

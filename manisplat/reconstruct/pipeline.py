@@ -61,7 +61,8 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
         objects[obj.name] = gaussians
         model = object_view(gaussians, data) if data.depth is None or masks_from_model else None
         alignment = align_object(data, obj.label, T_start.numpy(), tcp, moves=obj.moves, tau=tau, model=model,
-                                 masks_from_model=masks_from_model)
+                                 masks_from_model=masks_from_model,
+                                 model_points=gaussians.params["means"].detach().double().cpu().numpy())
         alignments[obj.name] = alignment
         if masks_from_model:
             _draw_object_masks(data, obj.label, alignment.pseudo.poses, model)
@@ -76,11 +77,12 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
 
 def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.ndarray, *, moves: bool,
                  tau: float = DEFAULT_TAU, model: ObjectView | None = None,
-                 masks_from_model: bool = False) -> ObjectAlignment:
+                 masks_from_model: bool = False, model_points: np.ndarray | None = None) -> ObjectAlignment:
     """Phases, hybrid pseudo poses and (for moving objects) the tracking-only baseline.
 
     ``model`` stands in for the depth (monocular) and, with ``masks_from_model``, for the masks
-    of frames after the first.
+    of frames after the first. ``model_points`` [M, 3] (object frame) enable the grasp's
+    centring and the release's settling priors (:func:`manisplat.align.pseudo_gt.kinematic_prior`).
     """
     events = gripper_events(data.gripper.numpy())
     segments = segment_phases(tcp[:, :3, 3], data.gripper.numpy(), T_start[:3, 3], tau=tau)
@@ -96,7 +98,7 @@ def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.nda
         np.linalg.inv(data.viewmat.double().numpy()),
         model=model,
     )
-    pseudo = hybrid_pseudo_poses(segments, T_start, tcp, events, tracker)
+    pseudo = hybrid_pseudo_poses(segments, T_start, tcp, events, tracker, model_points)
     baseline = tracked_baseline(tracker, data.n_frames, T_start)
     return ObjectAlignment(segments, events, pseudo, baseline)
 

@@ -5,7 +5,8 @@ episode's images and without unpickling code.
 sources, node list, light); ``twin.pt`` holds only tensors, read with ``torch.load(...,
 weights_only=True)``: every node's Gaussian parameters, the light, the background colour, and
 the recorded trajectory (``t`` [T] s, ``q`` [T, dof] rad, ``gripper`` [T] m, object poses
-``T_base_obj`` [T, 4, 4] float64).
+``T_base_obj`` [T, 4, 4] float64) and, when the recording had depth, the support height map
+(:mod:`manisplat.twin.support`: ``support/heights`` [Ny, Nx], its origin and cell in twin.json).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from manisplat.scene import GaussianSet, SceneGraph
 from manisplat.scene.render import render_graph
 from manisplat.scene.shadows import DirectionalShadows
 from manisplat.splat import opencv_to_splat_K
+from manisplat.twin.support import SupportMap
 
 TWIN_JSON, TWIN_TENSORS = "twin.json", "twin.pt"
 FORMAT, VERSION = "manisplat-twin", 1
@@ -69,6 +71,8 @@ class Twin:
         phases: name -> the Motion/Skill segments of the demonstration for that object.
         robot_info: the episode's ``robot.model`` and ``robot.joint_names``; camera_name, task,
             episode (folder name), fps: the source episode's.
+        support: the support surfaces' height map, measured from the recording's depth (None
+            without depth): where objects can be set down.
     """
 
     def __init__(self, *, graph: SceneGraph, background_rgb: torch.Tensor, robot: RobotModel, robot_description: str,
@@ -76,7 +80,7 @@ class Twin:
                  t: np.ndarray, q: np.ndarray, gripper: np.ndarray, object_poses: dict[str, np.ndarray],
                  pose_sources: dict[str, list[str]], phases: dict[str, list[Phase]], fps: float, episode: str,
                  robot_info: dict | None = None, camera_name: str = "camera", task: str | None = None,
-                 backend: str = "auto") -> None:
+                 backend: str = "auto", support: SupportMap | None = None) -> None:
         self.graph, self.background_rgb, self.robot = graph, background_rgb.float(), robot
         self.robot_description = robot_description
         self.K, self.width, self.height = np.asarray(K, np.float64), int(width), int(height)
@@ -87,7 +91,7 @@ class Twin:
         self.pose_sources, self.phases = pose_sources, phases
         self.fps, self.episode, self.backend = float(fps), episode, backend
         self.robot_info = dict(robot_info or {"model": robot.name, "joint_names": list(robot.arm_joint_names)})
-        self.camera_name, self.task = camera_name, task
+        self.camera_name, self.task, self.support = camera_name, task, support
         self.device = graph.device  # where it renders: the Gaussians' device
         self.background_rgb = self.background_rgb.to(self.device)
         self._viewmat = torch.as_tensor(np.linalg.inv(self.T_base_cam)).float().to(self.device)
@@ -159,6 +163,10 @@ class Twin:
             sh = self.graph.shadows
             light = {"extent": sh.extent, "resolution": sh.resolution, "softness": sh.softness}
             tensors.update({f"shadows/{k}": v.detach().cpu().clone() for k, v in sh.state_dict().items()})
+        support = None
+        if self.support is not None:
+            support = {"origin": list(self.support.origin), "cell": self.support.cell}
+            tensors["support/heights"] = torch.as_tensor(self.support.heights)
         meta = {
             "format": FORMAT, "version": VERSION, "episode": self.episode, "fps": self.fps, "task": self.task,
             "robot": {"description": self.robot_description, "link_order": list(self.graph.link_index),
@@ -166,7 +174,7 @@ class Twin:
             "camera": {"name": self.camera_name, "width": self.width, "height": self.height, "K": self.K.tolist(),
                        "T_base_cam": self.T_base_cam.tolist()},
             "labels": {str(k): v for k, v in sorted(self.labels.items())},
-            "nodes": nodes, "shadows": light,
+            "nodes": nodes, "shadows": light, "support": support,
             "objects": {name: {"pose_source": self.pose_sources.get(name, []),
                                "phases": [vars(p) for p in self.phases.get(name, [])]}
                         for name in self.graph.objects},
@@ -228,6 +236,10 @@ class Twin:
             graph.shadows = sh.to(device)
         camera = meta["camera"]
         objects_meta = meta["objects"]
+        support = None
+        if meta.get("support") is not None:  # twins written before support maps have none
+            support = SupportMap(tensor("support/heights").numpy(), tuple(meta["support"]["origin"]),
+                                 float(meta["support"]["cell"]))
         return cls(
             graph=graph, background_rgb=tensor("background_rgb"), robot=robot,
             robot_description=meta["robot"]["description"], K=np.array(camera["K"]), width=camera["width"],
@@ -239,6 +251,7 @@ class Twin:
             phases={name: [Phase(**p) for p in o["phases"]] for name, o in objects_meta.items()},
             fps=meta["fps"], episode=meta["episode"], backend=backend, task=meta.get("task"),
             robot_info={k: meta["robot"][k] for k in ("model", "joint_names")}, camera_name=camera["name"],
+            support=support,
         )
 
 

@@ -110,3 +110,78 @@ def test_tracker_overrides_a_wrong_prior_only_when_the_evidence_persists():
     assert first >= settings.persistence  # not on the first disagreement
     assert track.from_tracking[first:].all()  # and keeps following while confident
     assert np.linalg.norm(track.poses[-1, :3, 3] - truth[-1, :3, 3]) < 0.002  # follows the real motion
+
+
+def test_tracker_refuses_an_override_the_depth_does_not_back():
+    """Tracks dragged across a still object (the texture slides, as under closing fingers) while
+    its mask and depth stay put: confident, persistent, and wrong; the prior must stand."""
+    K, truth, grays, masks, depths = textured_plane_episode(degrees_per_frame=0.0)
+    still = np.repeat(truth[:1], len(truth), axis=0)
+    mask0, depth0 = masks[0], depths[0]
+    settings = TrackerSettings(confident_inliers=10, persistence=3)
+    track = track_object(lambda i: grays[i], lambda i: mask0, lambda i: depth0, K, np.eye(4),
+                         range(len(truth)), truth[0], settings, prior=still)
+    assert not track.from_tracking.any()
+    assert np.allclose(track.poses, still)
+
+
+def box_points(size=(0.04, 0.04, 0.05), n=12):
+    """Surface points [M, 3] of a box centred on its frame's origin."""
+    axes = [np.linspace(-s / 2, s / 2, n) for s in size]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    on_face = (np.abs(np.abs(grid) - np.array(size) / 2) < 1e-9).any(-1)
+    return grid[on_face]
+
+
+def test_grasp_centres_the_object_between_the_pads():
+    tcp = tcp_track()
+    start = np.eye(4)
+    start[:3, 3] = tcp[20, :3, 3] + [0.0, 0.004, 0.0]  # 4 mm off the pads' centre along TCP y
+    poses, _ = kinematic_prior(start, tcp, [GripperEvents(20, None)], model_points=box_points())
+    assert np.allclose(poses[19], start)  # at rest until the grasp
+    assert np.allclose(poses[20:, :3, 3], tcp[20:, :3, 3], atol=1e-9)  # centred, then carried
+    far = start.copy()
+    far[1, 3] += 0.03  # 3.4 cm off: not between the pads, no centring
+    poses, _ = kinematic_prior(far, tcp, [GripperEvents(20, None)], model_points=box_points())
+    assert np.allclose(poses[20], far)
+
+
+def rotation_x(deg):
+    a = np.radians(deg)
+    R = np.eye(4)
+    R[1:3, 1:3] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+    return R
+
+
+def test_release_settles_a_small_tilt_but_not_a_reorientation():
+    tcp = tcp_track()
+    start = np.eye(4)
+    start[:3, 3] = tcp[20, :3, 3]
+    for tilt, settles in ((3.0, True), (25.0, False)):
+        slipped = tcp.copy()
+        slipped[25:] = slipped[25:] @ rotation_x(tilt)  # the hand turns the object by ``tilt``
+        poses, _ = kinematic_prior(start, slipped, [GripperEvents(20, 40)], model_points=box_points())
+        final = poses[-1]
+        up_angle = np.degrees(np.arccos(np.clip(final[2, 2], -1, 1)))
+        if settles:
+            assert up_angle < 1e-6
+            centre = final[:3, 3]  # the model's centre is the frame's origin: it stays where it was let go
+            assert np.allclose(centre, poses[39, :3, 3], atol=1e-9)
+        else:
+            assert abs(up_angle - tilt) < 1e-6
+
+
+def test_an_object_never_released_stays_in_the_hand():
+    """Pick-and-hold: the grasp has no release; every later segment carries the object."""
+    tcp = tcp_track()
+    start = np.eye(4)
+    start[:3, 3] = tcp[20, :3, 3]
+    segs = [Segment("motion", "M_approach", 0, 15), Segment("skill", "S_pick", 15, 25),
+            Segment("motion", "M_transfer", 25, 60)]
+
+    def agreeing_tracker(frames, T_first, prior):
+        return prior, np.zeros(len(frames), dtype=bool)
+
+    pseudo = hybrid_pseudo_poses(segs, start, tcp, [GripperEvents(20, None)], agreeing_tracker)
+    assert np.allclose(pseudo.poses[20:, :3, 3], tcp[20:, :3, 3])
+    assert pseudo.source[25:] == [ATTACHED] * 35

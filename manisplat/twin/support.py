@@ -1,0 +1,88 @@
+"""Where things can stand: a height map of the scene's support surfaces, measured from the
+recording's depth, and the check that a placed object rests on one flat surface.
+
+The reconstructed background is a good picture but a poor ruler: on the shared pick-and-place
+its rendered depth scatters by 8 mm (10th-90th percentile) over a flat plate, twice the plate's
+4 mm step. The recording's depth frames measure the surfaces directly, so the map is their
+per-pixel median over the training frames (background pixels only: robot and objects masked
+out), back-projected to the base frame and binned into cells of ``cell`` metres, each cell's
+median height kept. Cells never seen are NaN.
+
+An object whose footprint spans a step (part on a plate, part on the table) does not stay where
+it was put: it tips over the edge (on the shared pick-and-place, boxes let go across the plate's
+rim ended 5-10 deg tilted and 1-2 cm away). :meth:`SupportMap.step_under` measures the step
+under a footprint; augmentation discards placements above :data:`MAX_STEP`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+CELL = 0.005  # m
+MAX_STEP = 0.0025  # m: a larger height difference under an object is a step it would tip over
+REACH = 1.0  # m: the map covers base-frame x, y within this (a PiPER reaches 0.63 m)
+MIN_KNOWN = 0.5  # fraction of the footprint's cells that must have been seen to judge it
+
+
+@dataclass(frozen=True)
+class SupportMap:
+    """Heights [Ny, Nx] float32 (m, base frame z; NaN where never seen) of cells ``cell`` m wide,
+    cell (0, 0) centred at ``origin`` (x, y) m."""
+
+    heights: np.ndarray
+    origin: tuple[float, float]
+    cell: float
+
+    def height_at(self, xy: np.ndarray) -> np.ndarray:
+        """Heights [N] (NaN outside the map or unseen) under base-frame points ``xy`` [N, 2]."""
+        idx = np.round((np.asarray(xy, np.float64) - np.asarray(self.origin)) / self.cell).astype(np.int64)
+        ny, nx = self.heights.shape
+        inside = (idx[:, 0] >= 0) & (idx[:, 0] < nx) & (idx[:, 1] >= 0) & (idx[:, 1] < ny)
+        out = np.full(len(idx), np.nan)
+        out[inside] = self.heights[idx[inside, 1], idx[inside, 0]]
+        return out
+
+    def step_under(self, footprint_xy: np.ndarray) -> float | None:
+        """The height difference (m) between the highest and lowest surface under a footprint
+        (base-frame points [N, 2] covering the object seen from above; 5th-95th percentile of the
+        distinct cells' heights), or None where less than :data:`MIN_KNOWN` of it was seen."""
+        idx = np.unique(np.round((np.asarray(footprint_xy) - np.asarray(self.origin)) / self.cell).astype(np.int64), axis=0)
+        heights = self.height_at(idx * self.cell + np.asarray(self.origin))
+        known = heights[np.isfinite(heights)]
+        if len(idx) == 0 or len(known) < MIN_KNOWN * len(idx):
+            return None
+        low, high = np.percentile(known, [5, 95])
+        return float(high - low)
+
+
+def support_map(depth: np.ndarray, background: np.ndarray, K: np.ndarray, T_base_cam: np.ndarray, *,
+                cell: float = CELL, reach: float = REACH) -> SupportMap | None:
+    """The height map (module docstring) from depth frames [N, H, W] (m, 0 invalid) and their
+    background masks [N, H, W] bool, seen with OpenCV intrinsics ``K`` [3, 3] and camera-to-base
+    ``T_base_cam`` [4, 4], over base-frame x, y within ``reach`` m of the base. None when no
+    frame has a valid background pixel there."""
+    stack = np.where(np.asarray(background) & (np.asarray(depth) > 0), depth, np.nan).astype(np.float32)
+    seen = np.isfinite(stack).any(0)
+    if not seen.any():
+        return None
+    z = np.full(seen.shape, np.nan, np.float32)
+    z[seen] = np.nanmedian(stack[:, seen], axis=0)
+    ys, xs = np.nonzero(seen)
+    zs = z[ys, xs].astype(np.float64)
+    cam = np.stack([(xs - K[0, 2]) / K[0, 0] * zs, (ys - K[1, 2]) / K[1, 1] * zs, zs], -1)
+    points = cam @ np.asarray(T_base_cam)[:3, :3].T + np.asarray(T_base_cam)[:3, 3]
+    points = points[(np.abs(points[:, :2]) <= reach).all(1)]
+    if not len(points):
+        return None
+    origin = points[:, :2].min(0)
+    idx = np.round((points[:, :2] - origin) / cell).astype(np.int64)
+    nx, ny = idx.max(0) + 1
+    flat = idx[:, 1] * nx + idx[:, 0]
+    order = np.argsort(flat, kind="stable")
+    flat, heights_sorted = flat[order], points[order, 2]
+    cells, starts = np.unique(flat, return_index=True)
+    heights = np.full(nx * ny, np.nan, np.float32)
+    heights[cells] = [np.median(chunk) for chunk in np.split(heights_sorted, starts[1:])]
+    return SupportMap(heights.reshape(ny, nx), (float(origin[0]), float(origin[1])), cell)
