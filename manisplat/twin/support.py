@@ -58,11 +58,11 @@ class SupportMap:
 
 
 def support_map(depth: np.ndarray, background: np.ndarray, K: np.ndarray, T_base_cam: np.ndarray, *,
-                cell: float = CELL, reach: float = REACH) -> SupportMap | None:
+                cell: float | None = None, reach: float = REACH) -> SupportMap | None:
     """The height map (module docstring) from depth frames [N, H, W] (m, 0 invalid) and their
     background masks [N, H, W] bool, seen with OpenCV intrinsics ``K`` [3, 3] and camera-to-base
-    ``T_base_cam`` [4, 4], over base-frame x, y within ``reach`` m of the base. None when no
-    frame has a valid background pixel there."""
+    ``T_base_cam`` [4, 4], over base-frame x, y within ``reach`` m of the base; ``cell`` (m)
+    defaults to the module docstring's. None when no frame has a valid background pixel there."""
     stack = np.where(np.asarray(background) & (np.asarray(depth) > 0), depth, np.nan).astype(np.float32)
     seen = np.isfinite(stack).any(0)
     if not seen.any():
@@ -76,6 +76,8 @@ def support_map(depth: np.ndarray, background: np.ndarray, K: np.ndarray, T_base
     points = points[(np.abs(points[:, :2]) <= reach).all(1)]
     if not len(points):
         return None
+    if cell is None:
+        cell = max(CELL, 1.5 * float(np.median(zs)) / float(min(K[0, 0], K[1, 1])))
     origin = points[:, :2].min(0)
     idx = np.round((points[:, :2] - origin) / cell).astype(np.int64)
     nx, ny = idx.max(0) + 1

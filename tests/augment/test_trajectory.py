@@ -199,3 +199,27 @@ def test_deterministic_for_a_seed(twin):
     assert next(r for r in a.planner["segments"] if r["segment"] == "M_transfer")["method"] == "rrtconnect"
     assert np.array_equal(a.q, b.q) and np.array_equal(a.gripper, b.gripper)
     assert [s["frames"] for s in a.segments] == [s["frames"] for s in b.segments]
+
+
+def test_an_object_set_down_across_a_step_is_rejected(twin):
+    """A 4 mm step in the measured support right under the source's place pose: the same targets
+    that augment fine on a flat table are discarded as unstable; a step 10 cm away changes nothing."""
+    from manisplat.twin.support import SupportMap
+
+    place = source_demo(twin).objects["box"].T_placed[:2, 3]
+    flat = twin.support
+    try:
+        for offset, rejected in ((0.0, True), (0.10, False)):
+            heights = np.zeros((400, 400), np.float32)
+            origin = (-1.0, -1.0)
+            xs = origin[0] + np.arange(400) * 0.005
+            heights[:, xs >= place[0] + offset] = 0.004
+            twin.support = SupportMap(heights, origin, 0.005)
+            if rejected:
+                with pytest.raises(Rejected) as info:
+                    augment_trajectory(twin, _source_targets(twin), AugmentConfig())
+                assert info.value.reason == "unstable_support" and "4.0 mm step" in info.value.detail
+            else:
+                augment_trajectory(twin, _source_targets(twin), AugmentConfig())
+    finally:
+        twin.support = flat

@@ -107,3 +107,20 @@ def test_a_missing_or_damaged_twin_is_named(trained, tmp_path):
     (copy / "twin.pt").unlink()
     with pytest.raises(TwinFormatError, match="missing"):
         Twin.load(copy)
+
+
+def test_the_support_map_travels_with_the_twin(trained):
+    """Measured from the sample's depth at write time, loaded from twin.pt alone: the sample's
+    table is flat, so a box-sized footprint on it has no step."""
+    rec, out, _ = trained
+    support = Twin.load(out).support
+    assert support is not None and np.isfinite(support.heights).sum() > 500
+    from scipy.ndimage import uniform_filter
+
+    seen = uniform_filter(np.isfinite(support.heights).astype(float), size=9)  # fraction seen around each cell
+    iy, ix = np.unravel_index(np.argmax(seen), seen.shape)
+    centre = np.array(support.origin) + support.cell * np.array([ix, iy])
+    a = np.linspace(-0.02, 0.02, 9)
+    footprint = np.stack(np.meshgrid(a, a), -1).reshape(-1, 2) + centre
+    assert abs(np.nanmedian(support.height_at(footprint))) < 0.003  # the table is the base's z = 0 plane
+    assert support.step_under(footprint) < 0.0025

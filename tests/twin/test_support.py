@@ -1,0 +1,80 @@
+"""The support height map: measured from depth frames, robust to what moves through them, and
+the step under an object's footprint that decides whether it can be set down there."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from manisplat.twin.support import MAX_STEP, SupportMap, support_map
+
+W, H = 160, 120
+K = np.array([[150.0, 0, (W - 1) / 2], [0, 150.0, (H - 1) / 2], [0, 0, 1]])
+PLATE = (0.30, 0.05, 0.06, 0.004)  # centre x, y (m), radius (m), height (m)
+
+
+def camera_above(x=0.3, y=0.0, z=0.6) -> np.ndarray:
+    """T_base_cam [4, 4] of a camera looking straight down (OpenCV axes: z down, x along base x)."""
+    T = np.eye(4)
+    T[:3, :3] = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]
+    T[:3, 3] = [x, y, z]
+    return T
+
+
+def table_with_plate(T_base_cam: np.ndarray) -> np.ndarray:
+    """Exact z-depth [H, W] (m) of a table at z = 0 carrying a raised disc (``PLATE``)."""
+    ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
+    rays = np.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], np.ones_like(xs)], -1)
+    R, c = T_base_cam[:3, :3], T_base_cam[:3, 3]
+    d_base = rays @ R.T
+    depth = np.zeros((H, W))
+    for height, inside in ((PLATE[3], True), (0.0, False)):
+        z = (height - c[2]) / d_base[..., 2]
+        hit = c[:2] + z[..., None] * d_base[..., :2]
+        on_plate = np.hypot(hit[..., 0] - PLATE[0], hit[..., 1] - PLATE[1]) <= PLATE[2]
+        take = (on_plate if inside else ~on_plate) & (depth == 0)
+        depth[take] = z[take]
+    return depth
+
+
+def square(centre_xy, half=0.02, n=9) -> np.ndarray:
+    """Footprint points [n*n, 2] of a square object."""
+    a = np.linspace(-half, half, n)
+    return np.stack(np.meshgrid(a, a), -1).reshape(-1, 2) + np.asarray(centre_xy)
+
+
+@pytest.fixture(scope="module")
+def measured() -> SupportMap:
+    T = camera_above()
+    depth = table_with_plate(T)
+    frames = np.repeat(depth[None], 5, axis=0)
+    background = np.ones_like(frames, dtype=bool)
+    rng = np.random.default_rng(0)
+    for k in range(5):  # something passes through each frame (masked out), and a bogus reading
+        y0, x0 = rng.integers(0, H - 30), rng.integers(0, W - 30)
+        background[k, y0:y0 + 30, x0:x0 + 30] = False
+        frames[k, y0:y0 + 30, x0:x0 + 30] = 0.3
+    frames[0, 10:20, 10:20] = 0.1  # a wrong reading in one frame only: the median ignores it
+    return support_map(frames, background, K, T)
+
+
+def test_heights_are_measured_where_seen_and_unknown_elsewhere(measured):
+    assert abs(measured.height_at(np.array([[PLATE[0], PLATE[1]]]))[0] - PLATE[3]) < 1e-6
+    assert abs(measured.height_at(np.array([[PLATE[0], -0.15]]))[0]) < 1e-6
+    assert np.isnan(measured.height_at(np.array([[2.0, 2.0]]))[0])  # outside the view
+    assert np.nanmax(measured.heights) < PLATE[3] + 1e-6  # the wrong reading did not survive
+
+
+def test_a_footprint_across_the_rim_is_a_step_and_one_on_either_side_is_not(measured):
+    on_plate = measured.step_under(square((PLATE[0], PLATE[1])))
+    on_table = measured.step_under(square((PLATE[0], PLATE[1] - 0.12)))
+    across = measured.step_under(square((PLATE[0], PLATE[1] - PLATE[2])))
+    assert on_plate < 1e-6 and on_table < 1e-6
+    assert abs(across - PLATE[3]) < 1e-6 and across > MAX_STEP
+    assert measured.step_under(square((3.0, 3.0))) is None  # never seen: no judgement
+
+
+def test_no_background_gives_no_map():
+    T = camera_above()
+    depth = table_with_plate(T)[None]
+    assert support_map(depth, np.zeros_like(depth, dtype=bool), K, T) is None
