@@ -18,7 +18,9 @@ def reconstruct_row(episode: Path, config: TrainConfig, *, force_tracking: bool 
 
     Columns: setup_s (loading, plan, initialisation, phases, tracking), train_s, wall_s (both),
     gaussians at the end, held-out psnr/ssim per region, and per object et_cm / er_deg (ours) and
-    base_et_cm / base_er_deg (the per-frame baseline) when ``gt.npz`` exists. Writing outputs
+    base_et_cm / base_er_deg (the per-frame baseline), anchored_* (start-anchored: the mean over the
+    frames after the object first moves, and final_*: where it is left) and pseudo_* (the pseudo
+    ground truth alone, both definitions) when ``gt.npz`` exists. Writing outputs
     (evaluation) is not counted. ``force_tracking`` tracks every object even where the plan would
     give it one static pose (to measure what the plan saves).
     """
@@ -46,6 +48,17 @@ def reconstruct_row(episode: Path, config: TrainConfig, *, force_tracking: bool 
         base = metrics.get("pose_baseline", {}).get(name)
         if base:
             row["base_et_cm"], row["base_er_deg"] = base["et_cm"], base["er_deg"]
+        anchored = metrics.get("pose_anchored", {}).get(name)
+        if anchored:
+            row["anchored_et_cm"], row["anchored_er_deg"] = anchored["et_cm"], anchored["er_deg"]
+            row["anchored_final_et_cm"], row["anchored_final_er_deg"] = (anchored["final"]["et_cm"],
+                                                                         anchored["final"]["er_deg"])
+        pseudo = metrics.get("pose_pseudo", {}).get(name)
+        if pseudo:
+            row["pseudo_et_cm"], row["pseudo_er_deg"] = pseudo["fitted"]["et_cm"], pseudo["fitted"]["er_deg"]
+            if pseudo["anchored"]:
+                row["pseudo_anchored_et_cm"] = pseudo["anchored"]["et_cm"]
+                row["pseudo_anchored_er_deg"] = pseudo["anchored"]["er_deg"]
     return row
 
 

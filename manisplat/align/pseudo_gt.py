@@ -127,6 +127,7 @@ def hybrid_pseudo_poses(
     events: list[GripperEvents],
     tracker: Callable[..., tuple[np.ndarray, np.ndarray]],
     model_points: np.ndarray | None = None,
+    observe: frozenset[int] = frozenset(),
 ) -> PseudoPoses:
     """Pseudo poses for every frame from the phases.
 
@@ -138,20 +139,25 @@ def hybrid_pseudo_poses(
             :func:`make_tracker`).
         model_points: the object's surface points [M, 3] (object frame) for the centring and
             settling priors (:func:`kinematic_prior`); without them the grasp is rigid as seen.
+        observe: held-out frames: no segment starts from one (the tracker, made with the same
+            set, takes their poses without learning from them).
     """
     T = len(tcp)
     poses = np.zeros((T, 4, 4))
     source = [""] * T
     from_tracking = np.zeros(T, dtype=bool)
-    current = np.asarray(T_start, dtype=np.float64)
-    up = current[:3, :3].T @ np.array([0.0, 0.0, 1.0])  # what points up while the object rests
+    up = np.asarray(T_start, dtype=np.float64)[:3, :3].T @ np.array([0.0, 0.0, 1.0])  # up while it rests
     for seg in segments:
-        # the prior for this segment continues from where the previous one left the object
-        prior, held = kinematic_prior(current, tcp[max(seg.start - 1, 0):], _shift(events, max(seg.start - 1, 0)),
-                                      model_points=model_points, up=up)
-        offset = 1 if seg.start > 0 else 0
+        # each segment continues from the pose of the frame before it (or the one before that
+        # when it is only observed: held out from training, nothing may learn from it)
+        first = max(seg.start - 1, 0)
+        if first in observe and first > 0:
+            first -= 1
+        current = poses[first] if seg.start > 0 else np.asarray(T_start, dtype=np.float64)
+        prior, held = kinematic_prior(current, tcp[first:], _shift(events, first), model_points=model_points, up=up)
+        offset = seg.start - first
         if seg.kind == "skill":
-            frames = range(seg.start - offset, seg.end)
+            frames = range(first, seg.end)
             tracked, used = tracker(frames, current, prior[: len(frames)])
             poses[seg.start:seg.end] = tracked[offset:]
             from_tracking[seg.start:seg.end] = used[offset:]
@@ -160,7 +166,6 @@ def hybrid_pseudo_poses(
             n = seg.end - seg.start
             poses[seg.start:seg.end] = prior[offset:offset + n]
             source[seg.start:seg.end] = [ATTACHED if h else STATIC for h in held[offset:offset + n]]
-        current = poses[seg.end - 1]
     return PseudoPoses(poses, source, from_tracking)
 
 
@@ -177,14 +182,16 @@ def _shift(events: list[GripperEvents], start: int) -> list[GripperEvents]:
 
 
 def make_tracker(gray, mask, depth, K: np.ndarray, T_base_cam: np.ndarray,
-                 settings: TrackerSettings = TrackerSettings(), model: ObjectView | None = None):
+                 settings: TrackerSettings = TrackerSettings(), model: ObjectView | None = None,
+                 observe: frozenset[int] = frozenset()):
     """A ``tracker(frames, T_first)`` closure over an episode's images, masks and depth (``model``
-    stands in where they are missing: :func:`manisplat.align.tracking.track_object`)."""
+    stands in where they are missing; ``observe``: held-out frames, tracked without learning from
+    them: :func:`manisplat.align.tracking.track_object`)."""
 
     def tracker(frames: range, T_first: np.ndarray, prior: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         if len(frames) == 1:
             return np.asarray(T_first)[None], np.array([False])
-        track = track_object(gray, mask, depth, K, T_base_cam, frames, T_first, settings, prior, model)
+        track = track_object(gray, mask, depth, K, T_base_cam, frames, T_first, settings, prior, model, observe)
         return track.poses, track.from_tracking
 
     return tracker

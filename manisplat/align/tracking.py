@@ -63,7 +63,8 @@ class TrackerSettings:
             misfit as the fingers start to hide the object does not)...
         evidence_ratio, evidence_margin: ...and when the frame's depth fits the tracked pose
             better than the prior's: its :class:`DepthEvidence` misfit below ``evidence_ratio``
-            times the prior's and at least ``evidence_margin`` (m) smaller.
+            times the prior's and at least ``evidence_margin`` (m) smaller (``depth_evidence``
+            False skips this check: confidence alone, the ablation in benchmarks/bench_pseudo_gt.py).
     """
 
     max_points: int = 300
@@ -80,6 +81,7 @@ class TrackerSettings:
     disagree_rotation_deg: float = 3.0
     evidence_ratio: float = 0.7
     evidence_margin: float = 0.0003
+    depth_evidence: bool = True
 
 
 @dataclass
@@ -184,6 +186,7 @@ def track_object(
     settings: TrackerSettings = TrackerSettings(),
     prior: np.ndarray | None = None,
     model: ObjectView | None = None,
+    observe: frozenset[int] = frozenset(),
 ) -> Track:
     """Poses of an object over ``frames``, starting from its pose ``T_start`` in the first one.
 
@@ -194,6 +197,9 @@ def track_object(
         K: OpenCV intrinsics [3, 3]; T_base_cam: camera-to-base [4, 4].
         prior: [n, 4, 4] poses the frames take unless tracking confidently disagrees (module doc).
         model: the object's model seen at a pose, for frames without mask or depth.
+        observe: frames (held out from training) whose pose is tracked from their own image but
+            which nothing else learns from: the tracks, the canonical points and the prior's
+            correction continue from the frame before, as if they were not there.
     """
     first = frames[0]
     poses = [np.asarray(T_start, dtype=np.float64)]
@@ -212,12 +218,16 @@ def track_object(
     prev = gray(first)
     lk = dict(winSize=(settings.window, settings.window), maxLevel=settings.levels,
               criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+    last_pose = poses[0]  # the pose of the last frame that is not only observed
     for f in frames[1:]:
         k = len(poses)
-        predicted = prior[k] @ correction if prior is not None else poses[-1]
+        observe_only = f in observe
+        if observe_only:  # its pose from its own image; nothing of it carries on to the next frames
+            saved = (pts, canon, correction, streak, following)
+        predicted = prior[k] @ correction if prior is not None else last_pose
         cur, m = gray(f), view.mask(f, predicted)
         measured = depth(f)
-        pose = poses[-1]
+        pose = last_pose
         if len(pts):
             fwd, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, pts.reshape(-1, 1, 2).astype(np.float32), None, **lk)
             back, st2, _ = cv2.calcOpticalFlowPyrLK(cur, prev, fwd, None, **lk)
@@ -272,6 +282,10 @@ def track_object(
         solved.append(tracked is not None)
         used.append(use_track)
         inliers.append(n_in)
+        if observe_only:
+            pts, canon, correction, streak, following = saved
+            continue
+        last_pose = pose
         if len(pts) < settings.max_points // 2 and m.any():
             new = _detect(cur, m, pts, settings)
             Xn, okn = _lift(new, measured if measured is not None else view.depth(f, pose), K, T_base_cam)
@@ -351,7 +365,10 @@ def _project(canon: np.ndarray, T_base_obj: np.ndarray, K: np.ndarray, T_base_ca
 def _earns_override(evidence: DepthEvidence | None, surface: np.ndarray | None, tracked: np.ndarray,
                     prior: np.ndarray, settings: TrackerSettings, following: bool) -> bool:
     """Whether the frame's depth backs the tracked pose over the prior's: clearly better to start
-    an override (ratio and margin), not worse by more than the margin to continue one."""
+    an override (ratio and margin), not worse by more than the margin to continue one; always
+    without ``settings.depth_evidence``."""
+    if not settings.depth_evidence:
+        return True
     if evidence is None or surface is None:
         return False
     at_tracked, at_prior = evidence.misfit(surface, tracked), evidence.misfit(surface, prior)

@@ -12,7 +12,7 @@ import torch
 
 from manisplat.align.phases import DEFAULT_TAU, GripperEvents, Segment, gripper_events, segment_phases
 from manisplat.align.pseudo_gt import PseudoPoses, hybrid_pseudo_poses, make_tracker, tracked_baseline
-from manisplat.align.tracking import ObjectView
+from manisplat.align.tracking import ObjectView, TrackerSettings
 from manisplat.reconstruct.data import EpisodeData, ReconstructionInputError
 from manisplat.reconstruct.init import background_gaussians, link_gaussians, object_gaussians
 from manisplat.reconstruct.plan import Plan
@@ -52,17 +52,23 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
         robot_gaussians = int(min(max(W * H // 4, 2_000), 20_000))
     if data.masks is None:
         raise ReconstructionInputError(f"{data.path}: no masks; draw them first (manisplat.reconstruct.masks)")
-    background = background_gaussians(data, sh_degree=config.sh_degree, table_z=table_z)
+    train = plan.train_frames
+    # no pixel of a held-out frame reaches the Gaussians: the first, middle and last training frames seed them
+    background = background_gaussians(data, frames=sorted({train[0], train[len(train) // 2], train[-1]}),
+                                      sh_degree=config.sh_degree, table_z=table_z)
     links = link_gaussians(data.robot, plan.links, total=robot_gaussians, sh_degree=config.sh_degree)
     objects, trajectories, alignments = {}, {}, {}
     tcp = data.tcp.double().numpy()
     for obj in plan.objects:
+        if train[0] != 0:
+            raise ReconstructionInputError("the first frame must be a training frame: it seeds the objects")
         gaussians, T_start = object_gaussians(data, obj.label, 0, sh_degree=config.sh_degree, table_z=table_z)
         objects[obj.name] = gaussians
         model = object_view(gaussians, data) if data.depth is None or masks_from_model else None
         alignment = align_object(data, obj.label, T_start.numpy(), tcp, moves=obj.moves, tau=tau, model=model,
                                  masks_from_model=masks_from_model,
-                                 model_points=gaussians.params["means"].detach().double().cpu().numpy())
+                                 model_points=gaussians.params["means"].detach().double().cpu().numpy(),
+                                 observe=frozenset(plan.test_frames))
         alignments[obj.name] = alignment
         if masks_from_model:
             _draw_object_masks(data, obj.label, alignment.pseudo.poses, model)
@@ -77,12 +83,16 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
 
 def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.ndarray, *, moves: bool,
                  tau: float = DEFAULT_TAU, model: ObjectView | None = None,
-                 masks_from_model: bool = False, model_points: np.ndarray | None = None) -> ObjectAlignment:
+                 masks_from_model: bool = False, model_points: np.ndarray | None = None,
+                 settings: TrackerSettings = TrackerSettings(),
+                 observe: frozenset[int] = frozenset()) -> ObjectAlignment:
     """Phases, hybrid pseudo poses and (for moving objects) the tracking-only baseline.
 
     ``model`` stands in for the depth (monocular) and, with ``masks_from_model``, for the masks
     of frames after the first. ``model_points`` [M, 3] (object frame) enable the grasp's
     centring and the release's settling priors (:func:`manisplat.align.pseudo_gt.kinematic_prior`).
+    ``settings``: the tracker's; ``observe``: the held-out frames, whose poses are tracked without
+    anything learning from them.
     """
     events = gripper_events(data.gripper.numpy())
     segments = segment_phases(tcp[:, :3, 3], data.gripper.numpy(), T_start[:3, 3], tau=tau)
@@ -96,9 +106,11 @@ def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.nda
         lambda i: None if data.depth is None else data.depth[i].numpy(),
         data.K_opencv.numpy(),
         np.linalg.inv(data.viewmat.double().numpy()),
+        settings,
         model=model,
+        observe=observe,
     )
-    pseudo = hybrid_pseudo_poses(segments, T_start, tcp, events, tracker, model_points)
+    pseudo = hybrid_pseudo_poses(segments, T_start, tcp, events, tracker, model_points, observe)
     baseline = tracked_baseline(tracker, data.n_frames, T_start)
     return ObjectAlignment(segments, events, pseudo, baseline)
 

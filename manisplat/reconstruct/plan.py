@@ -25,6 +25,7 @@ from manisplat.reconstruct.init import backproject
 log = logging.getLogger(__name__)
 
 HOLDOUT_EVERY = 8
+HOLDOUT_OFFSET = 4  # held out: frames 4, 12, 20, ...; frame 0, which seeds the objects, trains
 STILL_JOINTS = 1e-4  # rad: below this change between frames the arm is still
 STILL_GRIPPER = 1e-4  # m
 MOVING_OBJECT = 0.01  # m: an object whose centre moves more than this is tracked
@@ -81,10 +82,10 @@ class Plan:
 def make_plan(data: EpisodeData) -> Plan:
     """Inspect ``data`` and decide (see the module docstring)."""
     n = data.n_frames
-    test = list(range(0, n, HOLDOUT_EVERY))
-    train = [i for i in range(n) if i % HOLDOUT_EVERY]
-    links, skipped = _visible_links(data)
-    objects = [_object_plan(data, name) for name in data.objects]
+    test = list(range(HOLDOUT_OFFSET, n, HOLDOUT_EVERY))
+    train = [i for i in range(n) if i % HOLDOUT_EVERY != HOLDOUT_OFFSET]
+    links, skipped = _visible_links(data, train)
+    objects = [_object_plan(data, name, train) for name in data.objects]
     moving = [o for o in objects if o.moves]
     distinct = _distinct_states(data, train, objects_move=bool(moving))
     plan = Plan(
@@ -95,23 +96,23 @@ def make_plan(data: EpisodeData) -> Plan:
     return plan
 
 
-def _visible_links(data: EpisodeData) -> tuple[list[str], list[str]]:
-    """Links seen in at least one frame's mask (all links without masks), and the rest."""
+def _visible_links(data: EpisodeData, train: list[int]) -> tuple[list[str], list[str]]:
+    """Links seen in at least one training frame's mask (all links without masks), and the rest."""
     names = [name for name in data.robot.link_names if data.robot.visuals.get(name)]
     if data.masks is None:
         return names, []
-    present = set(torch.unique(data.masks).tolist())
+    present = set(torch.unique(data.masks[train]).tolist())
     seen = {link for value, link in data.labels.robot.items() if value in present}
     return [l for l in names if l in seen], [l for l in names if l not in seen]
 
 
-def _object_plan(data: EpisodeData, name: str) -> ObjectPlan:
+def _object_plan(data: EpisodeData, name: str, train: list[int]) -> ObjectPlan:
     label = next((v for v, o in data.labels.objects.items() if o == name), None)
     if data.masks is None or data.depth is None or label is None:
         return ObjectPlan(name, label, True, float("nan"), "no masks or depth to prove it still: tracked")
     centres, first_area = [], None
     T_base_cam = torch.linalg.inv(data.viewmat.double())
-    for i in range(data.n_frames):
+    for i in train:
         keep = data.masks[i] == label
         area = int(keep.sum())
         if first_area is None:
