@@ -179,7 +179,13 @@ def _run(args: argparse.Namespace, prompt: tuple[str, tuple | None, tuple | None
     checkpoint = args.out / CHECKPOINT
     if args.resume and checkpoint.exists():
         # on the host first, whichever device wrote it; load_state_dict moves it to this run's device
-        rec.load_state_dict(torch.load(checkpoint, weights_only=False, map_location="cpu"))
+        # tensors and plain containers only: a checkpoint is never unpickled as code
+        try:
+            rec.load_state_dict(torch.load(checkpoint, weights_only=True, map_location="cpu"))
+        except Exception as exc:  # torch raises several types for damaged or foreign files
+            print(f"error: {checkpoint}: cannot resume from it ({type(exc).__name__}: {exc}); "
+                  f"start a new run with --overwrite", file=sys.stderr)
+            return 1
         log.info("resumed from %s at iteration %d", checkpoint, rec.step)
 
     def save(r) -> None:

@@ -147,7 +147,7 @@ def test_a_checkpoint_continues_exactly(pick, tmp_path):
     rec.train(progress=False)
 
     resumed, _ = _reconstruction(pick, iters=14, device="cpu")
-    resumed.load_state_dict(torch.load(tmp_path / "c.pt", weights_only=False, map_location="cpu"))
+    resumed.load_state_dict(torch.load(tmp_path / "c.pt", weights_only=True, map_location="cpu"))
     assert resumed.step == 10 and resumed.graph.shadows is not None
     resumed.train(progress=False)
     for a, b in zip(rec.graph.nodes(), resumed.graph.nodes()):

@@ -6,6 +6,7 @@ import csv
 import json
 
 import pytest
+import torch
 
 from manisplat.episode import load_meta, save_meta
 from manisplat.episode.synthetic import write_sample_episode
@@ -15,6 +16,7 @@ from manisplat.reconstruct.pipeline import build
 from manisplat.reconstruct.plan import make_plan
 from manisplat.reconstruct.trainer import TrainConfig
 from manisplat.splat import load_ply
+from manisplat.twin import Twin
 
 
 @pytest.fixture(scope="module")
@@ -53,11 +55,22 @@ def test_plan_prints_and_exits(pick, capsys, tmp_path):
     assert "held out" in text and "box: tracked" in text and not (tmp_path / "x").exists()
 
 
-def test_resume_continues_from_the_checkpoint(pick, tmp_path):
+def test_resume_continues_from_the_checkpoint(pick, tmp_path, capsys):
     out = tmp_path / "out"
     assert main([str(pick), "--out", str(out), "--iters", "20", "-q"]) == 0
+    # mark the checkpoint: a background colour no training would reach; resuming at its own
+    # step trains nothing more, so the twin must carry the mark (it does not if the checkpoint is ignored)
+    state = torch.load(out / "checkpoint.pt", weights_only=True)
+    state["background"] = torch.full_like(state["background"], 4.0)
+    torch.save(state, out / "checkpoint.pt")
+    assert main([str(pick), "--out", str(out), "--iters", "20", "--resume", "-q"]) == 0
+    twin = Twin.load(out)
+    assert torch.allclose(twin.background_rgb, torch.sigmoid(torch.tensor(4.0)))
     assert main([str(pick), "--out", str(out), "--iters", "30", "--resume", "-q"]) == 0
     assert json.loads((out / "metrics.json").read_text())["iters"] == 30
+    (out / "checkpoint.pt").write_bytes(b"not a checkpoint")
+    assert main([str(pick), "--out", str(out), "--iters", "40", "--resume", "-q"]) == 1
+    assert "checkpoint.pt" in capsys.readouterr().err
 
 
 def test_an_object_that_never_moves_gets_one_pose_and_no_tracking(reach):
@@ -72,9 +85,17 @@ def test_an_object_that_never_moves_gets_one_pose_and_no_tracking(reach):
 def test_shadows_are_searched_and_learned(pick):
     data = load_episode_data(pick)
     rec, _ = build(data, make_plan(data), TrainConfig(iters=12, shadow_start=6, eval_every=100))
-    rec.train(progress=False)
-    assert rec.graph.shadows is not None and rec.light_optimizer is not None
+    found = {}
+
+    def snapshot(r):  # the light as the search left it, before any training step moved it
+        if r.graph.shadows is not None and not found:
+            found.update({k: v.detach().clone() for k, v in r.graph.shadows.named_parameters()})
+
+    rec.train(progress=False, callback=snapshot)
+    assert rec.graph.shadows is not None and found
     assert abs(float(rec.graph.shadows.direction.detach().norm()) - 1.0) < 0.1
+    learned = dict(rec.graph.shadows.named_parameters())
+    assert any(not torch.equal(found[k], learned[k].detach()) for k in found), "the light was never trained"
 
 
 def test_uncalibrated_camera_is_a_clear_error(pick, tmp_path, capsys):
