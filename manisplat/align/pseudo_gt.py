@@ -44,7 +44,6 @@ class PseudoPoses:
 
 MAX_CENTRING = 0.015  # m: a larger offset between the pads' centre and the object's is not a squeeze
 MAX_SETTLE_DEG = 10.0  # a larger tilt at the release is a deliberate re-orientation, not a slip
-PAD_REACH = (0.015, 0.025)  # m: the pads' half-extent across (TCP x) and along the approach (TCP z)
 
 
 def kinematic_prior(T_start: np.ndarray, tcp: np.ndarray, events: list[GripperEvents], *,
@@ -82,17 +81,14 @@ def kinematic_prior(T_start: np.ndarray, tcp: np.ndarray, events: list[GripperEv
 
 
 def centred_between_pads(T_obj: np.ndarray, T_tcp: np.ndarray, model_points: np.ndarray) -> np.ndarray:
-    """The object pose [4, 4] moved along the TCP's closing axis (y) so that the part of it
-    between the pads (model points within :data:`PAD_REACH` of the TCP across and along the
-    approach) is centred on the TCP. Unchanged when too little of it is there or the move would
-    exceed :data:`MAX_CENTRING`."""
-    in_tcp = (np.linalg.inv(T_tcp) @ T_obj)
-    local = model_points @ in_tcp[:3, :3].T + in_tcp[:3, 3]
-    between = (np.abs(local[:, 0]) < PAD_REACH[0]) & (np.abs(local[:, 2]) < PAD_REACH[1])
-    if between.sum() < 10:
-        return T_obj
-    y = local[between, 1]
-    offset = (np.percentile(y, 2) + np.percentile(y, 98)) / 2
+    """The object pose [4, 4] moved along the TCP's closing axis (y) so that the object's centre
+    (of the bounding box of its model points, 1st-99th percentiles: robust to the sides the
+    camera never saw) lies between the pads. Unchanged when the move would exceed
+    :data:`MAX_CENTRING` (the pads hold a part away from the centre: a handle, a long object's
+    end)."""
+    low, high = np.percentile(model_points, [1, 99], axis=0)
+    centre = T_obj[:3, :3] @ ((low + high) / 2) + T_obj[:3, 3]
+    offset = float(T_tcp[:3, 1] @ (centre - T_tcp[:3, 3]))
     if abs(offset) > MAX_CENTRING:
         return T_obj
     out = T_obj.copy()

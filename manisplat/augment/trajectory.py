@@ -65,9 +65,10 @@ class AugmentConfig:
         obstacles: extra boxes in the base frame, besides what the twin holds.
         headroom: the fraction of the limits actually planned for (finite differences at the
             frame rate overshoot a continuous profile slightly).
-        max_support_step: an object set down (start or place) where the surface under it varies by
-            more than this (m) is discarded: it would tip over the step
-            (:mod:`manisplat.twin.support`; not checked when the twin has no support map).
+        max_support_step: an object set down (start or place) where the surface near its centre
+            falls more than this (m) below the highest surface under it is discarded: it would
+            rest on an edge and tip (:mod:`manisplat.twin.support`; not checked when the twin has
+            no support map).
     """
 
     speed: float = 1.0
@@ -289,7 +290,8 @@ class Augmenter:
                         raise Rejected("object_collision", f"{name} at its new {which[2:]} pose overlaps {go.name}")
 
     def _check_support(self, plan: dict, max_step: float) -> None:
-        """A moved object must rest on one flat surface (no step under it) where it is set down."""
+        """A moved object must rest with its centre well inside the surface it is set down on
+        (:meth:`manisplat.twin.support.SupportMap.edge_drop`)."""
         support = self.twin.support
         if support is None:
             return
@@ -301,10 +303,11 @@ class Augmenter:
                 T = p[which]
                 if T is None:
                     continue
-                step = support.step_under(footprint @ T[:2, :3].T + T[:2, 3])
-                if step is not None and step > max_step:
-                    raise Rejected("unstable_support", f"{name} at its new {which[2:]} pose would stand across a "
-                                                       f"{step * 1e3:.1f} mm step (more than {max_step * 1e3:g} mm)")
+                drop = support.edge_drop(footprint @ T[:2, :3].T + T[:2, 3])
+                if drop is not None and drop > max_step:
+                    raise Rejected("unstable_support", f"{name} at its new {which[2:]} pose would rest on the edge of a "
+                                                       f"surface: it falls away {drop * 1e3:.1f} mm (more than "
+                                                       f"{max_step * 1e3:g} mm) near the object's centre")
 
     def _motion(self, name, q_a, q_b, v_a, v_b, width, plan, s_mid, vl, al, config, *, seed, timings, attempts) -> dict:
         world, held = self._world_at(plan, s_mid)

@@ -128,18 +128,26 @@ def sample_trajectory(duration: float, task: str = "pick_place") -> SampleTrajec
     )
 
 
-def _box_poses(T_tcp: np.ndarray, phases: np.ndarray, start_xy) -> np.ndarray:
-    """The box rests until grasped, rides rigidly in the gripper, then rests where released."""
+def _box_poses(trajectory: SampleTrajectory, robot, t: np.ndarray, start_xy) -> np.ndarray:
+    """T_base_box [N, 4, 4] at times ``t`` (s): it rests until the grasp keyframe, rides rigidly in
+    the gripper until the end of the "lower" keyframe, then rests there (times of the continuous
+    trajectory, not of the frames: at a low frame rate no frame falls on the release)."""
     rest = np.eye(4)
     rest[:3, 3] = (*start_xy, BOX_SIZE / 2)
-    carried = np.isin(phases, ["lift", "transfer", "lower"])
-    out = np.repeat(rest[None], len(phases), axis=0)
+    out = np.repeat(rest[None], len(t), axis=0)
+    if "grasp" not in trajectory.phases or "lower" not in trajectory.phases:
+        return out  # a reach: the box never moves
+
+    def tcp_at(times: np.ndarray) -> np.ndarray:
+        return robot.tcp_pose(torch.tensor(trajectory.at(np.asarray(times, np.float64))[0])).numpy()
+
+    t_pick = trajectory.times[trajectory.phases.index("grasp")]
+    t_place = trajectory.times[trajectory.phases.index("lower")]
+    T_rel = np.linalg.inv(tcp_at([t_pick])[0]) @ rest
+    carried = (t > t_pick) & (t < t_place)
     if carried.any():
-        first = int(np.argmax(carried))
-        T_rel = np.linalg.inv(T_tcp[first]) @ rest
-        out[carried] = T_tcp[carried] @ T_rel
-        after = np.arange(len(phases)) > np.flatnonzero(carried)[-1]
-        out[after] = out[np.flatnonzero(carried)[-1]]
+        out[carried] = tcp_at(t[carried]) @ T_rel
+    out[t >= t_place] = tcp_at([t_place])[0] @ T_rel
     return out
 
 
@@ -172,7 +180,7 @@ def write_sample_episode(
     t_frames = np.arange(frames) / fps
     q, g, phase = trajectory.at(t_frames)
     T_tcp = robot.tcp_pose(torch.tensor(q)).numpy()
-    T_box = _box_poses(T_tcp, phase, _script(duration, "pick_place")[2].position[:2])
+    T_box = _box_poses(trajectory, robot, t_frames, _script(duration, "pick_place")[2].position[:2])
     links = robot.forward_kinematics(torch.tensor(q), torch.tensor(g)).numpy()  # [T, L, 4, 4]
 
     out = Path(out)

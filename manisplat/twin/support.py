@@ -8,10 +8,12 @@ per-pixel median over the training frames (background pixels only: robot and obj
 out), back-projected to the base frame and binned into cells of ``cell`` metres, each cell's
 median height kept. Cells never seen are NaN.
 
-An object whose footprint spans a step (part on a plate, part on the table) does not stay where
-it was put: it tips over the edge (on the shared pick-and-place, boxes let go across the plate's
-rim ended 5-10 deg tilted and 1-2 cm away). :meth:`SupportMap.step_under` measures the step
-under a footprint; augmentation discards placements above :data:`MAX_STEP`.
+An object set down across a step rests on the higher surface; it stays only if its centre is
+well inside that surface's edge. On the shared pick-and-place, boxes let go within 1 cm of the
+4 mm plate's rim ended 5-10 deg tilted and 1-2 cm away, while boxes overhanging the rim with their
+centre 2 cm inside it stayed. :meth:`SupportMap.edge_drop` measures how far the surface falls
+away from the highest one under a footprint within a margin of its centre; augmentation
+discards placements where it falls by more than :data:`MAX_STEP`.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ CELL = 0.005  # m
 MAX_STEP = 0.0025  # m: a larger height difference under an object is a step it would tip over
 REACH = 1.0  # m: the map covers base-frame x, y within this (a PiPER reaches 0.63 m)
 MIN_KNOWN = 0.5  # fraction of the footprint's cells that must have been seen to judge it
+EDGE_MARGIN = 0.015  # m: the centre of a set-down object must be this far inside its support's edge
 
 
 @dataclass(frozen=True)
@@ -44,17 +47,34 @@ class SupportMap:
         out[inside] = self.heights[idx[inside, 1], idx[inside, 0]]
         return out
 
-    def step_under(self, footprint_xy: np.ndarray) -> float | None:
-        """The height difference (m) between the highest and lowest surface under a footprint
-        (base-frame points [N, 2] covering the object seen from above; 5th-95th percentile of the
-        distinct cells' heights), or None where less than :data:`MIN_KNOWN` of it was seen."""
-        idx = np.unique(np.round((np.asarray(footprint_xy) - np.asarray(self.origin)) / self.cell).astype(np.int64), axis=0)
-        heights = self.height_at(idx * self.cell + np.asarray(self.origin))
-        known = heights[np.isfinite(heights)]
-        if len(idx) == 0 or len(known) < MIN_KNOWN * len(idx):
+    def _cells_under(self, xy: np.ndarray) -> np.ndarray:
+        """Heights of the distinct cells [K] under base-frame points ``xy`` [N, 2] (NaN unseen)."""
+        idx = np.unique(np.round((np.asarray(xy) - np.asarray(self.origin)) / self.cell).astype(np.int64), axis=0)
+        return self.height_at(idx * self.cell + np.asarray(self.origin))
+
+    def edge_drop(self, footprint_xy: np.ndarray, margin: float = EDGE_MARGIN) -> float | None:
+        """How far (m) the surface falls below the highest one under a footprint (base-frame points
+        [N, 2]; 95th percentile of its cells) within ``margin`` of the footprint's centre (the
+        middle of its extent; the margin at most half its smaller side): 0 where the object's
+        centre is well inside the surface it rests on, the step's height where it would rest on
+        an edge. None where less than :data:`MIN_KNOWN` of the footprint or of the disc was seen."""
+        footprint_xy = np.asarray(footprint_xy, np.float64)
+        under = self._cells_under(footprint_xy)
+        known = under[np.isfinite(under)]
+        if len(under) == 0 or len(known) < MIN_KNOWN * len(under):
             return None
-        low, high = np.percentile(known, [5, 95])
-        return float(high - low)
+        top = float(np.percentile(known, 95))
+        low, high = footprint_xy.min(0), footprint_xy.max(0)
+        radius = min(margin, 0.5 * float((high - low).min()))
+        centre = (low + high) / 2
+        steps = np.arange(-radius, radius + 1e-12, self.cell / 2)
+        disc = np.stack(np.meshgrid(steps, steps), -1).reshape(-1, 2)
+        disc = centre + disc[np.hypot(disc[:, 0], disc[:, 1]) <= radius + 1e-12]
+        near = self._cells_under(disc)
+        near_known = near[np.isfinite(near)]
+        if len(near_known) < MIN_KNOWN * len(near):
+            return None
+        return max(0.0, top - float(np.percentile(near_known, 5)))
 
 
 def support_map(depth: np.ndarray, background: np.ndarray, K: np.ndarray, T_base_cam: np.ndarray, *,

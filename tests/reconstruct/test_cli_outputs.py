@@ -109,7 +109,7 @@ def test_sheets_are_labelled_with_columns_and_frame(finished):
     import cv2
 
     out, _ = finished
-    sheet = cv2.imread(str(out / "renders" / "sheets" / "000008.png"))
+    sheet = cv2.imread(str(out / "renders" / "sheets" / "000012.png"))
     height, width = sheet.shape[:2]
     assert width == 3 * 64 and height > 48, "no header strip above the panels"
     header = sheet[: height - 48]

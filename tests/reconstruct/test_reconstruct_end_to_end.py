@@ -38,7 +38,7 @@ def test_cli_writes_every_output(pick, tmp_path, capsys):
     assert set(metrics["pose"]["box"]) == {"et_cm", "er_deg"} and "box" in metrics["pose_baseline"]
     assert metrics["psnr"]["full"] > 15.0
     renders = sorted(p.name for p in (out / "renders" / "test").iterdir())
-    assert renders == ["000000.png", "000008.png", "000016.png"]  # every 8th frame, by frame index
+    assert renders == ["000004.png", "000012.png", "000020.png"]  # every 8th frame from the 4th, by frame index
     assert len(list((out / "renders" / "sheets").iterdir())) == 3 and (out / "pose_plot.png").stat().st_size > 0
     rows = list(csv.DictReader(open(out / "object_poses.csv")))
     assert len(rows) == 24 and {"frame", "t", "source", "T00", "T33"} <= set(rows[0])

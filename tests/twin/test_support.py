@@ -65,13 +65,21 @@ def test_heights_are_measured_where_seen_and_unknown_elsewhere(measured):
     assert np.nanmax(measured.heights) < PLATE[3] + 1e-6  # the wrong reading did not survive
 
 
-def test_a_footprint_across_the_rim_is_a_step_and_one_on_either_side_is_not(measured):
-    on_plate = measured.step_under(square((PLATE[0], PLATE[1])))
-    on_table = measured.step_under(square((PLATE[0], PLATE[1] - 0.12)))
-    across = measured.step_under(square((PLATE[0], PLATE[1] - PLATE[2])))
-    assert on_plate < 1e-6 and on_table < 1e-6
-    assert abs(across - PLATE[3]) < 1e-6 and across > MAX_STEP
-    assert measured.step_under(square((3.0, 3.0))) is None  # never seen: no judgement
+def test_an_object_is_supported_only_with_its_centre_well_inside_the_surface(measured):
+    """A 4 cm square footprint: on the plate or the table, or overhanging the rim with its centre
+    1.7 cm inside, it rests; with its centre 1 cm inside the rim, on the rim, or on the table with a
+    corner on the plate, it rests on an edge (the plate's 4 mm height)."""
+    cx, cy, radius, height = PLATE
+
+    def drop(inside: float) -> float:  # the footprint's centre ``inside`` m within the rim (negative: outside)
+        return measured.edge_drop(square((cx, cy - radius + inside)))
+
+    assert drop(radius) < 1e-6  # the plate's centre
+    assert measured.edge_drop(square((cx, cy - 0.15))) < 1e-6  # the table, far from the plate
+    assert drop(0.017) < 1e-6  # it overhangs the rim by 3 mm, its centre 1.7 cm inside: it rests
+    for inside in (0.01, 0.0, -0.015):
+        assert abs(drop(inside) - height) < 1e-6 and drop(inside) > MAX_STEP, inside
+    assert measured.edge_drop(square((3.0, 3.0))) is None  # never seen: no judgement
 
 
 def test_no_background_gives_no_map():

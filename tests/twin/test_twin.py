@@ -123,4 +123,4 @@ def test_the_support_map_travels_with_the_twin(trained):
     a = np.linspace(-0.02, 0.02, 9)
     footprint = np.stack(np.meshgrid(a, a), -1).reshape(-1, 2) + centre
     assert abs(np.nanmedian(support.height_at(footprint))) < 0.003  # the table is the base's z = 0 plane
-    assert support.step_under(footprint) < 0.0025
+    assert support.edge_drop(footprint) < 0.0025
