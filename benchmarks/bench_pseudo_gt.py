@@ -22,7 +22,7 @@ import numpy as np
 from benchmarks._harness import BenchContext, MissingBenchmarkData
 from benchmarks._testset import test_set
 from manisplat.align.tracking import TrackerSettings
-from manisplat.reconstruct.data import load_episode_data
+from manisplat.reconstruct.data import load_episode_data, load_ground_truth
 from manisplat.reconstruct.init import object_gaussians
 from manisplat.reconstruct.metrics import pose_errors, start_anchored_errors
 from manisplat.reconstruct.pipeline import align_object
@@ -51,7 +51,7 @@ def run(ctx: BenchContext) -> list[dict[str, Any]]:
         obj = next(o for o in make_plan(data).objects if o.moves)
         gaussians, T_start = object_gaussians(data, obj.label, 0)
         points = gaussians.params["means"].detach().double().numpy()
-        gt = data.gt[f"T_base_{obj.name}"]
+        gt = load_ground_truth(episode)[f"T_base_{obj.name}"]
         for variant, (settings, centring) in VARIANTS.items():
             alignment = align_object(data, obj.label, T_start.numpy(), data.tcp.double().numpy(), moves=True,
                                      model_points=points if centring else None, settings=settings)

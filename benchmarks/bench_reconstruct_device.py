@@ -73,7 +73,7 @@ def profile_split(rec, iters: int) -> dict[str, float]:
     import manisplat.scene.render as render_module
 
     timer = PhaseTimer(rec.device)
-    originals = (rec.losses, rec._densify_and_step, rec.object_poses, rec.graph.compose, render_module.rasterization,
+    originals = (rec.losses, rec._step_and_densify, rec.object_poses, rec.graph.compose, render_module.rasterization,
                  trainer_module._error_maps, torch.Tensor.backward)
     optimizer_step = rec.optimizer.step
     rec.losses = timer.wrap("forward (poses + compose + rasterize + loss)", rec.losses)
@@ -83,7 +83,7 @@ def profile_split(rec, iters: int) -> dict[str, float]:
     trainer_module._error_maps = timer.wrap("loss maps (L1, SSIM)", trainer_module._error_maps)
     torch.Tensor.backward = timer.wrap("backward", torch.Tensor.backward)
     rec.optimizer.step = timer.wrap("optimizer step", rec.optimizer.step)
-    rec._densify_and_step = timer.wrap("densify + optimizer step", rec._densify_and_step)
+    rec._step_and_densify = timer.wrap("optimizer step + densify", rec._step_and_densify)
     rec.config.iters = rec.step + iters
     _sync(rec.device)
     t0 = time.perf_counter()
@@ -91,10 +91,10 @@ def profile_split(rec, iters: int) -> dict[str, float]:
         rec.train(progress=False)
         _sync(rec.device)
     finally:
-        (rec.losses, rec._densify_and_step, rec.object_poses, rec.graph.compose, render_module.rasterization,
+        (rec.losses, rec._step_and_densify, rec.object_poses, rec.graph.compose, render_module.rasterization,
          trainer_module._error_maps, torch.Tensor.backward) = originals
         rec.optimizer.step = optimizer_step
-        for name in ("losses", "_densify_and_step", "object_poses"):
+        for name in ("losses", "_step_and_densify", "object_poses"):
             rec.__dict__.pop(name, None)
         rec.graph.__dict__.pop("compose", None)
     total = time.perf_counter() - t0

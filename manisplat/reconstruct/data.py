@@ -80,7 +80,6 @@ class EpisodeData:
     tcp: torch.Tensor
     labels: Labels
     objects: list[str]
-    gt: dict | None
     robot_description: str = BUILTIN_NAME
     label_names: dict[int, str] = field(default_factory=dict)
     fps: float = 0.0
@@ -157,9 +156,7 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, load_meshes
         raise ReconstructionInputError(f"{episode.path}: camera mount {cam.mount!r}: only a base-fixed camera is supported")
     if len(cam.dist) and np.any(np.abs(cam.dist) > 0):
         raise ReconstructionInputError(f"{episode.path}: the camera has distortion {cam.dist.tolist()}; undistort first")
-    gt = episode.gt()
-    if gt is not None:
-        _check_ground_truth(gt, episode)
+    _check_ground_truth(episode)  # refused before training; the evaluation reads it again
     description = robot or episode.meta.robot.description
     model = load_robot(description, base_dir=episode.path, load_meshes=load_meshes)
     frames = episode.frames
@@ -190,7 +187,7 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, load_meshes
         t=torch.as_tensor(frames.t, dtype=torch.float64), q=q, gripper=gripper,
         K=opencv_to_splat_K(K).float(), K_opencv=K, viewmat=torch.linalg.inv(T_base_cam).float(),
         link_poses=link_poses, link_quats=matrix_to_quat(link_poses[..., :3, :3].double()).float(), tcp=tcp, labels=labels,
-        objects=list(episode.meta.objects), gt=gt, eval_masks=eval_masks,
+        objects=list(episode.meta.objects), eval_masks=eval_masks,
         robot_description=resolve_description(description, episode.path), fps=float(episode.meta.fps),
         robot_info={"model": episode.meta.robot.model, "joint_names": list(episode.meta.robot.joint_names)},
         camera_name=cam.name, task=episode.meta.extra.get("task"),
@@ -199,9 +196,19 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, load_meshes
     )
 
 
-def _check_ground_truth(gt: dict[str, np.ndarray], episode: Episode) -> None:
-    """Refuse, before any training, object poses in gt.npz that do not match the frames (e.g. an
+def load_ground_truth(path: str | Path) -> dict[str, np.ndarray] | None:
+    """The episode's ``gt.npz`` (None without one), checked against its frames. Only evaluation
+    reads it: nothing that trains sees ground truth (:class:`EpisodeData` does not carry it)."""
+    episode = Episode.open(path)
+    return _check_ground_truth(episode)
+
+
+def _check_ground_truth(episode: Episode) -> dict[str, np.ndarray] | None:
+    """``gt.npz``, or a refusal of object poses in it that do not match the frames (e.g. an
     episode recovered with frames dropped but gt.npz left as it was): metrics would fail after it."""
+    gt = episode.gt()
+    if gt is None:
+        return None
     n = len(episode)
     for name in episode.meta.objects:
         poses = gt.get(f"T_base_{name}")
@@ -210,4 +217,5 @@ def _check_ground_truth(gt: dict[str, np.ndarray], episode: Episode) -> None:
                 f"{episode.path / 'gt.npz'}: T_base_{name} has shape {tuple(poses.shape)} but frames.csv has {n} "
                 f"frames (expected ({n}, 4, 4)); run `manisplat-episode validate {episode.path}`, and fix or "
                 "remove gt.npz (without it the pose error is not measured)")
+    return gt
 

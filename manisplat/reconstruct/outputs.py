@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from manisplat.align.phases import phase_of_frames
+from manisplat.reconstruct.data import load_ground_truth
 from manisplat.reconstruct.metrics import fit_constant_offset, pose_errors, psnr, ssim, start_anchored_errors
 from manisplat.reconstruct.pipeline import ObjectAlignment
 from manisplat.reconstruct.trainer import Reconstruction
@@ -105,8 +106,9 @@ def write_evaluation(rec: Reconstruction, alignments: dict[str, ObjectAlignment]
     evaluation = rec.evaluation_poses()
     metrics = {"psnr": {}, "ssim": {}, "iters": rec.step, "wall_s": round(wall_s, 1), "plan": rec.plan.to_dict()}
     metrics.update(_image_metrics(rec, evaluation, out))
-    if rec.data.gt is not None:
-        metrics.update(_pose_metrics(rec, evaluation, alignments, out))
+    gt = load_ground_truth(rec.data.path)  # the only place ground truth is read
+    if gt is not None:
+        metrics.update(_pose_metrics(rec, evaluation, alignments, out, gt))
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
     return metrics
 
@@ -178,10 +180,9 @@ def _nanmean(values: list[float]) -> float | None:
 
 
 def _pose_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], alignments: dict[str, ObjectAlignment],
-                  out: Path) -> dict:
+                  out: Path, gt: dict[str, np.ndarray]) -> dict:
     """Object pose errors of ours, of the pseudo ground truth alone and of the tracking-only
-    baseline, by both definitions (:mod:`manisplat.reconstruct.metrics`)."""
-    gt = rec.data.gt
+    baseline, by both definitions (:mod:`manisplat.reconstruct.metrics`), against ``gt`` (gt.npz)."""
     result: dict[str, dict] = {"pose": {}, "pose_anchored": {}, "pose_pseudo": {}, "pose_baseline": {}}
     plots = {}
     for name, ours in evaluation.items():

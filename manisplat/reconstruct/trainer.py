@@ -86,7 +86,7 @@ class Reconstruction:
     def _make_optimizer(self) -> torch.optim.Adam:
         """One Adam over every trained tensor: the Gaussians of all nodes, one group per parameter
         kind (learning rate from the first node's own optimizer; the means' from the schedule of
-        :meth:`_densify_and_step` when there is a background), then the object poses, the
+        :meth:`_step_and_densify` when there is a background), then the object poses, the
         background colour, the camera correction (with ``refine_camera``) and the light (once
         shadows start). Fused kernels on CUDA, ``foreach`` on the CPU."""
         groups: dict[str, dict] = {}
@@ -201,9 +201,9 @@ class Reconstruction:
             with value_checks(check_values):
                 terms, meta, composed = self.losses(frame)
                 loss = sum(terms.values())
-                meta["means2d"].retain_grad()
+                self._before_backward(meta)
                 loss.backward()
-                self._densify_and_step(meta, composed)
+                self._step_and_densify(meta, composed)
             self._average_loss(loss.detach())
             self.step += 1
             if self.step % max(c.log_every, 1) == 0 or self.step % c.eval_every == 0 or self.step == c.iters:
@@ -232,17 +232,26 @@ class Reconstruction:
                                    "try another --seed or smaller learning rates")
         return value
 
-    def _densify_and_step(self, meta: dict, composed) -> None:
-        grad = meta["means2d"].grad
+    def _before_backward(self, meta: dict) -> None:
+        """The strategies' pre-backward hook (keeps the 2D means' gradient for densification)."""
         if self.config.densify:
+            for node in self.graph.nodes():
+                g = node.gaussians
+                self.strategies[node.name].step_pre_backward(g.params, g.optimizers, g.strategy_state, self.step, meta)
+
+    def _step_and_densify(self, meta: dict, composed) -> None:
+        """One optimizer step over everything, then densification (gsplat's order: a node that
+        grows or is pruned still takes this iteration's update)."""
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        if self.config.densify:
+            grad = meta["means2d"].grad
             for node in self.graph.nodes():
                 start, end = composed.slices[node.name]
                 g = node.gaussians
                 info = {"means2d_grad": grad[:, start:end], "radii": meta["radii"][:, start:end],
                         "width": meta["width"], "height": meta["height"], "n_cameras": meta["n_cameras"]}
                 self.strategies[node.name].step_post_backward(g.params, g.optimizers, g.strategy_state, self.step, info)
-        self.optimizer.step()
-        self.optimizer.zero_grad(set_to_none=True)
         if self.graph.background is not None:
             lr = self._means_lr()
             for group in self.optimizer.param_groups:
