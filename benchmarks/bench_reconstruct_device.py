@@ -126,7 +126,7 @@ def quality(rec, alignments) -> dict:
 
     with tempfile.TemporaryDirectory() as tmp:
         metrics = write_evaluation(rec, alignments, Path(tmp), wall_s=0.0)
-    return {k: metrics.get(k) for k in ("psnr", "ssim", "pose", "pose_baseline")}
+    return {k: metrics.get(k) for k in ("psnr", "ssim", "pose", "pose_anchored", "pose_baseline")}
 
 
 def measure(episode: Path, *, device: str, iters: int, profile_iters: int, sync_iters: int, threads: int | None) -> dict:
