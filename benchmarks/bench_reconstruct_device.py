@@ -23,7 +23,6 @@ import json
 import platform
 import tempfile
 import time
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -104,19 +103,12 @@ def profile_split(rec, iters: int) -> dict[str, float]:
 
 
 def count_syncs(rec, iters: int) -> dict[str, int]:
-    """CUDA only: host-device synchronisations in ``iters`` more iterations, by source line."""
+    """CUDA only: host-device synchronisations in ``iters`` more iterations, by source line
+    (the file named by its folder and name)."""
     counts: collections.Counter = collections.Counter()
-    rec.config.iters = rec.step + iters
-    torch.cuda.set_sync_debug_mode("warn")
-    try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            rec.train(progress=False)
-    finally:
-        torch.cuda.set_sync_debug_mode("default")
-    for w in caught:
-        if "synchroniz" in str(w.message).lower():
-            counts[f"{Path(w.filename).parent.name}/{Path(w.filename).name}:{w.lineno}"] += 1
+    for site, n in rec.host_syncs(iters).items():
+        path, line = site.rsplit(":", 1)
+        counts[f"{Path(path).parent.name}/{Path(path).name}:{line}"] += n
     return dict(counts.most_common())
 
 

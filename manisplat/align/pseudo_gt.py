@@ -10,8 +10,9 @@
   before, so a small tilt gained in the hand (a slip) is undone at the release. Both are bounded
   (:data:`MAX_CENTRING`, :data:`MAX_SETTLE_DEG`): a larger correction means the assumption does
   not hold (an object grasped by a handle, a deliberate re-orientation), and the prior keeps the
-  rigid grasp. On the shared pick-and-place they take the prior's error after the place from
-  4.7 mm / 1.2 deg to (see benchmarks/results_reconstruct/pseudo_gt.json).
+  rigid grasp. On the shared pick-and-place they take the pseudo poses' error where the object
+  is left from 0.55 cm / 1.28 deg to 0.33 cm / 1.07 deg (start-anchored;
+  benchmarks/results_reconstruct/pseudo_gt.json).
 * Skills: tracked keypoints (:func:`manisplat.align.tracking.track_object`), starting from the
   pose the previous phase ended with, guided by the gripper prior (rest until the grasp, move
   with the gripper until the release): tracking overrides it only when confident and different.

@@ -207,11 +207,10 @@ def track_object(
     correction = np.eye(4)  # object-frame correction applied to the prior after a tracking override
     streak = 0  # consecutive frames where tracking confidently disagreed with the prior
     following = False  # tracking has overridden the prior and is still confident
-    T_obj_base = np.linalg.inv(poses[0])
     view = _Inputs(mask, depth, model)
     pts = _detect(gray(first), view.mask(first, poses[0]), np.zeros((0, 2)), settings)
     X, ok = _lift(pts, view.depth(first, poses[0]), K, T_base_cam)
-    pts, canon = pts[ok], X[ok] @ T_obj_base[:3, :3].T + T_obj_base[:3, 3]
+    pts, canon = pts[ok], _to_object(X[ok], poses[0])
     evidence = None
     if prior is not None and depth(first) is not None:
         evidence = DepthEvidence(view.mask(first, poses[0]), depth(first), K, T_base_cam, poses[0])
@@ -289,9 +288,8 @@ def track_object(
         if len(pts) < settings.max_points // 2 and m.any():
             new = _detect(cur, m, pts, settings)
             Xn, okn = _lift(new, measured if measured is not None else view.depth(f, pose), K, T_base_cam)
-            inv = np.linalg.inv(pose)
             pts = np.concatenate([pts, new[okn]])
-            canon = np.concatenate([canon, Xn[okn] @ inv[:3, :3].T + inv[:3, 3]])
+            canon = np.concatenate([canon, _to_object(Xn[okn], pose)])
         prev = cur
     track = Track(first, np.stack(poses), np.array(solved), np.array(used), np.array(inliers))
     log.info("tracking frames %d-%d: solved %d of %d, %d took the tracked pose", first, frames[-1],

@@ -20,14 +20,19 @@ MIN_OPACITY = 0.5  # Gaussians fainter than this do not outline the object
 PERCENTILES = (1.0, 99.0)  # robust bounding box: a few stray Gaussians do not move it
 
 
-def centre_offset(twin: Twin, name: str) -> np.ndarray:
-    """[4, 4] float64 translation from the object's reconstructed frame to its centre frame: the
-    centre of the bounding box of its Gaussians' means (opacity >= 0.5, 1st-99th percentiles)."""
+def solid_points(twin: Twin, name: str) -> np.ndarray:
+    """The object's Gaussian means [M, 3] float64 (object frame) of opacity >= 0.5 (all of them
+    when fewer than 10 are): the object's outline, without its faint Gaussians."""
     params = twin.graph.objects[name].params
     means = params["means"].detach().double().cpu()
     solid = torch.sigmoid(params["opacities"].detach().cpu()) >= MIN_OPACITY
-    points = (means[solid] if int(solid.sum()) >= 10 else means).numpy()
-    low, high = np.percentile(points, PERCENTILES, axis=0)
+    return (means[solid] if int(solid.sum()) >= 10 else means).numpy()
+
+
+def centre_offset(twin: Twin, name: str) -> np.ndarray:
+    """[4, 4] float64 translation from the object's reconstructed frame to its centre frame: the
+    centre of the bounding box of its :func:`solid_points` (1st-99th percentiles)."""
+    low, high = np.percentile(solid_points(twin, name), PERCENTILES, axis=0)
     offset = np.eye(4)
     offset[:3, 3] = (low + high) / 2
     return offset

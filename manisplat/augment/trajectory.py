@@ -37,6 +37,7 @@ import numpy as np
 
 from manisplat.augment.collision import BoxObstacle, SceneCollision
 from manisplat.augment.errors import Rejected
+from manisplat.augment.frames import solid_points
 from manisplat.augment.kinematics import PinRobot
 from manisplat.augment.planning import RESOLUTION, plan_path, segment_free
 from manisplat.augment.sampling import ObjectTarget, sample_targets
@@ -137,7 +138,7 @@ class Augmenter:
         self.spline = SourceSpline(self.kin, self.src.q, self.src.gripper, self.src.tcp)
         self.scene = SceneCollision(twin, self.kin, self.src, obstacles=tuple(obstacles))
         self.skill_allowed = [frozenset(self.scene.skill_allowances(s)) for s in self.src.skills]
-        self.footprints = {name: _solid_points(twin, name) for name in twin.objects}
+        self.footprints = {name: solid_points(twin, name) for name in twin.objects}  # seen from above
         robot = twin.robot
         self.dt = 1.0 / self.src.fps
         # the replay also refuses a step above max_step_deg between two frames: at the parent's fps
@@ -568,15 +569,6 @@ def augmenter_for(twin, obstacles: tuple[BoxObstacle, ...] = ()) -> Augmenter:
     if key not in per_twin:
         per_twin[key] = Augmenter(twin, obstacles)
     return per_twin[key]
-
-
-def _solid_points(twin, name: str, min_opacity: float = 0.5) -> np.ndarray:
-    """The object's Gaussian means [M, 3] (object frame) of opacity >= ``min_opacity`` (all when
-    fewer than 10 are): what it covers seen from above."""
-    params = twin.graph.objects[name].params
-    means = params["means"].detach().double().cpu().numpy()
-    solid = (1 / (1 + np.exp(-params["opacities"].detach().double().cpu().numpy()))) >= min_opacity
-    return means[solid] if solid.sum() >= 10 else means
 
 
 def augment_trajectory(twin, targets: dict[str, ObjectTarget], config: AugmentConfig | None = None) -> NewTrajectory:

@@ -53,6 +53,8 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
     if data.masks is None:
         raise ReconstructionInputError(f"{data.path}: no masks; draw them first (manisplat.reconstruct.masks)")
     train = plan.train_frames
+    if plan.objects and train[0] != 0:
+        raise ReconstructionInputError("the first frame must be a training frame: it seeds the objects")
     # no pixel of a held-out frame reaches the Gaussians: the first, middle and last training frames seed them
     background = background_gaussians(data, frames=sorted({train[0], train[len(train) // 2], train[-1]}),
                                       sh_degree=config.sh_degree, table_z=table_z)
@@ -60,8 +62,6 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
     objects, trajectories, alignments = {}, {}, {}
     tcp = data.tcp.double().numpy()
     for obj in plan.objects:
-        if train[0] != 0:
-            raise ReconstructionInputError("the first frame must be a training frame: it seeds the objects")
         gaussians, T_start = object_gaussians(data, obj.label, 0, sh_degree=config.sh_degree, table_z=table_z)
         objects[obj.name] = gaussians
         model = object_view(gaussians, data) if data.depth is None or masks_from_model else None

@@ -10,10 +10,12 @@ from the plan's distinct states. Every node densifies with its own strategy stat
 
 from __future__ import annotations
 
+import collections
 import logging
 import math
 import random
 import time
+import warnings
 from dataclasses import asdict
 from pathlib import Path
 
@@ -367,6 +369,22 @@ class Reconstruction:
         torch.set_rng_state(state["torch_rng"].cpu())
         if dev.type == "cuda" and state.get("cuda_rng") is not None:
             torch.cuda.set_rng_state(state["cuda_rng"].cpu(), dev)
+
+    def host_syncs(self, iters: int) -> collections.Counter:
+        """Train ``iters`` more iterations on CUDA and count the host-device synchronisations they
+        make, by source site ("file:line"), from ``torch.cuda.set_sync_debug_mode("warn")``."""
+        if self.device.type != "cuda":
+            raise ValueError(f"host_syncs counts CUDA synchronisations; this reconstruction is on {self.device}")
+        self.config.iters = self.step + iters
+        torch.cuda.set_sync_debug_mode("warn")
+        try:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                self.train(progress=False)
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+        return collections.Counter(f"{w.filename}:{w.lineno}" for w in caught
+                                   if "synchroniz" in str(w.message).lower())
 
     def save_checkpoint(self, path: Path) -> None:
         tmp = path.with_name(path.name + ".tmp")
