@@ -69,6 +69,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-shadows", action="store_true", help="do not model the moving parts' cast shadows")
     p.add_argument("--no-densify", action="store_true", help="keep the initial Gaussians (no clone/split/prune)")
     p.add_argument("--refine-camera", action="store_true", help="also optimise a correction of the camera extrinsic")
+    p.add_argument("--no-frame-colour", action="store_true",
+                   help="no per-frame colour transform (exposure / white-balance compensation); for steady cameras")
     p.add_argument("--lambda-app", type=non_negative(), default=1.0, help="weight of the masked appearance loss (default 1)")
     p.add_argument("--lambda-mask", type=non_negative(), default=1.0, help="weight of the dynamic-mask loss (default 1)")
     p.add_argument("--lambda-pose", type=non_negative(), default=1.0, help="weight of the pose prior loss (default 1)")
@@ -163,7 +165,7 @@ def _run(args: argparse.Namespace, prompt: tuple[str, tuple | None, tuple | None
         log.info("plan:\n%s", plan.summary())
         config = TrainConfig(
             iters=args.iters, backend=args.backend, shadows=not args.no_shadows, densify=not args.no_densify,
-            refine_camera=args.refine_camera, lambda_app=args.lambda_app, lambda_mask=args.lambda_mask,
+            refine_camera=args.refine_camera, frame_colour=not args.no_frame_colour, lambda_app=args.lambda_app, lambda_mask=args.lambda_mask,
             lambda_pose=args.lambda_pose, seed=args.seed, device=device,
         )
         rec, alignments = build(data, plan, config, tau=args.tau, table_z=args.table_z,

@@ -13,6 +13,7 @@ from tqdm import tqdm
 
 from manisplat.episode import Episode
 from manisplat.geometry import matrix_to_quat
+from manisplat.reconstruct.lens import undistortion_for
 from manisplat.robot import BUILTIN_NAME, RobotModel, load_robot
 from manisplat.splat import opencv_to_splat_K
 from manisplat.twin.twin import resolve_description
@@ -62,6 +63,11 @@ class EpisodeData:
         mask_source: where ``masks`` came from ("episode", or what :mod:`manisplat.reconstruct.masks` drew).
         eval_masks, eval_labels: the episode's own masks and labels when reconstruction ignores
             them (region metrics still use them).
+        valid: [H, W] bool, the pixels the recording covers after undistortion
+            (:mod:`manisplat.reconstruct.lens`), or None when every pixel is valid; losses and
+            metrics read only valid pixels.
+        dist: the episode's distortion coefficients, removed on load (the images, depth and masks
+            here are the pinhole camera's with ``K_opencv``).
     """
 
     path: Path
@@ -89,6 +95,8 @@ class EpisodeData:
     mask_source: str = "episode"
     eval_masks: torch.Tensor | None = None
     eval_labels: Labels | None = None
+    valid: torch.Tensor | None = None
+    dist: tuple[float, ...] = ()
 
     @property
     def n_frames(self) -> int:
@@ -143,8 +151,11 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, load_meshes
         progress: show a progress bar while the images load.
 
     Raises:
-        ReconstructionInputError: the camera is not calibrated (no ``T_mount_cam``), is not fixed
-            to the base, or has lens distortion (undistort the images first).
+        ReconstructionInputError: the camera is not calibrated (no ``T_mount_cam``) or is not
+            fixed to the base.
+
+    Lens distortion (``camera.dist``) is removed on load: images, depth and masks are resampled
+    to the pinhole camera with the same ``K`` (:mod:`manisplat.reconstruct.lens`).
     """
     episode = Episode.open(path)
     cam = episode.camera
@@ -154,8 +165,13 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, load_meshes
         )
     if cam.mount != "base":
         raise ReconstructionInputError(f"{episode.path}: camera mount {cam.mount!r}: only a base-fixed camera is supported")
-    if len(cam.dist) and np.any(np.abs(cam.dist) > 0):
-        raise ReconstructionInputError(f"{episode.path}: the camera has distortion {cam.dist.tolist()}; undistort first")
+    try:
+        lens = undistortion_for(cam.K, cam.dist, cam.width, cam.height)
+    except ValueError as exc:
+        raise ReconstructionInputError(f"{episode.path}: {exc}") from None
+    if lens is not None:
+        log.info("undistorting %s: dist %s, pixels moved up to %.1f px, %.1f %% of the pinhole image covered",
+                 episode.path, cam.dist.tolist(), lens.shift_px, 100 * lens.valid_fraction)
     _check_ground_truth(episode)  # refused before training; the evaluation reads it again
     description = robot or episode.meta.robot.description
     model = load_robot(description, base_dir=episode.path, load_meshes=load_meshes)
@@ -165,11 +181,16 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, load_meshes
     depth = torch.empty(n, cam.height, cam.width) if episode.has_depth and use_depth else None
     masks = torch.empty(n, cam.height, cam.width, dtype=torch.uint8) if episode.has_masks else None
     for i in tqdm(range(n), desc="loading frames", unit="frame", leave=False, disable=not progress):
-        rgb[i] = torch.from_numpy(episode.rgb(i))
+        image, z, label_image = episode.rgb(i), episode.depth(i) if depth is not None else None, episode.mask(i)
+        if lens is not None:
+            image = lens.rgb(image)
+            z = None if z is None else lens.depth(z)
+            label_image = None if label_image is None else lens.labels(label_image)
+        rgb[i] = torch.from_numpy(image)
         if depth is not None:
-            depth[i] = torch.from_numpy(episode.depth(i))
+            depth[i] = torch.from_numpy(z)
         if masks is not None:
-            masks[i] = torch.from_numpy(episode.mask(i))
+            masks[i] = torch.from_numpy(label_image)
     q = torch.as_tensor(frames.q, dtype=torch.float64)
     gripper = torch.as_tensor(frames.gripper, dtype=torch.float64)
     link_poses = model.forward_kinematics(q, gripper).float()
@@ -193,6 +214,8 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, load_meshes
         camera_name=cam.name, task=episode.meta.extra.get("task"),
         label_names={} if eval_masks is not None else dict(episode.meta.labels),
         eval_labels=Labels.from_meta(episode.meta.labels, episode.meta.objects) if eval_masks is not None else None,
+        valid=None if lens is None or lens.valid.all() else torch.from_numpy(lens.valid),
+        dist=tuple(float(d) for d in cam.dist) if lens is not None else (),
     )
 
 

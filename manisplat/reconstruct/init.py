@@ -124,6 +124,8 @@ def background_gaussians(data: EpisodeData, *, stride: int = 2, frames: list[int
     points, colors, spacing = [], [], []
     for i in frames:
         static = data.region(i, data.labels.static) if data.masks is not None else torch.ones_like(seen)
+        if data.valid is not None:
+            static &= data.valid
         new = static & ~seen
         depth = data.depth[i] if assumed is None else assumed
         p, rows, cols = backproject(depth, data.K_opencv, T_base_cam, new, stride)

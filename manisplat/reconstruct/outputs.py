@@ -145,9 +145,11 @@ def _image_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], out: 
         sheet = (torch.cat([target, image, error], dim=1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
         sheet = labelled_sheet(sheet, SHEET_COLUMNS, f"frame {f}  t = {float(rec.data.t[f]):.2f} s")
         cv2.imwrite(str(sheets / f"{f:06d}.png"), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
-        masks = {"full": None}
+        valid = rec.data.valid  # pixels the recording covers after undistortion (None: all)
+        masks = {"full": valid}
         if rec.data.masks is not None or rec.data.eval_masks is not None:
-            masks.update({k: rec.data.eval_region(f, k) for k in ("robot", "object")})
+            masks.update({k: rec.data.eval_region(f, k) if valid is None else rec.data.eval_region(f, k) & valid
+                          for k in ("robot", "object")})
         for key, region in masks.items():
             scores["psnr"][key].append(psnr(image, target, region))
             scores["ssim"][key].append(ssim(image, target, region))

@@ -26,6 +26,7 @@ from tqdm import tqdm
 
 from manisplat.reconstruct.config import TrainConfig, resolve_device
 from manisplat.reconstruct.data import EpisodeData
+from manisplat.reconstruct.exposure import FrameColour
 from manisplat.reconstruct.metrics import psnr
 from manisplat.reconstruct.plan import Plan
 from manisplat.reconstruct.poses import ObjectTrajectory
@@ -65,6 +66,7 @@ class Reconstruction:
         self.camera_delta = torch.nn.Parameter(torch.zeros(6, dtype=torch.float64, device=self.device))
         # colour behind everything (sky, depth holes): learned, starts mid-grey
         self.background_logit = torch.nn.Parameter(torch.zeros(3, device=self.device))
+        self.colour = FrameColour(data.n_frames, plan.train_frames, self.device) if config.frame_colour else None
         self.scene_scale = graph.background.scene_scale if graph.background is not None else 1.0
         self.strategies = {
             node.name: DefaultStrategy(
@@ -81,6 +83,7 @@ class Reconstruction:
         # [T, H, W] bool: the dynamic pixels of every frame, computed once (no label look-ups per iteration)
         self._dynamic_masks = (torch.isin(self.data.masks, dynamic.to(self.device))
                                if self.data.masks is not None else None)
+        self._valid = self.data.valid.float() if self.data.valid is not None else None
         self._rng = random.Random(config.seed)
         torch.manual_seed(config.seed)
         self._loss_average: torch.Tensor | None = None  # running mean of the loss, on the device
@@ -103,6 +106,8 @@ class Reconstruction:
         if self.trajectories:
             param_groups.append({"params": [t.xi for t in self.trajectories.values()], "lr": 5e-4, "name": "poses"})
         param_groups.append({"params": [self.background_logit], "lr": 1e-2, "name": "background"})
+        if self.colour is not None:
+            param_groups.append({"params": [self.colour.delta], "lr": 2e-3, "name": "colour"})
         if self.config.refine_camera:
             param_groups.append({"params": [self.camera_delta], "lr": 1e-4, "name": "camera"})
         if self.graph.shadows is not None:
@@ -139,9 +144,13 @@ class Reconstruction:
         return (se3_exp(self.camera_delta) @ V.double()).float()
 
     def render(self, frame: int, evaluation: dict[str, np.ndarray] | None = None):
-        """(image [H, W, 3], alpha [H, W], dynamic alpha [H, W], meta, composed) at ``frame``."""
-        return self.render_state(self.data.link_poses[frame], self.object_poses(frame, evaluation),
-                                 self.data.link_quats[frame])
+        """(image [H, W, 3], alpha [H, W], dynamic alpha [H, W], meta, composed) at ``frame``, the
+        image in the frame's exposure and white balance (with ``frame_colour``)."""
+        image, *rest = self.render_state(self.data.link_poses[frame], self.object_poses(frame, evaluation),
+                                         self.data.link_quats[frame])
+        if self.colour is not None:
+            image = self.colour.apply(image, frame)
+        return (image, *rest)
 
     def render_state(self, link_poses: torch.Tensor, object_poses: dict[str, torch.Tensor],
                      link_quats: torch.Tensor | None = None):
@@ -167,12 +176,18 @@ class Reconstruction:
         image, _, dynamic_alpha, meta, composed = self.render(frame)
         target = self.data.image(frame)
         l1, ssim_map = _error_maps(image, target)  # computed once for the render and appearance terms
-        terms = {"render": _photometric(l1, ssim_map, None, c.ssim_weight)}
+        valid = self._valid  # pixels the recording covers (None: all)
+        terms = {"render": _photometric(l1, ssim_map, valid, c.ssim_weight)}
         if self._dynamic_masks is not None:
             dyn_mask = self._dynamic_masks[frame].float()
+            mask_error = (dynamic_alpha - dyn_mask).abs()
+            if valid is not None:
+                dyn_mask, mask_error = dyn_mask * valid, mask_error * valid
             # 0 in a frame without dynamic pixels (a weighted mean: nothing is read back to decide)
             terms["app"] = c.lambda_app * _photometric(l1, ssim_map, dyn_mask, c.ssim_weight)
-            terms["mask"] = c.lambda_mask * (dynamic_alpha - dyn_mask).abs().mean()
+            terms["mask"] = c.lambda_mask * mask_error.mean()
+        if self.colour is not None:
+            terms["colour"] = c.lambda_colour * self.colour.penalty(frame)
         if self.trajectories:
             terms["pose"] = c.lambda_pose * sum(t.pose_loss(frame) for t in self.trajectories.values()).float()
         return terms, meta, composed
@@ -270,7 +285,8 @@ class Reconstruction:
         """Mean PSNR over a few held-out frames, with poses interpolated as in evaluation."""
         evaluation = self.evaluation_poses()
         chosen = self.plan.test_frames[:: max(1, len(self.plan.test_frames) // frames)][:frames]
-        return float(np.mean([psnr(self.render(f, evaluation)[0], self.data.image(f)) for f in chosen]))
+        return float(np.mean([psnr(self.render(f, evaluation)[0], self.data.image(f), self.data.valid)
+                              for f in chosen]))
 
     def evaluation_poses(self) -> dict[str, np.ndarray]:
         """name -> [T, 4, 4] float64 (numpy, host) poses of every frame, held-out ones interpolated."""
@@ -329,6 +345,7 @@ class Reconstruction:
             "optimizer": self.optimizer.state_dict(),
             "trajectories": {k: t.state_dict() for k, t in self.trajectories.items()},
             "camera_delta": self.camera_delta.detach(), "background": self.background_logit.detach(),
+            "colour": self.colour.delta.detach() if self.colour is not None else None,
             "shadows": self.graph.shadows.state_dict() if self.graph.shadows is not None else None,
             "shadow_geometry": (self.graph.shadows.extent, self.graph.shadows.resolution) if self.graph.shadows else None,
             "rng": self._rng.getstate(), "torch_rng": torch.get_rng_state(),
@@ -356,6 +373,11 @@ class Reconstruction:
         with torch.no_grad():
             self.camera_delta.copy_(state["camera_delta"])
             self.background_logit.copy_(state["background"])
+            if self.colour is not None:
+                if state.get("colour") is None:
+                    raise ValueError("the checkpoint has no per-frame colour (it was trained without it); "
+                                     "resume with the same settings, or start a new run (--overwrite)")
+                self.colour.delta.copy_(state["colour"])
         self.graph.shadows = None
         if state["shadows"] is not None:
             extent, resolution = state["shadow_geometry"]
