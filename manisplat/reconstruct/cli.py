@@ -69,6 +69,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-shadows", action="store_true", help="do not model the moving parts' cast shadows")
     p.add_argument("--no-densify", action="store_true", help="keep the initial Gaussians (no clone/split/prune)")
     p.add_argument("--refine-camera", action="store_true", help="also optimise a correction of the camera extrinsic")
+    p.add_argument("--keep-extrinsic", action="store_true",
+                   help="use the episode's camera extrinsic as it is (default: check it against the robot's depth and "
+                        "correct it; the result goes to camera_refined.json)")
     p.add_argument("--no-frame-colour", action="store_true",
                    help="no per-frame colour transform (exposure / white-balance compensation); for steady cameras")
     p.add_argument("--lambda-app", type=non_negative(), default=1.0, help="weight of the masked appearance loss (default 1)")
@@ -169,7 +172,7 @@ def _run(args: argparse.Namespace, prompt: tuple[str, tuple | None, tuple | None
             lambda_pose=args.lambda_pose, seed=args.seed, device=device,
         )
         rec, alignments = build(data, plan, config, tau=args.tau, table_z=args.table_z,
-                                masks_from_model=masks_from_model)
+                                masks_from_model=masks_from_model, check_extrinsic=not args.keep_extrinsic)
     except (ReconstructionInputError, EpisodeFormatError, RobotModelError, FileNotFoundError, NotImplementedError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -257,6 +260,12 @@ def _summary(metrics: dict, out: Path) -> str:
             lines.append(f"pose error {obj}, start-anchored: {anchored['et_cm']:.2f} cm, {anchored['er_deg']:.2f} deg, "
                          f"mean over the {anchored['moved_frames']} frames after it first moves; where it is left: "
                          f"{anchored['final']['et_cm']:.2f} cm, {anchored['final']['er_deg']:.2f} deg")
+    camera = metrics.get("camera")
+    if camera:
+        verb = "corrected" if camera["applied"] else "NOT corrected (" + camera["reason"] + ")"
+        lines.append(f"camera extrinsic {verb} by {camera['rotation_deg']:.3f} +- {camera['sigma_rotation_deg']:.3f} deg, "
+                     f"{camera['translation_mm']:.2f} +- {camera['sigma_translation_mm']:.2f} mm (robot depth, 1 sigma); "
+                     f"write it into the episode with `manisplat-calibrate apply {out / 'camera_refined.json'} EPISODE`")
     look = [name for name in ("pose_plot.png", "renders/sheets/", "metrics.json") if (out / name.rstrip("/")).exists()]
     lines.append("look at: " + ", ".join(str(out / name) + ("/" if name.endswith("/") else "") for name in look))
     return "\n".join(lines)

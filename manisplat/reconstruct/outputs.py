@@ -10,7 +10,10 @@
 * ``pose_plot.png``: rotation and translation per frame (ours, the phase-free baseline, ground truth).
 * ``metrics.json``: ``psnr`` / ``ssim`` ({"full", "robot", "object"}), ``pose`` and
   ``pose_baseline`` ({object: {"et_cm", "er_deg"}}) when ground truth exists, ``wall_s``,
-  ``iters``, ``plan``.
+  ``iters``, ``plan``, ``camera`` (the extrinsic correction, when checked).
+* ``camera_refined.json``: the camera as the reconstruction used it, in the
+  ``manisplat-calibration`` format (``manisplat-calibrate apply camera_refined.json EPISODE``
+  writes it back), with ``correction`` (deg, mm, 1-sigma, residuals) against the episode's.
 """
 
 from __future__ import annotations
@@ -40,7 +43,8 @@ log = logging.getLogger(__name__)
 
 # What a run writes into --out (globs), removed by --overwrite; nothing else there is touched.
 OWNED_OUTPUTS = ("twin.json", "twin.pt", "background.ply", "robot_*.ply", "object_*.ply", "object_poses*.csv", "phases.csv", "renders",
-                 "pose_plot.png", "metrics.json", "checkpoint.pt", "checkpoint.pt.tmp")
+                 "pose_plot.png", "metrics.json", "checkpoint.pt", "checkpoint.pt.tmp",
+                 "camera_refined.json")
 
 
 def remove_outputs(out: Path) -> int:
@@ -68,6 +72,31 @@ def write_twin(rec: Reconstruction, alignments: dict[str, ObjectAlignment], out:
                      rec.data.t.cpu().numpy(), poses, alignments[name].pseudo.source)
     _write_phases(out / "phases.csv", rec.data.t.cpu().numpy(), alignments)
     twin_of(rec, alignments).save(out)
+    (out / "camera_refined.json").write_text(json.dumps(camera_refined(rec), indent=1) + "\n")
+
+
+def camera_refined(rec: Reconstruction) -> dict:
+    """The camera the twin was trained with, as a ``manisplat-calibration`` file: the episode's
+    intrinsics and distortion, the refined ``T_mount_cam`` (mount ``base``), and ``correction``:
+    how far it is from the episode's (rotation deg, camera centre mm), with what the robot's depth
+    said (:mod:`manisplat.reconstruct.extrinsic`) and the photometric share (``--refine-camera``)."""
+    from manisplat.calib.result import FORMAT, VERSION
+    from manisplat.episode import Episode
+    from manisplat.episode.meta import utc_now
+    from manisplat.reconstruct.extrinsic import pose_difference
+
+    cam = Episode.open(rec.data.path).camera
+    T_recorded = np.asarray(cam.T_mount_cam, dtype=np.float64)
+    T_used = np.linalg.inv(rec.viewmat().detach().double().cpu().numpy())
+    rotation, translation = pose_difference(T_recorded, T_used)
+    correction = {"rotation_deg": rotation, "translation_mm": translation,
+                  "T_correction": (np.linalg.inv(T_recorded) @ T_used).tolist(),
+                  "robot_depth": rec.extrinsic.to_dict() if rec.extrinsic is not None else None,
+                  "photometric": bool(rec.config.refine_camera)}
+    return {"format": FORMAT, "version": VERSION, "date": utc_now(), "K": cam.K.tolist(), "dist": cam.dist.tolist(),
+            "width": cam.width, "height": cam.height, "mount": "base", "T_mount_cam": T_used.tolist(),
+            "latency_s": cam.extra.get("latency_s"), "source": "manisplat-reconstruct", "episode": str(rec.data.path),
+            "correction": correction}
 
 
 def twin_of(rec: Reconstruction, alignments: dict[str, ObjectAlignment]) -> Twin:
@@ -106,6 +135,8 @@ def write_evaluation(rec: Reconstruction, alignments: dict[str, ObjectAlignment]
     evaluation = rec.evaluation_poses()
     metrics = {"psnr": {}, "ssim": {}, "iters": rec.step, "wall_s": round(wall_s, 1), "plan": rec.plan.to_dict()}
     metrics.update(_image_metrics(rec, evaluation, out))
+    if rec.extrinsic is not None:
+        metrics["camera"] = {k: v for k, v in rec.extrinsic.to_dict().items() if k != "T_correction"}
     gt = load_ground_truth(rec.data.path)  # the only place ground truth is read
     if gt is not None:
         metrics.update(_pose_metrics(rec, evaluation, alignments, out, gt))

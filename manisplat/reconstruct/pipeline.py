@@ -14,6 +14,7 @@ from manisplat.align.phases import DEFAULT_TAU, GripperEvents, Segment, gripper_
 from manisplat.align.pseudo_gt import PseudoPoses, hybrid_pseudo_poses, make_tracker, tracked_baseline
 from manisplat.align.tracking import ObjectView, TrackerSettings
 from manisplat.reconstruct.data import EpisodeData, ReconstructionInputError
+from manisplat.reconstruct.extrinsic import refine_extrinsic
 from manisplat.reconstruct.init import background_gaussians, link_gaussians, object_gaussians
 from manisplat.reconstruct.plan import Plan
 from manisplat.reconstruct.poses import ObjectTrajectory
@@ -36,9 +37,10 @@ class ObjectAlignment:
 
 
 def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DEFAULT_TAU,
-          robot_gaussians: int | None = None, table_z: float = 0.0,
-          masks_from_model: bool = False) -> tuple[Reconstruction, dict[str, ObjectAlignment]]:
-    """Initialise every node and align every object (see the plan for what is skipped).
+          robot_gaussians: int | None = None, table_z: float = 0.0, masks_from_model: bool = False,
+          check_extrinsic: bool = True) -> tuple[Reconstruction, dict[str, ObjectAlignment]]:
+    """Check the camera extrinsic against the robot, initialise every node and align every
+    object (see the plan for what is skipped).
 
     Args:
         robot_gaussians: the budget shared by the link meshes (default: a quarter of the image's
@@ -46,6 +48,10 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
         table_z: the table's height in the base frame (m), for a start without depth.
         masks_from_model: the objects' masks exist in frame 0 only (no depth to follow them): the
             other frames' come from each object's model at its pseudo pose.
+        check_extrinsic: align the robot's depth in the training frames with its model
+            (:mod:`manisplat.reconstruct.extrinsic`) and use the corrected ``T_base_cam`` for
+            everything after (``data.viewmat`` is replaced); the correction is kept in
+            ``Reconstruction.extrinsic``.
     """
     if robot_gaussians is None:
         W, H = data.size
@@ -55,6 +61,9 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
     train = plan.train_frames
     if plan.objects and train[0] != 0:
         raise ReconstructionInputError("the first frame must be a training frame: it seeds the objects")
+    correction = refine_extrinsic(data, train) if check_extrinsic else None
+    if correction is not None and correction.applied:
+        data.viewmat = torch.linalg.inv(torch.as_tensor(correction.T_after)).float()
     # no pixel of a held-out frame reaches the Gaussians: the first, middle and last training frames seed them
     background = background_gaussians(data, frames=sorted({train[0], train[len(train) // 2], train[-1]}),
                                       sh_degree=config.sh_degree, table_z=table_z)
@@ -78,7 +87,9 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
     for g in [*links.values(), *objects.values()]:
         g.scene_scale = background.scene_scale
     graph = SceneGraph(background, links, list(data.robot.link_names), objects)
-    return Reconstruction(data, plan, graph, trajectories, config), alignments
+    rec = Reconstruction(data, plan, graph, trajectories, config)
+    rec.extrinsic = correction
+    return rec, alignments
 
 
 def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.ndarray, *, moves: bool,

@@ -27,6 +27,7 @@ from tqdm import tqdm
 from manisplat.reconstruct.config import TrainConfig, resolve_device
 from manisplat.reconstruct.data import EpisodeData
 from manisplat.reconstruct.exposure import FrameColour
+from manisplat.reconstruct.extrinsic import ExtrinsicCorrection
 from manisplat.reconstruct.metrics import psnr
 from manisplat.reconstruct.plan import Plan
 from manisplat.reconstruct.poses import ObjectTrajectory
@@ -67,6 +68,8 @@ class Reconstruction:
         # colour behind everything (sky, depth holes): learned, starts mid-grey
         self.background_logit = torch.nn.Parameter(torch.zeros(3, device=self.device))
         self.colour = FrameColour(data.n_frames, plan.train_frames, self.device) if config.frame_colour else None
+        #: what the robot's depth said about the camera extrinsic (set by the pipeline; None: not checked)
+        self.extrinsic: ExtrinsicCorrection | None = None
         self.scene_scale = graph.background.scene_scale if graph.background is not None else 1.0
         self.strategies = {
             node.name: DefaultStrategy(
