@@ -153,7 +153,7 @@ def _box_poses(trajectory: SampleTrajectory, robot, t: np.ndarray, start_xy) -> 
 
 def write_sample_episode(
     out: str | Path, *, frames: int = 64, fps: float = 16.0, width: int = 160, height: int = 120, seed: int = 0,
-    task: str = "pick_place", overwrite: bool = False,
+    task: str = "pick_place", overwrite: bool = False, exact_depth: bool = False,
 ) -> Path:
     """Write the sample episode to ``out`` and return its path.
 
@@ -161,6 +161,8 @@ def write_sample_episode(
         frames: number of camera frames (the motion is stretched to ``frames / fps`` seconds).
         seed: perturbs the camera position by up to 5 cm (0: the nominal view).
         task: "pick_place" (the box is moved) or "reach" (the arm hovers over it; it never moves).
+        exact_depth: depth exact on the meshes too (:func:`manisplat.render.painter.render`), not
+            one depth per triangle as in the published sample.
     """
     if frames < 8:
         raise ValueError(f"the sample needs at least 8 frames, got {frames}")
@@ -201,7 +203,7 @@ def write_sample_episode(
             for i, name in enumerate(robot.link_names):
                 for visual in robot.visuals.get(name, []):
                     meshes.append(_posed(visual.mesh, links[k, i], LINK_COLORS[name], i + 1))
-            rgb, depth, mask = render(camera, meshes, ground)
+            rgb, depth, mask = render(camera, meshes, ground, exact_depth=exact_depth)
             action = dict(zip(("a1", "a2", "a3", "a4", "a5", "a6"), action_q[k].tolist()))
             action["a_gripper"] = float(action_g[k])
             writer.add_frame(float(t_frames[k]), q[k], float(g[k]), rgb, depth=depth, mask=mask, extra=action)

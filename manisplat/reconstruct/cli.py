@@ -248,6 +248,10 @@ def _summary(metrics: dict, out: Path) -> str:
     psnr, ssim = metrics.get("psnr") or {}, metrics.get("ssim") or {}
     if psnr:
         lines.append("held-out PSNR: " + ", ".join(f"{k} {psnr[k]:.2f} dB" for k in regions if psnr.get(k) is not None))
+    fitted = metrics.get("psnr_colour_fitted") or {}
+    if fitted and psnr.get("full") is not None and fitted.get("full", 0) - psnr["full"] > 0.5:
+        lines.append("held-out PSNR with each frame's colour fitted on its static pixels (exposure): "
+                     + ", ".join(f"{k} {fitted[k]:.2f} dB" for k in regions if fitted.get(k) is not None))
     if ssim:
         lines.append("held-out SSIM: " + ", ".join(f"{k} {ssim[k]:.3f}" for k in regions if ssim.get(k) is not None))
     for obj, err in metrics.get("pose", {}).items():

@@ -19,6 +19,7 @@ centre (mm). It does not include a bias of the robot's meshes against the real r
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -77,7 +78,7 @@ class ExtrinsicCorrection:
 def pose_difference(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
     """(rotation angle of ``T_a^-1 T_b`` in degrees, distance between their origins in mm)."""
     distance, angle = pose_error(torch.as_tensor(T_a), torch.as_tensor(T_b))
-    return float(np.degrees(angle)), float(1000 * distance)
+    return math.degrees(float(angle)), 1000 * float(distance)
 
 
 class _Group:

@@ -37,15 +37,22 @@ class Undistortion:
 
     def rgb(self, image: np.ndarray) -> np.ndarray:
         """[H, W, 3] uint8, bilinear; invalid pixels black."""
-        return cv2.remap(image, self.map_x, self.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        out = cv2.remap(image, self.map_x, self.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        out[~self.valid] = 0
+        return out
 
     def depth(self, depth: np.ndarray) -> np.ndarray:
         """[H, W] float32 z-depth (m, 0 invalid), nearest neighbour (z along the axis is unchanged)."""
-        return cv2.remap(depth, self.map_x, self.map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        return self._nearest(depth)
 
     def labels(self, mask: np.ndarray) -> np.ndarray:
         """[H, W] uint8 labels, nearest neighbour; invalid pixels 0."""
-        return cv2.remap(mask, self.map_x, self.map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        return self._nearest(mask)
+
+    def _nearest(self, image: np.ndarray) -> np.ndarray:
+        out = cv2.remap(image, self.map_x, self.map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+        out[~self.valid] = 0
+        return out
 
 
 def undistortion_for(K: np.ndarray, dist: np.ndarray, width: int, height: int) -> Undistortion | None:

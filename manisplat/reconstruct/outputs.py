@@ -8,9 +8,11 @@
 * ``renders/test/NNNNNN.png``: the rendered RGB of every held-out frame, named by frame index;
   ``renders/sheets/NNNNNN.png``: ground truth | render | error x4, labelled, with the frame and time.
 * ``pose_plot.png``: rotation and translation per frame (ours, the phase-free baseline, ground truth).
-* ``metrics.json``: ``psnr`` / ``ssim`` ({"full", "robot", "object"}), ``pose`` and
+* ``metrics.json``: ``psnr`` / ``ssim`` ({"full", "robot", "object"}; the same with the held-out
+  frame's colour fitted on its static pixels: ``psnr_colour_fitted``, ``ssim_colour_fitted``), ``pose`` and
   ``pose_baseline`` ({object: {"et_cm", "er_deg"}}) when ground truth exists, ``wall_s``,
   ``iters``, ``plan``, ``camera`` (the extrinsic correction, when checked).
+* ``exposure.csv``: per frame, held out or not, the learned per-channel exposure gain.
 * ``camera_refined.json``: the camera as the reconstruction used it, in the
   ``manisplat-calibration`` format (``manisplat-calibrate apply camera_refined.json EPISODE``
   writes it back), with ``correction`` (deg, mm, 1-sigma, residuals) against the episode's.
@@ -44,7 +46,7 @@ log = logging.getLogger(__name__)
 # What a run writes into --out (globs), removed by --overwrite; nothing else there is touched.
 OWNED_OUTPUTS = ("twin.json", "twin.pt", "background.ply", "robot_*.ply", "object_*.ply", "object_poses*.csv", "phases.csv", "renders",
                  "pose_plot.png", "metrics.json", "checkpoint.pt", "checkpoint.pt.tmp",
-                 "camera_refined.json")
+                 "camera_refined.json", "exposure.csv")
 
 
 def remove_outputs(out: Path) -> int:
@@ -73,6 +75,19 @@ def write_twin(rec: Reconstruction, alignments: dict[str, ObjectAlignment], out:
     _write_phases(out / "phases.csv", rec.data.t.cpu().numpy(), alignments)
     twin_of(rec, alignments).save(out)
     (out / "camera_refined.json").write_text(json.dumps(camera_refined(rec), indent=1) + "\n")
+    if rec.colour is not None:
+        _write_exposure(out / "exposure.csv", rec)
+
+
+def _write_exposure(path: Path, rec: Reconstruction) -> None:
+    """Per frame: whether it was held out and the learned per-channel gain (held-out frames':
+    interpolated between training neighbours)."""
+    held_out = set(rec.plan.test_frames)
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["frame", "held_out", "gain_r", "gain_g", "gain_b"])
+        for f, gain in enumerate(rec.colour.gains()):
+            w.writerow([f, int(f in held_out)] + [f"{g:.5f}" for g in gain])
 
 
 def camera_refined(rec: Reconstruction) -> dict:
@@ -163,10 +178,16 @@ def _write_phases(path: Path, t: np.ndarray, alignments: dict[str, ObjectAlignme
 
 @torch.no_grad()
 def _image_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], out: Path) -> dict:
+    """Held-out renders, sheets and scores: ``psnr`` / ``ssim`` per region with the frame's exposure
+    interpolated from its training neighbours, and ``psnr_colour_fitted`` / ``ssim_colour_fitted``
+    with an affine colour transform fitted on the frame's own static pixels
+    (:func:`colour_fitted`): what the twin gets right apart from a camera's exposure, which no
+    training frame can tell for a held-out one."""
     renders, sheets = out / "renders" / "test", out / "renders" / "sheets"
     renders.mkdir(parents=True, exist_ok=True)
     sheets.mkdir(parents=True, exist_ok=True)
-    scores = {k: {"full": [], "robot": [], "object": []} for k in ("psnr", "ssim")}
+    keys = ("psnr", "ssim", "psnr_colour_fitted", "ssim_colour_fitted")
+    scores = {k: {"full": [], "robot": [], "object": []} for k in keys}
     for f in rec.plan.test_frames:
         image = rec.render(f, evaluation)[0].clamp(0, 1)
         target = rec.data.image(f)
@@ -181,13 +202,33 @@ def _image_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], out: 
         if rec.data.masks is not None or rec.data.eval_masks is not None:
             masks.update({k: rec.data.eval_region(f, k) if valid is None else rec.data.eval_region(f, k) & valid
                           for k in ("robot", "object")})
+        static = torch.ones_like(target[..., 0], dtype=torch.bool) if valid is None else valid.clone()
+        for k in ("robot", "object"):
+            if k in masks:
+                static &= ~masks[k]
+        fitted = colour_fitted(image, target, static)
         for key, region in masks.items():
             scores["psnr"][key].append(psnr(image, target, region))
             scores["ssim"][key].append(ssim(image, target, region))
+            scores["psnr_colour_fitted"][key].append(psnr(fitted, target, region))
+            scores["ssim_colour_fitted"][key].append(ssim(fitted, target, region))
     summary = {}
     for metric, by_region in scores.items():
         summary[metric] = {k: _nanmean(v) for k, v in by_region.items() if v}
     return summary
+
+
+def colour_fitted(image: torch.Tensor, target: torch.Tensor, fit_region: torch.Tensor) -> torch.Tensor:
+    """``image`` [H, W, 3] through the affine colour transform (3 x 3 and an offset, least squares
+    in float64) that best maps it to ``target`` over ``fit_region`` [H, W] bool pixels, clamped to
+    [0, 1]. Fitted on static pixels, it cannot absorb an error of the robot or the objects."""
+    x = image[fit_region].double()
+    if len(x) < 64:
+        return image
+    A = torch.cat([x, torch.ones(len(x), 1, dtype=x.dtype, device=x.device)], 1)
+    X = torch.linalg.lstsq(A, target[fit_region].double()).solution  # [4, 3]
+    full = torch.cat([image.double(), torch.ones_like(image[..., :1], dtype=torch.float64)], -1)
+    return (full @ X).clamp(0, 1).to(image.dtype)
 
 
 SHEET_COLUMNS = ("ground truth", "render", "|error| x4")

@@ -3,7 +3,8 @@ plane, seen by an OpenCV pinhole camera, giving RGB, z-depth and a label mask.
 
 Meshes are drawn far to near (painter's algorithm) with OpenCV polygon fills; each triangle
 gets one depth (its vertices' mean), so depth is exact on the analytic ground plane and within
-about one triangle's depth extent on meshes. Good enough for sample episodes and masks; it is
+about one triangle's depth extent on meshes; with ``exact_depth`` each pixel gets the depth where
+its ray meets the plane of the triangle drawn there. Good enough for sample episodes and masks; it is
 not the Gaussian rasterizer.
 """
 
@@ -71,8 +72,11 @@ def render(
     background: tuple[int, int, int] = (200, 205, 215),
     light_dir=(0.3, -0.4, 1.0),
     near: float = 0.02,
+    exact_depth: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Render the scene.
+    """Render the scene (``exact_depth``: per-pixel depth on each triangle's plane, for tests
+    that need millimetres; the default, one depth per triangle, keeps the built-in sample as
+    published).
 
     Returns:
         rgb: (H, W, 3) uint8.
@@ -90,7 +94,7 @@ def render(
     light = np.asarray(light_dir, dtype=np.float64)
     light /= np.linalg.norm(light)
 
-    polys, depths, colors, labels = [], [], [], []
+    polys, depths, colors, labels, planes = [], [], [], [], []
     for item in meshes:
         tri_world = item.vertices[item.faces]  # [F, 3, 3]
         normal = np.cross(tri_world[:, 1] - tri_world[:, 0], tri_world[:, 2] - tri_world[:, 0])
@@ -108,16 +112,36 @@ def render(
         depths.append(tri_cam[:, :, 2].mean(axis=1))
         colors.append(np.clip(shade[:, None] * np.asarray(item.color, dtype=np.float64), 0, 255))
         labels.append(np.full(len(shade), item.label, np.uint8))
+        normal_cam = normal @ T_cam_world[:3, :3].T
+        planes.append(np.concatenate([normal_cam, np.einsum("fi,fi->f", normal_cam, tri_cam[:, 0])[:, None],
+                                      tri_cam[:, :, 2].min(1, keepdims=True), tri_cam[:, :, 2].max(1, keepdims=True)], 1))
     if not polys:
         return rgb, depth, mask
     polys_all, depth_all = np.concatenate(polys), np.concatenate(depths)
     colors_all, labels_all = np.concatenate(colors), np.concatenate(labels)
+    drawn = np.full((H, W), -1, np.int32)
     for i in np.argsort(-depth_all):  # far to near
         poly = polys_all[i]
         cv2.fillConvexPoly(rgb, poly, colors_all[i].tolist(), lineType=cv2.LINE_8, shift=_SHIFT)
         cv2.fillConvexPoly(depth, poly, float(depth_all[i]), lineType=cv2.LINE_8, shift=_SHIFT)
         cv2.fillConvexPoly(mask, poly, int(labels_all[i]), lineType=cv2.LINE_8, shift=_SHIFT)
+        if exact_depth:
+            cv2.fillConvexPoly(drawn, poly, int(i), lineType=cv2.LINE_8, shift=_SHIFT)
+    if exact_depth:
+        _plane_depth(camera.K, np.concatenate(planes), drawn, depth)
     return rgb, depth, mask
+
+
+def _plane_depth(K: np.ndarray, planes: np.ndarray, drawn: np.ndarray, depth: np.ndarray) -> None:
+    """Replace ``depth`` where a triangle was drawn (``drawn`` [H, W] its index, -1 none) by the
+    z where the pixel's ray meets that triangle's plane (``planes`` [F, 6]: camera-frame normal,
+    offset, and the triangle's z range, which bounds the result at grazing angles)."""
+    rows, cols = np.nonzero(drawn >= 0)
+    plane = planes[drawn[rows, cols]]
+    ray = np.stack([(cols - K[0, 2]) / K[0, 0], (rows - K[1, 2]) / K[1, 1], np.ones(len(rows))], 1)
+    denom = np.einsum("ij,ij->i", plane[:, :3], ray)
+    z = np.where(np.abs(denom) > 1e-9, plane[:, 3] / np.where(np.abs(denom) > 1e-9, denom, 1.0), plane[:, 4])
+    depth[rows, cols] = np.clip(z, plane[:, 4], plane[:, 5]).astype(np.float32)
 
 
 def _draw_ground(camera: Camera, T_cam_world: np.ndarray, ground: GroundPlane, rgb, depth, mask) -> None:

@@ -1,0 +1,117 @@
+"""The camera extrinsic checked against the robot: a hand-calibration error of a few tenths of a
+degree and millimetres is found from the robot's depth and removed; what cannot be trusted is
+not applied."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from manisplat.episode.synthetic import write_sample_episode
+from manisplat.reconstruct.data import load_episode_data
+from manisplat.reconstruct.extrinsic import pose_difference, refine_extrinsic
+from manisplat.reconstruct.plan import make_plan
+
+
+def _rotation(axis, deg: float) -> np.ndarray:
+    import cv2
+
+    axis = np.asarray(axis, dtype=np.float64)
+    return cv2.Rodrigues(axis / np.linalg.norm(axis) * np.radians(deg))[0]
+
+
+def _miscalibrated(source, out, deg: float, mm: float):
+    """A copy of ``source`` whose T_mount_cam is off by ``deg`` about one axis and ``mm`` along another."""
+    shutil.copytree(source, out)
+    meta = json.loads((out / "episode.json").read_text())
+    T = np.asarray(meta["camera"]["T_mount_cam"])
+    error = np.eye(4)
+    error[:3, :3] = _rotation([0.3, -1.0, 0.5], deg)
+    error[:3, 3] = np.array([0.6, 0.5, -0.62]) / np.linalg.norm([0.6, 0.5, -0.62]) * mm / 1000
+    meta["camera"]["T_mount_cam"] = (T @ error).tolist()
+    (out / "episode.json").write_text(json.dumps(meta))
+    return out, T
+
+
+@pytest.fixture(scope="module")
+def sample(tmp_path_factory):
+    return write_sample_episode(tmp_path_factory.mktemp("extrinsic") / "ep", frames=24, exact_depth=True)
+
+
+def _refined(episode, **kwargs):
+    data = load_episode_data(episode, **kwargs)
+    return refine_extrinsic(data, make_plan(data).train_frames)
+
+
+def test_a_hand_calibration_error_is_found_and_removed(sample, tmp_path):
+    episode, T_true = _miscalibrated(sample, tmp_path / "off", 0.3, 3.0)
+    c = _refined(episode)
+    assert c.applied
+    before, after = pose_difference(T_true, c.T_before), pose_difference(T_true, c.T_after)
+    assert before == pytest.approx((0.3, 3.0), rel=1e-3)
+    # exact depth, the meshes that drew it: what is left is the sampled surface and pixel grid
+    assert after[0] < 0.03 and after[1] < 0.3, after
+    assert c.rotation_deg == pytest.approx(0.3, abs=0.03) and c.translation_mm == pytest.approx(3.0, abs=0.3)
+    assert 0 < c.sigma_rotation_deg < 0.03 and 0 < c.sigma_translation_mm < 0.3
+    assert c.rms_after_mm < 0.5 * c.rms_before_mm
+
+
+def test_held_out_frames_do_not_move_the_camera(sample, tmp_path):
+    episode, _ = _miscalibrated(sample, tmp_path / "off", 0.3, 3.0)
+    data = load_episode_data(episode)
+    plan = make_plan(data)
+    clean = refine_extrinsic(data, plan.train_frames)
+    g = torch.Generator().manual_seed(0)
+    for i in plan.test_frames:
+        data.depth[i] = torch.rand(data.depth[i].shape, generator=g) * 2
+    assert (refine_extrinsic(data, plan.train_frames).T_after == clean.T_after).all()
+
+
+def test_a_calibrated_camera_is_left_where_it_is(sample):
+    c = _refined(sample)
+    assert c.applied and c.rotation_deg < 0.03 and c.translation_mm < 0.3
+
+
+def test_a_correction_too_large_to_be_a_calibration_error_is_not_applied(sample, tmp_path):
+    episode, _ = _miscalibrated(sample, tmp_path / "far", 6.0, 3.0)
+    c = _refined(episode)
+    assert not c.applied and "recalibrate" in c.reason
+    assert (c.T_after == c.T_before).all()
+
+
+def test_without_depth_the_extrinsic_is_not_checked(sample):
+    assert _refined(sample, use_depth=False) is None
+
+
+def test_the_refined_camera_is_written_and_goes_back_into_episodes(sample, tmp_path, capsys):
+    """manisplat-reconstruct writes camera_refined.json; manisplat-calibrate apply puts it into an
+    episode, whose camera is then the true one; --keep-extrinsic leaves the episode's."""
+    from manisplat.calib.cli import main as calibrate
+    from manisplat.calib.result import load_calibration
+    from manisplat.reconstruct.cli import main as reconstruct
+
+    episode, T_true = _miscalibrated(sample, tmp_path / "off", 0.3, 3.0)
+    assert reconstruct([str(episode), "--out", str(tmp_path / "twin"), "--iters", "4", "-q"]) == 0
+    printed = re.search(r"camera extrinsic corrected by ([0-9.]+) \+- [0-9.]+ deg, ([0-9.]+) \+- [0-9.]+ mm",
+                        capsys.readouterr().out)
+    assert printed and float(printed[1]) == pytest.approx(0.3, abs=0.03) and float(printed[2]) == pytest.approx(3, abs=0.3)
+    refined = load_calibration(tmp_path / "twin" / "camera_refined.json")
+    assert refined["correction"]["robot_depth"]["applied"]
+    metrics = json.loads((tmp_path / "twin" / "metrics.json").read_text())
+    assert metrics["camera"]["rotation_deg"] == pytest.approx(0.3, abs=0.03)
+    copy = tmp_path / "fixed"
+    shutil.copytree(episode, copy)
+    assert calibrate(["apply", str(tmp_path / "twin" / "camera_refined.json"), str(copy)]) == 0
+    T_applied = np.asarray(json.loads((copy / "episode.json").read_text())["camera"]["T_mount_cam"])
+    rotation, translation = pose_difference(T_true, T_applied)
+    assert rotation < 0.03 and translation < 0.3
+
+    assert reconstruct([str(episode), "--out", str(tmp_path / "kept"), "--iters", "4", "-q", "--keep-extrinsic"]) == 0
+    kept = load_calibration(tmp_path / "kept" / "camera_refined.json")
+    assert kept["correction"]["robot_depth"] is None and kept["correction"]["translation_mm"] < 1e-3
+    assert "camera" not in json.loads((tmp_path / "kept" / "metrics.json").read_text())
