@@ -270,6 +270,9 @@ def _summary(metrics: dict, out: Path) -> str:
         lines.append(f"camera extrinsic {verb} by {camera['rotation_deg']:.3f} +- {camera['sigma_rotation_deg']:.3f} deg, "
                      f"{camera['translation_mm']:.2f} +- {camera['sigma_translation_mm']:.2f} mm (robot depth, 1 sigma); "
                      f"write it into the episode with `manisplat-calibrate apply {out / 'camera_refined.json'} EPISODE`")
+        if camera.get("time_offset_ms") is not None:
+            lines.append(f"camera/joint time offset {camera['time_offset_ms']:+.1f} +- {camera['sigma_time_offset_ms']:.1f} ms "
+                         + ("(applied: joints re-paired)" if camera["time_applied"] else "(not applied: too small to be sure)"))
     look = [name for name in ("pose_plot.png", "renders/sheets/", "metrics.json") if (out / name.rstrip("/")).exists()]
     lines.append("look at: " + ", ".join(str(out / name) + ("/" if name.endswith("/") else "") for name in look))
     return "\n".join(lines)

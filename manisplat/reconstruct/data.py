@@ -4,6 +4,7 @@ convention, every link pose by forward kinematics, and which mask labels are whi
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
@@ -47,6 +48,20 @@ class Labels:
 
 
 @dataclass
+class JointStream:
+    """The raw joint stream (``joints.csv``): t [N] s, q [N, dof] rad, gripper [N] m."""
+
+    t: np.ndarray
+    q: np.ndarray
+    gripper: np.ndarray
+
+    def at(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(q [M, dof], gripper [M]) linearly interpolated at ``times`` [M] (held at the ends)."""
+        q = np.stack([np.interp(times, self.t, self.q[:, j]) for j in range(self.q.shape[1])], 1)
+        return q, np.interp(times, self.t, self.gripper)
+
+
+@dataclass
 class EpisodeData:
     """Everything reconstruction reads from one episode, as tensors.
 
@@ -68,6 +83,11 @@ class EpisodeData:
             metrics read only valid pixels.
         dist: the episode's distortion coefficients, removed on load (the images, depth and masks
             here are the pinhole camera's with ``K_opencv``).
+        joints: the raw joint stream, or None without ``joints.csv``.
+        recorded_latency_s: the camera latency the recorder compensated when it paired joints
+            with frames (episode.json ``clock.camera_latency_s``; 0 when unknown).
+        time_offset_s: frame f shows the robot at joint time ``t[f] + time_offset_s``; ``q``,
+            ``gripper`` and the poses are read there (:func:`retime`).
     """
 
     path: Path
@@ -97,6 +117,9 @@ class EpisodeData:
     eval_labels: Labels | None = None
     valid: torch.Tensor | None = None
     dist: tuple[float, ...] = ()
+    joints: JointStream | None = None
+    recorded_latency_s: float = 0.0
+    time_offset_s: float = 0.0
 
     @property
     def n_frames(self) -> int:
@@ -203,7 +226,10 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, load_meshes
         eval_masks, masks, labels = masks, None, Labels()
     log.info("loaded %s: %d frames %dx%d, depth %s, masks %s, robot %s", episode.path, n, cam.width, cam.height,
              depth is not None, masks is not None, model.name)
-    return EpisodeData(
+    stream = episode.joints()
+    clock = episode.meta.extra.get("clock")
+    recorded_latency = float(clock.get("camera_latency_s") or 0.0) if isinstance(clock, dict) else 0.0
+    data = EpisodeData(
         path=episode.path, robot=model, rgb=rgb, depth=depth, masks=masks,
         t=torch.as_tensor(frames.t, dtype=torch.float64), q=q, gripper=gripper,
         K=opencv_to_splat_K(K).float(), K_opencv=K, viewmat=torch.linalg.inv(T_base_cam).float(),
@@ -216,7 +242,43 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, load_meshes
         eval_labels=Labels.from_meta(episode.meta.labels, episode.meta.objects) if eval_masks is not None else None,
         valid=None if lens is None or lens.valid.all() else torch.from_numpy(lens.valid),
         dist=tuple(float(d) for d in cam.dist) if lens is not None else (),
+        joints=None if stream is None else JointStream(stream.t, stream.q, stream.gripper),
+        recorded_latency_s=recorded_latency,
     )
+    latency = cam.extra.get("latency_s")
+    if isinstance(latency, (int, float)) and abs(latency - recorded_latency) > 1e-6:
+        retime(data, -(latency - recorded_latency))
+        log.info("camera latency %.1f ms (episode.json camera.latency_s) where the recorder paired joints with %.1f ms: "
+                 "joints re-read %.1f ms earlier", 1e3 * latency, 1e3 * recorded_latency, 1e3 * (latency - recorded_latency))
+    return data
+
+
+def joints_at(data: EpisodeData, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(q [M, dof] rad, gripper [M] m) at joint-stream times ``times`` [M] s: from ``joints.csv``,
+    or, without one, interpolated between the frames' own joints (frame f's at ``t[f] + time_offset_s``)."""
+    if data.joints is not None:
+        return data.joints.at(times)
+    when = data.t.cpu().numpy() + data.time_offset_s
+    q = data.q.cpu().numpy()
+    return (np.stack([np.interp(times, when, q[:, j]) for j in range(q.shape[1])], 1),
+            np.interp(times, when, data.gripper.cpu().numpy()))
+
+
+def retime(data: EpisodeData, offset_s: float) -> None:
+    """Pair frame f with the joints at ``t[f] + offset_s`` (in place; absolute, relative to
+    frames.csv): ``q``, ``gripper``, link poses and TCP re-read by :func:`joints_at`."""
+    if not math.isfinite(offset_s) or abs(offset_s) > 1.0:
+        raise ValueError(f"time offset {offset_s} s: expected a finite offset within 1 s")
+    q, gripper = joints_at(data, data.t.cpu().numpy() + offset_s)
+    device = data.q.device
+    data.q = torch.as_tensor(q, dtype=torch.float64)
+    data.gripper = torch.as_tensor(gripper, dtype=torch.float64)
+    data.link_poses = data.robot.forward_kinematics(data.q, data.gripper).float()
+    data.link_quats = matrix_to_quat(data.link_poses[..., :3, :3].double()).float()
+    data.tcp = data.robot.tcp_pose(data.q).float()
+    for name in ("q", "gripper", "link_poses", "link_quats", "tcp"):
+        setattr(data, name, getattr(data, name).to(device))
+    data.time_offset_s = offset_s
 
 
 def load_ground_truth(path: str | Path) -> dict[str, np.ndarray] | None:

@@ -92,7 +92,8 @@ def _write_exposure(path: Path, rec: Reconstruction) -> None:
 
 def camera_refined(rec: Reconstruction) -> dict:
     """The camera the twin was trained with, as a ``manisplat-calibration`` file: the episode's
-    intrinsics and distortion, the refined ``T_mount_cam`` (mount ``base``), and ``correction``:
+    intrinsics and distortion, the refined ``T_mount_cam`` (mount ``base``), ``latency_s`` (the
+    camera latency the joints were paired with: the recorder's plus the offset found), and ``correction``:
     how far it is from the episode's (rotation deg, camera centre mm), with what the robot's depth
     said (:mod:`manisplat.reconstruct.extrinsic`) and the photometric share (``--refine-camera``)."""
     from manisplat.calib.result import FORMAT, VERSION
@@ -110,7 +111,7 @@ def camera_refined(rec: Reconstruction) -> dict:
                   "photometric": bool(rec.config.refine_camera)}
     return {"format": FORMAT, "version": VERSION, "date": utc_now(), "K": cam.K.tolist(), "dist": cam.dist.tolist(),
             "width": cam.width, "height": cam.height, "mount": "base", "T_mount_cam": T_used.tolist(),
-            "latency_s": cam.extra.get("latency_s"), "source": "manisplat-reconstruct", "episode": str(rec.data.path),
+            "latency_s": rec.data.recorded_latency_s - rec.data.time_offset_s, "source": "manisplat-reconstruct", "episode": str(rec.data.path),
             "correction": correction}
 
 

@@ -13,7 +13,7 @@ import torch
 from manisplat.align.phases import DEFAULT_TAU, GripperEvents, Segment, gripper_events, segment_phases
 from manisplat.align.pseudo_gt import PseudoPoses, hybrid_pseudo_poses, make_tracker, tracked_baseline
 from manisplat.align.tracking import ObjectView, TrackerSettings
-from manisplat.reconstruct.data import EpisodeData, ReconstructionInputError
+from manisplat.reconstruct.data import EpisodeData, ReconstructionInputError, retime
 from manisplat.reconstruct.extrinsic import refine_extrinsic
 from manisplat.reconstruct.init import background_gaussians, link_gaussians, object_gaussians
 from manisplat.reconstruct.plan import Plan
@@ -49,9 +49,10 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
         masks_from_model: the objects' masks exist in frame 0 only (no depth to follow them): the
             other frames' come from each object's model at its pseudo pose.
         check_extrinsic: align the robot's depth in the training frames with its model
-            (:mod:`manisplat.reconstruct.extrinsic`) and use the corrected ``T_base_cam`` for
-            everything after (``data.viewmat`` is replaced); the correction is kept in
-            ``Reconstruction.extrinsic``.
+            (:mod:`manisplat.reconstruct.extrinsic`) and use the corrected ``T_base_cam`` and
+            camera/joint time offset for everything after (``data.viewmat`` is replaced, the
+            joints re-paired by :func:`~manisplat.reconstruct.data.retime`); the correction is
+            kept in ``Reconstruction.extrinsic``.
     """
     if robot_gaussians is None:
         W, H = data.size
@@ -64,6 +65,8 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
     correction = refine_extrinsic(data, train) if check_extrinsic else None
     if correction is not None and correction.applied:
         data.viewmat = torch.linalg.inv(torch.as_tensor(correction.T_after)).float()
+    if correction is not None and correction.time_applied:
+        retime(data, data.time_offset_s + correction.time_offset_s)
     # no pixel of a held-out frame reaches the Gaussians: the first, middle and last training frames seed them
     background = background_gaussians(data, frames=sorted({train[0], train[len(train) // 2], train[-1]}),
                                       sh_degree=config.sh_degree, table_z=table_z)

@@ -115,3 +115,35 @@ def test_the_refined_camera_is_written_and_goes_back_into_episodes(sample, tmp_p
     kept = load_calibration(tmp_path / "kept" / "camera_refined.json")
     assert kept["correction"]["robot_depth"] is None and kept["correction"]["translation_mm"] < 1e-3
     assert "camera" not in json.loads((tmp_path / "kept" / "metrics.json").read_text())
+
+
+def test_a_camera_latency_is_found_from_the_moving_arm(sample):
+    """Joints paired 30 ms late (a camera whose stamps lag its exposures): the offset is found and
+    re-pairing the joints there gives the frames' own joints back."""
+    from manisplat.reconstruct.data import retime
+
+    data = load_episode_data(sample)
+    q_true = data.q.clone()
+    retime(data, 0.03)
+    assert (data.q - q_true).abs().max() > 0.01  # the arm moves: 30 ms is visible
+    c = refine_extrinsic(data, make_plan(data).train_frames)
+    assert c.time_offset_s == pytest.approx(-0.03, abs=0.002) and c.time_applied
+    assert 0 < c.sigma_time_offset_s < 0.002
+    assert c.rotation_deg < 0.03 and c.translation_mm < 0.3  # the camera is not blamed for it
+    retime(data, data.time_offset_s + c.time_offset_s)
+    assert (data.q - q_true).abs().max() < 0.01 * 0.1
+
+
+def test_a_calibrated_latency_re_pairs_the_joints_on_load(sample, tmp_path):
+    """camera.latency_s (from manisplat-calibrate apply) beyond what the recorder compensated:
+    frames are paired with the joints that many seconds earlier."""
+    episode = tmp_path / "late"
+    shutil.copytree(sample, episode)
+    meta = json.loads((episode / "episode.json").read_text())
+    meta["camera"]["latency_s"] = 0.02
+    (episode / "episode.json").write_text(json.dumps(meta))
+    plain, late = load_episode_data(sample), load_episode_data(episode)
+    assert late.time_offset_s == pytest.approx(-0.02)
+    q_expected, _ = plain.joints.at(plain.t.numpy() - 0.02)
+    assert np.allclose(late.q.numpy(), q_expected)
+    assert not np.allclose(late.q.numpy(), plain.q.numpy(), atol=1e-3)
