@@ -72,8 +72,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--keep-extrinsic", action="store_true",
                    help="use the episode's camera extrinsic as it is (default: check it against the robot's depth and "
                         "correct it; the result goes to camera_refined.json)")
-    p.add_argument("--no-frame-colour", action="store_true",
-                   help="no per-frame colour transform (exposure / white-balance compensation); for steady cameras")
+    p.add_argument("--no-exposure", action="store_true",
+                   help="no per-frame exposure / white-balance gains (for a camera with fixed exposure and white balance)")
     p.add_argument("--lambda-app", type=non_negative(), default=1.0, help="weight of the masked appearance loss (default 1)")
     p.add_argument("--lambda-mask", type=non_negative(), default=1.0, help="weight of the dynamic-mask loss (default 1)")
     p.add_argument("--lambda-pose", type=non_negative(), default=1.0, help="weight of the pose prior loss (default 1)")
@@ -168,7 +168,7 @@ def _run(args: argparse.Namespace, prompt: tuple[str, tuple | None, tuple | None
         log.info("plan:\n%s", plan.summary())
         config = TrainConfig(
             iters=args.iters, backend=args.backend, shadows=not args.no_shadows, densify=not args.no_densify,
-            refine_camera=args.refine_camera, frame_colour=not args.no_frame_colour, lambda_app=args.lambda_app, lambda_mask=args.lambda_mask,
+            refine_camera=args.refine_camera, exposure=not args.no_exposure, lambda_app=args.lambda_app, lambda_mask=args.lambda_mask,
             lambda_pose=args.lambda_pose, seed=args.seed, device=device,
         )
         rec, alignments = build(data, plan, config, tau=args.tau, table_z=args.table_z,

@@ -22,9 +22,8 @@ class TrainConfig:
         sh_degree, sh_every: view-dependent colour bands (evaluated in each node's frame), one
             more band switched on every ``sh_every`` iterations.
         refine_camera: also optimise a correction of the camera extrinsic.
-        frame_colour, lambda_colour: learn an affine colour transform per training frame
-            (exposure, white balance; :mod:`manisplat.reconstruct.exposure`), pulled towards
-            identity with weight ``lambda_colour``.
+        exposure: a gain per colour channel and frame (auto-exposure, white balance;
+            :mod:`manisplat.reconstruct.exposure`), fitted on each training frame's static pixels.
         backend: rasterizer backend ("auto": gsplat on CUDA, the C++ one on the CPU; "cpu",
             "torch", "gsplat").
         device: torch device of training ("cpu", "cuda", "cuda:N", or "auto": CUDA when
@@ -53,8 +52,7 @@ class TrainConfig:
     sh_degree: int = 2
     sh_every: int = 500
     refine_camera: bool = False
-    frame_colour: bool = True
-    lambda_colour: float = 0.1
+    exposure: bool = True
     backend: str = "auto"
     device: str = "auto"
     eval_every: int = 250

@@ -208,11 +208,11 @@ def _measurements(data: EpisodeData, frames: list[int], surface: dict, erode_px:
     return out
 
 
-def _groups(data: EpisodeData, measured: list[_Measured], surface: dict, camera: np.ndarray,
+def _groups(data: EpisodeData, measured: list[_Measured], surface: dict, camera: np.ndarray | None,
             offset: float) -> list[_Group]:
     """The measurements with their links' surfaces placed at joint time ``t[f] + offset`` beyond
     the data's own offset (and the surface velocity there), keeping the surface that faces
-    ``camera`` (base-frame position)."""
+    ``camera`` (base-frame position; None keeps all of it)."""
     names = list(data.robot.link_names)
     frames = sorted({m.frame for m in measured})
     t = data.t.cpu().numpy()[frames] + data.time_offset_s + offset  # joint time of what the frame shows
@@ -234,7 +234,8 @@ def _groups(data: EpisodeData, measured: list[_Measured], surface: dict, camera:
             velocity = (pts @ (after[k, i, :3, :3] - before[k, i, :3, :3]).T + after[k, i, :3, 3] - before[k, i, :3, 3]) / (2 * h)
             parts.append((placed, nrm @ now[k, i, :3, :3].T, velocity))
         model, normals, velocity = (np.concatenate(x) for x in zip(*parts))
-        front = np.einsum("ij,ij->i", normals, model - camera) < 0
+        front = (np.einsum("ij,ij->i", normals, model - camera) < 0 if camera is not None
+                 else np.ones(len(model), dtype=bool))
         if front.sum() >= 20:
             groups.append(_Group(m.frame, m.points, model[front], normals[front], velocity[front], m.w_depth))
     return groups
@@ -242,12 +243,15 @@ def _groups(data: EpisodeData, measured: list[_Measured], surface: dict, camera:
 
 def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 40, points_per_frame: int = 1500,
                      per_link: int = 20_000, iterations: int = 20, bootstrap: int = 200, erode_px: int = 2,
-                     time_offset: bool = True, seed: int = 0) -> ExtrinsicCorrection | None:
+                     time_offset: bool = True, depth_weighting: bool = True, camera_facing: bool = True,
+                     seed: int = 0) -> ExtrinsicCorrection | None:
     """Align the robot's measured depth with its model over ``frames`` (training frames).
 
     ``time_offset`` also estimates the camera/joint time offset where the arm moves enough to
     tell it (:data:`MAX_TIME_CONDITION`); it is applied (``time_applied``) when at least
-    :data:`MIN_TIME_OFFSET_S` and three times its bootstrap spread.
+    :data:`MIN_TIME_OFFSET_S` and three times its bootstrap spread. ``depth_weighting`` False
+    weighs every depth point the same and ``camera_facing`` False matches points to the whole link
+    surface (the ablations in ``benchmarks/bench_reconstruct_degraded_ablation.py``).
 
     Returns None when the episode cannot say (no depth, no robot masks, fewer than
     :data:`MIN_POINTS` robot points, a degenerate geometry); otherwise the correction, with
@@ -261,13 +265,17 @@ def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 
     chosen = list(frames)[:: max(1, len(frames) // max_frames)][:max_frames]
     surface = _model_surface(data, per_link, seed)
     measured = _measurements(data, chosen, surface, erode_px, points_per_frame, rng)
+    if not depth_weighting:
+        for m in measured:
+            m.w_depth = np.ones_like(m.w_depth)
     total = sum(len(m.points) for m in measured)
     if total < MIN_POINTS:
         log.warning("camera extrinsic: not checked (only %d robot depth points)", total)
         return None
     T0 = np.linalg.inv(data.viewmat.double().numpy())
     T, offset = T0.copy(), 0.0
-    groups, placed_at = _groups(data, measured, surface, T0[:3, 3], offset), offset
+    camera = T0[:3, 3] if camera_facing else None
+    groups, placed_at = _groups(data, measured, surface, camera, offset), offset
     gate = 0.02
     r = np.concatenate([s[2] for s in _normal_equations(groups, T, gate, gate).values()])
     rms_before = _robust_rms(r)
@@ -289,7 +297,7 @@ def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 
         if solve_time:
             offset += float(step[6])
             if abs(offset - placed_at) > REPLACE_AFTER_S:  # the surface at the new time (within it: linear)
-                groups, placed_at = _groups(data, measured, surface, T0[:3, 3], offset), offset
+                groups, placed_at = _groups(data, measured, surface, camera, offset), offset
         r = np.concatenate([s[2] for s in _normal_equations(groups, T, gate, huber, offset - placed_at).values()])
         if np.linalg.norm(step[:6]) < 1e-8 and (not solve_time or abs(step[6]) < 1e-6):
             break

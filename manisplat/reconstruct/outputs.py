@@ -75,7 +75,7 @@ def write_twin(rec: Reconstruction, alignments: dict[str, ObjectAlignment], out:
     _write_phases(out / "phases.csv", rec.data.t.cpu().numpy(), alignments)
     twin_of(rec, alignments).save(out)
     (out / "camera_refined.json").write_text(json.dumps(camera_refined(rec), indent=1) + "\n")
-    if rec.colour is not None:
+    if rec.exposure is not None:
         _write_exposure(out / "exposure.csv", rec)
 
 
@@ -86,7 +86,7 @@ def _write_exposure(path: Path, rec: Reconstruction) -> None:
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["frame", "held_out", "gain_r", "gain_g", "gain_b"])
-        for f, gain in enumerate(rec.colour.gains()):
+        for f, gain in enumerate(rec.exposure.gains()):
             w.writerow([f, int(f in held_out)] + [f"{g:.5f}" for g in gain])
 
 

@@ -26,7 +26,7 @@ from tqdm import tqdm
 
 from manisplat.reconstruct.config import TrainConfig, resolve_device
 from manisplat.reconstruct.data import EpisodeData
-from manisplat.reconstruct.exposure import FrameColour
+from manisplat.reconstruct.exposure import FrameExposure
 from manisplat.reconstruct.extrinsic import ExtrinsicCorrection
 from manisplat.reconstruct.metrics import psnr
 from manisplat.reconstruct.plan import Plan
@@ -67,7 +67,7 @@ class Reconstruction:
         self.camera_delta = torch.nn.Parameter(torch.zeros(6, dtype=torch.float64, device=self.device))
         # colour behind everything (sky, depth holes): learned, starts mid-grey
         self.background_logit = torch.nn.Parameter(torch.zeros(3, device=self.device))
-        self.colour = FrameColour(data.n_frames, plan.train_frames, self.device) if config.frame_colour else None
+        self.exposure = FrameExposure(data.n_frames, plan.train_frames, self.device) if config.exposure else None
         #: what the robot's depth said about the camera extrinsic (set by the pipeline; None: not checked)
         self.extrinsic: ExtrinsicCorrection | None = None
         self.scene_scale = graph.background.scene_scale if graph.background is not None else 1.0
@@ -109,8 +109,6 @@ class Reconstruction:
         if self.trajectories:
             param_groups.append({"params": [t.xi for t in self.trajectories.values()], "lr": 5e-4, "name": "poses"})
         param_groups.append({"params": [self.background_logit], "lr": 1e-2, "name": "background"})
-        if self.colour is not None:
-            param_groups.append({"params": [self.colour.delta], "lr": 2e-3, "name": "colour"})
         if self.config.refine_camera:
             param_groups.append({"params": [self.camera_delta], "lr": 1e-4, "name": "camera"})
         if self.graph.shadows is not None:
@@ -148,11 +146,11 @@ class Reconstruction:
 
     def render(self, frame: int, evaluation: dict[str, np.ndarray] | None = None):
         """(image [H, W, 3], alpha [H, W], dynamic alpha [H, W], meta, composed) at ``frame``, the
-        image in the frame's exposure and white balance (with ``frame_colour``)."""
+        image in the frame's exposure and white balance (with ``exposure``)."""
         image, *rest = self.render_state(self.data.link_poses[frame], self.object_poses(frame, evaluation),
                                          self.data.link_quats[frame])
-        if self.colour is not None:
-            image = self.colour.apply(image, frame)
+        if self.exposure is not None:
+            image = image * self.exposure.gains_of(frame)
         return (image, *rest)
 
     def render_state(self, link_poses: torch.Tensor, object_poses: dict[str, torch.Tensor],
@@ -176,8 +174,14 @@ class Reconstruction:
     # ------------------------------------------------------------------ losses
     def losses(self, frame: int) -> tuple[dict[str, torch.Tensor], dict, object]:
         c = self.config
-        image, _, dynamic_alpha, meta, composed = self.render(frame)
+        image, _, dynamic_alpha, meta, composed = self.render_state(self.data.link_poses[frame], self.object_poses(frame),
+                                                                    self.data.link_quats[frame])
         target = self.data.image(frame)
+        if self.exposure is not None:  # the frame's gains, fitted on its static pixels
+            static = None if self._dynamic_masks is None else 1 - self._dynamic_masks[frame].float()
+            if self._valid is not None:
+                static = self._valid if static is None else static * self._valid
+            image = image * self.exposure.fit(frame, image, target, static)
         l1, ssim_map = _error_maps(image, target)  # computed once for the render and appearance terms
         valid = self._valid  # pixels the recording covers (None: all)
         terms = {"render": _photometric(l1, ssim_map, valid, c.ssim_weight)}
@@ -189,8 +193,6 @@ class Reconstruction:
             # 0 in a frame without dynamic pixels (a weighted mean: nothing is read back to decide)
             terms["app"] = c.lambda_app * _photometric(l1, ssim_map, dyn_mask, c.ssim_weight)
             terms["mask"] = c.lambda_mask * mask_error.mean()
-        if self.colour is not None:
-            terms["colour"] = c.lambda_colour * self.colour.penalty(frame)
         if self.trajectories:
             terms["pose"] = c.lambda_pose * sum(t.pose_loss(frame) for t in self.trajectories.values()).float()
         return terms, meta, composed
@@ -348,7 +350,7 @@ class Reconstruction:
             "optimizer": self.optimizer.state_dict(),
             "trajectories": {k: t.state_dict() for k, t in self.trajectories.items()},
             "camera_delta": self.camera_delta.detach(), "background": self.background_logit.detach(),
-            "colour": self.colour.delta.detach() if self.colour is not None else None,
+            "exposure": self.exposure.fitted.clone() if self.exposure is not None else None,
             "shadows": self.graph.shadows.state_dict() if self.graph.shadows is not None else None,
             "shadow_geometry": (self.graph.shadows.extent, self.graph.shadows.resolution) if self.graph.shadows else None,
             "rng": self._rng.getstate(), "torch_rng": torch.get_rng_state(),
@@ -376,11 +378,11 @@ class Reconstruction:
         with torch.no_grad():
             self.camera_delta.copy_(state["camera_delta"])
             self.background_logit.copy_(state["background"])
-            if self.colour is not None:
-                if state.get("colour") is None:
-                    raise ValueError("the checkpoint has no per-frame colour (it was trained without it); "
+            if self.exposure is not None:
+                if state.get("exposure") is None:
+                    raise ValueError("the checkpoint has no per-frame exposure (it was trained without it); "
                                      "resume with the same settings, or start a new run (--overwrite)")
-                self.colour.delta.copy_(state["colour"])
+                self.exposure.fitted.copy_(state["exposure"])
         self.graph.shadows = None
         if state["shadows"] is not None:
             extent, resolution = state["shadow_geometry"]

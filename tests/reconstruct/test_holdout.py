@@ -53,9 +53,9 @@ def test_held_out_pixels_change_no_trained_parameter(pair):
         trained_twists = sorted({traj._twist_of[i] for i in train})
         assert torch.equal(traj.xi[trained_twists], other.xi[trained_twists]), name
     assert [s for s in clean_align["box"].segments] == [s for s in noisy_align["box"].segments]
-    # exposure: the training frames' transforms are the same, the held-out ones never learned
-    assert torch.equal(clean.colour.delta[train], noisy.colour.delta[train])
-    assert clean.colour.delta[train].any() and not noisy.colour.delta[plan.test_frames].any()
+    # exposure: the training frames' gains are the same, the held-out ones never fitted
+    assert torch.equal(clean.exposure.fitted[train], noisy.exposure.fitted[train])
+    assert (clean.exposure.fitted[train] != 1).any() and (noisy.exposure.fitted[plan.test_frames] == 1).all()
 
 
 def test_held_out_poses_are_still_tracked_from_their_own_images(pair):
