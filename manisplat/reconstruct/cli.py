@@ -272,7 +272,7 @@ def _summary(metrics: dict, out: Path) -> str:
                      f"write it into the episode with `manisplat-calibrate apply {out / 'camera_refined.json'} EPISODE`")
         if camera.get("time_offset_ms") is not None:
             lines.append(f"camera/joint time offset {camera['time_offset_ms']:+.1f} +- {camera['sigma_time_offset_ms']:.1f} ms "
-                         + ("(applied: joints re-paired)" if camera["time_applied"] else "(not applied: too small to be sure)"))
+                         + ("(applied: joints re-paired)" if camera["time_applied"] else "(not applied)"))
     look = [name for name in ("pose_plot.png", "renders/sheets/", "metrics.json") if (out / name.rstrip("/")).exists()]
     lines.append("look at: " + ", ".join(str(out / name) + ("/" if name.endswith("/") else "") for name in look))
     return "\n".join(lines)

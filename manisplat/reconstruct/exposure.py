@@ -5,11 +5,13 @@ Auto-exposure and white balance scale a camera's channels from frame to frame (g
 light stay gains after the sRGB curve); without this the Gaussians' colours would flicker to
 follow them, or average them away and lose PSNR everywhere. A training frame's gains are fitted in
 closed form each time it is trained, on its static pixels (the moving robot and objects are what
-is being learned), by least squares with a ridge towards 1 (:data:`RIDGE`), which also fixes the
-gauge between the gains and the Gaussians' own colours. A held-out frame takes the gains
-interpolated in time between the training frames beside it, so no pixel of a held-out frame
-reaches them. The twin itself (renders of new states, augmentation) uses gain 1: the scene's own
-colours.
+is being learned), by least squares with a ridge towards 1 (:data:`RIDGE`). The gains used are
+relative to their mean over the training frames, which fixes the gauge between them and the
+Gaussians' own colours: the Gaussians learn the scene under the episode's mean exposure (with the
+raw gains they drifted 2-6 % darker on the clean shared pick-and-place, and a new state rendered
+at gain 1 came out too dark). A held-out frame takes the gains interpolated in time between the
+training frames beside it, so no pixel of a held-out frame reaches them. The twin itself
+(renders of new states, augmentation) uses gain 1.
 
 A first version learned a 3 x 4 affine transform per frame by gradient descent: on the
 oak-preset copy of the shared pick-and-place (1000 iterations, each frame trained about ten
@@ -31,7 +33,7 @@ class FrameExposure:
     """Per-channel gains of ``n_frames`` frames, fitted on ``train_frames``.
 
     Attributes:
-        fitted: [T, 3] float32 gains as last fitted (1 where never fitted).
+        fitted: [T, 3] float32 gains as last fitted, before normalisation (1 where never fitted).
     """
 
     def __init__(self, n_frames: int, train_frames: list[int], device: torch.device | str = "cpu") -> None:
@@ -42,15 +44,17 @@ class FrameExposure:
         self._lower = torch.as_tensor(lower, device=device)
         self._upper = torch.as_tensor(upper, device=device)
         self._weight = torch.as_tensor(weight, dtype=torch.float32, device=device)[:, None]
+        self._train = torch.as_tensor(sorted(train_frames), device=device)
 
     def to(self, device: torch.device | str) -> "FrameExposure":
-        for name in ("fitted", "_lower", "_upper", "_weight"):
+        for name in ("fitted", "_lower", "_upper", "_weight", "_train"):
             setattr(self, name, getattr(self, name).to(device))
         return self
 
     def fit(self, frame: int, render: torch.Tensor, target: torch.Tensor, region: torch.Tensor | None) -> torch.Tensor:
-        """Fit and keep frame ``frame``'s gains [3] from a render and the recorded image [H, W, 3]
-        over ``region`` [H, W] (0/1 weights; None: every pixel); the render is not differentiated."""
+        """Fit and keep frame ``frame``'s gains from a render and the recorded image [H, W, 3] over
+        ``region`` [H, W] (0/1 weights; None: every pixel); return them normalised [3]
+        (:meth:`gains_of`). The render is not differentiated."""
         r = render.detach()
         w = torch.ones_like(r[..., 0]) if region is None else region
         count = w.sum().clamp_min(1.0)
@@ -58,18 +62,24 @@ class FrameExposure:
         rr = (r * r * w[..., None]).sum((0, 1))
         gains = (rt + RIDGE * count) / (rr + RIDGE * count)
         self.fitted[frame] = gains
-        return gains
+        return gains / self._mean()
 
     def gains_of(self, frame: int) -> torch.Tensor:
-        """[3] gains of ``frame``: as fitted for a training frame, interpolated otherwise."""
+        """[3] gains of ``frame`` relative to the training frames' mean: as fitted for a training
+        frame, interpolated otherwise."""
         w = self._weight[frame]
-        return (1 - w) * self.fitted[self._lower[frame]] + w * self.fitted[self._upper[frame]]
+        return ((1 - w) * self.fitted[self._lower[frame]] + w * self.fitted[self._upper[frame]]) / self._mean()
 
     def gains(self) -> np.ndarray:
-        """[T, 3] gains of every frame (held-out ones interpolated), float64."""
+        """[T, 3] gains of every frame (held-out ones interpolated) relative to the training
+        frames' mean, float64."""
         w = self._weight
-        both = (1 - w) * self.fitted[self._lower] + w * self.fitted[self._upper]
+        both = ((1 - w) * self.fitted[self._lower] + w * self.fitted[self._upper]) / self._mean()
         return both.cpu().numpy().astype(np.float64)
+
+    def _mean(self) -> torch.Tensor:
+        """[3] mean fitted gain over the training frames (the gauge)."""
+        return self.fitted[self._train].mean(0)
 
 
 def _interpolation(n: int, train: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -316,9 +316,13 @@ def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 
                          f"{MAX_TRANSLATION_MM} mm: recalibrate (manisplat-calibrate) or check the robot description")
         result.T_after = T0.copy()
         log.warning("camera extrinsic: %s", result.reason)
-    timing = ("" if not solve_time else
-              f"; camera/joint time offset {1e3 * offset:+.1f} +- {1e3 * sig_time:.1f} ms"
-              f"{' (applied)' if result.time_applied else ' (not applied: too small to be sure)'}")
+    if solve_time:
+        verdict = ("applied" if result.time_applied else "not applied: " + (
+            "the extrinsic was not" if not result.applied else
+            f"beyond {MAX_TIME_OFFSET_S} s" if abs(offset) > MAX_TIME_OFFSET_S else "too small to be sure"))
+        timing = f"; camera/joint time offset {1e3 * offset:+.1f} +- {1e3 * sig_time:.1f} ms ({verdict})"
+    else:
+        timing = ""
     log.info("camera extrinsic: correction %.3f +- %.3f deg, %.2f +- %.2f mm from %d robot depth points in %d frames "
              "(residual RMS %.2f -> %.2f mm)%s%s", rot, sig_rot, trans, sig_trans, total, len(chosen),
              result.rms_before_mm, result.rms_after_mm, "" if result.applied else "; NOT applied", timing)

@@ -178,10 +178,7 @@ class Reconstruction:
                                                                     self.data.link_quats[frame])
         target = self.data.image(frame)
         if self.exposure is not None:  # the frame's gains, fitted on its static pixels
-            static = None if self._dynamic_masks is None else 1 - self._dynamic_masks[frame].float()
-            if self._valid is not None:
-                static = self._valid if static is None else static * self._valid
-            image = image * self.exposure.fit(frame, image, target, static)
+            image = image * self.exposure.fit(frame, image, target, self._static_region(frame))
         l1, ssim_map = _error_maps(image, target)  # computed once for the render and appearance terms
         valid = self._valid  # pixels the recording covers (None: all)
         terms = {"render": _photometric(l1, ssim_map, valid, c.ssim_weight)}
@@ -238,6 +235,8 @@ class Reconstruction:
             if callback is not None:
                 callback(self)
         bar.close()
+        if self.exposure is not None and self.step >= c.iters:
+            self.refit_exposure()
 
     def _average_loss(self, loss: torch.Tensor) -> None:
         """Fold this iteration's loss into the running mean (weight 0.02, about 50 frames), on the device."""
@@ -284,6 +283,24 @@ class Reconstruction:
         """The positions' learning rate at the current step: 1.6e-4 x scene scale, decaying 100x over training."""
         frac = min(self.step / max(self.config.iters, 1), 1.0)
         return 1.6e-4 * self.scene_scale * 0.01 ** frac
+
+    @torch.no_grad()
+    def refit_exposure(self) -> None:
+        """Fit every training frame's exposure gains again on the twin as it is now. During
+        training each frame's gains were fitted whenever it was drawn, against the render of that
+        moment; a held-out frame's gains, interpolated between two of them, would carry their
+        difference (2 % frame to frame on the clean shared pick-and-place)."""
+        for frame in self.plan.train_frames:
+            image = self.render_state(self.data.link_poses[frame], self.object_poses(frame), self.data.link_quats[frame])[0]
+            self.exposure.fit(frame, image, self.data.image(frame), self._static_region(frame))
+
+    def _static_region(self, frame: int) -> torch.Tensor | None:
+        """[H, W] float 0/1: the frame's pixels that are neither robot nor object and that the
+        recording covers (None: every pixel)."""
+        static = None if self._dynamic_masks is None else 1 - self._dynamic_masks[frame].float()
+        if self._valid is not None:
+            static = self._valid if static is None else static * self._valid
+        return static
 
     @torch.no_grad()
     def quick_psnr(self, frames: int = 3) -> float:

@@ -14,9 +14,10 @@ def test_held_out_frames_take_the_gains_interpolated_between_their_training_neig
     for f in (1, 3, 4, 8):
         exposure.fitted[f] = float(f)
     expected = {0: 1.0, 1: 1.0, 2: 2.0, 3: 3.0, 5: 5.0, 6: 6.0, 7: 7.0, 8: 8.0, 9: 8.0}
+    mean = (1 + 3 + 4 + 8) / 4  # gains are relative to the training frames' mean
     for frame, value in expected.items():
-        assert torch.allclose(exposure.gains_of(frame), torch.full((3,), value)), frame
-    assert exposure.gains()[6].tolist() == [6.0, 6.0, 6.0]
+        assert torch.allclose(exposure.gains_of(frame), torch.full((3,), value / mean)), frame
+    assert exposure.gains()[6].tolist() == [6.0 / mean] * 3
 
 
 def test_a_frame_s_gains_are_fitted_on_its_static_pixels():
@@ -30,16 +31,21 @@ def test_a_frame_s_gains_are_fitted_on_its_static_pixels():
     robot[8:20, 8:20] = 1
     recorded[robot.bool()] = torch.rand(144, 3, generator=g)  # the robot moved: nothing to fit there
     exposure = FrameExposure(4, [0, 2])
-    fitted = exposure.fit(2, render, recorded, 1 - robot)
+    used = exposure.fit(2, render, recorded, 1 - robot)
+    fitted = exposure.fitted[2]
     # the ridge pulls towards 1 by RIDGE / (E[render^2] + RIDGE) of the deviation: 3.5 % of 0.11 here
     assert torch.allclose(fitted, gains, atol=0.005)
-    assert torch.equal(exposure.fitted[2], fitted) and (exposure.fitted[[0, 1, 3]] == 1).all()
-    unmasked = FrameExposure(4, [0, 2]).fit(2, render, recorded, None)
-    assert (unmasked - gains).abs().max() > 3 * (fitted - gains).abs().max()
+    assert (exposure.fitted[[0, 1, 3]] == 1).all()
+    assert torch.allclose(used, fitted / ((1 + fitted) / 2))  # relative to the training frames' mean
+    unmasked = FrameExposure(4, [0, 2])
+    unmasked.fit(2, render, recorded, None)
+    assert (unmasked.fitted[2] - gains).abs().max() > 3 * (fitted - gains).abs().max()
 
 
 def test_the_fit_does_not_differentiate_the_render():
     render = torch.full((4, 4, 3), 0.5, requires_grad=True)
-    gains = FrameExposure(2, [0]).fit(0, render, torch.full((4, 4, 3), 0.6), None)
+    exposure = FrameExposure(2, [0])
+    gains = exposure.fit(0, render, torch.full((4, 4, 3), 0.6), None)
     assert not gains.requires_grad
-    assert gains.tolist() == pytest.approx([(0.3 + RIDGE) / (0.25 + RIDGE)] * 3)
+    assert exposure.fitted[0].tolist() == pytest.approx([(0.3 + RIDGE) / (0.25 + RIDGE)] * 3)
+    assert gains.tolist() == pytest.approx([1.0] * 3)  # one training frame: it is the mean

@@ -41,7 +41,9 @@ def test_the_twin_renders_the_training_state_as_the_trainer_does(trained):
     evaluation = rec.evaluation_poses()
     for frame in (0, 7, 15):
         with torch.no_grad():
-            expected = rec.render(frame, evaluation)[0].clamp(0, 1).numpy()
+            # the scene itself: the twin has no camera exposure (the trainer's render(frame) applies the frame's gains)
+            expected = rec.render_state(rec.data.link_poses[frame], rec.object_poses(frame, evaluation),
+                                        rec.data.link_quats[frame])[0].clamp(0, 1).numpy()
         view = twin.render_frame(frame)
         assert view.rgb.shape == (60, 80, 3) and view.rgb.dtype == np.uint8
         assert np.abs(view.rgb / 255.0 - expected).max() <= 1 / 255 + 1e-6
