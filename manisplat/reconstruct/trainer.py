@@ -147,11 +147,15 @@ class Reconstruction:
     def render(self, frame: int, evaluation: dict[str, np.ndarray] | None = None):
         """(image [H, W, 3], alpha [H, W], dynamic alpha [H, W], meta, composed) at ``frame``, the
         image in the frame's exposure and white balance (with ``exposure``)."""
-        image, *rest = self.render_state(self.data.link_poses[frame], self.object_poses(frame, evaluation),
-                                         self.data.link_quats[frame])
+        image, *rest = self._render_scene(frame, evaluation)
         if self.exposure is not None:
             image = image * self.exposure.gains_of(frame)
         return (image, *rest)
+
+    def _render_scene(self, frame: int, evaluation: dict[str, np.ndarray] | None = None):
+        """:meth:`render_state` at ``frame``'s recorded state: the scene without the frame's exposure."""
+        return self.render_state(self.data.link_poses[frame], self.object_poses(frame, evaluation),
+                                 self.data.link_quats[frame])
 
     def render_state(self, link_poses: torch.Tensor, object_poses: dict[str, torch.Tensor],
                      link_quats: torch.Tensor | None = None):
@@ -174,8 +178,7 @@ class Reconstruction:
     # ------------------------------------------------------------------ losses
     def losses(self, frame: int) -> tuple[dict[str, torch.Tensor], dict, object]:
         c = self.config
-        image, _, dynamic_alpha, meta, composed = self.render_state(self.data.link_poses[frame], self.object_poses(frame),
-                                                                    self.data.link_quats[frame])
+        image, _, dynamic_alpha, meta, composed = self._render_scene(frame)
         target = self.data.image(frame)
         if self.exposure is not None:  # the frame's gains, fitted on its static pixels
             image = image * self.exposure.fit(frame, image, target, self._static_region(frame))
@@ -291,7 +294,7 @@ class Reconstruction:
         moment; a held-out frame's gains, interpolated between two of them, would carry their
         difference (2 % frame to frame on the clean shared pick-and-place)."""
         for frame in self.plan.train_frames:
-            image = self.render_state(self.data.link_poses[frame], self.object_poses(frame), self.data.link_quats[frame])[0]
+            image = self._render_scene(frame)[0]
             self.exposure.fit(frame, image, self.data.image(frame), self._static_region(frame))
 
     def _static_region(self, frame: int) -> torch.Tensor | None:
