@@ -19,6 +19,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "format": ("ACTION_COLUMNS", "FORMAT", "FRAME_COLUMNS", "JOINT_COLUMNS", "VERSION", "DamagedEpisodeError",
                "EpisodeFormatError"),
     "importers.act_hdf5": ("import_act_hdf5",),
+    "importers.lerobot": ("import_lerobot",),
     "meta": ("CameraInfo", "EpisodeMeta", "RobotInfo", "load_meta", "save_meta"),
     "reader": ("Episode", "Frame", "FrameTable", "JointTable", "read_episode"),
     "recovery": ("RecoveryReport", "recover"),

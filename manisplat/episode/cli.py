@@ -16,7 +16,7 @@ from manisplat.episode.format import DIST_LENGTHS, EpisodeFormatError
 
 ACT_ARMS = ("left", "right", "single")
 """``--arm`` choices of ``import-act`` (the keys of the importer's ``ARM_COLUMNS``)."""
-EXPORT_FORMATS = ("act-hdf5",)
+EXPORT_FORMATS = ("lerobot", "act-hdf5")
 """``--format`` choices of ``export``."""
 SAMPLE_MIN_FRAMES = 8
 """The fewest frames ``write_sample_episode`` accepts."""
@@ -71,17 +71,68 @@ def _cmd_import_act(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_export(args: argparse.Namespace) -> int:
-    from manisplat.episode.exporters.act_hdf5 import ExportDestinationError, export_act_hdf5
+_FORMAT_ONLY_OPTIONS = {"lerobot": ("task", "fps", "no_depth", "codec", "crf"),
+                        "act-hdf5": ("image_key", "compress", "jpeg_quality")}
+"""``export`` options that apply to one --format only (dest names)."""
+_DEFAULTS_OFF = {"no_depth": False, "compress": False}
 
+
+def _misplaced_options(args: argparse.Namespace) -> list[str]:
+    """--options given that belong to the other --format."""
+    given = []
+    for fmt, names in _FORMAT_ONLY_OPTIONS.items():
+        if fmt == args.format:
+            continue
+        given += ["--" + n.replace("_", "-") for n in names
+                  if getattr(args, n) not in (None, _DEFAULTS_OFF.get(n, None))]
+    return given
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    from manisplat.episode.exporters.sources import ExportDestinationError
+
+    misplaced = _misplaced_options(args)
+    if misplaced:
+        print(f"manisplat-episode export: error: {', '.join(misplaced)} do not apply to --format {args.format}",
+              file=sys.stderr)
+        return 2
     try:
-        entries = export_act_hdf5(args.episodes, args.out, camera=args.camera, image_key=args.image_key,
-                                  compress=args.compress, jpeg_quality=args.jpeg_quality,
-                                  dtype="float64" if args.float64 else "float32", overwrite=args.overwrite,
-                                  progress=sys.stderr.isatty())
+        if args.format == "lerobot":
+            return _export_lerobot(args)
+        return _export_act(args)
     except ExportDestinationError as exc:  # a usage error, like the other commands' --out checks
         print(f"manisplat-episode export: error: {exc}", file=sys.stderr)
         return 2
+
+
+def _export_lerobot(args: argparse.Namespace) -> int:
+    from manisplat.episode.exporters.lerobot import DEFAULT_CRF, export_lerobot
+
+    try:
+        result = export_lerobot(args.episodes, args.out, task=args.task, fps=args.fps, camera=args.camera,
+                                depth=False if args.no_depth else None, codec=args.codec or "libsvtav1",
+                                crf=DEFAULT_CRF if args.crf is None else args.crf,
+                                dtype="float64" if args.float64 else "float32", overwrite=args.overwrite,
+                                progress=sys.stderr.isatty())
+    except KeyboardInterrupt:
+        print(f"\ninterrupted: nothing was written to {args.out} (the partial dataset beside it was removed)",
+              file=sys.stderr)
+        return 130
+    print(f"exported {result.episodes} episodes ({result.frames} frames, {result.augmented} augmented) as a "
+          f"LeRobot v3.0 dataset at {result.path} ({result.data_files} data and {result.video_files} video files); "
+          f"provenance in {result.path}/meta/augmentation.json")
+    return 0
+
+
+def _export_act(args: argparse.Namespace) -> int:
+    from manisplat.episode.exporters.act_hdf5 import DEFAULT_JPEG_QUALITY, export_act_hdf5
+
+    try:
+        entries = export_act_hdf5(args.episodes, args.out, camera=args.camera, image_key=args.image_key,
+                                  compress=args.compress,
+                                  jpeg_quality=DEFAULT_JPEG_QUALITY if args.jpeg_quality is None else args.jpeg_quality,
+                                  dtype="float64" if args.float64 else "float32", overwrite=args.overwrite,
+                                  progress=sys.stderr.isatty())
     except KeyboardInterrupt:
         print("\ninterrupted: finished files stay in place; the one being written was removed, and "
               f"{args.out}/augmentation.json says complete: false", file=sys.stderr)
@@ -90,6 +141,21 @@ def _cmd_export(args: argparse.Namespace) -> int:
     frames = sum(e["frames"] for e in entries)
     print(f"exported {len(entries)} episodes ({frames} frames, {augmented} augmented) to {args.out}/episode_*.hdf5; "
           f"provenance in {args.out}/augmentation.json")
+    return 0
+
+
+def _cmd_import_lerobot(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from manisplat.episode.importers.lerobot import import_lerobot
+
+    fx, fy, cx, cy = args.K
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    episode = import_lerobot(args.dataset, args.out, episode=args.episode, camera=args.camera, K=K, arm=args.arm,
+                             gripper_scale=args.gripper_scale, dist=args.dist, mount=args.mount,
+                             robot_description=args.robot_description, image_format=args.image_format,
+                             overwrite=args.overwrite)
+    print(f"imported episode {args.episode} ({len(episode)} frames) of {args.dataset} into {episode.path}")
     return 0
 
 
@@ -200,42 +266,93 @@ def build_parser() -> argparse.ArgumentParser:
                    help="replace an existing episode at --out (default: off, refused)")
     p.set_defaults(func=_cmd_import_act)
 
-    p = sub.add_parser("export", help="write episodes as ACT / ALOHA / Cobot Magic HDF5 files",
-                       description="Write EPISODES as OUT/episode_0.hdf5, episode_1.hdf5, ... in the order given "
-                                   "(ACT / ALOHA layout, one arm: /observations/qpos and qvel (T, 7) [q1..q6 rad, "
-                                   "gripper m], /observations/images/<camera>, /action (T, 7), attributes sim, "
-                                   "compress, fps), streaming one frame at a time, and OUT/augmentation.json "
-                                   "naming each file's source episode, its source and, for augmented episodes, "
-                                   "their parent. qvel: backward differences over the frame times, first row "
-                                   "zero. /action: the episode's a1..a6,a_gripper, or without them the next "
-                                   "frame's qpos (attribute source says which). All episodes must be complete "
-                                   "and share one camera, fps and image size; this is checked before anything is "
-                                   "written. Each file is written under a .tmp name and renamed when closed. "
-                                   "Read back with `import-act FILE --arm single --camera NAME`. Exit status: 0 "
-                                   "done, 1 bad input, 2 usage error (a non-empty --out without --overwrite "
-                                   "included), 130 interrupted.")
+    p = sub.add_parser("export", help="write episodes as a LeRobot v3.0 dataset or ACT / Cobot Magic HDF5 files",
+                       description="Write EPISODES, in the order given, as one dataset a policy learner reads, "
+                                   "streaming one frame at a time. Everything is checked before anything is "
+                                   "written: every episode complete, one camera and image size, every image "
+                                   "present. State and action are 7-D [q1..q6 rad, gripper m]; the action is the "
+                                   "episode's a1..a6,a_gripper, or without them the next frame's state. "
+                                   "--format lerobot: a LeRobot v3.0 dataset in OUT (meta/info.json, stats.json, "
+                                   "tasks.parquet, episodes/, data/*.parquet, videos/observation.images.<camera>/"
+                                   "*.mp4, depth as a uint16 mm column depth.<camera>), written beside OUT and "
+                                   "renamed into place when complete; read it with LeRobotDataset(repo_id, "
+                                   "root=OUT, video_backend='pyav') and back with import-lerobot. "
+                                   "--format act-hdf5: OUT/episode_0.hdf5, ... (ACT / ALOHA layout, one arm: "
+                                   "/observations/qpos and qvel (T, 7), /observations/images/<camera>, /action "
+                                   "(T, 7), attributes sim, compress, fps), each under a .tmp name until closed; "
+                                   "read back with `import-act FILE --arm single --camera NAME`. Both write "
+                                   "augmentation.json (LeRobot: meta/augmentation.json) naming each episode's "
+                                   "source and, for augmented ones, their parent. Exit status: 0 done, 1 bad "
+                                   "input, 2 usage error (a non-empty --out without --overwrite included), "
+                                   "130 interrupted.")
     p.add_argument("episodes", type=Path, nargs="+", metavar="EPISODE", help="episode folder(s)")
-    p.add_argument("--format", choices=EXPORT_FORMATS, required=True,
-                   help="output layout (required; act-hdf5 is the only one so far)")
+    p.add_argument("--format", choices=EXPORT_FORMATS, required=True, help="output layout (required)")
     p.add_argument("--out", type=Path, required=True,
                    help="output folder (required): created; must be new or empty unless --overwrite")
     p.add_argument("--camera", help="the camera every episode must have (default: the first episode's camera)")
-    p.add_argument("--image-key", type=_dataset_name, metavar="KEY",
+    p.add_argument("--float64", action="store_true",
+                   help="store state/qpos, qvel and action as float64, so joints round-trip bit-exact (default: "
+                        "off, float32 as LeRobot, ACT and Cobot Magic expect: ACT's training code fails on float64)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="lerobot: replace an earlier LeRobot dataset at --out once the new one is complete; "
+                        "act-hdf5: remove an earlier export's episode_*.hdf5 and augmentation.json first, keeping "
+                        "other files (default: off, a non-empty --out is refused)")
+    g = p.add_argument_group("lerobot only")
+    g.add_argument("--task", help="task description stored with every frame (default: each episode.json's task; "
+                                  "an episode without one is an error)")
+    g.add_argument("--fps", type=positive(int), metavar="F",
+                   help="dataset rate in Hz; episodes recorded faster are resampled to the frame nearest each 1/F "
+                        "step (default: the episodes' rate, which must be one whole number)")
+    g.add_argument("--no-depth", action="store_true",
+                   help="leave depth out (default: depth.<camera> is written when the episodes have depth; an "
+                        "episode without it is then an error)")
+    g.add_argument("--codec", choices=("libsvtav1", "h264", "hevc"),
+                   help="video encoder (default: libsvtav1, AV1 as LeRobot writes it)")
+    g.add_argument("--crf", type=bounded(0, 63, kind=int),
+                   help="video quality, lower is better and larger (default: 30, as LeRobot)")
+    g = p.add_argument_group("act-hdf5 only")
+    g.add_argument("--image-key", type=_dataset_name, metavar="KEY",
                    help="dataset name under /observations/images, e.g. cam_high to match an ACT task config "
                         "(default: the camera name)")
-    p.add_argument("--compress", action="store_true",
+    g.add_argument("--compress", action="store_true",
                    help="store JPEG bytes padded to the longest frame plus /compress_len, attribute "
                         "compress=True, as ALOHA's recorder does (default: off, raw (T, H, W, 3) uint8 RGB)")
-    p.add_argument("--jpeg-quality", type=bounded(0, 100, kind=int), default=90,
+    g.add_argument("--jpeg-quality", type=bounded(0, 100, kind=int),
                    help="JPEG quality with --compress, 0..100; ALOHA's recorder uses 50, smaller but visibly "
-                        "lossy (default: %(default)s)")
-    p.add_argument("--float64", action="store_true",
-                   help="store qpos, qvel and action as float64, so joints round-trip bit-exact (default: off, "
-                        "float32 as ACT and Cobot Magic record: ACT's training code fails on float64 files)")
-    p.add_argument("--overwrite", action="store_true",
-                   help="allow a non-empty --out: an earlier export's episode_*.hdf5 and augmentation.json there "
-                        "are removed first, other files are kept (default: off, refused)")
+                        "lossy (default: 90)")
     p.set_defaults(func=_cmd_export)
+
+    p = sub.add_parser("import-lerobot", help="convert one episode of a LeRobot v3.0 dataset",
+                       description="Convert episode I of a LeRobot v3.0 dataset (meta/, data/, videos/) into an "
+                                   "episode folder, frame by frame: observation.state -> q1..q6, gripper; action "
+                                   "-> a1..a6, a_gripper (when it has the same layout); the camera's video frames "
+                                   "matched to rows by timestamp (LeRobot's 1e-4 s tolerance); depth.<camera> "
+                                   "(uint16 mm) when present; t = frame_index / fps. Joints are read as stored, so "
+                                   "an export comes back bit-exact. The dataset holds no intrinsics: --K is "
+                                   "required. Exit status: 0 done, 1 bad input, 2 usage error.")
+    p.add_argument("dataset", type=Path, metavar="DATASET_DIR", help="the LeRobot dataset folder")
+    p.add_argument("--episode", type=non_negative(int), required=True, metavar="I",
+                   help="episode_index to import (required)")
+    p.add_argument("--camera", required=True, metavar="KEY",
+                   help="video feature, e.g. observation.images.cam_high, or just its camera name (required)")
+    p.add_argument("--K", type=pinhole_intrinsics(), required=True, metavar="fx,fy,cx,cy",
+                   help="camera intrinsics in pixels (required: LeRobot datasets store none)")
+    p.add_argument("--out", type=Path, required=True, help="episode folder to create (required)")
+    p.add_argument("--arm", choices=ACT_ARMS, default="single",
+                   help="'single' for 7-D state, or which arm of a 14-D dual-arm state (default: %(default)s)")
+    p.add_argument("--gripper-scale", type=positive(float), default=1.0,
+                   help="factor from the dataset's gripper value to the finger gap in metres (default: %(default)s)")
+    p.add_argument("--dist", type=finite_numbers(DIST_LENGTHS), default=[], metavar="k1,k2,...",
+                   help="OpenCV distortion coefficients, 0/4/5/8/12/14 of them (default: none)")
+    p.add_argument("--mount", default="base",
+                   help="'base' or the link a wrist camera is fixed to (default: %(default)s)")
+    p.add_argument("--robot-description", default="builtin:agilex_piper",
+                   help="how to read the joint angles: a URDF path or a builtin: name (default: %(default)s)")
+    p.add_argument("--image-format", choices=("png", "jpg"), default="png",
+                   help="rgb file format (default: %(default)s)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing episode at --out (default: off, refused)")
+    p.set_defaults(func=_cmd_import_lerobot)
 
     p = sub.add_parser("sample", help="write the built-in synthetic pick-and-place episode",
                        description="Write the built-in sample: the built-in PiPER picks a 4 cm box and places it "

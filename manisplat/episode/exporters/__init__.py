@@ -1,5 +1,11 @@
-"""Exporters: write ManiSplat episodes in the formats policy learners read."""
+"""Exporters: write ManiSplat episodes in the formats policy learners read (each imported on first use,
+so one format's libraries load only when it is used)."""
 
-from manisplat.episode.exporters.act_hdf5 import export_act_hdf5
+from __future__ import annotations
 
-__all__ = ["export_act_hdf5"]
+from manisplat._lazy import lazy_exports
+
+__getattr__, __dir__, __all__ = lazy_exports(__name__, {
+    "act_hdf5": ("export_act_hdf5",),
+    "lerobot": ("export_lerobot",),
+})

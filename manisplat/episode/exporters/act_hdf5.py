@@ -24,7 +24,6 @@ import logging
 import os
 import re
 import tempfile
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -33,46 +32,20 @@ import h5py
 import numpy as np
 from tqdm import tqdm
 
-from manisplat.episode.format import RGB_DIR, EpisodeFormatError
+from manisplat.episode.exporters.sources import (PROVENANCE_FILE, ExportDestinationError, ExportSource,
+                                                 open_sources)
 from manisplat.episode.fsio import atomic_write_bytes, fsync_path, temp_path
-from manisplat.episode.images import find_image
 from manisplat.episode.reader import Episode
 from manisplat.output_folder import check_output_folder
 
 log = logging.getLogger(__name__)
 
-PROVENANCE_FILE = "augmentation.json"
-"""Side file in the export folder: per output file, the source episode, its source and parent."""
 PROVENANCE_FORMAT = "manisplat-act-export"
 DEFAULT_JPEG_QUALITY = 90
 """JPEG quality with ``compress``. ALOHA's ``record_episodes.py`` uses 50, which on the 64x48 sample
 episode gives 27.6 dB PSNR (90: 33.8 dB, 1.6x the bytes); pass 50 to match its file sizes."""
-SIM_SOURCES = ("simulation", "augmentation")
 DTYPES = ("float32", "float64")
 _OUTPUT_RE = re.compile(r"^episode_\d+\.hdf5(\.tmp)?$")
-
-
-class ExportDestinationError(FileExistsError):
-    """``out_dir`` exists and holds files, and ``overwrite`` was not given (a usage error, exit 2)."""
-
-
-@dataclass(frozen=True)
-class _Source:
-    episode: Episode
-    parent: str | None
-    seed: Any
-
-    @property
-    def augmented(self) -> bool:
-        return self.episode.meta.source == "augmentation"
-
-    @property
-    def sim(self) -> bool:
-        meta = self.episode.meta
-        imported = meta.extra.get("import")
-        if meta.source == "import:act_hdf5" and isinstance(imported, dict):
-            return bool(imported.get("sim", False))
-        return meta.source in SIM_SOURCES
 
 
 def check_destination(out_dir: str | Path, overwrite: bool) -> None:
@@ -80,59 +53,6 @@ def check_destination(out_dir: str | Path, overwrite: bool) -> None:
     check_output_folder(Path(out_dir), allowed=overwrite, error=ExportDestinationError,
                         refusal=f"; pass --overwrite to replace its episode_*.hdf5 files and {PROVENANCE_FILE}, "
                                 "or choose another folder")
-
-
-def _parent_of(ep: Episode) -> tuple[str | None, Any]:
-    """``parent`` and ``seed`` of an augmented episode: its augmentation.json, else episode.json."""
-    record: dict[str, Any] = {}
-    path = ep.path / PROVENANCE_FILE
-    if path.is_file():
-        try:
-            record = json.loads(path.read_text())
-        except (OSError, ValueError) as exc:
-            raise EpisodeFormatError(f"{path}: cannot read: {exc}") from exc
-        if not isinstance(record, dict):
-            raise EpisodeFormatError(f"{path}: expected a JSON object")
-    parent = record.get("parent", ep.meta.extra.get("parent"))
-    return (None if parent is None else str(parent)), record.get("seed")
-
-
-def _open_sources(episodes: Sequence[str | Path], camera: str | None) -> list[_Source]:
-    """Open every episode and check that they can share one export; raises before anything is written."""
-    if not episodes:
-        raise ValueError("no episodes to export")
-    sources = []
-    for path in episodes:
-        ep = Episode.open(path)
-        if not ep.meta.complete:
-            raise EpisodeFormatError(f"{ep.path}: incomplete episode (its writer stopped or crashed); run "
-                                     f"`manisplat-episode recover {ep.path}` first")
-        if len(ep) == 0:
-            raise EpisodeFormatError(f"{ep.path}: no frames")
-        sources.append(_Source(ep, *_parent_of(ep)))
-    fps = {src.episode.meta.fps for src in sources}
-    if len(fps) > 1:
-        listing = ", ".join(f"{s.episode.path.name} {s.episode.meta.fps:g}" for s in sources)
-        raise EpisodeFormatError(f"episodes of different fps cannot share one ACT export (ACT assumes one "
-                                 f"control rate): {listing}")
-    sizes = {(s.episode.camera.width, s.episode.camera.height) for s in sources}
-    if len(sizes) > 1:
-        listing = ", ".join(f"{s.episode.path.name} {s.episode.camera.width}x{s.episode.camera.height}"
-                            for s in sources)
-        raise EpisodeFormatError(f"episodes of different image sizes cannot share one ACT export: {listing}")
-    first = sources[0].episode
-    camera = first.camera.name if camera is None else camera
-    for src in sources:
-        ep = src.episode
-        if ep.camera.name != camera:
-            raise EpisodeFormatError(f"{ep.path}: no camera {camera!r}; the episode's camera is "
-                                     f"{ep.camera.name!r} (every episode of one export needs the same camera)")
-        rgb = ep.path / RGB_DIR
-        missing = [i for i in range(len(ep)) if find_image(rgb, i) is None]
-        if missing:
-            raise EpisodeFormatError(f"{rgb}: no image for {len(missing)} of {len(ep)} frames (first: frame "
-                                     f"{missing[0]})")
-    return sources
 
 
 def _clear_previous(out_dir: Path) -> None:
@@ -155,7 +75,7 @@ def velocities(t: np.ndarray, values: np.ndarray) -> np.ndarray:
     return out
 
 
-def _write_file(src: _Source, path: Path, key: str, *, compress: bool, jpeg_quality: int, dtype: np.dtype,
+def _write_file(src: ExportSource, path: Path, key: str, *, compress: bool, jpeg_quality: int, dtype: np.dtype,
                 on_frame: Callable[[], None]) -> dict[str, Any]:
     """Write one episode to ``path`` through ``path.tmp``; returns its provenance entry."""
     ep = src.episode
@@ -194,9 +114,7 @@ def _write_file(src: _Source, path: Path, key: str, *, compress: bool, jpeg_qual
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
-    return {"file": path.name, "episode": str(ep.path.resolve()), "source": ep.meta.source,
-            "augmented": src.augmented, "parent": src.parent, "seed": src.seed, "sim": src.sim, "frames": T,
-            "action": action_source}
+    return {"file": path.name, **src.provenance(), "frames": T, "action": action_source}
 
 
 def _write_jpeg(f: h5py.File, images: h5py.Group, key: str, ep: Episode, quality: int, scratch_dir: Path,
@@ -269,7 +187,7 @@ def export_act_hdf5(episodes: Sequence[str | Path], out_dir: str | Path, *, came
         raise ValueError(f"jpeg_quality must be in 0..100; got {jpeg_quality}")
     out_dir = Path(out_dir)
     check_destination(out_dir, overwrite)
-    sources = _open_sources(episodes, camera)
+    sources = open_sources(episodes, camera, "ACT")
     first = sources[0].episode
     camera = first.camera.name
     key = image_key or camera

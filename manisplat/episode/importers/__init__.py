@@ -1,5 +1,11 @@
-"""Importers: convert episodes recorded in other formats into ManiSplat episodes."""
+"""Importers: convert episodes recorded in other formats into ManiSplat episodes (each imported on
+first use, so one format's libraries load only when it is used)."""
 
-from manisplat.episode.importers.act_hdf5 import import_act_hdf5
+from __future__ import annotations
 
-__all__ = ["import_act_hdf5"]
+from manisplat._lazy import lazy_exports
+
+__getattr__, __dir__, __all__ = lazy_exports(__name__, {
+    "act_hdf5": ("import_act_hdf5",),
+    "lerobot": ("import_lerobot",),
+})

@@ -1,0 +1,164 @@
+"""What every exporter checks before it writes: the episodes open, are complete, and can share one
+dataset (one camera, one fps, one image size, every image present); and where each came from."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from manisplat.episode.format import DEPTH_DIR, RGB_DIR, EpisodeFormatError
+from manisplat.episode.images import find_image
+from manisplat.episode.reader import Episode
+
+PROVENANCE_FILE = "augmentation.json"
+"""Name of the provenance side file (in an augmented episode, and in every export)."""
+SIM_SOURCES = ("simulation", "augmentation")
+
+
+class ExportDestinationError(FileExistsError):
+    """``--out`` exists and holds files, and ``overwrite`` was not given (a usage error, exit 2)."""
+
+
+@dataclass(frozen=True)
+class ExportSource:
+    """One episode to export, with its provenance.
+
+    Attributes:
+        episode: the opened episode.
+        parent: the episode an augmented one was made from (None for a recording).
+        seed: the augmentation seed, when recorded.
+    """
+
+    episode: Episode
+    parent: str | None
+    seed: Any
+
+    @property
+    def augmented(self) -> bool:
+        return self.episode.meta.source == "augmentation"
+
+    @property
+    def sim(self) -> bool:
+        """Whether the images were rendered, not recorded (simulation, augmentation, a sim ACT import)."""
+        meta = self.episode.meta
+        imported = meta.extra.get("import")
+        if meta.source.startswith("import:") and isinstance(imported, dict):
+            return bool(imported.get("sim", False))
+        return meta.source in SIM_SOURCES
+
+    def provenance(self) -> dict[str, Any]:
+        """The fields every exporter records for this episode."""
+        ep = self.episode
+        return {"episode": str(ep.path.resolve()), "source": ep.meta.source, "augmented": self.augmented,
+                "parent": self.parent, "seed": self.seed, "sim": self.sim}
+
+
+def _parent_of(ep: Episode) -> tuple[str | None, Any]:
+    """``parent`` and ``seed`` of an augmented episode: its augmentation.json, else episode.json."""
+    record: dict[str, Any] = {}
+    path = ep.path / PROVENANCE_FILE
+    if path.is_file():
+        try:
+            record = json.loads(path.read_text())
+        except (OSError, ValueError) as exc:
+            raise EpisodeFormatError(f"{path}: cannot read: {exc}") from exc
+        if not isinstance(record, dict):
+            raise EpisodeFormatError(f"{path}: expected a JSON object")
+    parent = record.get("parent", ep.meta.extra.get("parent"))
+    return (None if parent is None else str(parent)), record.get("seed")
+
+
+def _missing_frames(folder: Path, count: int) -> list[int]:
+    return [i for i in range(count) if find_image(folder, i) is None]
+
+
+def open_sources(episodes: Sequence[str | Path], camera: str | None, layout: str, *,
+                 same_fps: bool = True) -> list[ExportSource]:
+    """Open every episode and check that they can share one export; raises before anything is written.
+
+    Args:
+        episodes: episode folders.
+        camera: the camera every episode must have (None: the first episode's).
+        layout: the export's name, for messages ("ACT", "LeRobot").
+        same_fps: require one fps for all (False when the exporter checks rates itself).
+
+    Raises:
+        EpisodeFormatError: an episode is incomplete, empty, has another camera, fps or image size, or
+            lacks an image.
+    """
+    if not episodes:
+        raise ValueError("no episodes to export")
+    sources = []
+    for path in episodes:
+        ep = Episode.open(path)
+        if not ep.meta.complete:
+            raise EpisodeFormatError(f"{ep.path}: incomplete episode (its writer stopped or crashed); run "
+                                     f"`manisplat-episode recover {ep.path}` first")
+        if len(ep) == 0:
+            raise EpisodeFormatError(f"{ep.path}: no frames")
+        sources.append(ExportSource(ep, *_parent_of(ep)))
+    fps = {src.episode.meta.fps for src in sources}
+    if same_fps and len(fps) > 1:
+        listing = ", ".join(f"{s.episode.path.name} {s.episode.meta.fps:g}" for s in sources)
+        raise EpisodeFormatError(f"episodes of different fps cannot share one {layout} export (one control "
+                                 f"rate per dataset): {listing}")
+    sizes = {(s.episode.camera.width, s.episode.camera.height) for s in sources}
+    if len(sizes) > 1:
+        listing = ", ".join(f"{s.episode.path.name} {s.episode.camera.width}x{s.episode.camera.height}"
+                            for s in sources)
+        raise EpisodeFormatError(f"episodes of different image sizes cannot share one {layout} export: {listing}")
+    camera = sources[0].episode.camera.name if camera is None else camera
+    for src in sources:
+        ep = src.episode
+        if ep.camera.name != camera:
+            raise EpisodeFormatError(f"{ep.path}: no camera {camera!r}; the episode's camera is "
+                                     f"{ep.camera.name!r} (every episode of one export needs the same camera)")
+        missing = _missing_frames(ep.path / RGB_DIR, len(ep))
+        if missing:
+            raise EpisodeFormatError(f"{ep.path / RGB_DIR}: no image for {len(missing)} of {len(ep)} frames "
+                                     f"(first: frame {missing[0]})")
+    return sources
+
+
+def check_depth(sources: Sequence[ExportSource]) -> None:
+    """Raise :class:`EpisodeFormatError` unless every frame of every episode has a depth image."""
+    for src in sources:
+        ep = src.episode
+        missing = _missing_frames(ep.path / DEPTH_DIR, len(ep)) if ep.has_depth else list(range(len(ep)))
+        if missing:
+            raise EpisodeFormatError(f"{ep.path / DEPTH_DIR}: no depth for {len(missing)} of {len(ep)} frames "
+                                     f"(first: frame {missing[0]}); export without depth (--no-depth) or drop "
+                                     "this episode")
+
+
+def resample_indices(t: np.ndarray, fps: float) -> np.ndarray:
+    """Frames to export at ``fps``: for each ``k``, the recorded frame nearest ``t[0] + k / fps``.
+
+    Args:
+        t: (T,) increasing frame times in seconds.
+        fps: export rate in Hz, at most the recording's (a higher one would repeat frames).
+
+    Returns:
+        (K,) int64 frame indices, increasing; the targets run to the last frame's time plus half a
+        recorded period (so 16 -> 8 fps keeps every second frame of 16, and 16 -> 16 all of them).
+
+    Raises:
+        ValueError: ``fps`` is above the recording's rate, so frames would repeat.
+    """
+    t = np.asarray(t, dtype=np.float64)
+    if len(t) == 1:
+        return np.zeros(1, dtype=np.int64)
+    recorded = (len(t) - 1) / (t[-1] - t[0])
+    count = int(np.floor((t[-1] - t[0] + 0.5 / recorded) * fps)) + 1
+    targets = t[0] + np.arange(count) / fps
+    right = np.clip(np.searchsorted(t, targets), 1, len(t) - 1)
+    nearer_left = targets - t[right - 1] <= t[right] - targets
+    indices = np.where(nearer_left, right - 1, right).astype(np.int64)
+    if np.any(np.diff(indices) == 0):
+        raise ValueError(f"cannot export at {fps:g} fps: the episode was recorded at {recorded:.4g} fps and "
+                         "frames would repeat; choose an fps at most the recording's")
+    return indices
