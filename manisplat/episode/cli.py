@@ -193,6 +193,18 @@ def _cmd_copy(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_import_options(p: argparse.ArgumentParser, source: str) -> None:
+    """The options every importer shares: gripper scale, the camera's distortion and mount, the robot."""
+    p.add_argument("--gripper-scale", type=positive(float), default=1.0,
+                   help=f"factor from the {source}'s gripper value to the finger gap in metres (default: %(default)s)")
+    p.add_argument("--dist", type=finite_numbers(DIST_LENGTHS), default=[], metavar="k1,k2,...",
+                   help="OpenCV distortion coefficients, 0/4/5/8/12/14 of them (default: none)")
+    p.add_argument("--mount", default="base",
+                   help="'base' or the link a wrist camera is fixed to (default: %(default)s)")
+    p.add_argument("--robot-description", default="builtin:agilex_piper",
+                   help="how to read the joint angles: a URDF path or a builtin: name (default: %(default)s)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``manisplat-episode`` and its subcommands."""
     parser = argparse.ArgumentParser(
@@ -249,16 +261,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="image dataset under observations/images (default: %(default)s)")
     p.add_argument("--fps", type=positive(float), default=30.0,
                    help="recording rate in Hz; t = index / fps (default: %(default)s)")
-    p.add_argument("--gripper-scale", type=positive(float), default=1.0,
-                   help="factor from the file's gripper value to the finger gap in metres (default: %(default)s)")
-    p.add_argument("--dist", type=finite_numbers(DIST_LENGTHS), default=[], metavar="k1,k2,...",
-                   help="OpenCV distortion coefficients, 0/4/5/8/12/14 of them (default: none)")
-    p.add_argument("--mount", default="base",
-                   help="'base' or the link a wrist camera is fixed to (default: %(default)s)")
+    _add_import_options(p, "file")
     p.add_argument("--bgr", action="store_true",
                    help="the stored images are BGR (default: off, RGB as Cobot Magic stores them)")
-    p.add_argument("--robot-description", default="builtin:agilex_piper",
-                   help="how to read the joint angles: a URDF path or a builtin: name (default: %(default)s)")
     p.add_argument("--task", help="task description stored in episode.json (default: none)")
     p.add_argument("--image-format", choices=("png", "jpg"), default="png",
                    help="rgb file format (default: %(default)s)")
@@ -340,14 +345,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="episode folder to create (required)")
     p.add_argument("--arm", choices=ACT_ARMS, default="single",
                    help="'single' for 7-D state, or which arm of a 14-D dual-arm state (default: %(default)s)")
-    p.add_argument("--gripper-scale", type=positive(float), default=1.0,
-                   help="factor from the dataset's gripper value to the finger gap in metres (default: %(default)s)")
-    p.add_argument("--dist", type=finite_numbers(DIST_LENGTHS), default=[], metavar="k1,k2,...",
-                   help="OpenCV distortion coefficients, 0/4/5/8/12/14 of them (default: none)")
-    p.add_argument("--mount", default="base",
-                   help="'base' or the link a wrist camera is fixed to (default: %(default)s)")
-    p.add_argument("--robot-description", default="builtin:agilex_piper",
-                   help="how to read the joint angles: a URDF path or a builtin: name (default: %(default)s)")
+    _add_import_options(p, "dataset")
     p.add_argument("--image-format", choices=("png", "jpg"), default="png",
                    help="rgb file format (default: %(default)s)")
     p.add_argument("--overwrite", action="store_true",

@@ -367,3 +367,11 @@ def test_import_names_what_is_missing(dataset, tmp_path, capsys):
     (old / "meta" / "info.json").write_text(json.dumps(info))
     with pytest.raises(EpisodeFormatError, match="file-000.mp4, which is missing"):
         import_lerobot(old, tmp_path / "ep3", episode=0, camera="ego", K=K)
+
+
+def test_a_killed_exports_leftover_is_named_not_used(samples, tmp_path, caplog):
+    leftover = tmp_path / ".ds.partial-deadbeef"
+    (leftover / "meta").mkdir(parents=True)
+    export_lerobot(samples[:1], tmp_path / "ds", task=TASK)
+    assert "safe to delete" in caplog.text and str(leftover) in caplog.text
+    assert leftover.is_dir() and json.loads((tmp_path / "ds" / "meta" / "info.json").read_text())["total_episodes"] == 1

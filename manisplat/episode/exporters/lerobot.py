@@ -158,6 +158,11 @@ def _fixed_column(values: np.ndarray, dtype: str) -> pa.Array:
 
 
 def _staging_folder(out_dir: Path) -> Path:
+    """A new hidden folder beside ``out_dir`` for the dataset being written; warns about ones a killed
+    export left behind (they never look like the dataset, but take space)."""
+    stale = sorted(out_dir.parent.glob(f".{out_dir.name}.partial-*"))
+    if stale:
+        log.warning("left by an earlier export that was killed, safe to delete: %s", ", ".join(map(str, stale)))
     return out_dir.parent / f".{out_dir.name}.partial-{uuid.uuid4().hex[:8]}"
 
 
