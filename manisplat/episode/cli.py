@@ -71,7 +71,7 @@ def _cmd_import_act(args: argparse.Namespace) -> int:
     return 0
 
 
-_FORMAT_ONLY_OPTIONS = {"lerobot": ("task", "fps", "no_depth", "codec", "crf"),
+_FORMAT_ONLY_OPTIONS = {"lerobot": ("task", "no_depth", "codec", "crf"),
                         "act-hdf5": ("image_key", "compress", "jpeg_quality")}
 """``export`` options that apply to one --format only (dest names)."""
 _DEFAULTS_OFF = {"no_depth": False, "compress": False}
@@ -131,8 +131,8 @@ def _export_act(args: argparse.Namespace) -> int:
         entries = export_act_hdf5(args.episodes, args.out, camera=args.camera, image_key=args.image_key,
                                   compress=args.compress,
                                   jpeg_quality=DEFAULT_JPEG_QUALITY if args.jpeg_quality is None else args.jpeg_quality,
-                                  dtype="float64" if args.float64 else "float32", overwrite=args.overwrite,
-                                  progress=sys.stderr.isatty())
+                                  dtype="float64" if args.float64 else "float32", fps=args.fps,
+                                  overwrite=args.overwrite, progress=sys.stderr.isatty())
     except KeyboardInterrupt:
         print("\ninterrupted: finished files stay in place; the one being written was removed, and "
               f"{args.out}/augmentation.json says complete: false", file=sys.stderr)
@@ -302,12 +302,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="lerobot: replace an earlier LeRobot dataset at --out once the new one is complete; "
                         "act-hdf5: remove an earlier export's episode_*.hdf5 and augmentation.json first, keeping "
                         "other files (default: off, a non-empty --out is refused)")
+    p.add_argument("--fps", type=positive(int), metavar="F",
+                   help="export rate in Hz; episodes recorded faster are resampled to the frame nearest each 1/F "
+                        "step (default: the episodes' common rate; LeRobot needs a whole number)")
     g = p.add_argument_group("lerobot only")
     g.add_argument("--task", help="task description stored with every frame (default: each episode.json's task; "
                                   "an episode without one is an error)")
-    g.add_argument("--fps", type=positive(int), metavar="F",
-                   help="dataset rate in Hz; episodes recorded faster are resampled to the frame nearest each 1/F "
-                        "step (default: the episodes' rate, which must be one whole number)")
     g.add_argument("--no-depth", action="store_true",
                    help="leave depth out (default: depth.<camera> is written when the episodes have depth; an "
                         "episode without it is then an error)")

@@ -207,3 +207,21 @@ def test_a_file_gets_its_final_name_only_when_closed(sample, tmp_path, monkeypat
     export_act_hdf5([sample], out)
     assert len(seen) == 16 and all(not final and tmp for final, tmp in seen)
     assert sorted(p.name for p in out.iterdir()) == ["augmentation.json", "episode_0.hdf5"]
+
+
+def test_fps_resamples_to_the_nearest_frames(sample, tmp_path):
+    ep = Episode.open(sample)
+    assert main(["export", str(sample), "--format", "act-hdf5", "--out", str(tmp_path / "out"), "--fps", "8",
+                 "--float64"]) == 0
+    with h5py.File(tmp_path / "out" / "episode_0.hdf5", "r") as f:
+        assert f.attrs["fps"] == 8.0 and f["observations/qpos"].shape == (8, 7)
+        assert np.array_equal(f["observations/qpos"][:, :6], ep.frames.q[::2])
+        assert np.array_equal(f["action"][:], ep.frames.actions[::2])
+        qpos = np.concatenate([ep.frames.q, ep.frames.gripper[:, None]], axis=1)[::2]
+        assert np.array_equal(f["observations/qvel"][:], velocities(ep.frames.t[::2], qpos))
+        assert np.array_equal(f["observations/images/ego"][3], ep.rgb(6))
+    record = json.loads((tmp_path / "out" / "augmentation.json").read_text())
+    assert record["fps"] == 8.0 and record["files"][0]["recorded_frames"] == [0, 14]
+    with pytest.raises(EpisodeFormatError, match="below the export's 20 fps"):
+        export_act_hdf5([sample], tmp_path / "out20", fps=20)
+    assert not (tmp_path / "out20").exists()

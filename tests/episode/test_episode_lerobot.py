@@ -257,7 +257,7 @@ def test_fps_resamples_to_the_nearest_frames(samples, tmp_path):
     assert info["fps"] == 8 and info["total_frames"] == 8
     state = np.asarray(_rows(tmp_path / "ds").column("observation.state").to_pylist())
     assert np.array_equal(state[:, :6], ep.frames.q[::2])
-    with pytest.raises(EpisodeFormatError, match="below the dataset's 20 fps"):
+    with pytest.raises(EpisodeFormatError, match="recorded at 16 fps, below the export's 20 fps"):
         export_lerobot(samples, tmp_path / "ds20", task=TASK, fps=20)
     odd = _copy(samples[0], tmp_path / "odd_fps", fps=15.5)
     with pytest.raises(EpisodeFormatError, match="whole-number fps.*--fps 15"):

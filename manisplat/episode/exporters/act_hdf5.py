@@ -33,7 +33,7 @@ import numpy as np
 from tqdm import tqdm
 
 from manisplat.episode.exporters.sources import (PROVENANCE_FILE, ExportDestinationError, ExportSource,
-                                                 open_sources)
+                                                 export_frames, open_sources)
 from manisplat.episode.fsio import atomic_write_bytes, fsync_path, temp_path
 from manisplat.episode.reader import Episode
 from manisplat.output_folder import check_output_folder
@@ -75,23 +75,22 @@ def velocities(t: np.ndarray, values: np.ndarray) -> np.ndarray:
     return out
 
 
-def _write_file(src: ExportSource, path: Path, key: str, *, compress: bool, jpeg_quality: int, dtype: np.dtype,
-                on_frame: Callable[[], None]) -> dict[str, Any]:
-    """Write one episode to ``path`` through ``path.tmp``; returns its provenance entry."""
+def _write_file(src: ExportSource, frames: np.ndarray, fps: float, path: Path, key: str, *, compress: bool,
+                jpeg_quality: int, dtype: np.dtype, on_frame: Callable[[], None]) -> dict[str, Any]:
+    """Write frames ``frames`` of one episode to ``path`` through ``path.tmp``; returns its provenance entry."""
     ep = src.episode
-    T, width, height = len(ep), ep.camera.width, ep.camera.height
-    qpos = np.concatenate([ep.frames.q, ep.frames.gripper[:, None]], axis=1)
+    T, width, height = len(frames), ep.camera.width, ep.camera.height
+    qpos = np.concatenate([ep.frames.q, ep.frames.gripper[:, None]], axis=1)[frames]
     actions = ep.frames.actions
     action_source = "actions" if actions is not None else "next_qpos"
-    if actions is None:
-        actions = np.concatenate([qpos[1:], qpos[-1:]], axis=0)
-    qvel = velocities(ep.frames.t, qpos)
+    actions = np.concatenate([qpos[1:], qpos[-1:]], axis=0) if actions is None else actions[frames]
+    qvel = velocities(ep.frames.t[frames], qpos)
     tmp = temp_path(path)
     try:
         with h5py.File(tmp, "w") as f:
             f.attrs["sim"] = src.sim
             f.attrs["compress"] = compress
-            f.attrs["fps"] = float(ep.meta.fps)
+            f.attrs["fps"] = float(fps)
             f.attrs["manisplat_source"] = ep.meta.source
             f.attrs["manisplat_episode"] = ep.path.name
             if src.parent is not None:
@@ -102,11 +101,11 @@ def _write_file(src: ExportSource, path: Path, key: str, *, compress: bool, jpeg
             f.create_dataset("action", data=actions.astype(dtype)).attrs["source"] = action_source
             images = obs.create_group("images")
             if compress:
-                _write_jpeg(f, images, key, ep, jpeg_quality, path.parent, on_frame)
+                _write_jpeg(f, images, key, ep, frames, jpeg_quality, path.parent, on_frame)
             else:
                 ds = images.create_dataset(key, (T, height, width, 3), dtype=np.uint8, chunks=(1, height, width, 3))
-                for i in range(T):
-                    ds[i] = ep.rgb(i)
+                for row, i in enumerate(frames):
+                    ds[row] = ep.rgb(int(i))
                     on_frame()
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
@@ -114,21 +113,22 @@ def _write_file(src: ExportSource, path: Path, key: str, *, compress: bool, jpeg
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
-    return {"file": path.name, **src.provenance(), "frames": T, "action": action_source}
+    return {"file": path.name, **src.provenance(), "frames": T, "recorded_frames": [int(frames[0]), int(frames[-1])],
+            "action": action_source}
 
 
-def _write_jpeg(f: h5py.File, images: h5py.Group, key: str, ep: Episode, quality: int, scratch_dir: Path,
-                on_frame: Callable[[], None]) -> None:
+def _write_jpeg(f: h5py.File, images: h5py.Group, key: str, ep: Episode, frames: np.ndarray, quality: int,
+                scratch_dir: Path, on_frame: Callable[[], None]) -> None:
     """JPEG rows padded to the longest frame, as ALOHA writes them. The padded length is known only after
     every frame is encoded, so the bytes wait in an anonymous scratch file, never in memory."""
-    T = len(ep)
+    T = len(frames)
     lengths = np.zeros(T, dtype=np.int64)
     with tempfile.TemporaryFile(dir=scratch_dir) as scratch:
-        for i in range(T):
-            ok, data = cv2.imencode(".jpg", ep.rgb(i), [int(cv2.IMWRITE_JPEG_QUALITY), quality])
+        for row, i in enumerate(frames):
+            ok, data = cv2.imencode(".jpg", ep.rgb(int(i)), [int(cv2.IMWRITE_JPEG_QUALITY), quality])
             if not ok:
                 raise OSError(f"{ep.path}: frame {i}: OpenCV could not encode the image as JPEG")
-            lengths[i] = data.size
+            lengths[row] = data.size
             scratch.write(data.tobytes())
             on_frame()
         padded = int(lengths.max())
@@ -152,12 +152,12 @@ def _write_provenance(out_dir: Path, entries: list[dict[str, Any]], *, complete:
 
 def export_act_hdf5(episodes: Sequence[str | Path], out_dir: str | Path, *, camera: str | None = None,
                     image_key: str | None = None, compress: bool = False,
-                    jpeg_quality: int = DEFAULT_JPEG_QUALITY, dtype: str = "float32", overwrite: bool = False,
-                    progress: bool = False) -> list[dict[str, Any]]:
+                    jpeg_quality: int = DEFAULT_JPEG_QUALITY, dtype: str = "float32", fps: float | None = None,
+                    overwrite: bool = False, progress: bool = False) -> list[dict[str, Any]]:
     """Write ``episodes`` as ``out_dir/episode_0.hdf5``, ``episode_1.hdf5``, ... in the order given.
 
     Everything is checked before anything is written: every episode complete and with an image
-    for each frame, one camera, one fps and one image size for all. Images stream one frame at a
+    for each frame, one camera, one fps (or ``fps`` given) and one image size for all. Images stream one frame at a
     time into pre-sized datasets; each file is written under ``episode_<N>.hdf5.tmp`` and renamed
     when closed, so an interrupted export leaves only whole files under final names (and
     ``augmentation.json`` says ``complete: false`` until the last one is done).
@@ -175,6 +175,8 @@ def export_act_hdf5(episodes: Sequence[str | Path], out_dir: str | Path, *, came
             statistics in the file's dtype and feeds them to a float32 model, so float64 files make it
             fail with "mat1 and mat2 must have the same dtype") or ``float64`` (joints round-trip
             bit-exact through ``import-act``).
+        fps: export rate in Hz (default: the episodes' common rate); episodes recorded faster are
+            resampled to the frame nearest each ``1/fps`` step (qvel over those frames' own times).
         overwrite: allow a non-empty ``out_dir``.
         progress: show a tqdm progress bar over all frames.
 
@@ -187,22 +189,24 @@ def export_act_hdf5(episodes: Sequence[str | Path], out_dir: str | Path, *, came
         raise ValueError(f"jpeg_quality must be in 0..100; got {jpeg_quality}")
     out_dir = Path(out_dir)
     check_destination(out_dir, overwrite)
-    sources = open_sources(episodes, camera, "ACT")
+    sources = open_sources(episodes, camera, "ACT", same_fps=fps is None)
     first = sources[0].episode
+    rate = first.meta.fps if fps is None else float(fps)
+    frames = [export_frames(src.episode, rate) for src in sources]
     camera = first.camera.name
     key = image_key or camera
     if "/" in key or not key:
         raise ValueError(f"image key must be a plain name; got {key!r}")
     out_dir.mkdir(parents=True, exist_ok=True)
     _clear_previous(out_dir)
-    settings = dict(fps=first.meta.fps, camera=camera, key=key, compress=compress, dtype=dtype)
+    settings = dict(fps=rate, camera=camera, key=key, compress=compress, dtype=dtype)
     entries: list[dict[str, Any]] = []
     _write_provenance(out_dir, entries, complete=False, **settings)
-    total = sum(len(s.episode) for s in sources)
+    total = sum(len(f) for f in frames)
     with tqdm(total=total, desc="export act-hdf5", unit="frame", disable=not progress) as bar:
         for n, src in enumerate(sources):
             path = out_dir / f"episode_{n}.hdf5"
-            entries.append(_write_file(src, path, key, compress=compress, jpeg_quality=jpeg_quality,
+            entries.append(_write_file(src, frames[n], rate, path, key, compress=compress, jpeg_quality=jpeg_quality,
                                        dtype=np.dtype(dtype), on_frame=lambda: bar.update(1)))
             _write_provenance(out_dir, entries, complete=n == len(sources) - 1, **settings)
     fsync_path(out_dir)

@@ -49,8 +49,8 @@ from tqdm import tqdm
 from manisplat.episode.exporters.lerobot_files import CHUNKS_SIZE, DATA_PATH, VIDEO_PATH, DataSeries, VideoSeries
 from manisplat.episode.exporters.lerobot_stats import (DepthStats, ImageStats, aggregate_stats, as_lists,
                                                        stats_sample_indices, vector_stats)
-from manisplat.episode.exporters.sources import (ExportDestinationError, ExportSource, check_depth, open_sources,
-                                                 resample_indices)
+from manisplat.episode.exporters.sources import (ExportDestinationError, ExportSource, check_depth, export_frames,
+                                                 open_sources)
 from manisplat.episode.format import EpisodeFormatError
 from manisplat.episode.fsio import atomic_write_bytes, fsync_path
 
@@ -227,12 +227,10 @@ class _Writers:
         self.video.close()
 
 
-def _write_episode(w: _Writers, src: ExportSource, number: int, task: str, fps: int, camera: str, depth: bool,
-                   dtype: str, bar: tqdm) -> None:
-    """Stream one episode into the data and video files and record its metadata row and stats."""
+def _write_episode(w: _Writers, src: ExportSource, frames: np.ndarray, number: int, task: str, fps: int,
+                   camera: str, depth: bool, dtype: str, bar: tqdm) -> None:
+    """Stream frames ``frames`` of one episode into the data and video files; record its row and stats."""
     ep = src.episode
-    rate = ep.meta.fps
-    frames = np.arange(len(ep)) if abs(rate - fps) < 1e-9 else resample_indices(ep.frames.t, fps)
     length = len(frames)
     state = np.concatenate([ep.frames.q, ep.frames.gripper[:, None]], axis=1)[frames]
     recorded_actions = ep.frames.actions
@@ -401,15 +399,7 @@ def export_lerobot(episodes: Sequence[str | Path], out_dir: str | Path, *, task:
     cam = sources[0].episode.camera
     if cam.width % 2 or cam.height % 2:
         raise EpisodeFormatError(f"{cam.width}x{cam.height} images: yuv420p video needs an even width and height")
-    for src in sources:
-        if src.episode.meta.fps < rate - 1e-9:
-            raise EpisodeFormatError(f"{src.episode.path}: recorded at {src.episode.meta.fps:g} fps, below the "
-                                     f"dataset's {rate} fps (frames would repeat); pass a lower --fps")
-        if abs(src.episode.meta.fps - rate) > 1e-9:
-            try:
-                resample_indices(src.episode.frames.t, rate)  # raises now, before anything is written
-            except ValueError as exc:
-                raise EpisodeFormatError(f"{src.episode.path}: {exc}") from exc
+    frames = [export_frames(src.episode, rate) for src in sources]  # raises now, before anything is written
     features = _features(cam.name, cam.width, cam.height, codec, rate, depth, dtype)
     staging = _staging_folder(out_dir)
     staging.mkdir(parents=True)
@@ -419,11 +409,10 @@ def export_lerobot(episodes: Sequence[str | Path], out_dir: str | Path, *, task:
     settings = {"fps": rate, "camera": cam.name, "codec": codec, "crf": crf, "gop": gop, "depth": depth,
                 "dtype": dtype}
     try:
-        total = sum(len(s.episode) if abs(s.episode.meta.fps - rate) < 1e-9 else
-                    len(resample_indices(s.episode.frames.t, rate)) for s in sources)
+        total = sum(len(f) for f in frames)
         with tqdm(total=total, desc="export lerobot", unit="frame", disable=not progress) as bar:
-            for number, (src, text) in enumerate(zip(sources, tasks)):
-                _write_episode(writers, src, number, text, rate, cam.name, depth, dtype, bar)
+            for number, (src, chosen, text) in enumerate(zip(sources, frames, tasks)):
+                _write_episode(writers, src, chosen, number, text, rate, cam.name, depth, dtype, bar)
         writers.close()
         _write_metadata(staging, writers, features, rate, settings)
         _fsync_tree(staging)

@@ -162,3 +162,17 @@ def resample_indices(t: np.ndarray, fps: float) -> np.ndarray:
         raise ValueError(f"cannot export at {fps:g} fps: the episode was recorded at {recorded:.4g} fps and "
                          "frames would repeat; choose an fps at most the recording's")
     return indices
+
+
+def export_frames(episode: Episode, fps: float) -> np.ndarray:
+    """(K,) frame indices of ``episode`` exported at ``fps``: all of them at the episode's own rate,
+    else :func:`resample_indices`; raises :class:`EpisodeFormatError` when ``fps`` is above its rate."""
+    if abs(episode.meta.fps - fps) < 1e-9:
+        return np.arange(len(episode))
+    if episode.meta.fps < fps:
+        raise EpisodeFormatError(f"{episode.path}: recorded at {episode.meta.fps:g} fps, below the export's {fps:g} "
+                                 "fps (frames would repeat); pass a lower --fps")
+    try:
+        return resample_indices(episode.frames.t, fps)
+    except ValueError as exc:
+        raise EpisodeFormatError(f"{episode.path}: {exc}") from exc
