@@ -24,6 +24,9 @@ from manisplat.twin import Twin
 
 DEPTH_SCALE = 1e-4  # m per uint16 unit: 0.1 mm steps up to 6.5 m
 AUGMENTATION_JSON = "augmentation.json"
+OBJECT_POSES_FILE = "object_poses.npz"
+"""Per frame ``T_base_obj`` of each object, name -> [T, 4, 4] float64, in the twin's object frames
+(what the twin rendered; ``manisplat-view`` animates the objects with it)."""
 
 
 def write_demonstration(twin: Twin, traj: NewTrajectory, path: Path, *, seed: int, image_format: str = "png",
@@ -54,6 +57,8 @@ def write_demonstration(twin: Twin, traj: NewTrajectory, path: Path, *, seed: in
             if on_frame is not None:
                 on_frame()
     _write_json(partial / AUGMENTATION_JSON, augmentation_record(twin, traj, seed))
+    with open(partial / OBJECT_POSES_FILE, "wb") as f:
+        np.savez(f, **{name: np.asarray(poses, np.float64) for name, poses in traj.object_poses.items()})
     os.replace(partial, path)
     return path
 
