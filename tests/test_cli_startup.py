@@ -18,16 +18,18 @@ ENTRY_POINTS = {
     "manisplat-replay": "manisplat.drivers.replay_cli",
     "manisplat-calibrate": "manisplat.calib.cli",
     "manisplat-augment": "manisplat.augment.cli",
+    "manisplat-view": "manisplat.view.cli",
 }
 
 # (entry point, argv): every --help, top level and per subcommand, and argument errors.
 HELP_CALLS = [
     ("manisplat-episode", ["--help"]),
     *[("manisplat-episode", [cmd, "--help"]) for cmd in ("info", "validate", "recover", "import-act", "sample",
-                                                                 "set-robot", "copy")],
+                                                                 "set-robot", "copy", "import-lerobot")],
     ("manisplat-episode", ["export", "--help"]),
     ("manisplat-reconstruct", ["--help"]),
     ("manisplat-augment", ["--help"]),
+    ("manisplat-view", ["--help"]),
     ("manisplat-record", ["--help"]),
     ("manisplat-replay", ["--help"]),
     ("manisplat-calibrate", ["--help"]),
@@ -54,6 +56,10 @@ BAD_ARGUMENTS = [
     ("manisplat-replay", ["ep", "--sim-start", "nan,0,0,0,0,0"]),
     ("manisplat-calibrate", ["solve", "ep", "--board", "b.json", "--out", "c.json", "--corner-offset", "inf"]),
     ("manisplat-calibrate", ["board", "--square-mm", "20", "--marker-mm", "25"]),
+    ("manisplat-view", ["twin", "--port", "0"]),
+    ("manisplat-view", ["twin", "--orbit", "30"]),
+    ("manisplat-episode", ["export", "ep", "--format", "lerobot", "--out", "o", "--fps", "0"]),
+    ("manisplat-episode", ["import-lerobot", "ds", "--episode", "-1", "--camera", "c", "--K", "1,1,1,1", "--out", "o"]),
 ]
 
 _PROBE = """

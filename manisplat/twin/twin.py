@@ -108,9 +108,11 @@ class Twin:
         return list(self.graph.objects)
 
     @torch.no_grad()
-    def render(self, q: np.ndarray, gripper: float, object_poses: dict[str, np.ndarray]) -> TwinView:
+    def render(self, q: np.ndarray, gripper: float, object_poses: dict[str, np.ndarray], *,
+               T_base_cam: np.ndarray | None = None) -> TwinView:
         """The twin with the arm at joints ``q`` [dof] (rad) and gripper opening ``gripper`` (m), each
-        object at ``object_poses[name]`` [4, 4] ``T_base_obj``, seen from the episode's camera."""
+        object at ``object_poses[name]`` [4, 4] ``T_base_obj``, seen from the episode's camera (or
+        from ``T_base_cam`` [4, 4], camera-to-base, with the episode's intrinsics)."""
         missing = set(self.graph.objects) - set(object_poses)
         if missing:
             raise ValueError(f"render: no pose for objects {sorted(missing)}")
@@ -118,7 +120,9 @@ class Twin:
         link_poses = self.robot.forward_kinematics(q, torch.as_tensor(float(gripper), dtype=torch.float64)).to(self.device)
         poses = {k: torch.as_tensor(np.asarray(v, np.float64)).to(self.device) for k, v in object_poses.items()
                  if k in self.graph.objects}
-        view = render_graph(self.graph, link_poses, poses, viewmat=self._viewmat, K=self._K_splat, width=self.width,
+        viewmat = self._viewmat if T_base_cam is None else \
+            torch.as_tensor(np.linalg.inv(np.asarray(T_base_cam, np.float64))).float().to(self.device)
+        view = render_graph(self.graph, link_poses, poses, viewmat=viewmat, K=self._K_splat, width=self.width,
                             height=self.height, background=self.background_rgb, backend=self.backend, depth=True,
                             groups_per_node=True)
         rgb = (view.rgb.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)

@@ -135,8 +135,10 @@ def test_an_augmented_episode_replays_on_the_simulated_arm(augmented, capsys):
     from manisplat.drivers.replay_cli import main as replay
 
     _, out = augmented
-    # the 100 ms feedback watchdog guards a real arm; a loaded 2-core runner can starve the simulated
-    # arm's thread that long, which is not what this test is about
-    assert replay([str(out / "episode_0000"), "--sim", "--feedback-timeout-ms", "2000"]) == 0
+    # the 100 ms feedback watchdog and the 10 deg tracking limit guard a real arm (tests/replay checks
+    # them); a loaded 2-core runner starves the simulated arm's thread enough to trip both (measured:
+    # 131 ms without feedback, joint6 12.6 deg behind), which is not what this test is about
+    assert replay([str(out / "episode_0000"), "--sim", "--feedback-timeout-ms", "2000",
+                   "--max-tracking-error-deg", "45"]) == 0
     text = capsys.readouterr().out
     assert "0 resets" in text and "0 disables" in text

@@ -1,0 +1,2 @@
+"""``manisplat-view``: the twin, an episode or new demonstrations in the browser (viser), and
+``--video`` replays written with PyAV."""

@@ -1,0 +1,264 @@
+"""The browser viewer on viser: the twin's Gaussians (or the robot's meshes) moved by forward
+kinematics, the objects at their poses, the camera frustum with the frame's image, TCP paths, the
+depth as points, and a timeline; for augmentation outputs, a list of the new demonstrations."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Any
+
+import numpy as np
+import torch
+import viser
+
+from manisplat.geometry.rotation import matrix_to_quat
+from manisplat.view.content import Demo, ViewContent
+from manisplat.view.splats import splat_arrays
+
+log = logging.getLogger(__name__)
+
+MESH_COLOR = (235, 120, 40)
+"""The robot's meshes: one flat orange, so they read apart from the Gaussians and the table."""
+PATH_COLORS = ((40, 110, 230), (150, 150, 150))
+"""TCP path of the chosen demonstration, and of the others."""
+DEPTH_POINTS_MAX = 60_000
+"""Points shown of a frame's depth (every k-th valid pixel)."""
+
+
+def _wxyz_xyz(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(wxyz [..., 4], xyz [..., 3]) of [..., 4, 4] poses, as viser takes them."""
+    quats = matrix_to_quat(torch.as_tensor(np.asarray(T)[..., :3, :3], dtype=torch.float64)).numpy()
+    return quats, np.asarray(T)[..., :3, 3]
+
+
+def depth_points(depth: np.ndarray, rgb: np.ndarray, K: np.ndarray, T_base_cam: np.ndarray,
+                 limit: int = DEPTH_POINTS_MAX) -> tuple[np.ndarray, np.ndarray]:
+    """(points [N, 3] m in the base frame, colours [N, 3] uint8) of the valid pixels of ``depth``
+    [H, W] (z-depth, m; 0 or non-finite = none), thinned to at most ``limit`` points."""
+    v, u = np.nonzero(np.isfinite(depth) & (depth > 0))
+    step = max(1, int(np.ceil(len(u) / limit)))
+    u, v = u[::step], v[::step]
+    z = depth[v, u].astype(np.float64)
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(z)], axis=1)
+    points = (rays * z[:, None]) @ T_base_cam[:3, :3].T + T_base_cam[:3, 3]
+    return points.astype(np.float32), rgb[v, u]
+
+
+class Viewer:
+    """One viewer on one server. ``set_frame`` and ``select`` move it; ``play`` runs the timeline.
+
+    Args:
+        content: what to show (:func:`manisplat.view.content.load_content`).
+        server: the viser server (the caller owns and stops it).
+    """
+
+    def __init__(self, content: ViewContent, server: viser.ViserServer) -> None:
+        self.content, self.server = content, server
+        self.demo_index, self.frame = 0, 0
+        self.frame_changes = 0  # frames shown since start (tests wait on it)
+        self._lock = threading.RLock()
+        self._stop = threading.Event()
+        robot = content.robot
+        self._link_names = list(robot.link_names)
+        self._tcp = [self._tcp_path(d) for d in content.demos]
+        server.scene.set_up_direction("+z")
+        self._build_scene()
+        self._build_gui()
+        self._set_initial_camera()
+        self.set_frame(0)
+        self._player = threading.Thread(target=self._play_loop, name="manisplat-view-player", daemon=True)
+        self._player.start()
+
+    # ------------------------------------------------------------------ scene
+    @property
+    def demo(self) -> Demo:
+        return self.content.demos[self.demo_index]
+
+    def _tcp_path(self, demo: Demo) -> np.ndarray:
+        tcp = self.content.robot.tcp_pose(torch.as_tensor(demo.q, dtype=torch.float64)).numpy()
+        return tcp[:, :3, 3]
+
+    def _build_scene(self) -> None:
+        scene, content, twin = self.server.scene, self.content, self.content.twin
+        self._link_frames = {name: scene.add_frame(f"/robot/{name}", show_axes=False) for name in self._link_names}
+        self._object_frames: dict[str, Any] = {}
+        self._splats: list[Any] = []
+        if twin is not None:
+            graph = twin.graph
+            if graph.background is not None:
+                self._splats.append(self._add_splats("/background", graph.background))
+            for name, gaussians in graph.links.items():
+                self._splats.append(self._add_splats(f"/robot/{name}/gaussians", gaussians))
+            for name, gaussians in graph.objects.items():
+                self._object_frames[name] = scene.add_frame(f"/objects/{name}", show_axes=False)
+                self._splats.append(self._add_splats(f"/objects/{name}/gaussians", gaussians))
+        self._meshes = [scene.add_mesh_simple(f"/robot/{link}/mesh_{k}", np.asarray(visual.mesh.vertices, np.float32),
+                                              np.asarray(visual.mesh.faces, np.uint32), color=MESH_COLOR,
+                                              visible=twin is None)
+                        for link, visuals in content.robot.visuals.items() if link in self._link_frames
+                        for k, visual in enumerate(visuals)]
+        fy = content.K[1, 1]
+        self._frustum = scene.add_camera_frustum("/camera", fov=2 * np.arctan2(content.height / 2, fy),
+                                                 aspect=content.width / content.height, scale=0.08,
+                                                 thickness=2.0, thickness_units="screen", color=(20, 20, 20))
+        self._paths = [scene.add_line_segments(f"/tcp_paths/{k}", np.stack([p[:-1], p[1:]], axis=1),
+                                               PATH_COLORS[0 if k == 0 else 1], thickness=2.0,
+                                               thickness_units="screen")
+                       for k, p in enumerate(self._tcp) if len(p) > 1]
+        self._tcp_marker = scene.add_icosphere("/tcp", radius=0.008, color=PATH_COLORS[0])
+        self._depth_cloud: Any = None
+
+    def _add_splats(self, name: str, gaussians: Any) -> Any:
+        arrays = splat_arrays(gaussians)
+        return self.server.scene.add_gaussian_splats(name, centers=arrays.centers, covariances=arrays.covariances,
+                                                     rgbs=arrays.rgbs, opacities=arrays.opacities)
+
+    def _set_initial_camera(self) -> None:
+        """Start beside and above the recording camera (turned 40 deg about the target), looking at the
+        middle of the TCP path, so the robot, the scene and the camera's frustum are all in view."""
+        T = self.content.camera_pose(self.demo.q[0], float(self.demo.gripper[0]))
+        target = self._tcp[0].mean(axis=0)
+        angle = np.deg2rad(40.0)
+        turn = np.array([[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0], [0.0, 0.0, 1.0]])
+        eye = target + 1.1 * turn @ (T[:3, 3] - target) + np.array([0.0, 0.0, 0.1])
+        camera = self.server.initial_camera
+        camera.position, camera.look_at, camera.up = tuple(eye), tuple(target), (0.0, 0.0, 1.0)
+
+    # ------------------------------------------------------------------ GUI
+    def _build_gui(self) -> None:
+        gui, content = self.server.gui, self.content
+        if content.kind == "augmentation":
+            names = [d.name for d in content.demos]
+            self._choice = gui.add_dropdown("demonstration", tuple(names), initial_value=names[0])
+            self._choice.on_update(lambda _: self.select(names.index(self._choice.value)))
+            self._validation = gui.add_markdown("")
+        with gui.add_folder("timeline"):
+            self._playing = gui.add_checkbox("play", initial_value=False)
+            self._slider = gui.add_slider("frame", min=0, max=max(1, len(self.demo) - 1), step=1, initial_value=0)
+            self._speed = gui.add_slider("speed", min=0.1, max=4.0, step=0.1, initial_value=1.0)
+        self._slider.on_update(lambda _: self.set_frame(int(self._slider.value)))
+        with gui.add_folder("layers"):
+            has_twin = content.twin is not None
+            self._show_splats = gui.add_checkbox("twin Gaussians", initial_value=has_twin, disabled=not has_twin)
+            self._show_meshes = gui.add_checkbox("robot meshes (URDF)", initial_value=not has_twin)
+            self._show_paths = gui.add_checkbox("TCP paths", initial_value=True)
+            self._show_depth = gui.add_checkbox("depth points", initial_value=content.kind == "episode")
+            self._render_twin = gui.add_checkbox("render the twin's view", initial_value=has_twin, disabled=not has_twin)
+        self._layers = {"gaussians": (self._show_splats, self._splats), "meshes": (self._show_meshes, self._meshes),
+                        "paths": (self._show_paths, self._paths)}
+        for name, (box, _) in self._layers.items():
+            box.on_update(lambda _, name=name, box=box: self.set_layer(name, box.value))
+        self._show_depth.on_update(lambda _: self._refresh())
+        self._render_twin.on_update(lambda _: self._refresh())
+        blank = np.full((content.height, content.width, 3), 255, np.uint8)
+        with gui.add_folder("images"):
+            self._recorded = gui.add_image(blank, label="recorded")
+            self._rendered = gui.add_image(blank, label="twin (our rasterizer)", visible=content.twin is not None)
+        if content.notes:
+            gui.add_markdown("**Not shown:** " + " ".join(content.notes))
+
+    def set_layer(self, name: str, visible: bool) -> None:
+        """Show or hide a layer: "gaussians" (the twin), "meshes" (the robot's URDF meshes), "paths"."""
+        box, handles = self._layers[name]
+        if box.value != visible:
+            box.value = visible
+        for handle in handles:
+            handle.visible = visible
+
+    # ------------------------------------------------------------------ state
+    def select(self, index: int) -> None:
+        """Show demonstration ``index`` (augmentation folders), from its first frame."""
+        with self._lock:
+            self.demo_index = index
+            for k, path in enumerate(self._paths):
+                path.colors = np.array(PATH_COLORS[0 if k == index else 1], dtype=np.uint8)
+            self._slider.max = max(1, len(self.demo) - 1)
+            if self.content.kind == "augmentation":
+                self._validation.content = self._validation_text(self.demo)
+            self.set_frame(0)
+
+    @staticmethod
+    def _validation_text(demo: Demo) -> str:
+        if demo.validation is None:
+            return "the source demonstration"
+        checks = ", ".join(f"{k}: {v}" for k, v in demo.validation.items() if not isinstance(v, (dict, list)))
+        return f"**validation** {checks}" if checks else "**validation** passed"
+
+    def set_frame(self, i: int) -> None:
+        """Move everything to frame ``i`` of the current demonstration."""
+        with self._lock:
+            i = int(np.clip(i, 0, len(self.demo) - 1))
+            self.frame = i
+            if int(self._slider.value) != i:
+                self._slider.value = i
+            self._refresh()
+
+    def _refresh(self) -> None:
+        demo, content, i = self.demo, self.content, self.frame
+        q, gripper = demo.q[i], float(demo.gripper[i])
+        links = content.robot.forward_kinematics(torch.as_tensor(q, dtype=torch.float64),
+                                                 torch.as_tensor(gripper, dtype=torch.float64)).numpy()
+        wxyz, xyz = _wxyz_xyz(links)
+        T_cam = content.camera_pose(q, gripper)
+        with self.server.atomic():
+            for k, name in enumerate(self._link_names):
+                self._link_frames[name].wxyz, self._link_frames[name].position = wxyz[k], xyz[k]
+            for name, frame in self._object_frames.items():
+                if name in demo.object_poses:
+                    frame.wxyz, frame.position = _wxyz_xyz(demo.object_poses[name][i])
+                elif content.twin is not None:  # unknown for this demonstration: the source's start pose
+                    frame.wxyz, frame.position = _wxyz_xyz(content.twin.object_poses[name][0])
+            self._frustum.wxyz, self._frustum.position = _wxyz_xyz(T_cam)
+            self._tcp_marker.position = self._tcp[self.demo_index][i]
+            recorded = demo.episode.rgb(i) if demo.episode is not None else None
+            rendered = None
+            if content.twin is not None and self._render_twin.value:
+                rendered = content.twin.render(q, gripper, {k: v[i] for k, v in demo.object_poses.items()}
+                                               | self._missing_poses(demo)).rgb
+                self._rendered.image = rendered
+            if recorded is not None:
+                self._recorded.image = recorded
+            shown = recorded if recorded is not None else rendered
+            if shown is not None:
+                self._frustum.image = shown
+            self._update_depth(demo, i, T_cam)
+        self.frame_changes += 1
+
+    def _missing_poses(self, demo: Demo) -> dict[str, np.ndarray]:
+        twin = self.content.twin
+        return {k: v[0] for k, v in twin.object_poses.items() if k not in demo.object_poses}
+
+    def _update_depth(self, demo: Demo, i: int, T_cam: np.ndarray) -> None:
+        if not self._show_depth.value or demo.episode is None or not demo.episode.has_depth:
+            if self._depth_cloud is not None:
+                self._depth_cloud.visible = False
+            return
+        points, colors = depth_points(demo.episode.depth(i), demo.episode.rgb(i), self.content.K, T_cam)
+        if self._depth_cloud is not None:
+            self._depth_cloud.remove()
+        self._depth_cloud = self.server.scene.add_point_cloud("/depth", points, colors, point_size=0.004)
+
+    # ------------------------------------------------------------------ playback
+    def _play_loop(self) -> None:
+        last = time.perf_counter()
+        while not self._stop.is_set():
+            time.sleep(0.01)
+            now = time.perf_counter()
+            if not self._playing.value:
+                last = now
+                continue
+            step = (now - last) * self._speed.value * self._fps()
+            if step >= 1.0:
+                self.set_frame((self.frame + int(step)) % len(self.demo))
+                last = now
+
+    def _fps(self) -> float:
+        t = self.demo.t
+        return (len(t) - 1) / (t[-1] - t[0]) if len(t) > 1 and t[-1] > t[0] else 10.0
+
+    def close(self) -> None:
+        """Stop the playback thread (the server is the caller's)."""
+        self._stop.set()
+        self._player.join(timeout=2.0)
