@@ -176,15 +176,19 @@ class Viewer:
                 path.colors = np.array(PATH_COLORS[0 if k == index else 1], dtype=np.uint8)
             self._slider.max = max(1, len(self.demo) - 1)
             if self.content.kind == "augmentation":
+                if self._choice.value != self.demo.name:
+                    self._choice.value = self.demo.name
                 self._validation.content = self._validation_text(self.demo)
             self.set_frame(0)
 
     @staticmethod
     def _validation_text(demo: Demo) -> str:
+        """The augmentation's validation record as a short list (numbers to 3 significant digits)."""
         if demo.validation is None:
             return "the source demonstration"
-        checks = ", ".join(f"{k}: {v}" for k, v in demo.validation.items() if not isinstance(v, (dict, list)))
-        return f"**validation** {checks}" if checks else "**validation** passed"
+        lines = [f"- {k.replace('_', ' ')}: {v:.3g}" if isinstance(v, float) else f"- {k.replace('_', ' ')}: {v}"
+                 for k, v in demo.validation.items() if not isinstance(v, (dict, list))]
+        return "**validation**\n" + "\n".join(lines) if lines else "**validation** passed"
 
     def set_frame(self, i: int) -> None:
         """Move everything to frame ``i`` of the current demonstration."""

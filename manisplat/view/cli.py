@@ -6,7 +6,10 @@ Only argparse and light modules are imported until the arguments are accepted.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import logging
+import signal
 import sys
 import threading
 from pathlib import Path
@@ -68,6 +71,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.orbit and args.video is None:
         parser.error("--orbit applies to --video only (in the browser, drag to orbit)")
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="%(message)s")
+    logging.getLogger("websockets").setLevel(logging.WARNING)  # one line per connection otherwise
     from manisplat.view.content import ViewInputError, load_content
 
     try:
@@ -103,18 +107,24 @@ def _serve(content, args: argparse.Namespace) -> int:
 
     from manisplat.view.app import Viewer
 
-    server = viser.ViserServer(host=args.host, port=args.port, verbose=False)
+    with contextlib.redirect_stdout(io.StringIO()):  # viser prints its own banner; we print one line
+        server = viser.ViserServer(host=args.host, port=args.port, verbose=False)
     viewer = Viewer(content, server)
     shown = {"episode": "episode", "reconstruction": "twin", "augmentation": f"{len(content.demos)} demonstrations"}
     print(f"manisplat-view: {args.path} ({shown[content.kind]}) at http://{args.host}:{server.get_port()} "
           "(Ctrl-C stops)", flush=True)
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())  # `kill` stops it as cleanly as Ctrl-C
     try:
-        threading.Event().wait()
+        while not stop.wait(0.5):
+            pass
     except KeyboardInterrupt:
-        print("\nstopped", file=sys.stderr)
+        pass
     finally:
         viewer.close()
-        server.stop()
+        with contextlib.redirect_stdout(io.StringIO()):
+            server.stop()
+    print("stopped", file=sys.stderr)
     return 0
 
 

@@ -3,6 +3,7 @@ test session module: what manisplat-view shows."""
 
 from __future__ import annotations
 
+import socket
 from pathlib import Path
 
 import pytest
@@ -20,3 +21,11 @@ def folders(tmp_path_factory) -> dict[str, Path]:
     assert reconstruct([str(episode), "--out", str(root / "twin"), "--iters", "5", "-q"]) == 0
     assert augment([str(root / "twin"), "--n", "1", "--out", str(root / "aug"), "--seed", "1", "-q"]) == 0
     return {"episode": episode, "recon": root / "twin", "aug": root / "aug"}
+
+
+@pytest.fixture
+def free_port() -> int:
+    """A TCP port free on localhost right now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]

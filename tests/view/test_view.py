@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import socket
 
 import av
 import numpy as np
@@ -23,15 +22,9 @@ from manisplat.view.splats import splat_arrays
 from manisplat.view.video import orbit_pose, write_video
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture
-def server():
-    srv = viser.ViserServer(host="127.0.0.1", port=_free_port(), verbose=False)
+def server(free_port):
+    srv = viser.ViserServer(host="127.0.0.1", port=free_port, verbose=False)
     yield srv
     srv.stop()
 
@@ -179,3 +172,24 @@ def test_command_line_errors(folders, tmp_path, capsys):
     assert "--orbit needs a twin" in capsys.readouterr().err
     report = json.loads((folders["aug"] / "augment_report.json").read_text())
     assert report["written"] == 1
+
+
+def test_the_command_serves_on_localhost_says_where_and_stops_on_sigterm(folders, free_port):
+    import signal
+    import subprocess
+    import sys
+    import urllib.request
+
+    port = free_port
+    proc = subprocess.Popen([sys.executable, "-m", "manisplat.view.cli", str(folders["recon"]), "--port", str(port)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()  # blocks until the server is up
+        assert line.startswith(f"manisplat-view: {folders['recon']} (twin) at http://127.0.0.1:{port}"), line
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=30) as page:
+            assert page.status == 200 and b"<html" in page.read().lower()
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=60) == 0
+        assert proc.stdout.read() == ""  # one line on stdout: viser's own banner is not printed
+    finally:
+        proc.kill()

@@ -5,7 +5,6 @@ slider moves them. Skipped where chromium, chromedriver or selenium is missing (
 from __future__ import annotations
 
 import shutil
-import socket
 import time
 from typing import Callable, TypeVar
 
@@ -48,12 +47,6 @@ def _wait_for(condition: Callable[[], T], what: str) -> T:
             return value
         time.sleep(0.25)
     raise AssertionError(f"timed out after {TIMEOUT_S:.0f} s waiting for {what}")
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture
@@ -118,9 +111,9 @@ def _orange_centre(image: np.ndarray, box: tuple[int, int, int, int]) -> np.ndar
     return np.array([cols.mean() + u0, rows.mean() + v0])
 
 
-def test_the_browser_shows_the_scene_and_the_slider_moves_the_robot(folders, browser):
+def test_the_browser_shows_the_scene_and_the_slider_moves_the_robot(folders, browser, free_port):
     content = load_content(folders["recon"])
-    server = viser.ViserServer(host="127.0.0.1", port=_free_port(), verbose=False)
+    server = viser.ViserServer(host="127.0.0.1", port=free_port, verbose=False)
     viewer = Viewer(content, server)
     try:
         browser.get(f"http://127.0.0.1:{server.get_port()}")
