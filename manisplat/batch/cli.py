@@ -1,0 +1,130 @@
+"""manisplat-batch: many episodes through validate -> reconstruct -> augment -> one dataset, on Ray.
+
+Only argparse and light modules are imported until the arguments are accepted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import logging
+import sys
+from pathlib import Path
+
+from manisplat.cli_args import positive
+
+EPILOG = """\
+PIPELINE.toml (paths relative to its folder):
+  episodes = ["recordings/*/"]      out = "batch_out"
+  [reconstruct] iters = 3000, device = "cpu" | "cuda" (one GPU per task), cpus = 2
+  [augment]     n = 20, seed = 0
+  [export]      format = "lerobot" | "act-hdf5", task = "pick the box"
+  [retries]     max = 2
+
+Each stage of each episode is a Ray task with its resources; `ray.init()` starts a local cluster
+(nothing to set up on one machine) and --address joins an existing one, whose machines must all see
+PIPELINE.toml's episode and output paths at the same place (a shared filesystem). Outputs:
+OUT/validate/<ep>.json, OUT/recon/<ep>/, OUT/aug/<ep>/, OUT/dataset/, OUT/errors/, OUT/batch.json.
+Each is written under a hidden .partial- name and renamed when complete: a killed task never leaves
+something that looks done, and running the same command again does only what is missing. A task
+whose process crashes or dies is retried (retries.max), then reported; the other episodes go on.
+Without Ray installed, the same pipeline runs one task after another in this process
+(pip install 'manisplat[distributed]' for Ray).
+
+exit status: 0 every stage complete; 1 a stage failed (see the table and OUT/errors/) or the
+configuration is wrong; 2 usage error; 130 interrupted (finished outputs stay, partial ones never
+look complete).
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="manisplat-batch", epilog=EPILOG,
+                                formatter_class=argparse.RawDescriptionHelpFormatter,
+                                description="Reconstruct, augment and export many episodes, on a Ray cluster or "
+                                            "one after another.")
+    sub = p.add_subparsers(dest="command", required=True)
+    run = sub.add_parser("run", help="run (or finish) a batch", epilog=EPILOG,
+                         formatter_class=argparse.RawDescriptionHelpFormatter,
+                         description="Run every stage of PIPELINE.toml that is not complete yet.")
+    run.add_argument("pipeline", type=Path, metavar="PIPELINE.toml")
+    run.add_argument("--address", help="join this Ray cluster (default: start a local one)")
+    run.add_argument("--workers", type=positive(int), metavar="N",
+                     help="CPUs of the local Ray cluster (default: all of this machine's)")
+    run.add_argument("--sequential", action="store_true",
+                     help="run the tasks one after another in this process, without Ray (default when Ray is "
+                          "not installed)")
+    run.add_argument("-q", "--quiet", action="store_true", help="no progress bar, warnings only")
+    status = sub.add_parser("status", help="the state of a batch, read from its output folder",
+                            description="Per episode and stage: complete, running (a partial output with its "
+                                        "process id), failed (OUT/errors/) or pending.")
+    status.add_argument("out", type=Path, metavar="OUT", help="the batch's output folder")
+    return p
+
+
+def table(rows: list) -> str:
+    """The summary table: episode, stage, status, seconds, metrics."""
+    lines = [f"{'episode':24s} {'stage':12s} {'status':9s} {'time':>8s}  metrics"]
+    for r in rows:
+        metrics = ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in r.metrics.items())
+        seconds = f"{r.seconds:7.1f}s" if r.seconds else ""
+        lines.append(f"{r.episode:24s} {r.stage:12s} {r.status:9s} {seconds:>8s}  {metrics}")
+    return "\n".join(lines)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from manisplat.batch.config import BatchConfigError, load_config
+    from manisplat.batch.runner import LocalExecutor, RayExecutor, run_batch
+
+    try:
+        config = load_config(args.pipeline)
+    except BatchConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    has_ray = importlib.util.find_spec("ray") is not None
+    if args.address and (args.sequential or not has_ray):
+        print("error: --address needs Ray (pip install 'manisplat[distributed]') and no --sequential", file=sys.stderr)
+        return 2
+    if args.sequential or not has_ray:
+        if not has_ray:
+            print("Ray is not installed: running the tasks one after another here "
+                  "(pip install 'manisplat[distributed]' to run them in parallel)", file=sys.stderr)
+        executor = LocalExecutor()
+    else:
+        executor = RayExecutor(args.address, config.max_retries, num_cpus=args.workers)
+    print(f"{len(config.episodes)} episodes -> {config.out} on {executor.name}", file=sys.stderr)
+    try:
+        results = run_batch(config, executor, progress=not args.quiet and sys.stderr.isatty())
+    except KeyboardInterrupt:
+        print("\ninterrupted: finished outputs stay; run the same command again to do the rest", file=sys.stderr)
+        return 130
+    finally:
+        executor.shutdown()
+    print(table(results))
+    failed = [r for r in results if r.status in ("failed", "blocked")]
+    if failed:
+        print(f"{sum(r.status == 'failed' for r in failed)} stage(s) failed; errors in {config.out / 'errors'}",
+              file=sys.stderr)
+    return 1 if failed else 0
+
+
+def _status(args: argparse.Namespace) -> int:
+    from manisplat.batch.runner import batch_status
+
+    try:
+        rows = batch_status(args.out)
+    except FileNotFoundError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print(table(rows))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.WARNING if getattr(args, "quiet", False) else logging.INFO,
+                        format="%(message)s")
+    return _run(args) if args.command == "run" else _status(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
