@@ -16,7 +16,7 @@ from manisplat.cli_args import positive
 EPILOG = """\
 PIPELINE.toml (paths relative to its folder):
   episodes = ["recordings/*/"]      out = "batch_out"
-  [reconstruct] iters = 3000, device = "cpu" | "cuda" (one GPU per task), cpus = 2
+  [reconstruct] iters = 3000, device = "cpu" | "cuda", cpus = 2, gpus = 1 (or 0.25: 4 tasks per GPU)
   [augment]     n = 20, seed = 0
   [export]      format = "lerobot" | "act-hdf5", task = "pick the box"
   [retries]     max = 2

@@ -5,8 +5,9 @@
 
     [reconstruct]
     iters = 3000
-    device = "cpu"                         # "cuda": one GPU per reconstruction task
+    device = "cpu"                         # "cuda": the task asks Ray for `gpus` GPUs
     cpus = 2                               # CPUs a reconstruction task asks Ray for
+    gpus = 1                               # with device "cuda"; a fraction lets tasks share a GPU
 
     [augment]
     n = 20
@@ -49,6 +50,7 @@ class BatchConfig:
     iters: int = 1000
     device: str = "cpu"
     reconstruct_cpus: float = 1.0
+    gpus_per_task: float = 1.0
     n: int = 10
     seed: int = 0
     export_format: str = "lerobot"
@@ -57,7 +59,8 @@ class BatchConfig:
 
     @property
     def reconstruct_gpus(self) -> float:
-        return 1.0 if self.device == "cuda" else 0.0
+        """GPUs a reconstruction task asks Ray for: ``gpus_per_task`` on CUDA, none otherwise."""
+        return self.gpus_per_task if self.device == "cuda" else 0.0
 
 
 def _get(table: dict[str, Any], key: str, kind: type | tuple[type, ...], default: Any, where: str) -> Any:
@@ -72,7 +75,7 @@ def _episodes(patterns: list[str], base: Path) -> tuple[Path, ...]:
     found: list[Path] = []
     for pattern in patterns:
         full = pattern if Path(pattern).is_absolute() else str(base / pattern)
-        matches = sorted(Path(p) for p in glob.glob(full)) if glob.has_magic(full) else [Path(full)]
+        matches = sorted(Path(p) for p in glob.glob(full) if Path(p).is_dir())
         if not matches:
             raise BatchConfigError(f"episodes: {pattern!r} matches nothing (relative to {base})")
         found += [m for m in matches if m not in found]
@@ -107,12 +110,14 @@ def load_config(path: str | Path) -> BatchConfig:
         episodes=_episodes(patterns, base), out=(base / out).resolve(),
         iters=_get(recon, "iters", int, 1000, "reconstruct."), device=_get(recon, "device", str, "cpu", "reconstruct."),
         reconstruct_cpus=float(_get(recon, "cpus", (int, float), 1, "reconstruct.")),
+        gpus_per_task=float(_get(recon, "gpus", (int, float), 1, "reconstruct.")),
         n=_get(aug, "n", int, 10, "augment."), seed=_get(aug, "seed", int, 0, "augment."),
         export_format=_get(export, "format", str, "lerobot", "export."), task=_get(export, "task", str, None, "export."),
         max_retries=_get(retries, "max", int, 2, "retries."))
-    if config.iters < 1 or config.n < 1 or config.max_retries < 0 or config.reconstruct_cpus <= 0:
+    if (config.iters < 1 or config.n < 1 or config.max_retries < 0 or config.reconstruct_cpus <= 0
+            or not 0 < config.gpus_per_task <= 1 and config.gpus_per_task != int(config.gpus_per_task)):
         raise BatchConfigError(f"{path}: reconstruct.iters and augment.n must be >= 1, retries.max >= 0, "
-                               "reconstruct.cpus > 0")
+                               "reconstruct.cpus > 0, reconstruct.gpus a fraction in (0, 1] or a whole number")
     if config.device not in DEVICES:
         raise BatchConfigError(f"{path}: reconstruct.device must be one of {DEVICES}; got {config.device!r}")
     if config.export_format not in EXPORT_FORMATS:

@@ -156,10 +156,18 @@ def test_configuration_errors_name_the_key(tmp_path):
              'episodes = ["a/*"]': "out: the output folder is required",
              'episodes = ["a/*"]\nout = "o"\n[export]\nformat = "zarr"': "export.format must be one of",
              'episodes = ["a/*"]\nout = "o"\n[augment]\nn = "ten"': "augment.n: expected int",
-             'episodes = "a"\nout = "o"': "episodes: expected a list"}
+             'episodes = "a"\nout = "o"': "episodes: expected a list",
+             'episodes = ["a/*"]\nout = "o"\n[reconstruct]\ngpus = 1.5': "reconstruct.gpus a fraction"}
     for text, message in cases.items():
         (tmp_path / "p.toml").write_text(text)
         with pytest.raises(BatchConfigError, match=message):
             load_config(tmp_path / "p.toml")
+    (tmp_path / "p.toml").write_text('episodes = ["a/*"]\nout = "o"\n[reconstruct]\ndevice = "cuda"\ngpus = 0.25')
+    config = load_config(tmp_path / "p.toml")
+    assert config.reconstruct_gpus == 0.25 and config.episodes == ((tmp_path / "a" / "ep").resolve(),)
+    assert load_config(tmp_path / "p.toml").out == (tmp_path / "o").resolve()
+    (tmp_path / "p.toml").write_text('episodes = ["none"]\nout = "o"')
+    with pytest.raises(BatchConfigError, match="'none' matches nothing"):
+        load_config(tmp_path / "p.toml")
     assert main(["run", str(tmp_path / "p.toml")]) == 1
     assert main(["status", str(tmp_path)]) == 1

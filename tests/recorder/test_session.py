@@ -143,7 +143,9 @@ def test_depth_is_recorded_when_asked_and_refused_when_missing(tmp_path: Path, s
     with_depth = write_source(tmp_path / "with_depth", frames=20, depth=True)
     rig = lockstep_rig(with_depth, loop=False, depth=True)
     try:
-        result = rig.recorder.record_episode(tmp_path / "ep", duration=5.0)
+        # the recording ends when the 20-frame source does; the duration only bounds it (a loaded
+        # 2-core runner once took over 5 s for the 20 frames)
+        result = rig.recorder.record_episode(tmp_path / "ep", duration=120.0)
     finally:
         rig.close()
     assert result.valid and result.stats.frames == 20
