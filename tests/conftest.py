@@ -11,3 +11,21 @@ settings.register_profile(
     suppress_health_check=[HealthCheck.too_slow],
 )
 settings.load_profile("manisplat")
+
+
+# Tests that run real-time machinery (replayed cameras and CAN buses, recorders, the replay
+# streamer, depthai's own pipelines) or load every core on purpose (a local Ray cluster, a browser
+# drawing WebGL in software) share one xdist group, so they run one after another on one worker
+# (`--dist loadgroup` in pyproject): on a 2-core runner, those loads beside a depthai recording
+# made it drop frames.
+REALTIME = ("tests/recorder/", "tests/replay/", "tests/drivers/test_oak.py", "tests/drivers/test_simulated.py",
+            "tests/batch/", "tests/view/",
+            "tests/augment/test_cli.py::test_an_augmented_episode_replays_on_the_simulated_arm")
+
+
+def pytest_collection_modifyitems(config, items):
+    import pytest
+
+    for item in items:
+        if item.nodeid.startswith(REALTIME):
+            item.add_marker(pytest.mark.xdist_group("realtime"))
