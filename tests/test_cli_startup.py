@@ -19,6 +19,7 @@ ENTRY_POINTS = {
     "manisplat-calibrate": "manisplat.calib.cli",
     "manisplat-augment": "manisplat.augment.cli",
     "manisplat-view": "manisplat.view.cli",
+    "manisplat-batch": "manisplat.batch.cli",
 }
 
 # (entry point, argv): every --help, top level and per subcommand, and argument errors.
@@ -30,6 +31,7 @@ HELP_CALLS = [
     ("manisplat-reconstruct", ["--help"]),
     ("manisplat-augment", ["--help"]),
     ("manisplat-view", ["--help"]),
+    *[("manisplat-batch", argv) for argv in (["--help"], ["run", "--help"], ["status", "--help"])],
     ("manisplat-record", ["--help"]),
     ("manisplat-replay", ["--help"]),
     ("manisplat-calibrate", ["--help"]),
@@ -58,6 +60,11 @@ BAD_ARGUMENTS = [
     ("manisplat-calibrate", ["board", "--square-mm", "20", "--marker-mm", "25"]),
     ("manisplat-view", ["twin", "--port", "0"]),
     ("manisplat-view", ["twin", "--orbit", "30"]),
+    ("manisplat-view", ["twin", "--port", "70000"]),
+    ("manisplat-batch", ["run", "p.toml", "--workers", "0"]),
+    ("manisplat-batch", ["run"]),
+    ("manisplat-episode", ["export", "ep", "--format", "lerobot", "--out", "o", "--crf", "99"]),
+    ("manisplat-episode", ["export", "ep", "--format", "lerobot", "--out", "o", "--codec", "vp9"]),
     ("manisplat-episode", ["export", "ep", "--format", "lerobot", "--out", "o", "--fps", "0"]),
     ("manisplat-episode", ["import-lerobot", "ds", "--episode", "-1", "--camera", "c", "--K", "1,1,1,1", "--out", "o"]),
 ]

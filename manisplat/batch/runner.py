@@ -101,6 +101,15 @@ def _error_file(config: BatchConfig, episode: str, stage: str) -> Path:
     return config.out / "errors" / f"{episode}.{stage}.txt"
 
 
+def _report_failure(config: BatchConfig, episode: str, stage: str, error: BaseException) -> StageResult:
+    """Log the failure, keep its traceback in ``OUT/errors/<episode>.<stage>.txt``, return its row."""
+    log.error("%s: %s failed: %s", episode, stage, _describe(error))
+    path = _error_file(config, episode, stage)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("".join(traceback.format_exception(type(error), error, error.__traceback__)))
+    return StageResult(episode, stage, "failed", metrics={"error": _describe(error)})
+
+
 def _describe(exc: BaseException) -> str:
     text = "".join(traceback.format_exception_only(type(exc), exc)).strip()
     return text.splitlines()[-1] if text else type(exc).__name__
@@ -141,10 +150,7 @@ def run_batch(config: BatchConfig, executor: Any, *, progress: bool = False) -> 
                 if following < len(STAGES):
                     submit(episode, STAGES[following])
             else:
-                log.error("%s: %s failed: %s", episode.name, stage, _describe(error))
-                error_path.parent.mkdir(parents=True, exist_ok=True)
-                error_path.write_text("".join(traceback.format_exception(type(error), error, error.__traceback__)))
-                results.append(StageResult(episode.name, stage, "failed", metrics={"error": _describe(error)}))
+                results.append(_report_failure(config, episode.name, stage, error))
                 for later in STAGES[STAGES.index(stage) + 1:]:
                     results.append(StageResult(episode.name, later, "blocked"))
                     bar.update(1)
@@ -153,14 +159,9 @@ def run_batch(config: BatchConfig, executor: Any, *, progress: bool = False) -> 
                                                       and r.status in ("done", "skipped") for r in results)]
         if finished:
             sources = [p for e in finished for p in (e, *augmented_episodes(config, e.name))]
-            handle = executor.submit(export_stage, config, sources)
+            executor.submit(export_stage, config, sources)
             _, result, error = executor.wait()
-            if error is None:
-                results.append(result)
-            else:
-                _error_file(config, "(all)", EXPORT).parent.mkdir(parents=True, exist_ok=True)
-                _error_file(config, "(all)", EXPORT).write_text(_describe(error))
-                results.append(StageResult("(all)", EXPORT, "failed", metrics={"error": _describe(error)}))
+            results.append(result if error is None else _report_failure(config, "(all)", EXPORT, error))
         else:
             results.append(StageResult("(all)", EXPORT, "blocked"))
         bar.update(1)

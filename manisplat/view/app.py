@@ -62,7 +62,7 @@ class Viewer:
         self._stop = threading.Event()
         robot = content.robot
         self._link_names = list(robot.link_names)
-        self._tcp = [self._tcp_path(d) for d in content.demos]
+        self._tcp = [content.tcp_path(d) for d in content.demos]
         server.scene.set_up_direction("+z")
         self._build_scene()
         self._build_gui()
@@ -75,10 +75,6 @@ class Viewer:
     @property
     def demo(self) -> Demo:
         return self.content.demos[self.demo_index]
-
-    def _tcp_path(self, demo: Demo) -> np.ndarray:
-        tcp = self.content.robot.tcp_pose(torch.as_tensor(demo.q, dtype=torch.float64)).numpy()
-        return tcp[:, :3, 3]
 
     def _build_scene(self) -> None:
         scene, content, twin = self.server.scene, self.content, self.content.twin
@@ -209,18 +205,15 @@ class Viewer:
         with self.server.atomic():
             for k, name in enumerate(self._link_names):
                 self._link_frames[name].wxyz, self._link_frames[name].position = wxyz[k], xyz[k]
+            objects = content.object_poses_at(demo, i)
             for name, frame in self._object_frames.items():
-                if name in demo.object_poses:
-                    frame.wxyz, frame.position = _wxyz_xyz(demo.object_poses[name][i])
-                elif content.twin is not None:  # unknown for this demonstration: the source's start pose
-                    frame.wxyz, frame.position = _wxyz_xyz(content.twin.object_poses[name][0])
+                frame.wxyz, frame.position = _wxyz_xyz(objects[name])
             self._frustum.wxyz, self._frustum.position = _wxyz_xyz(T_cam)
             self._tcp_marker.position = self._tcp[self.demo_index][i]
             recorded = demo.episode.rgb(i) if demo.episode is not None else None
             rendered = None
             if content.twin is not None and self._render_twin.value:
-                rendered = content.twin.render(q, gripper, {k: v[i] for k, v in demo.object_poses.items()}
-                                               | self._missing_poses(demo)).rgb
+                rendered = content.twin.render(q, gripper, objects).rgb
                 self._rendered.image = rendered
             if recorded is not None:
                 self._recorded.image = recorded
@@ -229,10 +222,6 @@ class Viewer:
                 self._frustum.image = shown
             self._update_depth(demo, i, T_cam)
         self.frame_changes += 1
-
-    def _missing_poses(self, demo: Demo) -> dict[str, np.ndarray]:
-        twin = self.content.twin
-        return {k: v[0] for k, v in twin.object_poses.items() if k not in demo.object_poses}
 
     def _update_depth(self, demo: Demo, i: int, T_cam: np.ndarray) -> None:
         if not self._show_depth.value or demo.episode is None or not demo.episode.has_depth:
@@ -253,14 +242,10 @@ class Viewer:
             if not self._playing.value:
                 last = now
                 continue
-            step = (now - last) * self._speed.value * self._fps()
+            step = (now - last) * self._speed.value * self.demo.fps
             if step >= 1.0:
                 self.set_frame((self.frame + int(step)) % len(self.demo))
                 last = now
-
-    def _fps(self) -> float:
-        t = self.demo.t
-        return (len(t) - 1) / (t[-1] - t[0]) if len(t) > 1 and t[-1] > t[0] else 10.0
 
     def close(self) -> None:
         """Stop the playback thread (the server is the caller's)."""

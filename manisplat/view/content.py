@@ -48,6 +48,12 @@ class Demo:
     def __len__(self) -> int:
         return len(self.t)
 
+    @property
+    def fps(self) -> float:
+        """Frames per second over the demonstration (10 when it has one frame or no duration)."""
+        t = self.t
+        return (len(t) - 1) / (t[-1] - t[0]) if len(t) > 1 and t[-1] > t[0] else 10.0
+
 
 @dataclass
 class ViewContent:
@@ -73,6 +79,20 @@ class ViewContent:
     mount: str = "base"
     twin: Any = None
     notes: list[str] = field(default_factory=list)
+
+    def object_poses_at(self, demo: Demo, i: int) -> dict[str, np.ndarray]:
+        """Each of the twin's objects at frame ``i`` of ``demo``: [4, 4] ``T_base_obj`` from the
+        demonstration's own track, else where the source demonstration starts it (empty without a twin)."""
+        if self.twin is None:
+            return {}
+        return {name: demo.object_poses[name][i] if name in demo.object_poses else track[0]
+                for name, track in self.twin.object_poses.items()}
+
+    def tcp_path(self, demo: Demo) -> np.ndarray:
+        """[T, 3] the TCP position of every frame of ``demo`` (m, base frame)."""
+        import torch
+
+        return self.robot.tcp_pose(torch.as_tensor(demo.q, dtype=torch.float64)).numpy()[:, :3, 3]
 
     def camera_pose(self, q: np.ndarray, gripper: float) -> np.ndarray:
         """[4, 4] ``T_base_cam`` at joints ``q`` (a wrist camera moves with its link)."""

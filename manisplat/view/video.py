@@ -13,10 +13,9 @@ from typing import Iterator
 
 import av
 import numpy as np
-import torch
 from tqdm import tqdm
 
-from manisplat.view.content import Demo, ViewContent
+from manisplat.view.content import ViewContent
 
 log = logging.getLogger(__name__)
 
@@ -46,13 +45,6 @@ def orbit_pose(T_base_cam: np.ndarray, target: np.ndarray, angle: float) -> np.n
     return back @ turn @ to_target @ T_base_cam
 
 
-def _object_poses(content: ViewContent, demo: Demo, i: int) -> dict[str, np.ndarray]:
-    poses = {k: v[i] for k, v in demo.object_poses.items()}
-    for name, track in content.twin.object_poses.items():
-        poses.setdefault(name, track[0])
-    return poses
-
-
 def _frames(content: ViewContent, orbit_deg: float) -> Iterator[np.ndarray]:
     """Each video frame: an episode's recorded image; a reconstruction's [recorded | twin] (the twin
     alone without its episode); an augmentation folder's twin view of every demonstration (augmented
@@ -61,21 +53,18 @@ def _frames(content: ViewContent, orbit_deg: float) -> Iterator[np.ndarray]:
     total = sum(len(d) for d in content.demos)
     shown = 0
     for demo in content.demos:
-        target = None
-        if orbit_deg:
-            tcp = content.robot.tcp_pose(torch.as_tensor(demo.q, dtype=torch.float64)).numpy()
-            target = tcp[:, :3, 3].mean(axis=0)
+        target = content.tcp_path(demo).mean(axis=0) if orbit_deg else None
         for i in range(len(demo)):
             q, gripper = demo.q[i], float(demo.gripper[i])
             if twin is None:
                 image = demo.episode.rgb(i)
             elif orbit_deg:
                 T = orbit_pose(content.camera_pose(q, gripper), target, np.deg2rad(orbit_deg) * shown / max(1, total - 1))
-                image = twin.render(q, gripper, _object_poses(content, demo, i), T_base_cam=T).rgb
+                image = twin.render(q, gripper, content.object_poses_at(demo, i), T_base_cam=T).rgb
             elif demo.episode is not None and demo.episode.meta.source == "augmentation":  # twin renders already
                 image = demo.episode.rgb(i)
             else:
-                image = twin.render(q, gripper, _object_poses(content, demo, i)).rgb
+                image = twin.render(q, gripper, content.object_poses_at(demo, i)).rgb
                 if content.kind == "reconstruction" and demo.episode is not None:
                     image = np.concatenate([demo.episode.rgb(i), image], axis=1)
             shown += 1
@@ -98,9 +87,7 @@ def write_video(content: ViewContent, out: str | Path, *, orbit_deg: float = 0.0
     out = Path(out)
     if orbit_deg and content.twin is None:
         raise ValueError("--orbit needs a twin to render from new viewpoints; PATH is an episode alone")
-    demo = content.demos[0]
-    fps = (len(demo.t) - 1) / (demo.t[-1] - demo.t[0]) if len(demo) > 1 and demo.t[-1] > demo.t[0] else 10.0
-    rate = Fraction(fps).limit_denominator(1001)
+    rate = Fraction(content.demos[0].fps).limit_denominator(1001)
     partial = out.with_name(out.stem + ".partial.mp4")
     total = sum(len(d) for d in content.demos)
     start = time.perf_counter()

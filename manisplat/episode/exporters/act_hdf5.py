@@ -33,7 +33,7 @@ import numpy as np
 from tqdm import tqdm
 
 from manisplat.episode.exporters.sources import (PROVENANCE_FILE, ExportDestinationError, ExportSource,
-                                                 export_frames, open_sources)
+                                                 export_frames, open_sources, state_and_action)
 from manisplat.episode.fsio import atomic_write_bytes, fsync_path, temp_path
 from manisplat.episode.reader import Episode
 from manisplat.output_folder import check_output_folder
@@ -80,10 +80,8 @@ def _write_file(src: ExportSource, frames: np.ndarray, fps: float, path: Path, k
     """Write frames ``frames`` of one episode to ``path`` through ``path.tmp``; returns its provenance entry."""
     ep = src.episode
     T, width, height = len(frames), ep.camera.width, ep.camera.height
-    qpos = np.concatenate([ep.frames.q, ep.frames.gripper[:, None]], axis=1)[frames]
-    actions = ep.frames.actions
-    action_source = "actions" if actions is not None else "next_qpos"
-    actions = np.concatenate([qpos[1:], qpos[-1:]], axis=0) if actions is None else actions[frames]
+    qpos, actions, recorded = state_and_action(ep, frames)
+    action_source = "actions" if recorded else "next_qpos"
     qvel = velocities(ep.frames.t[frames], qpos)
     tmp = temp_path(path)
     try:

@@ -50,7 +50,7 @@ from manisplat.episode.exporters.lerobot_files import CHUNKS_SIZE, DATA_PATH, VI
 from manisplat.episode.exporters.lerobot_stats import (DepthStats, ImageStats, aggregate_stats, as_lists,
                                                        stats_sample_indices, vector_stats)
 from manisplat.episode.exporters.sources import (ExportDestinationError, ExportSource, check_depth, export_frames,
-                                                 open_sources)
+                                                 open_sources, state_and_action)
 from manisplat.episode.format import EpisodeFormatError
 from manisplat.episode.fsio import atomic_write_bytes, fsync_path
 
@@ -131,7 +131,7 @@ def _schema(features: dict) -> pa.Schema:
     for name, ft in features.items():
         if ft["dtype"] == "video":
             continue
-        value = pa.float32() if ft["dtype"] == "float32" else pa.from_numpy_dtype(np.dtype(ft["dtype"]))
+        value = pa.from_numpy_dtype(np.dtype(ft["dtype"]))
         if ft["shape"] == [1]:
             fields.append(pa.field(name, value))
             hf[name] = {"dtype": ft["dtype"], "_type": "Value"}
@@ -232,12 +232,8 @@ def _write_episode(w: _Writers, src: ExportSource, frames: np.ndarray, number: i
     """Stream frames ``frames`` of one episode into the data and video files; record its row and stats."""
     ep = src.episode
     length = len(frames)
-    state = np.concatenate([ep.frames.q, ep.frames.gripper[:, None]], axis=1)[frames]
-    recorded_actions = ep.frames.actions
-    if recorded_actions is not None:
-        action, action_source = recorded_actions[frames], "actions"
-    else:
-        action, action_source = np.concatenate([state[1:], state[-1:]], axis=0), "next_state"
+    state, action, recorded = state_and_action(ep, frames)
+    action_source = "actions" if recorded else "next_state"
     state, action = state.astype(dtype), action.astype(dtype)
     task_index = w.tasks.setdefault(task, len(w.tasks))
     data_chunk, data_file = w.data.begin_episode(length)

@@ -176,3 +176,14 @@ def export_frames(episode: Episode, fps: float) -> np.ndarray:
         return resample_indices(episode.frames.t, fps)
     except ValueError as exc:
         raise EpisodeFormatError(f"{episode.path}: {exc}") from exc
+
+
+def state_and_action(episode: Episode, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    """(state [K, 7], action [K, 7], recorded) at ``frames``: state ``[q1..q6 rad, gripper m]``; action
+    the episode's ``a1..a6, a_gripper`` (``recorded`` True) or, without them, the next exported
+    frame's state (the last one repeated)."""
+    state = np.concatenate([episode.frames.q, episode.frames.gripper[:, None]], axis=1)[frames]
+    actions = episode.frames.actions
+    if actions is not None:
+        return state, actions[frames], True
+    return state, np.concatenate([state[1:], state[-1:]], axis=0), False

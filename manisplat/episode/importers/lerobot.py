@@ -20,6 +20,7 @@ import numpy as np
 import pyarrow.dataset as pads
 import pyarrow.parquet as pq
 
+from manisplat.episode.exporters.lerobot import depth_key, image_key
 from manisplat.episode.format import ACTION_COLUMNS, EpisodeFormatError
 from manisplat.episode.importers.act_hdf5 import ARM_COLUMNS
 from manisplat.episode.meta import CameraInfo, RobotInfo
@@ -69,7 +70,7 @@ def _episode_row(root: Path, episode: int) -> dict[str, Any]:
 
 def _camera_key(info: dict[str, Any], camera: str) -> str:
     videos = [k for k, f in info["features"].items() if f.get("dtype") == "video"]
-    for key in (camera, f"observation.images.{camera}"):
+    for key in (camera, image_key(camera)):
         if key in videos:
             return key
     images = [k for k, f in info["features"].items() if f.get("dtype") == "image"]
@@ -170,8 +171,8 @@ def import_lerobot(dataset_dir: str | Path, out_dir: str | Path, *, episode: int
     columns = _arm_columns(info, "observation.state", arm)
     has_action = "action" in info["features"] and list(info["features"]["action"]["shape"]) == \
         list(info["features"]["observation.state"]["shape"])
-    camera_name = key.removeprefix("observation.images.")
-    depth_name = f"depth.{camera_name}"
+    camera_name = key.removeprefix(image_key(""))
+    depth_name = depth_key(camera_name)
     has_depth = depth_name in info["features"]
     row = _episode_row(root, episode)
     data_path = root / info["data_path"].format(chunk_index=row["data/chunk_index"], file_index=row["data/file_index"])
