@@ -67,6 +67,8 @@ def write_recording(folder: Path, rgb: np.ndarray, t: np.ndarray, seq: np.ndarra
             source.depth.link(record_depth.input)
         pipeline.start()
         assert source.done.wait(10.0), "the depthai source node did not finish"
-        time.sleep(0.2)
+        # RecordVideo writes its file only when the pipeline stops and drops what it has not encoded
+        # by then, with nothing to wait on: 0.2 s lost all but one frame on a loaded 2-core runner
+        time.sleep(2.0)
         pipeline.stop()
     return video, meta, depth_path
