@@ -30,7 +30,7 @@ from manisplat.reconstruct.exposure import FrameExposure
 from manisplat.reconstruct.extrinsic import ExtrinsicCorrection
 from manisplat.reconstruct.metrics import psnr
 from manisplat.reconstruct.plan import Plan
-from manisplat.reconstruct.poses import ObjectTrajectory
+from manisplat.reconstruct.poses import ObjectTrajectory, TwistAdam
 from manisplat.scene import ROBOT, GaussianSet, SceneGraph
 from manisplat.scene.render import render_graph
 from manisplat.scene.shadows import DirectionalShadows, search_direction
@@ -52,8 +52,9 @@ class Reconstruction:
     :func:`~manisplat.reconstruct.config.resolve_device`): the episode's tensors (moved after
     alignment, images kept uint8), the Gaussians, the trajectories, the light. One Adam
     optimizer updates every parameter (one group per parameter kind and learning rate across all
-    nodes, plus the object poses, background colour, camera and light): one step per iteration,
-    fused on CUDA.
+    nodes, plus the background colour, camera and light): one step per iteration, fused on CUDA;
+    the object poses have their own (:class:`~manisplat.reconstruct.poses.TwistAdam`: only the
+    rendered frame's twists step).
     """
 
     def __init__(self, data: EpisodeData, plan: Plan, graph: SceneGraph, trajectories: dict[str, ObjectTrajectory],
@@ -82,6 +83,7 @@ class Reconstruction:
         for node in graph.nodes():
             node.gaussians.strategy_state = self.strategies[node.name].initialize_state(self.scene_scale)
         self.optimizer = self._make_optimizer()
+        self.pose_optimizer = TwistAdam(trajectories)
         dynamic = torch.tensor(sorted(set(data.labels.robot) | set(data.labels.objects)), dtype=torch.uint8)
         # [T, H, W] bool: the dynamic pixels of every frame, computed once (no label look-ups per iteration)
         self._dynamic_masks = (torch.isin(self.data.masks, dynamic.to(self.device))
@@ -94,8 +96,7 @@ class Reconstruction:
     def _make_optimizer(self) -> torch.optim.Adam:
         """One Adam over every trained tensor: the Gaussians of all nodes, one group per parameter
         kind (learning rate from the first node's own optimizer; the means' from the schedule of
-        :meth:`_step_and_densify` when there is a background), then the object poses, the
-        background colour, the camera correction (with ``refine_camera``) and the light (once
+        :meth:`_step_and_densify` when there is a background), then the background colour, the camera correction (with ``refine_camera``) and the light (once
         shadows start). Fused kernels on CUDA, ``foreach`` on the CPU."""
         groups: dict[str, dict] = {}
         for node in self.graph.nodes():
@@ -106,8 +107,6 @@ class Reconstruction:
         if "means" in groups and self.graph.background is not None:
             groups["means"]["lr"] = self._means_lr()
         param_groups = list(groups.values())
-        if self.trajectories:
-            param_groups.append({"params": [t.xi for t in self.trajectories.values()], "lr": 5e-4, "name": "poses"})
         param_groups.append({"params": [self.background_logit], "lr": 1e-2, "name": "background"})
         if self.config.refine_camera:
             param_groups.append({"params": [self.camera_delta], "lr": 1e-4, "name": "camera"})
@@ -225,7 +224,7 @@ class Reconstruction:
                 loss = sum(terms.values())
                 self._before_backward(meta)
                 loss.backward()
-                self._step_and_densify(meta, composed)
+                self._step_and_densify(frame, meta, composed)
             self._average_loss(loss.detach())
             self.step += 1
             if self.step % max(c.log_every, 1) == 0 or self.step % c.eval_every == 0 or self.step == c.iters:
@@ -263,11 +262,13 @@ class Reconstruction:
                 g = node.gaussians
                 self.strategies[node.name].step_pre_backward(g.params, g.optimizers, g.strategy_state, self.step, meta)
 
-    def _step_and_densify(self, meta: dict, composed) -> None:
-        """One optimizer step over everything, then densification (gsplat's order: a node that
-        grows or is pruned still takes this iteration's update)."""
+    def _step_and_densify(self, frame: int, meta: dict, composed) -> None:
+        """One optimizer step over everything (the object poses: the twists ``frame`` used), then
+        densification (gsplat's order: a node that grows or is pruned still takes this
+        iteration's update)."""
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
+        self.pose_optimizer.step(frame)
         if self.config.densify:
             grad = meta["means2d"].grad
             for node in self.graph.nodes():
@@ -367,7 +368,7 @@ class Reconstruction:
             nodes[node.name] = {"params": {k: v.detach() for k, v in g.params.items()}, "strategy_state": g.strategy_state}
         return {
             "step": self.step, "config": asdict(self.config), "nodes": nodes,
-            "optimizer": self.optimizer.state_dict(),
+            "optimizer": self.optimizer.state_dict(), "pose_optimizer": self.pose_optimizer.state_dict(),
             "trajectories": {k: t.state_dict() for k, t in self.trajectories.items()},
             "camera_delta": self.camera_delta.detach(), "background": self.background_logit.detach(),
             "exposure": self.exposure.fitted.clone() if self.exposure is not None else None,
@@ -382,6 +383,9 @@ class Reconstruction:
         if "optimizer" not in state:
             raise ValueError("the checkpoint was written by an older manisplat-reconstruct (one optimizer per node); "
                              "start a new run (--overwrite)")
+        if self.trajectories and "pose_optimizer" not in state:
+            raise ValueError("the checkpoint was written by an older manisplat-reconstruct (object poses in the "
+                             "shared Adam); start a new run (--overwrite)")
         dev = self.device
 
         def here(x):
@@ -411,6 +415,8 @@ class Reconstruction:
             self.graph.shadows = sh.to(dev)
         self.optimizer = self._make_optimizer()
         self.optimizer.load_state_dict(state["optimizer"])  # moves the moments to the parameters' device
+        if self.trajectories:
+            self.pose_optimizer.load_state_dict(state["pose_optimizer"])
         self.step = state["step"]
         self._rng.setstate(state["rng"])
         torch.set_rng_state(state["torch_rng"].cpu())

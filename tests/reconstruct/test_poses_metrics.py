@@ -5,11 +5,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 import torch
 
 from manisplat.geometry import make_transform, se3_exp, so3_exp
 from manisplat.reconstruct.metrics import fit_constant_offset, pose_errors, psnr, ssim, start_anchored_errors
-from manisplat.reconstruct.poses import ObjectTrajectory
+from manisplat.reconstruct.poses import ObjectTrajectory, TwistAdam
 
 
 def test_static_stretches_share_one_twist_and_moving_frames_get_their_own():
@@ -19,6 +20,46 @@ def test_static_stretches_share_one_twist_and_moving_frames_get_their_own():
     assert traj.n_params == 1 + 3 + 1
     assert traj.index.tolist() == [0, 0, 0, 0, 1, 2, 3, 4, 4, 4]
     assert ObjectTrajectory(pseudo, source, static=True).n_params == 1
+
+
+def _pull(traj: ObjectTrajectory, opt: TwistAdam, frame: int, target: float = 0.01) -> None:
+    """One step pulling ``frame``'s pose towards x = ``target`` (m)."""
+    (traj.pose(frame)[0, 3] - target).square().backward()
+    opt.step(frame)
+
+
+def test_only_the_twists_of_the_rendered_frame_step():
+    """A frame's twist moves when its frame is rendered and keeps its value while other frames
+    are (a dense Adam kept moving it on its momentum)."""
+    traj = ObjectTrajectory(np.repeat(np.eye(4)[None], 4, axis=0), ["tracked"] * 4)
+    opt = TwistAdam({"box": traj}, lr=1e-3)
+    _pull(traj, opt, 1)
+    assert traj.xi[1, 0].item() == pytest.approx(1e-3)  # Adam's first step: the learning rate
+    _pull(traj, opt, 1)
+    after_frame_1 = traj.xi.detach().clone()
+    for _ in range(5):
+        _pull(traj, opt, 2)
+    assert torch.equal(traj.xi[1], after_frame_1[1])
+    assert traj.xi[2, 0].item() > 4e-3 and torch.count_nonzero(traj.xi[[0, 3]]) == 0
+    assert opt.steps["box"] == [0, 2, 5, 0]
+
+
+def test_the_twist_optimizer_continues_from_its_state():
+    def run(split: bool) -> torch.Tensor:
+        traj = ObjectTrajectory(np.repeat(np.eye(4)[None], 3, axis=0), ["tracked"] * 3)
+        opt = TwistAdam({"box": traj})
+        for i, frame in enumerate([0, 1, 0, 0, 1, 0]):
+            if split and i == 3:
+                state, opt = opt.state_dict(), TwistAdam({"box": traj}, lr=1.0)
+                opt.load_state_dict(state)
+            _pull(traj, opt, frame)
+        return traj.xi.detach()
+
+    assert torch.equal(run(split=False), run(split=True))
+    traj = ObjectTrajectory(np.repeat(np.eye(4)[None], 3, axis=0), ["tracked"] * 3)
+    other = TwistAdam({"box": ObjectTrajectory(np.repeat(np.eye(4)[None], 5, axis=0), ["tracked"] * 5)})
+    with pytest.raises(ValueError, match="5 pose twists"):
+        TwistAdam({"box": traj}).load_state_dict(other.state_dict())
 
 
 def test_held_out_frames_interpolate_the_trained_neighbours():
