@@ -124,7 +124,8 @@ def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.nda
         model=model,
         observe=observe,
     )
-    pseudo = hybrid_pseudo_poses(segments, T_start, tcp, events, tracker, model_points, observe)
+    pseudo = hybrid_pseudo_poses(segments, T_start, tcp, events, tracker, model_points, observe,
+                                 width=data.gripper.double().numpy())
     baseline = tracked_baseline(tracker, data.n_frames, T_start)
     return ObjectAlignment(segments, events, pseudo, baseline)
 

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from manisplat.align.phases import GripperEvents, Segment
-from manisplat.align.pseudo_gt import ATTACHED, STATIC, TRACKED, hybrid_pseudo_poses, kinematic_prior
+from manisplat.align.pseudo_gt import (ATTACHED, STATIC, TRACKED, close_end, hybrid_pseudo_poses, kinematic_prior,
+                                      pad_push)
 from manisplat.align.tracking import TrackerSettings, track_object
 
 
@@ -144,6 +145,35 @@ def test_grasp_centres_the_object_between_the_pads():
     far[1, 3] += 0.03  # 3.4 cm off: not between the pads, no centring
     poses, _ = kinematic_prior(far, tcp, [GripperEvents(20, None)], model_points=box_points())
     assert np.allclose(poses[20], far)
+
+
+def test_the_object_rests_while_the_pads_close_and_is_held_centred_once_they_stop():
+    """Closing from 7 to 4 cm over frames 20-26 on a 4 cm box 4 mm off the pads' midplane while
+    the arm yields 1 mm towards it: the box stays put until the nearer pad reaches it (frame 25,
+    when the pads are 5 mm wider than the box: 0.5 mm of the 3 mm still to go), is pushed the
+    rest of the way, and is carried from frame 26, centred at that frame's TCP."""
+    tcp = tcp_track()
+    tcp[20:26, 1, 3] = np.linspace(0.0, 0.001, 6)  # the TCP drifts 1 mm along y during the close
+    tcp[26:, 1, 3] = 0.001
+    tcp[20:27, 0, 3] = tcp[20, 0, 3]  # and stands still along x meanwhile
+    width = np.full(60, 0.07)
+    width[20:27] = np.linspace(0.07, 0.04, 7)  # opening (m): the pads stop at the box's 4 cm
+    width[27:] = 0.04
+    start = np.eye(4)
+    start[:3, 3] = tcp[20, :3, 3] + [0.0, 0.004, 0.0]
+    poses, held = kinematic_prior(start, tcp, [GripperEvents(20, None)], model_points=box_points(), width=width)
+    assert np.allclose(poses[:25], start)  # the pads are still wider than box + offset
+    assert not held[:26].any() and held[26:].all()
+    assert poses[25, 1, 3] == pytest.approx(0.0035) and poses[25, 0, 3] == start[0, 3]  # pushed along y only
+    assert np.allclose(poses[26:, :3, 3], tcp[26:, :3, 3], atol=1e-9)  # centred at frame 26's TCP, carried
+
+
+def test_pad_push_and_close_end():
+    assert pad_push(0.004, 0.02) == 0.0 and pad_push(-0.004, 0.0) == -0.004
+    assert pad_push(0.004, 0.004) == pytest.approx(0.002)
+    width = np.array([0.07, 0.07, 0.06, 0.05, 0.0401, 0.0400, 0.0400, 0.05])
+    assert close_end(width, 1) == 4  # 0.1 mm to the next frame: stopped
+    assert close_end(width, 1, release=3) == 2
 
 
 def rotation_x(deg):
