@@ -1,6 +1,6 @@
 """Reconstruction on the generated test set nobody tuned on (benchmarks/_testset.py: other
 cameras, seeds, a can, recording noise with camera latency), as ``manisplat-reconstruct`` runs it
-(``--iters 1000``, the current thread count): held-out PSNR per region, the object's pose error
+(its default budget, the current thread count; about 7 minutes an episode on 2 cores): held-out PSNR per region, the object's pose error
 by both definitions, and each episode's pose plot (``pose_plot_<episode>.png`` beside the JSON).
 Issue 17's goals there: object-region PSNR >= 27 dB; start-anchored Et <= 0.3 cm, ER <= 2 deg over
 the frames after the object first moves; no frame more than 1 cm off once it rests.
@@ -24,9 +24,10 @@ THREADED = False
 
 def run(ctx: BenchContext) -> list[dict[str, Any]]:
     from manisplat.reconstruct.cli import main as reconstruct
+    from manisplat.reconstruct.config import TrainConfig
 
     episodes = test_set(ctx)[: 1 if ctx.quick else None]
-    iters = "60" if ctx.quick else "1000"
+    iters = "60" if ctx.quick else str(TrainConfig.iters)
     rows = []
     for episode in episodes:
         with tempfile.TemporaryDirectory() as tmp:

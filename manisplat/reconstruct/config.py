@@ -19,6 +19,9 @@ class TrainConfig:
             at most ``growth_cap`` times its initial size (unbounded growth on these sharp
             synthetic images multiplied the Gaussians by 6 and the time with them).
         shadows: learn cast shadows of the moving parts (searched at ``shadow_start``).
+        shadow_resolution: the shadow map's size (pixels a side, spanning about twice the
+            robot's reach: a few millimetres a texel at 384 on the PiPER). A coarse map blurs
+            the shadows' edges; their outlines were the largest errors left on the test set.
         sh_degree, sh_every: view-dependent colour bands (evaluated in each node's frame), one
             more band switched on every ``sh_every`` iterations.
         refine_camera: also optimise a correction of the camera extrinsic.
@@ -49,6 +52,7 @@ class TrainConfig:
     growth_cap: float = 2.0
     shadows: bool = True
     shadow_start: int = 300
+    shadow_resolution: int = 384
     sh_degree: int = 2
     sh_every: int = 500
     refine_camera: bool = False

@@ -326,7 +326,8 @@ class Reconstruction:
         links = d.link_poses[:, :, :3, 3].reshape(-1, 3)
         center = links.mean(0)
         extent = 2.2 * float((links - center).norm(dim=-1).max())
-        model = DirectionalShadows(torch.tensor([0.0, 0.0, 1.0]), center.cpu(), extent).to(self.device)
+        model = DirectionalShadows(torch.tensor([0.0, 0.0, 1.0]), center.cpu(), extent,
+                                   resolution=self.config.shadow_resolution).to(self.device)
         points, _, _, _, colors = (x.detach() for x in self.graph.background.activated())
         V, K = self.viewmat().detach(), d.K
         cam = points @ V[:3, :3].T + V[:3, 3]

@@ -145,15 +145,16 @@ def test_one_optimizer_updates_every_node(pick):
 def test_a_checkpoint_continues_exactly(pick, tmp_path):
     """Saved, read back on the host (map_location), loaded into a fresh reconstruction: the same
     parameters and moments, and the next iterations give the same parameters as an unbroken run."""
-    rec, _ = _reconstruction(pick, iters=10, device="cpu")
+    rec, _ = _reconstruction(pick, iters=10, device="cpu", shadow_resolution=96)
     rec.train(progress=False)
+    assert rec.graph.shadows.resolution == 96  # the configured shadow map
     rec.save_checkpoint(tmp_path / "c.pt")
     rec.config.iters = 14
     rec.train(progress=False)
 
     resumed, _ = _reconstruction(pick, iters=14, device="cpu")
     resumed.load_state_dict(torch.load(tmp_path / "c.pt", weights_only=True, map_location="cpu"))
-    assert resumed.step == 10 and resumed.graph.shadows is not None
+    assert resumed.step == 10 and resumed.graph.shadows is not None and resumed.graph.shadows.resolution == 96
     resumed.train(progress=False)
     for a, b in zip(rec.graph.nodes(), resumed.graph.nodes()):
         for k in a.gaussians.params:
