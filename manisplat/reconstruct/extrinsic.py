@@ -46,6 +46,12 @@ MIN_TIME_OFFSET_S = 0.002
 #: the time offset is estimated only where the arm moves enough to tell it from the camera pose
 #: (condition number of the unit-diagonal normal equations with the offset)
 MAX_TIME_CONDITION = 1e8
+#: the residuals before and after are compared within this distance of the model (m): the first
+#: iteration's gate (later ones shrink with the residuals, and would flatter the refined pose)
+COMPARE_GATE = 0.02
+#: a fit that leaves more than this residual RMS (mm) does not describe the depth (stereo noise of
+#: an OAK is a few mm at 1.5 m): the model or the depth is wrong, and the correction means nothing
+MAX_RESIDUAL_MM = 5.0
 _VELOCITY_STEP_S = 0.01  # central difference of the link poses for the surface velocity
 REPLACE_AFTER_S = 0.5e-3  # the surfaces are placed anew when the offset moved this far (s)
 
@@ -62,7 +68,8 @@ class ExtrinsicCorrection:
         time_offset_s, sigma_time_offset_s: frame f shows the robot at joint time
             ``t[f] + offset`` beyond the offset already used (``EpisodeData.time_offset_s``); None
             when the arm did not move enough to tell.
-        rms_before_mm, rms_after_mm: robust RMS point-to-plane residual before and after.
+        rms_before_mm, rms_after_mm: robust RMS point-to-plane residual before and after, both
+            within :data:`COMPARE_GATE` of the model.
         points, frames: how many robot depth points from how many frames were used.
         applied: False when the extrinsic correction was not trusted (``reason`` says why).
         time_applied: whether the time offset is large and certain enough to re-pair the joints.
@@ -255,8 +262,9 @@ def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 
 
     Returns None when the episode cannot say (no depth, no robot masks, fewer than
     :data:`MIN_POINTS` robot points, a degenerate geometry); otherwise the correction, with
-    ``applied`` False (and the reason) when it is larger than :data:`MAX_ROTATION_DEG` /
-    :data:`MAX_TRANSLATION_MM`.
+    ``applied`` False (and the reason) when the fit leaves a residual above
+    :data:`MAX_RESIDUAL_MM` (the depth or the model is wrong: one depth per triangle, as in the
+    built-in sample, left 8.6-9.0 mm and proposed 3-5 deg) or is larger than :data:`MAX_ROTATION_DEG` / :data:`MAX_TRANSLATION_MM`.
     """
     if data.depth is None or data.masks is None or not data.labels.robot:
         log.info("camera extrinsic: not checked (needs depth and robot masks)")
@@ -276,9 +284,8 @@ def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 
     T, offset = T0.copy(), 0.0
     camera = T0[:3, 3] if camera_facing else None
     groups, placed_at = _groups(data, measured, surface, camera, offset), offset
-    gate = 0.02
+    gate = COMPARE_GATE
     r = np.concatenate([s[2] for s in _normal_equations(groups, T, gate, gate).values()])
-    rms_before = _robust_rms(r)
     solve_time = time_offset
     for _ in range(iterations):
         sigma = max(1.4826 * float(np.median(np.abs(r))), 2e-4)  # robust depth residual scale (m)
@@ -305,12 +312,24 @@ def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 
     k = 7 if solve_time else 6
     sig_rot, sig_trans, sig_time = _bootstrap(T, list(systems.values()), k, bootstrap, rng)
     rot, trans = pose_difference(T0, T)
+    # before and after compared on the same terms: the first iteration's gate, each pose's own time
+    rms_before, rms_after = (_robust_rms(np.concatenate([s[2] for s in _normal_equations(
+        groups, pose, COMPARE_GATE, COMPARE_GATE, shift - placed_at).values()]))
+        for pose, shift in ((T0, 0.0), (T, offset if solve_time else 0.0)))
     result = ExtrinsicCorrection(T0, T, rot, trans, sig_rot, sig_trans, offset if solve_time else None,
-                                 sig_time if solve_time else None, 1000 * rms_before, 1000 * _robust_rms(r),
+                                 sig_time if solve_time else None, 1000 * rms_before, 1000 * rms_after,
                                  total, len(chosen))
     if solve_time:
         result.time_applied = (abs(offset) >= max(MIN_TIME_OFFSET_S, 3 * sig_time) and abs(offset) <= MAX_TIME_OFFSET_S)
-    if rot > MAX_ROTATION_DEG or trans > MAX_TRANSLATION_MM:
+    if 1000 * rms_after > MAX_RESIDUAL_MM:
+        result.applied, result.time_applied = False, False
+        result.reason = (f"the robot's depth does not fit its model (residual RMS {1000 * rms_before:.2f} -> "
+                         f"{1000 * rms_after:.2f} mm, at most {MAX_RESIDUAL_MM} mm expected): the extrinsic cannot "
+                         "be checked and the episode's calibration is kept; check the depth scale and the robot "
+                         "description")
+        result.T_after = T0.copy()
+        log.warning("camera extrinsic: %s", result.reason)
+    elif rot > MAX_ROTATION_DEG or trans > MAX_TRANSLATION_MM:
         result.applied, result.time_applied = False, False
         result.reason = (f"the correction ({rot:.2f} deg, {trans:.1f} mm) is larger than {MAX_ROTATION_DEG} deg / "
                          f"{MAX_TRANSLATION_MM} mm: recalibrate (manisplat-calibrate) or check the robot description")

@@ -84,6 +84,16 @@ def test_a_correction_too_large_to_be_a_calibration_error_is_not_applied(sample,
     assert (c.T_after == c.T_before).all()
 
 
+def test_depth_that_does_not_fit_the_robot_model_is_not_taken_for_a_calibration_error(tmp_path):
+    """One depth per triangle (the published sample's depth) leaves residuals of centimetres on
+    the robot's long primitives; the fit then proposes degrees of correction for a camera that
+    is right. It must say the depth does not fit, keep the calibration, and not say recalibrate."""
+    coarse = write_sample_episode(tmp_path / "coarse", frames=24)
+    c = _refined(coarse)
+    assert not c.applied and "does not fit" in c.reason and "recalibrate" not in c.reason
+    assert c.rms_after_mm > 5.0 and (c.T_after == c.T_before).all()
+
+
 def test_without_depth_the_extrinsic_is_not_checked(sample):
     assert _refined(sample, use_depth=False) is None
 
