@@ -264,7 +264,7 @@ def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 
     :data:`MIN_POINTS` robot points, a degenerate geometry); otherwise the correction, with
     ``applied`` False (and the reason) when the fit leaves a residual above
     :data:`MAX_RESIDUAL_MM` (the depth or the model is wrong: one depth per triangle, as in the
-    built-in sample, left 8.6-9.0 mm and proposed 3-5 deg) or is larger than :data:`MAX_ROTATION_DEG` / :data:`MAX_TRANSLATION_MM`.
+    built-in sample, leaves several millimetres and the fit proposes degrees) or is larger than :data:`MAX_ROTATION_DEG` / :data:`MAX_TRANSLATION_MM`.
     """
     if data.depth is None or data.masks is None or not data.labels.robot:
         log.info("camera extrinsic: not checked (needs depth and robot masks)")
