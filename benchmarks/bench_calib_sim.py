@@ -23,7 +23,7 @@ from benchmarks._harness import BenchContext, MissingBenchmarkData
 from manisplat.calib.board import load_board
 from manisplat.calib.episode_solve import solve_episode
 from manisplat.calib.errors import CalibrationError, DegenerateMotionError
-from manisplat.calib.handeye import OPENCV_HAND_EYE, OPENCV_ROBOT_WORLD, opencv_closed_forms
+from manisplat.calib.handeye import opencv_closed_forms
 from manisplat.calib.latency import estimate_latency
 from manisplat.calib.poses import pose_difference
 from manisplat.episode import Episode

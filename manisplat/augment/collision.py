@@ -115,7 +115,6 @@ class SceneCollision:
         self.kin, self.src = kin, source
         self.settings = s = settings or CollisionSettings()
         robot = twin.robot
-        model = kin.model
         self.gm = pin.GeometryModel()
         self.link_geom: dict[str, int] = {}
         hulls = _link_hulls(robot, getattr(twin, "robot_description", None))

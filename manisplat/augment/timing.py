@@ -77,9 +77,6 @@ def _time(waypoints, v_start, v_end, vlim, alim, dt, scale, min_frames) -> Timed
     bc = ((2, np.zeros(waypoints.shape[1])) if rest0 else (1, np.asarray(v_start, np.float64)),
           (2, np.zeros(waypoints.shape[1])) if rest1 else (1, np.asarray(v_end, np.float64)))
     path = toppra.SplineInterpolator(ss, waypoints, bc_type=bc)
-    cons = [constraint.JointVelocityConstraint(np.stack([-vlim, vlim], 1)),
-            constraint.JointAccelerationConstraint(np.stack([-alim, alim], 1))]
-    grid = np.linspace(0, ss[-1], max(100, 30 * (len(ss) - 1)) + 1)
     sd0, sd1 = (0.0 if rest0 else 1.0), (0.0 if rest1 else 1.0)
 
     def solve(lam: float):

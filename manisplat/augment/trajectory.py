@@ -196,7 +196,7 @@ class Augmenter:
     # ------------------------------------------------------------------ the whole demonstration
     def run(self, targets: dict[str, ObjectTarget], config: AugmentConfig) -> NewTrajectory:
         timings = {"ik_s": 0.0, "planning_s": 0.0, "timing_s": 0.0, "validation_s": 0.0}
-        src, kin, scene = self.src, self.kin, self.scene
+        src, kin = self.src, self.kin
         plan = self._object_plan(targets)
         tol_pos, tol_rot = config.ik_position_tol, config.ik_rotation_tol
 
@@ -385,10 +385,7 @@ class Augmenter:
         src, kin = self.src, self.kin
         qs, grip, cmd, svals, states, segments = [], [], [], [], [], []
         skill_errors, ik_errors = [], []
-        obj_rows: dict[str, list] = {name: [] for name in self.twin.object_poses}
-        held_rows: list = []
         frame = 0
-        tcp_new_all = []
         for k, piece in enumerate(pieces):
             if piece["kind"] == "motion":
                 q = piece["q"]
@@ -414,14 +411,14 @@ class Augmenter:
                 i = piece["index"]
                 spec, res = src.skills[i], piece["result"]
                 D, T_new, T_src = transforms[i]
-                obj = plan[spec.object]["src"]
                 first = frame
                 tcp_new = kin.tcp_batch(res.q)
                 # collision states inside the skill: split where the object is grasped / released
+                prev_key = None
                 for j, s in enumerate(res.s):
                     world, held = self._world_at(plan, s)
                     key = (tuple(sorted(world)), held)
-                    if j == 0 or key != prev_key:
+                    if key != prev_key:
                         allowed = set(self.skill_allowed[i])
                         if held is not None:
                             allowed |= {self.scene.pair_index[_pair(self.scene, f"held:{held}", "table")]}

@@ -137,6 +137,22 @@ def render_robot_labels(data: EpisodeData, links: list[str], *, occlusion_margin
     return masks, {i + 1: name for i, name in enumerate(sets)}
 
 
+def redraw_robot_masks(data: EpisodeData, *, progress: bool = True) -> None:
+    """Draw the robot's masks of ``data`` again with its current camera and joints (after the
+    camera check corrected them: masks drawn with a camera 0.3 deg / 3 mm off miss the robot's
+    edges by a pixel or more), keeping the objects' pixels and the label values."""
+    values = sorted(data.labels.robot)
+    links = [data.labels.robot[v] for v in values]
+    drawn, labels = render_robot_labels(data, links, progress=progress)
+    if [labels[k] for k in sorted(labels)] != links:
+        raise ValueError(f"robot labels {data.labels.robot} do not follow the drawn links {labels}")
+    masks = data.masks.clone()
+    masks[torch.isin(masks, torch.tensor(values, dtype=masks.dtype))] = 0
+    free = (masks == 0) & (drawn > 0)
+    masks[free] = drawn[free]
+    data.masks = masks
+
+
 def table_plane(data: EpisodeData, robot_mask: np.ndarray, frame: int = 0) -> Plane:
     """The table: the dominant plane of the non-robot points of ``frame`` (depth needed), its
     normal towards the camera."""
@@ -326,5 +342,5 @@ def complete_masks(data: EpisodeData, links: list[str], prompt: ObjectPrompt | N
 
 __all__ = [
     "OBJECT_LABEL", "ObjectPrompt", "Plane", "complete_masks", "fit_plane_ransac", "follow_object_masks",
-    "object_mask_from_depth", "object_mask_grabcut", "render_robot_labels", "table_plane",
+    "object_mask_from_depth", "object_mask_grabcut", "redraw_robot_masks", "render_robot_labels", "table_plane",
 ]

@@ -16,6 +16,7 @@ from manisplat.align.tracking import ObjectView, TrackerSettings
 from manisplat.reconstruct.data import EpisodeData, ReconstructionInputError, retime
 from manisplat.reconstruct.extrinsic import refine_extrinsic
 from manisplat.reconstruct.init import background_gaussians, link_gaussians, object_gaussians
+from manisplat.reconstruct.masks import redraw_robot_masks
 from manisplat.reconstruct.plan import Plan
 from manisplat.reconstruct.poses import ObjectTrajectory
 from manisplat.reconstruct.trainer import Reconstruction, TrainConfig
@@ -67,6 +68,9 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
         data.viewmat = torch.linalg.inv(torch.as_tensor(correction.T_after)).float()
     if correction is not None and correction.time_applied:
         retime(data, data.time_offset_s + correction.time_offset_s)
+    if correction is not None and (correction.applied or correction.time_applied) and \
+            data.mask_source.startswith("drawn robot"):
+        redraw_robot_masks(data, progress=False)  # drawn with the camera and timing just corrected
     # no pixel of a held-out frame reaches the Gaussians: the first, middle and last training frames seed them
     background = background_gaussians(data, frames=sorted({train[0], train[len(train) // 2], train[-1]}),
                                       sh_degree=config.sh_degree, table_z=table_z)

@@ -76,9 +76,8 @@ def test_refinement_meets_the_goal_and_beats_opencv(spec):
     r = solve_hand_eye(views, robot_poses_for(sc, Tcb), spec, sc.camera)
     rot, trans = pose_difference(r.T_mount_cam, sc.T_base_cam)
     assert rot < 0.05 and trans < 0.5
-    best_cf = min(pose_difference(((c := opencv_closed_forms("base", robot_poses_for(sc, Tcb),
-                                                             np.stack([v.T_cam_board for v in views]))[m])[1]),
-                                  sc.T_base_cam)[1] for m in ("TSAI", "PARK", "SHAH"))
+    closed_forms = opencv_closed_forms("base", robot_poses_for(sc, Tcb), np.stack([v.T_cam_board for v in views]))
+    best_cf = min(pose_difference(closed_forms[m][1], sc.T_base_cam)[1] for m in ("TSAI", "PARK", "SHAH"))
     assert trans < best_cf
     u = r.uncertainty()
     assert 0 < u["T_mount_cam_trans_std_mm"] < 0.5 and 0 < u["T_mount_cam_rot_std_deg"] < 0.05

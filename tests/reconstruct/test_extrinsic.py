@@ -94,6 +94,33 @@ def test_depth_that_does_not_fit_the_robot_model_is_not_taken_for_a_calibration_
     assert c.rms_after_mm > 5.0 and (c.T_after == c.T_before).all()
 
 
+def test_robot_masks_drawn_with_a_miscalibrated_camera_are_drawn_again_once_it_is_corrected(sample, tmp_path):
+    """--no-masks draws the robot's masks with the episode's camera; after the check corrects it
+    they are drawn again, so they match the masks the true camera gives."""
+    from manisplat.reconstruct.config import TrainConfig
+    from manisplat.reconstruct.masks import ObjectPrompt, complete_masks
+    from manisplat.reconstruct.pipeline import build
+
+    recorded = load_episode_data(sample)
+    rows, cols = torch.nonzero(recorded.masks[0] == next(iter(recorded.labels.objects)), as_tuple=True)
+    prompt = ObjectPrompt("box", point=(float(cols.float().mean()), float(rows.float().mean())))
+
+    def drawn(episode):
+        data = load_episode_data(episode, use_masks=False)
+        complete_masks(data, [n for n in data.robot.link_names if data.robot.visuals.get(n)], prompt, progress=False)
+        return data
+
+    def iou(a, b):
+        return float(((a > 0) & (b > 0)).sum() / ((a > 0) | (b > 0)).sum())
+
+    truth = drawn(sample).masks
+    episode, _ = _miscalibrated(sample, tmp_path / "off", 1.0, 10.0)
+    data = drawn(episode)
+    before = iou(data.masks, truth)
+    build(data, make_plan(data), TrainConfig(iters=1))
+    assert before < 0.9 and iou(data.masks, truth) > 0.97, (before, iou(data.masks, truth))
+
+
 def test_without_depth_the_extrinsic_is_not_checked(sample):
     assert _refined(sample, use_depth=False) is None
 

@@ -12,7 +12,6 @@ import sys
 import threading
 from pathlib import Path
 
-import pytest
 from tqdm import tqdm
 
 from manisplat.splat.backends import cpu_raster
