@@ -81,12 +81,10 @@ def kinematic_prior(T_start: np.ndarray, tcp: np.ndarray, events: list[GripperEv
             if model_points is not None and f > 0:  # at 0 it was held already: centred then
                 offset = centring_offset(current, tcp[closed_at], model_points)
         if closed_at is not None:
-            if f < closed_at and width is not None:  # still closing: the pads have not stopped
-                current = rest.copy()
-                current[:3, 3] -= pad_push(offset, width[f] - width[closed_at]) * axis
-            else:
-                current = rest.copy()
-                current[:3, 3] -= offset * axis
+            closing = f < closed_at  # the pads have not stopped (only with ``width``)
+            current = rest.copy()
+            current[:3, 3] -= (pad_push(offset, width[f] - width[closed_at]) if closing else offset) * axis
+            if not closing:
                 T_rel, holding, closed_at = np.linalg.inv(tcp[f]) @ current, True, None
         if f in releases:
             holding, closed_at = False, None

@@ -264,7 +264,8 @@ def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 
     :data:`MIN_POINTS` robot points, a degenerate geometry); otherwise the correction, with
     ``applied`` False (and the reason) when the fit leaves a residual above
     :data:`MAX_RESIDUAL_MM` (the depth or the model is wrong: one depth per triangle, as in the
-    built-in sample, leaves several millimetres and the fit proposes degrees) or is larger than :data:`MAX_ROTATION_DEG` / :data:`MAX_TRANSLATION_MM`.
+    built-in sample, leaves several millimetres and the fit proposes degrees) or is larger than
+    :data:`MAX_ROTATION_DEG` / :data:`MAX_TRANSLATION_MM`.
     """
     if data.depth is None or data.masks is None or not data.labels.robot:
         log.info("camera extrinsic: not checked (needs depth and robot masks)")
@@ -286,6 +287,7 @@ def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 
     groups, placed_at = _groups(data, measured, surface, camera, offset), offset
     gate = COMPARE_GATE
     r = np.concatenate([s[2] for s in _normal_equations(groups, T, gate, gate).values()])
+    rms_before = _robust_rms(r)
     solve_time = time_offset
     for _ in range(iterations):
         sigma = max(1.4826 * float(np.median(np.abs(r))), 2e-4)  # robust depth residual scale (m)
@@ -312,10 +314,9 @@ def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 
     k = 7 if solve_time else 6
     sig_rot, sig_trans, sig_time = _bootstrap(T, list(systems.values()), k, bootstrap, rng)
     rot, trans = pose_difference(T0, T)
-    # before and after compared on the same terms: the first iteration's gate, each pose's own time
-    rms_before, rms_after = (_robust_rms(np.concatenate([s[2] for s in _normal_equations(
-        groups, pose, COMPARE_GATE, COMPARE_GATE, shift - placed_at).values()]))
-        for pose, shift in ((T0, 0.0), (T, offset if solve_time else 0.0)))
+    # after compared with before on the same terms: the first iteration's gate
+    rms_after = _robust_rms(np.concatenate([s[2] for s in _normal_equations(
+        groups, T, COMPARE_GATE, COMPARE_GATE, offset - placed_at).values()]))
     result = ExtrinsicCorrection(T0, T, rot, trans, sig_rot, sig_trans, offset if solve_time else None,
                                  sig_time if solve_time else None, 1000 * rms_before, 1000 * rms_after,
                                  total, len(chosen))

@@ -96,8 +96,8 @@ class Reconstruction:
     def _make_optimizer(self) -> torch.optim.Adam:
         """One Adam over every trained tensor: the Gaussians of all nodes, one group per parameter
         kind (learning rate from the first node's own optimizer; the means' from the schedule of
-        :meth:`_step_and_densify` when there is a background), then the background colour, the camera correction (with ``refine_camera``) and the light (once
-        shadows start). Fused kernels on CUDA, ``foreach`` on the CPU."""
+        :meth:`_step_and_densify` when there is a background), then the background colour, the
+        camera correction (with ``refine_camera``) and the light (once shadows start). Fused kernels on CUDA, ``foreach`` on the CPU."""
         groups: dict[str, dict] = {}
         for node in self.graph.nodes():
             for group in node.gaussians.optimizer.param_groups:
