@@ -6,8 +6,10 @@ Variants, each adding one part:
 * ``+ tracking (confidence)``: tracked poses override the prior when confident, persistent and
   different (the behaviour before the depth check);
 * ``+ depth evidence``: ...and only when the frame's depth fits the tracked pose better;
-* ``+ centring, settling`` (the default): the grasp centres the object between the pads, the
-  release settles a small tilt.
+* ``+ centring, settling``: the grasp centres the object between the pads, the release settles
+  a small tilt;
+* ``+ model in the depth check`` (the default): the depth check's model adds the object's model
+  points (frame 0) to the surface seen where tracking starts.
 Errors against gt.npz by both definitions (manisplat.reconstruct.metrics): fitted offset over all
 frames, and start-anchored (mean over the frames after the object first moves; final frame; worst).
 Seconds of CPU, tens of seconds with the test set's generation (once).
@@ -34,8 +36,9 @@ NO_EVIDENCE = TrackerSettings(depth_evidence=False)
 VARIANTS = {  # name -> (tracker settings, use the object's model points)
     "prior only": (NEVER, False),
     "+ tracking (confidence)": (NO_EVIDENCE, False),
-    "+ depth evidence": (TrackerSettings(), False),
-    "+ centring, settling (default)": (TrackerSettings(), True),
+    "+ depth evidence": (TrackerSettings(evidence_model=False), False),
+    "+ centring, settling": (TrackerSettings(evidence_model=False), True),
+    "+ model in the depth check (default)": (TrackerSettings(), True),
 }
 
 

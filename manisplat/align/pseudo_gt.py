@@ -219,15 +219,17 @@ def _shift(events: list[GripperEvents], start: int) -> list[GripperEvents]:
 
 def make_tracker(gray, mask, depth, K: np.ndarray, T_base_cam: np.ndarray,
                  settings: TrackerSettings = TrackerSettings(), model: ObjectView | None = None,
-                 observe: frozenset[int] = frozenset()):
+                 observe: frozenset[int] = frozenset(), model_points: np.ndarray | None = None):
     """A ``tracker(frames, T_first)`` closure over an episode's images, masks and depth (``model``
     stands in where they are missing; ``observe``: held-out frames, tracked without learning from
-    them: :func:`manisplat.align.tracking.track_object`)."""
+    them; ``model_points`` [M, 3]: the object's surface, for the depth check:
+    :func:`manisplat.align.tracking.track_object`)."""
 
     def tracker(frames: range, T_first: np.ndarray, prior: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         if len(frames) == 1:
             return np.asarray(T_first)[None], np.array([False])
-        track = track_object(gray, mask, depth, K, T_base_cam, frames, T_first, settings, prior, model, observe)
+        track = track_object(gray, mask, depth, K, T_base_cam, frames, T_first, settings, prior, model, observe,
+                             model_points)
         return track.poses, track.from_tracking
 
     return tracker

@@ -65,6 +65,8 @@ class TrackerSettings:
             better than the prior's: its :class:`DepthEvidence` misfit below ``evidence_ratio``
             times the prior's and at least ``evidence_margin`` (m) smaller (``depth_evidence``
             False skips this check: confidence alone, the ablation in benchmarks/bench_pseudo_gt.py).
+        evidence_model: the depth check's model adds the object's model points (when the tracker
+            is given them) to the surface seen in the tracked stretch's first frame.
     """
 
     max_points: int = 300
@@ -82,6 +84,7 @@ class TrackerSettings:
     evidence_ratio: float = 0.7
     evidence_margin: float = 0.0003
     depth_evidence: bool = True
+    evidence_model: bool = True
 
 
 @dataclass
@@ -136,20 +139,29 @@ class DepthEvidence:
     (m, each point's capped at ``cap``) from the object's visible surface points (mask pixels with
     valid depth, lifted to the base frame) to the nearest model point, with the model placed at
     the pose. The model is the surface seen in the first frame (object frame, from its pose), so
-    occluded parts (fingers) simply contribute no points.
+    occluded parts (fingers) simply contribute no points, and the object's model points where
+    given. A surface the model lacks costs every pose and pulls the misfit's minimum towards
+    poses that cover it with what the model has: a can carried with the fingers over it, its
+    model the surface seen then, fitted a pose 7 mm high and 5 deg tilted better than its true
+    one once the opened fingers showed the rest (5.1 vs 5.5 mm; with its frame-0 model points
+    added, 3.3 vs 1.6 mm).
 
     Args:
         mask, depth: the first frame's object mask [H, W] bool and z-depth [H, W] (m, 0 invalid).
         T_base_obj: the object's pose in that frame [4, 4].
+        model_points: more of the object's surface [M, 3] (object frame), e.g. from another view.
         max_points: points kept (evenly strided) per frame and in the model.
     """
 
     def __init__(self, mask: np.ndarray, depth: np.ndarray, K: np.ndarray, T_base_cam: np.ndarray,
-                 T_base_obj: np.ndarray, *, cap: float = 0.01, max_points: int = 1500) -> None:
+                 T_base_obj: np.ndarray, *, model_points: np.ndarray | None = None, cap: float = 0.01,
+                 max_points: int = 1500) -> None:
         from scipy.spatial import cKDTree
 
         self._K, self._T_base_cam, self._cap, self._max = K, T_base_cam, cap, max_points
         model = _to_object(self.surface(mask, depth), T_base_obj)
+        if model_points is not None:
+            model = np.concatenate([model, np.asarray(model_points, dtype=np.float64).reshape(-1, 3)])
         self._tree = cKDTree(model) if len(model) >= 10 else None
 
     def surface(self, mask: np.ndarray, depth: np.ndarray) -> np.ndarray:
@@ -187,6 +199,7 @@ def track_object(
     prior: np.ndarray | None = None,
     model: ObjectView | None = None,
     observe: frozenset[int] = frozenset(),
+    model_points: np.ndarray | None = None,
 ) -> Track:
     """Poses of an object over ``frames``, starting from its pose ``T_start`` in the first one.
 
@@ -200,6 +213,8 @@ def track_object(
         observe: frames (held out from training) whose pose is tracked from their own image but
             which nothing else learns from: the tracks, the canonical points and the prior's
             correction continue from the frame before, as if they were not there.
+        model_points: the object's surface points [M, 3] (object frame) for the depth check's
+            model (:class:`DepthEvidence`; ``settings.evidence_model``).
     """
     first = frames[0]
     poses = [np.asarray(T_start, dtype=np.float64)]
@@ -213,7 +228,8 @@ def track_object(
     pts, canon = pts[ok], _to_object(X[ok], poses[0])
     evidence = None
     if prior is not None and depth(first) is not None:
-        evidence = DepthEvidence(view.mask(first, poses[0]), depth(first), K, T_base_cam, poses[0])
+        evidence = DepthEvidence(view.mask(first, poses[0]), depth(first), K, T_base_cam, poses[0],
+                                 model_points=model_points if settings.evidence_model else None)
     prev = gray(first)
     lk = dict(winSize=(settings.window, settings.window), maxLevel=settings.levels,
               criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))

@@ -108,7 +108,8 @@ def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.nda
 
     ``model`` stands in for the depth (monocular) and, with ``masks_from_model``, for the masks
     of frames after the first. ``model_points`` [M, 3] (object frame) enable the grasp's
-    centring and the release's settling priors (:func:`manisplat.align.pseudo_gt.kinematic_prior`).
+    centring and the release's settling priors (:func:`manisplat.align.pseudo_gt.kinematic_prior`)
+    and complete the tracker's depth check (:class:`~manisplat.align.tracking.DepthEvidence`).
     ``settings``: the tracker's; ``observe``: the held-out frames, whose poses are tracked without
     anything learning from them.
     """
@@ -127,6 +128,7 @@ def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.nda
         settings,
         model=model,
         observe=observe,
+        model_points=model_points,
     )
     pseudo = hybrid_pseudo_poses(segments, T_start, tcp, events, tracker, model_points, observe,
                                  width=data.gripper.double().numpy())

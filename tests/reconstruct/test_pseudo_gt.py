@@ -10,7 +10,7 @@ import pytest
 from manisplat.align.phases import GripperEvents, Segment
 from manisplat.align.pseudo_gt import (ATTACHED, STATIC, TRACKED, close_end, hybrid_pseudo_poses, kinematic_prior,
                                       pad_push)
-from manisplat.align.tracking import TrackerSettings, track_object
+from manisplat.align.tracking import DepthEvidence, TrackerSettings, track_object
 
 
 def tcp_track(T=60):
@@ -124,6 +124,26 @@ def test_tracker_refuses_an_override_the_depth_does_not_back():
                          range(len(truth)), truth[0], settings, prior=still)
     assert not track.from_tracking.any()
     assert np.allclose(track.poses, still)
+
+
+def test_depth_evidence_with_the_object_model_prefers_the_true_pose_over_one_covering_unseen_surface():
+    """Fingers hid half the object where tracking started; once they open, the model (the half seen
+    then) fits a pose slid over the revealed half better than the true one, unless the object's
+    model points (seen whole in another frame) complete it."""
+    K, truth, grays, masks, depths = textured_plane_episode(T=1)
+    W = masks[0].shape[1]
+    half = masks[0].copy()
+    half[:, W // 2:] = False  # the right half hidden when tracking started
+    whole = DepthEvidence(masks[0], depths[0], K, np.eye(4), truth[0])
+    model_points = (whole.surface(masks[0], depths[0]) - truth[0][:3, 3]) @ truth[0][:3, :3]  # object frame
+    revealed = whole.surface(masks[0], depths[0])  # the surface once the fingers open
+    slid = truth[0].copy()
+    slid[0, 3] += 0.015  # towards the revealed half, by a whole number of the 3 mm point spacing
+    seen_half = DepthEvidence(half, depths[0], K, np.eye(4), truth[0])
+    assert seen_half.misfit(revealed, slid) < seen_half.misfit(revealed, truth[0]) - 0.0003  # the failure
+    completed = DepthEvidence(half, depths[0], K, np.eye(4), truth[0], model_points=model_points)
+    assert completed.misfit(revealed, truth[0]) < 1e-4
+    assert completed.misfit(revealed, slid) > completed.misfit(revealed, truth[0]) + 0.0005
 
 
 def box_points(size=(0.04, 0.04, 0.05), n=12):
