@@ -8,7 +8,10 @@ from __future__ import annotations
 
 import os
 import subprocess
+import xml.etree.ElementTree as ET
 from pathlib import Path
+
+import numpy as np
 
 from benchmarks._harness import BenchContext, MissingBenchmarkData
 
@@ -40,3 +43,12 @@ def test_set(ctx: BenchContext) -> list[Path]:
             if proc.returncode != 0:
                 raise MissingBenchmarkData(f"gen_pick_place.py failed for {name}: {proc.stderr[-800:]}")
     return [root / name for name in EPISODES]
+
+
+def key_light(ctx: BenchContext) -> np.ndarray:
+    """The direction [3] towards the simulator's shadow-casting light (base frame, unit), read from
+    its scene (shared/tools/sim/pick_place_scene.xml): the truth a learned light is scored against."""
+    scene = ET.parse(ctx.require_shared("tools", "sim") / "pick_place_scene.xml")
+    (light,) = [el for el in scene.iter("light") if el.get("castshadow") == "true"]
+    towards = -np.array([float(x) for x in light.get("dir").split()])
+    return towards / np.linalg.norm(towards)

@@ -8,8 +8,10 @@ Variants, each adding one part:
 * ``+ depth evidence``: ...and only when the frame's depth fits the tracked pose better;
 * ``+ centring, settling``: the grasp centres the object between the pads, the release settles
   a small tilt;
-* ``+ model in the depth check`` (the default): the depth check's model adds the object's model
-  points (frame 0) to the surface seen where tracking starts.
+* ``+ model in the depth check``: the depth check's model adds the object's model points
+  (frame 0) to the surface seen where tracking starts;
+* ``+ rest from depth`` (the default): a released object is shifted to where the depth after the
+  release says it rests.
 Errors against gt.npz by both definitions (manisplat.reconstruct.metrics): fitted offset over all
 frames, and start-anchored (mean over the frames after the object first moves; final frame; worst).
 Seconds of CPU, tens of seconds with the test set's generation (once).
@@ -33,12 +35,13 @@ from manisplat.reconstruct.plan import make_plan
 THREADED = False
 NEVER = TrackerSettings(confident_inliers=10**9)
 NO_EVIDENCE = TrackerSettings(depth_evidence=False)
-VARIANTS = {  # name -> (tracker settings, use the object's model points)
-    "prior only": (NEVER, False),
-    "+ tracking (confidence)": (NO_EVIDENCE, False),
-    "+ depth evidence": (TrackerSettings(evidence_model=False), False),
-    "+ centring, settling": (TrackerSettings(evidence_model=False), True),
-    "+ model in the depth check (default)": (TrackerSettings(), True),
+VARIANTS = {  # name -> (tracker settings, use the object's model points, the rest from depth)
+    "prior only": (NEVER, False, False),
+    "+ tracking (confidence)": (NO_EVIDENCE, False, False),
+    "+ depth evidence": (TrackerSettings(evidence_model=False), False, False),
+    "+ centring, settling": (TrackerSettings(evidence_model=False), True, False),
+    "+ model in the depth check": (TrackerSettings(), True, False),
+    "+ rest from depth (default)": (TrackerSettings(), True, True),
 }
 
 
@@ -55,9 +58,10 @@ def run(ctx: BenchContext) -> list[dict[str, Any]]:
         gaussians, T_start = object_gaussians(data, obj.label, 0)
         points = gaussians.params["means"].detach().double().numpy()
         gt = load_ground_truth(episode)[f"T_base_{obj.name}"]
-        for variant, (settings, centring) in VARIANTS.items():
+        for variant, (settings, centring, rest) in VARIANTS.items():
             alignment = align_object(data, obj.label, T_start.numpy(), data.tcp.double().numpy(), moves=True,
-                                     model_points=points if centring else None, settings=settings)
+                                     model_points=points if centring else None, settings=settings,
+                                     rest_from_depth=rest)
             poses = alignment.pseudo.poses
             fitted = pose_errors(poses, gt)
             anchored = start_anchored_errors(poses, gt)

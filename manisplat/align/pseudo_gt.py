@@ -15,6 +15,11 @@
   rigid grasp. On the shared pick-and-place they take the pseudo poses' error where the object
   is left from 0.55 cm / 1.28 deg to 0.33 cm / 1.07 deg (start-anchored;
   benchmarks/results_reconstruct/pseudo_gt.json).
+* Where an object is let go, the frames' depth says where it came to rest: once the pads have
+  opened, the object's visible surface in every later frame (until the next grasp) is aligned
+  with its model points by one shift of position (:func:`fit_rest`; the orientation stays the
+  prior's). The rigid grasp misses a slip in the hand and the drop onto the support, 2-4 mm
+  (MAX_REST_SHIFT bounds it: a larger shift is not a settle).
 * Skills: tracked keypoints (:func:`manisplat.align.tracking.track_object`), starting from the
   pose the previous phase ended with, guided by the gripper prior (rest until the grasp, move
   with the gripper until the release): tracking overrides it only when confident and different.
@@ -23,13 +28,17 @@ The baseline without this phase prior tracks through the whole episode.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable
+
+import logging
 
 import numpy as np
 
 from manisplat.align.phases import GripperEvents, Segment
 from manisplat.align.tracking import ObjectView, TrackerSettings, track_object
+
+log = logging.getLogger(__name__)
 
 STATIC, ATTACHED, TRACKED = "static", "attached", "tracked"
 
@@ -43,10 +52,13 @@ class PseudoPoses:
     poses: np.ndarray
     source: list[str]
     from_tracking: np.ndarray
+    rest_shifts: list[np.ndarray] = field(default_factory=list)  # [3] (m, base frame) per settled release
 
 
 MAX_CENTRING = 0.015  # m: a larger offset between the pads' centre and the object's is not a squeeze
 MAX_SETTLE_DEG = 10.0  # a larger tilt at the release is a deliberate re-orientation, not a slip
+MAX_REST_SHIFT = 0.01  # m: a larger shift of where an object was let go is not a slip or a drop
+MIN_REST_POINTS = 100  # fewer surface points after a release than this, and the prior stands
 
 
 def kinematic_prior(T_start: np.ndarray, tcp: np.ndarray, events: list[GripperEvents], *,
@@ -153,6 +165,78 @@ def settled(T_obj: np.ndarray, up: np.ndarray, model_points: np.ndarray) -> np.n
     return out
 
 
+def open_end(width: np.ndarray, release: int, end: int, *, tolerance: float = 2e-4) -> int:
+    """The frame at which the pads, opening from ``release``, have stopped (before ``end``):
+    the first from which ``width`` [T] (m) grows by less than ``tolerance`` to the next frame."""
+    f = release
+    while f < end - 1 and width[f + 1] > width[f] + tolerance:
+        f += 1
+    return f
+
+
+def fit_rest(surfaces: list[np.ndarray], poses: list[np.ndarray], model_points: np.ndarray, *,
+             cap: float = 0.01, iterations: int = 30) -> tuple[np.ndarray, float, float]:
+    """One shift of position (m, base frame) [3] that aligns the model with the object's visible
+    surface in several frames (translation-only ICP): ``surfaces`` [M_k, 3] (base frame) with the
+    frames' ``poses`` [4, 4]; ``model_points`` [M, 3] (object frame). Points farther than ``cap``
+    from the model are left out of a step (surface the model lacks, stray depth). Returns (shift,
+    misfit before, misfit after): mean distances (m) capped at ``cap``."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(model_points)
+
+    def matches(shift):
+        residuals, distances = [], []
+        for X, T in zip(surfaces, poses):
+            local = (X - T[:3, 3] - shift) @ T[:3, :3]  # the surface in the object frame
+            d, idx = tree.query(local, distance_upper_bound=cap)
+            near = np.isfinite(d)
+            residuals.append(X[near] - (model_points[idx[near]] @ T[:3, :3].T + T[:3, 3] + shift))
+            distances.append(np.minimum(d, cap))
+        return np.concatenate(residuals), float(np.concatenate(distances).mean())
+
+    shift = np.zeros(3)
+    residuals, before = matches(shift)
+    for _ in range(iterations):
+        if len(residuals) == 0:
+            break
+        step = residuals.mean(0)
+        shift = shift + step
+        residuals, _ = matches(shift)
+        if np.linalg.norm(step) < 1e-5:
+            break
+    return shift, before, matches(shift)[1]
+
+
+def settle_at_rest(poses: np.ndarray, events: list[GripperEvents], surface: Callable[[int], np.ndarray | None],
+                   model_points: np.ndarray, width: np.ndarray | None = None,
+                   observe: frozenset[int] = frozenset()) -> list[np.ndarray]:
+    """Shift ``poses`` [T, 4, 4] (in place) from each release to the next grasp by where the
+    frames' depth says the object rests (:func:`fit_rest` over the frames after the pads opened;
+    ``surface(f)``: the object's visible surface [M, 3] in frame f, or None without depth).
+    Held-out frames (``observe``) are shifted but not fitted. Returns the shifts applied."""
+    T, shifts = len(poses), []
+    grasps = sorted(e.grasp for e in events)
+    for e in events:
+        if e.release is None:
+            continue
+        end = min([g for g in grasps if g > e.release], default=T)
+        first = open_end(width, e.release, end) if width is not None else e.release
+        fitted = [(f, X) for f in range(first, end) if f not in observe and (X := surface(f)) is not None]
+        if sum(len(X) for _, X in fitted) < MIN_REST_POINTS:
+            continue
+        shift, before, after = fit_rest([X for _, X in fitted], [poses[f] for f, _ in fitted], model_points)
+        if np.linalg.norm(shift) > MAX_REST_SHIFT or not after < before:
+            log.info("release at frame %d: the depth's rest shift %.1f mm is not a settle; the prior stands",
+                     e.release, 1000 * np.linalg.norm(shift))
+            continue
+        poses[e.release:end, :3, 3] += shift
+        shifts.append(shift)
+        log.info("release at frame %d: came to rest %.1f mm from the rigid grasp's pose (depth misfit %.2f -> %.2f mm)",
+                 e.release, 1000 * np.linalg.norm(shift), 1000 * before, 1000 * after)
+    return shifts
+
+
 def hybrid_pseudo_poses(
     segments: list[Segment],
     T_start: np.ndarray,
@@ -162,6 +246,7 @@ def hybrid_pseudo_poses(
     model_points: np.ndarray | None = None,
     observe: frozenset[int] = frozenset(),
     width: np.ndarray | None = None,
+    surface: Callable[[int], np.ndarray | None] | None = None,
 ) -> PseudoPoses:
     """Pseudo poses for every frame from the phases.
 
@@ -176,6 +261,8 @@ def hybrid_pseudo_poses(
         observe: held-out frames: no segment starts from one (the tracker, made with the same
             set, takes their poses without learning from them).
         width: the gripper opening [T] (m): grasps close over time (:func:`kinematic_prior`).
+        surface: frame -> the object's visible surface [M, 3] (base frame; None without depth):
+            with ``model_points``, where a released object rests (:func:`settle_at_rest`).
     """
     T = len(tcp)
     poses = np.zeros((T, 4, 4))
@@ -202,7 +289,10 @@ def hybrid_pseudo_poses(
             n = seg.end - seg.start
             poses[seg.start:seg.end] = prior[offset:offset + n]
             source[seg.start:seg.end] = [ATTACHED if h else STATIC for h in held[offset:offset + n]]
-    return PseudoPoses(poses, source, from_tracking)
+    shifts = []
+    if surface is not None and model_points is not None:
+        shifts = settle_at_rest(poses, events, surface, model_points, width, observe)
+    return PseudoPoses(poses, source, from_tracking, shifts)
 
 
 def _shift(events: list[GripperEvents], start: int) -> list[GripperEvents]:

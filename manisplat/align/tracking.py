@@ -166,11 +166,7 @@ class DepthEvidence:
 
     def surface(self, mask: np.ndarray, depth: np.ndarray) -> np.ndarray:
         """Base-frame points [M, 3] of the mask's pixels with valid depth (M <= max_points)."""
-        ys, xs = np.nonzero(mask)
-        step = max(1, len(xs) // self._max)
-        pixels = np.stack([xs[::step], ys[::step]], -1).astype(np.float64)
-        X, ok = _lift(pixels, depth, self._K, self._T_base_cam)
-        return X[ok]
+        return visible_surface(mask, depth, self._K, self._T_base_cam, self._max)
 
     def misfit(self, surface: np.ndarray, T_base_obj: np.ndarray) -> float:
         """Mean capped distance (m) of ``surface`` [M, 3] to the model at ``T_base_obj``; inf
@@ -179,6 +175,17 @@ class DepthEvidence:
             return float("inf")
         distance, _ = self._tree.query(_to_object(surface, T_base_obj), distance_upper_bound=self._cap)
         return float(np.minimum(distance, self._cap).mean())
+
+
+def visible_surface(mask: np.ndarray, depth: np.ndarray, K: np.ndarray, T_base_cam: np.ndarray,
+                    max_points: int = 1500) -> np.ndarray:
+    """Base-frame points [M, 3] (M <= ``max_points``, evenly strided) of the ``mask`` [H, W] pixels
+    with valid ``depth`` [H, W] (m, 0 invalid; not across an occlusion edge: :func:`_lift`)."""
+    ys, xs = np.nonzero(mask)
+    step = max(1, len(xs) // max_points)
+    pixels = np.stack([xs[::step], ys[::step]], -1).astype(np.float64)
+    X, ok = _lift(pixels, depth, K, T_base_cam)
+    return X[ok]
 
 
 def _to_object(points: np.ndarray, T_base_obj: np.ndarray) -> np.ndarray:

@@ -11,7 +11,12 @@
 * ``metrics.json``: ``psnr`` / ``ssim`` ({"full", "robot", "object"}; the same with the held-out
   frame's colour fitted on its static pixels: ``psnr_colour_fitted``, ``ssim_colour_fitted``), ``pose`` and
   ``pose_baseline`` ({object: {"et_cm", "er_deg"}}) when ground truth exists, ``wall_s``,
-  ``iters``, ``plan``, ``camera`` (the extrinsic correction, when checked).
+  ``iters``, ``plan``, ``camera`` (the extrinsic correction, when checked); with shadows learned,
+  ``light`` (the direction towards it in the base frame, its elevation and azimuth in deg, the
+  per-channel strength) and ``shadow``: PSNR over the held-out frames' background pixels the
+  learned shadows darken by more than :data:`SHADOWED` (``psnr``), the same pixels rendered
+  without shadows (``psnr_without_shadows``: a shadow in the wrong place scores below it), and
+  their share of the image (``pixels``).
 * ``exposure.csv``: per frame, held out or not, the learned per-channel exposure gain.
 * ``camera_refined.json``: the camera as the reconstruction used it, in the
   ``manisplat-calibration`` format (``manisplat-calibrate apply camera_refined.json EPISODE``
@@ -153,6 +158,8 @@ def write_evaluation(rec: Reconstruction, alignments: dict[str, ObjectAlignment]
     metrics.update(_image_metrics(rec, evaluation, out))
     if rec.extrinsic is not None:
         metrics["camera"] = {k: v for k, v in rec.extrinsic.to_dict().items() if k != "T_correction"}
+    if rec.graph.shadows is not None:
+        metrics["light"] = _light(rec.graph.shadows)
     gt = load_ground_truth(rec.data.path)  # the only place ground truth is read
     if gt is not None:
         metrics.update(_pose_metrics(rec, evaluation, alignments, out, gt))
@@ -189,6 +196,7 @@ def _image_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], out: 
     sheets.mkdir(parents=True, exist_ok=True)
     keys = ("psnr", "ssim", "psnr_colour_fitted", "ssim_colour_fitted")
     scores = {k: {"full": [], "robot": [], "object": []} for k in keys}
+    shadow = {"psnr": [], "psnr_without_shadows": [], "pixels": []}
     for f in rec.plan.test_frames:
         image = rec.render(f, evaluation)[0].clamp(0, 1)
         target = rec.data.image(f)
@@ -213,10 +221,40 @@ def _image_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], out: 
             scores["ssim"][key].append(ssim(image, target, region))
             scores["psnr_colour_fitted"][key].append(psnr(fitted, target, region))
             scores["ssim_colour_fitted"][key].append(ssim(fitted, target, region))
+        if rec.graph.shadows is not None:
+            unshaded = _without_shadows(rec, f, evaluation)
+            shadowed = static & ((image - unshaded).abs().amax(-1) > SHADOWED)
+            shadow["pixels"].append(float(shadowed.float().mean()))
+            shadow["psnr"].append(psnr(image, target, shadowed))
+            shadow["psnr_without_shadows"].append(psnr(unshaded, target, shadowed))
     summary = {}
     for metric, by_region in scores.items():
         summary[metric] = {k: _nanmean(v) for k, v in by_region.items() if v}
+    if shadow["pixels"]:
+        summary["shadow"] = {k: _nanmean(v) for k, v in shadow.items()}
     return summary
+
+
+SHADOWED = 4 / 255  # a background pixel the learned shadows darken by more than this is scored as shadowed
+
+
+def _without_shadows(rec: Reconstruction, frame: int, evaluation: dict[str, np.ndarray]) -> torch.Tensor:
+    """The held-out render [H, W, 3] of ``frame`` with the learned shadows switched off."""
+    shadows, rec.graph.shadows = rec.graph.shadows, None
+    try:
+        return rec.render(frame, evaluation)[0].clamp(0, 1)
+    finally:
+        rec.graph.shadows = shadows
+
+
+def _light(shadows) -> dict:
+    """The learned light: direction towards it [3] (base frame), elevation and azimuth (deg), strength [3]."""
+    d = shadows.direction.detach().double().cpu()
+    d = d / d.norm()
+    return {"direction": [round(float(x), 5) for x in d],
+            "elevation_deg": round(math.degrees(math.asin(max(-1.0, min(1.0, float(d[2]))))), 2),
+            "azimuth_deg": round(math.degrees(math.atan2(float(d[1]), float(d[0]))), 2),
+            "strength": [round(float(x), 4) for x in shadows.strength.detach().cpu()]}
 
 
 def colour_fitted(image: torch.Tensor, target: torch.Tensor, fit_region: torch.Tensor) -> torch.Tensor:

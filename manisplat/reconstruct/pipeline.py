@@ -12,7 +12,7 @@ import torch
 
 from manisplat.align.phases import DEFAULT_TAU, GripperEvents, Segment, gripper_events, segment_phases
 from manisplat.align.pseudo_gt import PseudoPoses, hybrid_pseudo_poses, make_tracker, tracked_baseline
-from manisplat.align.tracking import ObjectView, TrackerSettings
+from manisplat.align.tracking import ObjectView, TrackerSettings, visible_surface
 from manisplat.reconstruct.data import EpisodeData, ReconstructionInputError, retime
 from manisplat.reconstruct.extrinsic import refine_extrinsic
 from manisplat.reconstruct.init import background_gaussians, link_gaussians, object_gaussians
@@ -103,7 +103,7 @@ def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.nda
                  tau: float = DEFAULT_TAU, model: ObjectView | None = None,
                  masks_from_model: bool = False, model_points: np.ndarray | None = None,
                  settings: TrackerSettings = TrackerSettings(),
-                 observe: frozenset[int] = frozenset()) -> ObjectAlignment:
+                 observe: frozenset[int] = frozenset(), rest_from_depth: bool = True) -> ObjectAlignment:
     """Phases, hybrid pseudo poses and (for moving objects) the tracking-only baseline.
 
     ``model`` stands in for the depth (monocular) and, with ``masks_from_model``, for the masks
@@ -111,7 +111,9 @@ def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.nda
     centring and the release's settling priors (:func:`manisplat.align.pseudo_gt.kinematic_prior`)
     and complete the tracker's depth check (:class:`~manisplat.align.tracking.DepthEvidence`).
     ``settings``: the tracker's; ``observe``: the held-out frames, whose poses are tracked without
-    anything learning from them.
+    anything learning from them. ``rest_from_depth``: with ``model_points`` and depth, a released
+    object is placed where the depth says it rests
+    (:func:`~manisplat.align.pseudo_gt.settle_at_rest`).
     """
     events = gripper_events(data.gripper.numpy())
     segments = segment_phases(tcp[:, :3, 3], data.gripper.numpy(), T_start[:3, 3], tau=tau)
@@ -130,8 +132,15 @@ def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.nda
         observe=observe,
         model_points=model_points,
     )
+    K, T_base_cam = data.K_opencv.numpy(), np.linalg.inv(data.viewmat.double().numpy())
+
+    def surface(f: int) -> np.ndarray | None:
+        if not rest_from_depth or data.depth is None or (masks_from_model and f > 0):
+            return None
+        return visible_surface((data.masks[f] == label).numpy(), data.depth[f].numpy(), K, T_base_cam)
+
     pseudo = hybrid_pseudo_poses(segments, T_start, tcp, events, tracker, model_points, observe,
-                                 width=data.gripper.double().numpy())
+                                 width=data.gripper.double().numpy(), surface=surface)
     baseline = tracked_baseline(tracker, data.n_frames, T_start)
     return ObjectAlignment(segments, events, pseudo, baseline)
 

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from manisplat.align.phases import GripperEvents, Segment
-from manisplat.align.pseudo_gt import (ATTACHED, STATIC, TRACKED, close_end, hybrid_pseudo_poses, kinematic_prior,
-                                      pad_push)
+from manisplat.align.pseudo_gt import (ATTACHED, MAX_REST_SHIFT, STATIC, TRACKED, close_end, fit_rest,
+                                      hybrid_pseudo_poses, kinematic_prior, open_end, pad_push, settle_at_rest)
 from manisplat.align.tracking import DepthEvidence, TrackerSettings, track_object
 
 
@@ -235,3 +235,61 @@ def test_an_object_never_released_stays_in_the_hand():
     pseudo = hybrid_pseudo_poses(segs, start, tcp, [GripperEvents(20, None)], agreeing_tracker)
     assert np.allclose(pseudo.poses[20:, :3, 3], tcp[20:, :3, 3])
     assert pseudo.source[25:] == [ATTACHED] * 35
+
+
+def visible_box_surface(pose, size=(0.04, 0.04, 0.05), n=2000, seed=1):
+    """Random points [n, 3] (base frame) on the faces a camera above and to the +x, -y side sees
+    (top, +x, -y) of a box at ``pose``: another sampling than the model's grid."""
+    rng = np.random.default_rng(seed)
+    half = np.array(size) / 2
+    points = rng.uniform(-half, half, (n, 3))
+    face = rng.integers(0, 3, n)
+    points[face == 0, 2] = half[2]
+    points[face == 1, 0] = half[0]
+    points[face == 2, 1] = -half[1]
+    return points @ pose[:3, :3].T + pose[:3, 3]
+
+
+def test_fit_rest_finds_where_the_object_came_to_rest():
+    model = box_points(n=41)  # about 1 mm spacing
+    prior = np.eye(4)
+    prior[:3, 3] = [0.3, 0.1, 0.025]
+    rest = prior.copy()
+    rest[:3, 3] += [0.002, -0.003, -0.0025]  # slipped in the hand and dropped onto its support
+    surfaces = [visible_box_surface(rest, seed=k) for k in range(3)]
+    shift, before, after = fit_rest(surfaces, [prior] * 3, model)
+    assert np.linalg.norm(shift - [0.002, -0.003, -0.0025]) < 3e-4  # 0.3 mm: the model's 1 mm grid
+    assert after < 0.5 * before
+
+
+def test_settle_at_rest_moves_the_frames_after_the_release_and_learns_nothing_from_held_out_ones():
+    model = box_points(n=41)
+    T = 30
+    poses = np.repeat(np.eye(4)[None], T, axis=0)
+    poses[:, :3, 3] = [0.3, 0.1, 0.025]
+    true_shift = np.array([0.001, 0.002, -0.002])
+    width = np.full(T, 0.07)
+    width[18:21] = [0.045, 0.055, 0.065]  # opens over frames 18-21 after the release at 18
+
+    def surface(f):
+        truth = poses[f].copy()
+        truth[:3, 3] += true_shift
+        if f == 25:  # a held-out frame whose depth says something else entirely
+            truth[:3, 3] += [0.006, 0.0, 0.0]
+        return visible_box_surface(truth, seed=f)
+
+    assert open_end(width, 18, T) == 21
+    settled = poses.copy()
+    shifts = settle_at_rest(settled, [GripperEvents(5, 18)], surface, model, width, observe=frozenset({25}))
+    assert len(shifts) == 1 and np.linalg.norm(shifts[0] - true_shift) < 3e-4
+    assert np.allclose(settled[:18], poses[:18]) and np.allclose(settled[18:, :3, 3], poses[18:, :3, 3] + shifts[0])
+    # a shift beyond MAX_REST_SHIFT is not a settle: the prior stands
+    far = lambda f: visible_box_surface(poses[f] @ _translation([MAX_REST_SHIFT * 0.9] * 3), seed=f)  # noqa: E731
+    kept = poses.copy()
+    assert settle_at_rest(kept, [GripperEvents(5, 18)], far, model, width) == [] and np.allclose(kept, poses)
+
+
+def _translation(xyz):
+    T = np.eye(4)
+    T[:3, 3] = xyz
+    return T

@@ -12,6 +12,7 @@ from manisplat.episode import load_meta, save_meta
 from manisplat.episode.synthetic import write_sample_episode
 from manisplat.reconstruct.cli import main
 from manisplat.reconstruct.data import load_episode_data
+from manisplat.reconstruct.outputs import write_evaluation
 from manisplat.reconstruct.pipeline import build
 from manisplat.reconstruct.plan import make_plan
 from manisplat.reconstruct.trainer import TrainConfig
@@ -87,9 +88,9 @@ def test_an_object_that_never_moves_gets_one_pose_and_no_tracking(reach):
     assert rec.trajectories["box"].n_params == 1 and alignments["box"].baseline is None
 
 
-def test_shadows_are_searched_and_learned(pick):
+def test_shadows_are_searched_and_learned(pick, tmp_path):
     data = load_episode_data(pick)
-    rec, _ = build(data, make_plan(data), TrainConfig(iters=12, shadow_start=6, eval_every=100))
+    rec, alignments = build(data, make_plan(data), TrainConfig(iters=12, shadow_start=6, eval_every=100))
     found = {}
 
     def snapshot(r):  # the light as the search left it, before any training step moved it
@@ -101,6 +102,12 @@ def test_shadows_are_searched_and_learned(pick):
     assert abs(float(rec.graph.shadows.direction.detach().norm()) - 1.0) < 0.1
     learned = dict(rec.graph.shadows.named_parameters())
     assert any(not torch.equal(found[k], learned[k].detach()) for k in found), "the light was never trained"
+    metrics = write_evaluation(rec, alignments, tmp_path, wall_s=1.0)
+    light = metrics["light"]
+    assert abs(sum(x * x for x in light["direction"]) - 1.0) < 1e-6 and 0 < light["elevation_deg"] <= 90
+    # the shadowed pixels are scored with and without the shadows: two renders that differ there
+    shadow = metrics["shadow"]
+    assert shadow["pixels"] > 0 and shadow["psnr"] != shadow["psnr_without_shadows"]
 
 
 def test_uncalibrated_camera_is_a_clear_error(pick, tmp_path, capsys):
