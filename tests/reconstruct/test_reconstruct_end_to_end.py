@@ -104,7 +104,7 @@ def test_shadows_are_searched_and_learned(pick, tmp_path):
     assert any(not torch.equal(found[k], learned[k].detach()) for k in found), "the light was never trained"
     metrics = write_evaluation(rec, alignments, tmp_path, wall_s=1.0)
     light = metrics["light"]
-    assert abs(sum(x * x for x in light["direction"]) - 1.0) < 1e-6 and 0 < light["elevation_deg"] <= 90
+    assert abs(sum(x * x for x in light["direction"]) - 1.0) < 1e-4 and 0 < light["elevation_deg"] <= 90
     # the shadowed pixels are scored with and without the shadows: two renders that differ there
     shadow = metrics["shadow"]
     assert shadow["pixels"] > 0 and shadow["psnr"] != shadow["psnr_without_shadows"]
