@@ -7,8 +7,8 @@ noise with camera latency. Generated once into ``$MANISPLAT_TESTSET`` (default
 from __future__ import annotations
 
 import os
-import subprocess
 import re
+import subprocess
 from pathlib import Path
 
 import numpy as np

@@ -28,10 +28,9 @@ The baseline without this phase prior tracks through the whole episode.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from typing import Callable
-
-import logging
 
 import numpy as np
 
@@ -112,9 +111,14 @@ def close_end(width: np.ndarray, grasp: int, release: int | None = None, *, tole
     """The frame at which a close that began at ``grasp`` has stopped: the first from which the
     opening ``width`` [T] (m) shrinks by less than ``tolerance`` to the next frame (the pads
     met the object, or the gripper is shut); before ``release`` and within the track."""
-    last = (len(width) if release is None else release) - 1
-    f = grasp
-    while f < last and width[f + 1] < width[f] - tolerance:
+    return _until_still(-np.asarray(width), grasp, (len(width) if release is None else release) - 1, tolerance)
+
+
+def _until_still(growing: np.ndarray, start: int, last: int, tolerance: float) -> int:
+    """The first frame from ``start`` (at most ``last``) from which ``growing`` [T] rises by less
+    than ``tolerance`` to the next frame."""
+    f = start
+    while f < last and growing[f + 1] > growing[f] + tolerance:
         f += 1
     return f
 
@@ -168,10 +172,7 @@ def settled(T_obj: np.ndarray, up: np.ndarray, model_points: np.ndarray) -> np.n
 def open_end(width: np.ndarray, release: int, end: int, *, tolerance: float = 2e-4) -> int:
     """The frame at which the pads, opening from ``release``, have stopped (before ``end``):
     the first from which ``width`` [T] (m) grows by less than ``tolerance`` to the next frame."""
-    f = release
-    while f < end - 1 and width[f + 1] > width[f] + tolerance:
-        f += 1
-    return f
+    return _until_still(width, release, end - 1, tolerance)
 
 
 def fit_rest(surfaces: list[np.ndarray], poses: list[np.ndarray], model_points: np.ndarray, *,
@@ -197,15 +198,16 @@ def fit_rest(surfaces: list[np.ndarray], poses: list[np.ndarray], model_points: 
 
     shift = np.zeros(3)
     residuals, before = matches(shift)
+    after = before
     for _ in range(iterations):
         if len(residuals) == 0:
             break
         step = residuals.mean(0)
         shift = shift + step
-        residuals, _ = matches(shift)
+        residuals, after = matches(shift)
         if np.linalg.norm(step) < 1e-5:
             break
-    return shift, before, matches(shift)[1]
+    return shift, before, after
 
 
 def settle_at_rest(poses: np.ndarray, events: list[GripperEvents], surface: Callable[[int], np.ndarray | None],
