@@ -124,12 +124,14 @@ def quality(rec, alignments) -> dict:
 def measure(episode: Path, *, device: str, iters: int, profile_iters: int, sync_iters: int, threads: int | None) -> dict:
     """One training run on ``device`` and its measurements (see the module docstring)."""
     from manisplat.reconstruct.config import TrainConfig
+    from manisplat.splat.backends import resolve_backend
 
     if threads:
         torch.set_num_threads(threads)
     config = TrainConfig(iters=iters, device=device)
     rec, alignments, setup_s = build_reconstruction(episode, config)
     dev = rec.device
+    resolve_backend(config.backend, dev)  # a first build of the C++ rasterizer is not training time
     if dev.type == "cuda":
         torch.cuda.reset_peak_memory_stats(dev)
     _sync(dev)

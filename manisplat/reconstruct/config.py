@@ -19,9 +19,12 @@ class TrainConfig:
             at most ``growth_cap`` times its initial size (unbounded growth on these sharp
             synthetic images multiplied the Gaussians by 6 and the time with them).
         shadows: learn cast shadows of the moving parts (searched at ``shadow_start``).
-        shadow_resolution: the shadow map's size (pixels a side, spanning about twice the
-            robot's reach: a few millimetres a texel at 384 on the PiPER). A coarse map blurs
-            the shadows' edges; their outlines were the largest errors left on the test set.
+        shadow_resolution: the shadow map's size (pixels a side; it spans about twice the
+            robot's reach). None: a texel about one camera pixel wide at the robot
+            (:func:`manisplat.scene.shadows.matched_resolution`; 368 for the simulator's
+            320x240 camera, 96 for the built-in 160x120 sample). A coarse map blurs the
+            shadows' edges (at 128 their outlines were the largest errors left on the test
+            set); a finer one costs time and adds nothing the camera resolves.
         sh_degree, sh_every: view-dependent colour bands (evaluated in each node's frame), one
             more band switched on every ``sh_every`` iterations.
         refine_camera: also optimise a correction of the camera extrinsic.
@@ -52,7 +55,7 @@ class TrainConfig:
     growth_cap: float = 2.0
     shadows: bool = True
     shadow_start: int = 300
-    shadow_resolution: int = 384
+    shadow_resolution: int | None = None
     sh_degree: int = 2
     sh_every: int = 500
     refine_camera: bool = False

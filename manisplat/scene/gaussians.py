@@ -25,8 +25,8 @@ LEARNING_RATES = {"means": 1.6e-4, "scales": 5e-3, "quats": 1e-3, "opacities": 5
 class GaussianSet:
     """Trainable Gaussians of one scene-graph node and their Adam optimizer.
 
-    One optimizer holds every parameter (a group each, named like the parameter, batched
-    ``foreach`` updates); ``optimizers`` maps each parameter name to it, the form
+    One optimizer holds every parameter (a group each, named like the parameter, fused
+    updates); ``optimizers`` maps each parameter name to it, the form
     :class:`manisplat.splat.DefaultStrategy` expects.
     """
 
@@ -38,7 +38,7 @@ class GaussianSet:
         lrs["means"] *= scene_scale
         self.optimizer = torch.optim.Adam(
             [{"params": [p], "lr": lrs[k] * lr_scale, "name": k} for k, p in self.params.items()],
-            eps=1e-15, foreach=True,
+            eps=1e-15, fused=True,
         )
         self.optimizers = {k: self.optimizer for k in self.params}
         self.strategy_state: dict | None = None

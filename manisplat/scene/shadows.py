@@ -50,6 +50,21 @@ def light_camera(direction: torch.Tensor, center: torch.Tensor, extent: float, r
     return view, K
 
 
+def matched_resolution(center: torch.Tensor, extent: float, viewmat: torch.Tensor, K: torch.Tensor, *,
+                       smallest: int = 64, largest: int = 768) -> int:
+    """Shadow-map size (pixels a side, a multiple of 16) whose texel is about as wide as one camera
+    pixel at ``center`` [3] (base frame, m), for a map spanning ``extent`` m, seen through ``viewmat``
+    [4, 4] (base to camera) and ``K`` [3, 3]. A finer map adds nothing the camera can see (its cost
+    grows with its area); a coarser one blurs the shadows' edges. Clamped to [smallest, largest];
+    a centre less than 5 cm in front of the camera counts as 5 cm (the largest size, in practice).
+    """
+    V = viewmat.detach().double().cpu()
+    depth = max(float(V[2, :3] @ center.detach().double().cpu() + V[2, 3]), 0.05)
+    focal = 0.5 * float(K[0, 0] + K[1, 1])
+    size = math.ceil(extent * focal / depth / 16) * 16
+    return int(min(max(size, smallest), largest))
+
+
 def direction_from_angles(azimuth: float, elevation: float) -> torch.Tensor:
     """Unit vector towards a light at ``azimuth`` (rad, from +x towards +y) and ``elevation`` (rad)."""
     return torch.tensor([math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth), math.sin(elevation)])

@@ -237,7 +237,7 @@ def test_the_batched_composition_equals_placing_node_by_node(pick):
     torch.testing.assert_close(without_quats.quats, plain.quats, rtol=1e-5, atol=1e-6)
 
 
-def test_the_gpu_ssim_map_equals_kornias():
+def test_the_batched_ssim_map_equals_kornias_with_gradients():
     import kornia
 
     from manisplat.reconstruct.trainer import ssim_map
@@ -245,8 +245,14 @@ def test_the_gpu_ssim_map_equals_kornias():
     g = torch.Generator().manual_seed(0)
     x, y = torch.rand(30, 41, 3, generator=g), torch.rand(30, 41, 3, generator=g)
     y = 0.7 * x + 0.3 * y
-    ref = kornia.metrics.ssim(x.permute(2, 0, 1)[None], y.permute(2, 0, 1)[None], 11)[0].mean(0)
-    torch.testing.assert_close(ssim_map(x, y), ref, rtol=1e-5, atol=1e-6)
+    weights = torch.rand(30, 41, generator=g)
+    x_ref, x_ours = x.clone().requires_grad_(), x.clone().requires_grad_()
+    ref = kornia.metrics.ssim(x_ref.permute(2, 0, 1)[None], y.permute(2, 0, 1)[None], 11)[0].mean(0)
+    ours = ssim_map(x_ours, y)
+    torch.testing.assert_close(ours, ref, rtol=1e-5, atol=1e-6)
+    (ref * weights).sum().backward()
+    (ours * weights).sum().backward()
+    torch.testing.assert_close(x_ours.grad, x_ref.grad, rtol=1e-4, atol=1e-6)
 
 
 def test_the_lean_twist_exp_equals_se3_exp_with_gradients():

@@ -6,7 +6,8 @@ import math
 
 import torch
 
-from manisplat.scene.shadows import DirectionalShadows, direction_from_angles, light_camera, search_direction
+from manisplat.scene.shadows import (DirectionalShadows, direction_from_angles, light_camera, matched_resolution,
+                                     search_direction)
 
 
 def blob(center, radius=0.05, n=200, seed=0):
@@ -25,6 +26,21 @@ def test_light_camera_is_nearly_orthographic_along_the_light():
         cam = view[:3, :3] @ p + view[:3, 3]
         uv = cam[:2] / cam[2] * K[0, 0] + K[0, 2]
         assert torch.allclose(uv, torch.tensor([50.0, 50.0]), atol=0.6)
+
+
+def test_the_shadow_map_texel_matches_a_camera_pixel_at_the_robot():
+    """A texel as wide as one camera pixel where the robot is: a camera 1 m away with a 200 px focal
+    length sees 5 mm a pixel, so a map spanning 0.8 m needs 160 texels; twice as far, half."""
+    K = torch.tensor([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])
+    view = torch.eye(4)
+    view[2, 3] = 1.0  # the base origin 1 m in front of the camera
+    center = torch.zeros(3)
+    assert matched_resolution(center, 0.8, view, K) == 160
+    assert matched_resolution(center + torch.tensor([0, 0, 1.0]), 0.8, view, K) == 80
+    assert matched_resolution(center, 0.81, view, K) == 176  # rounded up to whole 16-pixel tiles
+    assert matched_resolution(center + torch.tensor([0, 0, 10.0]), 0.8, view, K) == 64  # the smallest
+    assert matched_resolution(center, 0.8, view, 10 * K) == 768  # the largest
+    assert matched_resolution(center - torch.tensor([0, 0, 2.0]), 0.8, view, K) == 768  # behind: the largest
 
 
 def test_points_under_an_occluder_are_shadowed_and_others_not():
