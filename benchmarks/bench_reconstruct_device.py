@@ -5,8 +5,9 @@ builds the reconstruction of EPISODE (load, plan, initialise, align: the CLI's s
 ``--iters`` iterations on ``--device`` and reports the training wall time and ms per iteration
 (plain training, as ``manisplat-reconstruct`` runs it), then ``--profile-iters`` more iterations
 with every phase timed separately (each phase waits for the device before and after it, so the
-split adds up to a slower iteration than the plain one): object poses, composition (with the
-shadow map), the main rasterization, the loss, backward, densification and the optimizer step.
+split adds up to a slower iteration than the plain one; the exposure refit that ends a training
+run is left out): object poses, composition (with the shadow map, also timed alone), the main
+rasterization, the loss, backward, densification and the optimizer step.
 On CUDA it also counts the host-device synchronisations of ``--sync-iters`` iterations
 (``torch.cuda.set_sync_debug_mode``), by source line. The held-out PSNR and pose error of the
 trained reconstruction are computed as ``metrics.json`` computes them.
@@ -83,7 +84,11 @@ def profile_split(rec, iters: int) -> dict[str, float]:
     torch.Tensor.backward = timer.wrap("backward", torch.Tensor.backward)
     rec.optimizer.step = timer.wrap("optimizer step", rec.optimizer.step)
     rec._step_and_densify = timer.wrap("optimizer step + densify", rec._step_and_densify)
+    shadows = rec.graph.shadows
+    if shadows is not None:
+        shadows.occlusion = timer.wrap("shadow map (light pass, in compose)", shadows.occlusion)
     rec.config.iters = rec.step + iters
+    rec.refit_exposure = lambda: None  # the end of training's exposure refit renders every frame: not an iteration
     _sync(rec.device)
     t0 = time.perf_counter()
     try:
@@ -93,9 +98,11 @@ def profile_split(rec, iters: int) -> dict[str, float]:
         (rec.losses, rec._step_and_densify, rec.object_poses, rec.graph.compose, render_module.rasterization,
          trainer_module._error_maps, torch.Tensor.backward) = originals
         rec.optimizer.step = optimizer_step
-        for name in ("losses", "_step_and_densify", "object_poses"):
+        for name in ("losses", "_step_and_densify", "object_poses", "refit_exposure"):
             rec.__dict__.pop(name, None)
         rec.graph.__dict__.pop("compose", None)
+        if shadows is not None:
+            shadows.__dict__.pop("occlusion", None)
     total = time.perf_counter() - t0
     split = {k: round(v / iters * 1e3, 3) for k, v in timer.totals.items()}
     split["iteration (phases timed apart)"] = round(total / iters * 1e3, 3)
