@@ -19,7 +19,7 @@ from pathlib import Path
 from manisplat.align.phases import DEFAULT_TAU
 from manisplat.cli_args import finite, non_negative, numbers, positive
 from manisplat.output_folder import check_output_folder
-from manisplat.reconstruct.config import DeviceUnavailable, TrainConfig, resolve_device
+from manisplat.reconstruct.config import GPU_ITERS, DeviceUnavailable, TrainConfig, default_iters, resolve_device
 
 log = logging.getLogger("manisplat.reconstruct")
 CHECKPOINT = "checkpoint.pt"
@@ -57,7 +57,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="replace the results of an earlier run in --out (its files are removed first)")
     p.add_argument("--robot", help="robot description: a URDF path or builtin:agilex_piper "
                                    "(default: the episode's robot.description)")
-    p.add_argument("--iters", type=positive(int), default=TrainConfig.iters, help=f"training iterations (default {TrainConfig.iters})")
+    p.add_argument("--iters", type=positive(int), default=None,
+                   help=f"training iterations (default {TrainConfig.iters} on the CPU, {GPU_ITERS} on CUDA: the paper's budget)")
     p.add_argument("--backend", default="auto", choices=("auto", "cpu", "torch", "gsplat"),
                    help="rasterizer: auto (gsplat on CUDA, else the C++ CPU backend), cpu, torch (slow reference), gsplat")
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
@@ -148,7 +149,9 @@ def _run(args: argparse.Namespace, prompt: tuple[str, tuple | None, tuple | None
         except DeviceUnavailable as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 1
-        log.info("training on %s (rasterizer backend %s)", device, args.backend)
+        iters = args.iters if args.iters is not None else default_iters(device)
+        log.info("training on %s (rasterizer backend %s), %d iterations%s", device, args.backend, iters,
+                 "" if args.iters is not None else f" (the default on {device}; --iters to change)")
     try:
         data = load_episode_data(args.episode, robot=args.robot, use_depth=not args.no_depth,
                                  use_masks=not args.no_masks, progress=not args.quiet)
@@ -167,7 +170,7 @@ def _run(args: argparse.Namespace, prompt: tuple[str, tuple | None, tuple | None
             return 0
         log.info("plan:\n%s", plan.summary())
         config = TrainConfig(
-            iters=args.iters, backend=args.backend, shadows=not args.no_shadows, densify=not args.no_densify,
+            iters=iters, backend=args.backend, shadows=not args.no_shadows, densify=not args.no_densify,
             refine_camera=args.refine_camera, exposure=not args.no_exposure, lambda_app=args.lambda_app, lambda_mask=args.lambda_mask,
             lambda_pose=args.lambda_pose, seed=args.seed, device=device,
         )

@@ -14,8 +14,8 @@ import pytest
 import torch
 
 from manisplat.episode.synthetic import write_sample_episode
-from manisplat.reconstruct.cli import main
-from manisplat.reconstruct.config import DeviceUnavailable, TrainConfig, resolve_device
+from manisplat.reconstruct.cli import build_parser, main
+from manisplat.reconstruct.config import DeviceUnavailable, TrainConfig, default_iters, resolve_device
 from manisplat.reconstruct.data import load_episode_data
 from manisplat.reconstruct.pipeline import build
 from manisplat.reconstruct.plan import make_plan
@@ -98,6 +98,16 @@ def test_cuda_without_gsplat_names_the_install(monkeypatch):
     with pytest.raises(DeviceUnavailable, match="'cpu' backend takes CPU tensors"):
         resolve_device("cuda", backend="cpu")
     assert resolve_device("cuda", backend="torch") == "cuda"  # the slow reference needs no gsplat
+
+
+def test_the_iterations_default_to_the_devices_budget(pick, tmp_path, caplog):
+    """3000 on the CPU, the paper's 30 000 on CUDA, unless --iters says otherwise."""
+    assert default_iters("cpu") == TrainConfig.iters == 3000
+    assert default_iters("cuda") == default_iters("cuda:1") == 30_000
+    assert build_parser().parse_args([str(pick), "--out", "x"]).iters is None  # decided once the device is known
+    caplog.set_level("INFO", logger="manisplat")
+    assert main([str(pick), "--out", str(tmp_path / "a"), "--iters", "2", "--device", "cpu"]) == 0
+    assert "2 iterations" in caplog.text and "the default" not in caplog.text
 
 
 def test_cli_accepts_device_cpu_and_refuses_unknown_devices(pick, tmp_path):
