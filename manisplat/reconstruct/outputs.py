@@ -248,13 +248,15 @@ def _without_shadows(rec: Reconstruction, frame: int, evaluation: dict[str, np.n
 
 
 def _light(shadows) -> dict:
-    """The learned light: direction towards it [3] (base frame), elevation and azimuth (deg), strength [3]."""
+    """The learned light: direction towards it [3] (base frame), elevation and azimuth (deg), strength [3],
+    and the shadow map's size (pixels a side)."""
     d = shadows.direction.detach().double().cpu()
     d = d / d.norm()
     return {"direction": [round(float(x), 5) for x in d],
             "elevation_deg": round(math.degrees(math.asin(max(-1.0, min(1.0, float(d[2]))))), 2),
             "azimuth_deg": round(math.degrees(math.atan2(float(d[1]), float(d[0]))), 2),
-            "strength": [round(float(x), 4) for x in shadows.strength.detach().cpu()]}
+            "strength": [round(float(x), 4) for x in shadows.strength.detach().cpu()],
+            "shadow_map_px": shadows.resolution}
 
 
 def colour_fitted(image: torch.Tensor, target: torch.Tensor, fit_region: torch.Tensor) -> torch.Tensor:

@@ -105,6 +105,8 @@ def test_shadows_are_searched_and_learned(pick, tmp_path):
     metrics = write_evaluation(rec, alignments, tmp_path, wall_s=1.0)
     light = metrics["light"]
     assert abs(sum(x * x for x in light["direction"]) - 1.0) < 1e-4 and 0 < light["elevation_deg"] <= 90
+    # the shadow map matched to the camera: this 80x60 camera resolves fewer texels than the smallest map
+    assert light["shadow_map_px"] == rec.graph.shadows.resolution == 64
     # the shadowed pixels are scored with and without the shadows: two renders that differ there
     shadow = metrics["shadow"]
     assert shadow["pixels"] > 0 and shadow["psnr"] != shadow["psnr_without_shadows"]
