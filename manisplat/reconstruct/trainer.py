@@ -98,8 +98,8 @@ class Reconstruction:
         kind (learning rate from the first node's own optimizer; the means' from the schedule of
         :meth:`_step_and_densify` when there is a background), then the background colour, the
         camera correction (with ``refine_camera``) and the light (once shadows start). Fused
-        kernels on every device (on the CPU 3-4x faster than ``foreach``: 1.3 vs 4.3 ms a step for
-        15k Gaussians, 4.9 vs 16 ms for 100k, 2 threads)."""
+        kernels on every device (on the CPU 2.4-3.5x faster a step than ``foreach``: README, the
+        CPU iteration)."""
         groups: dict[str, dict] = {}
         for node in self.graph.nodes():
             for group in node.gaussians.optimizer.param_groups:
@@ -480,9 +480,9 @@ def ssim_map(x: torch.Tensor, y: torch.Tensor, window_size: int = 11) -> torch.T
     """SSIM [H, W] (channel mean) of images [H, W, C] in [0, 1], as ``kornia.metrics.ssim`` computes it
     (Gaussian window sigma 1.5, reflect padding, C1 = 0.01^2, C2 = 0.03^2, eps 1e-12), with the
     window made once per device and the five local moments filtered in one grouped convolution:
-    1.4-2x faster than kornia's five filters on the CPU (forward and backward, 160x120 to 640x480,
-    2 threads), and one launch instead of ten on a GPU, where kornia also builds its window on
-    every call (a host-to-device copy that waits for the GPU)."""
+    about twice as fast as kornia's five filters on the CPU (README, the CPU iteration), and one
+    launch instead of ten on a GPU, where kornia also builds its window on every call (a
+    host-to-device copy that waits for the GPU)."""
     key = (str(x.device), x.dtype)
     if key not in _WINDOWS:
         _WINDOWS[key] = kornia.filters.get_gaussian_kernel1d(window_size, 1.5, device=x.device, dtype=x.dtype)[0]
