@@ -64,8 +64,11 @@ def lockstep_rig(source: Path, *, motion: str = "wave", stamp_latency_s: float =
     rig.add_consumer(lambda n: arm.wait_for_frames(n, timeout=30.0))
     camera = ReplayCamera(lambda: EpisodeCamera(source), clock, loop=loop, stamp_latency_s=stamp_latency_s)
     rig.follow(lambda: camera.consumed_until)
-    rig.start()
     options = {"queue_frames": 10_000, **config}
+    # the recorder listens before the rig starts: the rig stops max_lead_s ahead of the camera,
+    # which nobody reads before recording, so samples sent before a later listener would be all
+    # wait_for_arm could wait for (a deadlock on a loaded machine)
     recorder = Recorder(arm, camera, clock, RecorderConfig(**options), nominal_fps=FPS)
+    rig.start()
     recorder.wait_for_arm(timeout=30.0)
     return Rig(clock, rig, arm, camera, recorder)
