@@ -9,6 +9,13 @@
 // Work is split over tiles with at::parallel_for (so torch.set_num_threads applies) and an
 // atomic tile counter (dynamic load balance). The backward accumulates per-Gaussian gradients
 // in one buffer per worker and sums them at the end.
+//
+// Within a tile, a splat is applied row by row over the span of pixels its ellipse can reach.
+// float32 (training) takes eight pixels of a span at once, masked lanes for the pixels it skips
+// (the same operations lane by lane, so the forward's results are the scalar loop's); float64
+// (the reference in tests) keeps a scalar loop. Measured on a training iteration's inputs at
+// 320x240 (benchmarks/bench_rasterizer_cpu.py): about 1.5x (forward) and 2x (backward) faster
+// than the scalar loop.
 
 #include "splat_cpu.h"
 
@@ -145,9 +152,56 @@ inline float fast_exp(float x) {
 }
 inline double fast_exp(double x) { return std::exp(x); }
 
+// Eight float lanes (GCC/Clang vector extensions: AVX on x86 with -mavx2, two SSE or NEON
+// registers elsewhere). Comparisons give all-ones/zero int lanes; `m ? a : b` selects by lane.
+constexpr int kLanes = 8;
+typedef float F8 __attribute__((vector_size(32)));
+typedef int32_t I8 __attribute__((vector_size(32)));
+const F8 kLaneOffsets = {0.5f, 1.5f, 2.5f, 3.5f, 4.5f, 5.5f, 6.5f, 7.5f};  // pixel centres from px
+const I8 kLaneIndex = {0, 1, 2, 3, 4, 5, 6, 7};
+
+inline F8 load8(const float* p) { F8 v; std::memcpy(&v, p, sizeof(v)); return v; }
+inline I8 load8(const int32_t* p) { I8 v; std::memcpy(&v, p, sizeof(v)); return v; }
+inline void store8(float* p, F8 v) { std::memcpy(p, &v, sizeof(v)); }
+inline void store8(int32_t* p, I8 v) { std::memcpy(p, &v, sizeof(v)); }
+inline F8 splat8(float v) { return F8{} + v; }
+inline int lanes_set(I8 m) {  // how many lanes of a mask are set
+  int n = 0;
+  for (int l = 0; l < kLanes; ++l) n += m[l] != 0;
+  return n;
+}
+inline bool any8(I8 m) {
+  const I8 folded = m | __builtin_shufflevector(m, m, 4, 5, 6, 7, 0, 1, 2, 3);
+  return (folded[0] | folded[1] | folded[2] | folded[3]) != 0;
+}
+inline float sum8(F8 v) {  // a fixed pairwise order: the same result on every run
+  const F8 a = v + __builtin_shufflevector(v, v, 4, 5, 6, 7, 0, 1, 2, 3);
+  return (a[0] + a[2]) + (a[1] + a[3]);
+}
+
+// fast_exp on eight lanes, the same operations lane by lane (floor by truncation, corrected).
+inline F8 fast_exp(F8 x) {
+  x = x < -87.0f ? splat8(-87.0f) : x;
+  x = x > 88.0f ? splat8(88.0f) : x;
+  const F8 t = x * 1.44269504088896341f + 0.5f;
+  F8 n = __builtin_convertvector(__builtin_convertvector(t, I8), F8);
+  n = n > t ? n - 1.0f : n;
+  F8 r = x - n * 0.693359375f;
+  r = r - n * -2.12194440e-4f;
+  F8 p = splat8(1.9875691500e-4f);
+  p = p * r + 1.3981999507e-3f;
+  p = p * r + 8.3334519073e-3f;
+  p = p * r + 4.1665795894e-2f;
+  p = p * r + 1.6666665459e-1f;
+  p = p * r + 5.0000001201e-1f;
+  const F8 y = p * r * r + r + 1.0f;
+  const I8 bits = (__builtin_convertvector(n, I8) + 127) << 23;
+  return y * (F8)bits;  // a vector cast keeps the bits
+}
+
 // Per-tile pixel state over TW x TW pixels (those outside the image are never touched), colours
-// planar by channel. The pixel loops stay scalar with early skips: measured here, skipping
-// finished pixels and empty spans beats branch-free vector rows, whose lanes mostly idle.
+// planar by channel. Every array has kLanes - 1 elements of slack at its end, so that the lanes
+// of a vector that starts at a tile's last pixel stay inside it (they are masked off).
 template <typename T, int TW>
 struct TileState {
   static constexpr int P = TW * TW;
@@ -156,23 +210,90 @@ struct TileState {
   std::vector<T> Tr, C;  // transmittance [P], colour (or, in backward, colour behind) [D][P]
   TileState(int64_t tile, int64_t tiles_x, int64_t W, int64_t H, int64_t D)
       : x0((tile % tiles_x) * TW), y0((tile / tiles_x) * TW), x1(std::min<int64_t>(x0 + TW, W)),
-        y1(std::min<int64_t>(y0 + TW, H)), n_pixels((x1 - x0) * (y1 - y0)), Tr(P, T(1)), C(P * D, T(0)) {}
+        y1(std::min<int64_t>(y0 + TW, H)), n_pixels((x1 - x0) * (y1 - y0)), Tr(P + kLanes, T(1)),
+        C(P * D + kLanes, T(0)) {}
   int64_t lane(int64_t px) const { return px - x0; }
   int64_t row(int64_t py) const { return py - y0; }
+};
+
+// One splat over the pixels [x0, x1) of one row of a tile, in forward: composites into the live
+// pixels and returns how many pixels it finished. `base + px` is a pixel's index in the tile.
+template <int TW>
+struct ForwardRow {
+  template <typename T>
+  static int run(const Splat<T>& sp, T dy, int64_t x0, int64_t x1, int64_t base, const T* col, int64_t D,
+                 int32_t idx, TileState<T, TW>& st, int32_t* live, int32_t* lst) {
+    constexpr int P = TileState<T, TW>::P;
+    const T max_alpha = static_cast<T>(kMaxAlpha), alpha_thr = static_cast<T>(kAlphaThreshold);
+    const T min_T = static_cast<T>(kMinTransmittance);
+    int stops = 0;
+    for (int64_t px = x0; px < x1; ++px) {
+      const int64_t p = base + px;
+      if (!live[p]) continue;
+      const T dx = sp.mx - (static_cast<T>(px) + T(0.5));
+      const T sigma = T(0.5) * (sp.a * dx * dx + sp.c * dy * dy) + sp.b * dx * dy;
+      if (sigma < T(0) || sigma > sp.skip) continue;
+      const T al = std::min(max_alpha, sp.o * fast_exp(-sigma));
+      if (al < alpha_thr) continue;
+      const T next = st.Tr[p] * (T(1) - al);
+      if (next <= min_T) {  // stop before the splat that would make the pixel opaque
+        live[p] = 0;
+        ++stops;
+        continue;
+      }
+      const T w = al * st.Tr[p];
+      T* Cp = st.C.data() + p;
+      for (int64_t ch = 0; ch < D; ++ch) Cp[ch * P] += w * col[ch];
+      st.Tr[p] = next;
+      lst[p] = idx;
+    }
+    return stops;
+  }
+
+  // The same, eight pixels at a time: masked lanes keep their values.
+  static int run(const Splat<float>& sp, float dy, int64_t x0, int64_t x1, int64_t base, const float* col,
+                 int64_t D, int32_t idx, TileState<float, TW>& st, int32_t* live, int32_t* lst) {
+    constexpr int P = TileState<float, TW>::P;
+    const float cdy2 = sp.c * dy * dy;
+    int stops = 0;
+    for (int64_t px = x0; px < x1; px += kLanes) {
+      const int64_t p = base + px;
+      const I8 lv = load8(live + p);
+      I8 m = (kLaneIndex < static_cast<int32_t>(x1 - px)) & (lv != 0);
+      if (!any8(m)) continue;
+      const F8 dx = sp.mx - (static_cast<float>(px) + kLaneOffsets);
+      const F8 sigma = 0.5f * (sp.a * dx * dx + cdy2) + sp.b * dx * dy;
+      m &= (sigma >= 0.0f) & (sigma <= sp.skip);
+      const F8 raw = sp.o * fast_exp(-sigma);
+      const F8 al = raw < static_cast<float>(kMaxAlpha) ? raw : splat8(static_cast<float>(kMaxAlpha));
+      m &= al >= static_cast<float>(kAlphaThreshold);
+      if (!any8(m)) continue;
+      const F8 tr = load8(st.Tr.data() + p);
+      const F8 next = tr * (1.0f - al);
+      const I8 stop = m & (next <= static_cast<float>(kMinTransmittance));
+      m &= ~stop;
+      stops += lanes_set(stop);
+      store8(live + p, stop ? I8{} : lv);
+      const F8 w = m ? al * tr : F8{};
+      float* Cp = st.C.data() + p;
+      for (int64_t ch = 0; ch < D; ++ch) store8(Cp + ch * P, load8(Cp + ch * P) + w * col[ch]);
+      store8(st.Tr.data() + p, m ? next : tr);
+      store8(lst + p, m ? I8{} + idx : load8(lst + p));
+    }
+    return stops;
+  }
 };
 
 template <typename T, int TW>
 void forward_impl(const std::vector<Splat<T>>& splats, const T* colors, const Bins& bins, int64_t D, int64_t W,
                   int64_t H, T* image, T* alpha, T* final_T, int32_t* last) {
   const int64_t tiles_x = (W + TW - 1) / TW, tiles_y = (H + TW - 1) / TW;
-  const T max_alpha = static_cast<T>(kMaxAlpha), alpha_thr = static_cast<T>(kAlphaThreshold);
-  const T min_T = static_cast<T>(kMinTransmittance);
-  run_tiles(tiles_x * tiles_y, [&, max_alpha, alpha_thr, min_T](int64_t, int64_t tile) {
+  run_tiles(tiles_x * tiles_y, [&](int64_t, int64_t tile) {
     TileState<T, TW> st(tile, tiles_x, W, H, D);
     constexpr int P = TileState<T, TW>::P;
-    std::vector<int32_t> lst(P, -1);
-    std::vector<uint8_t> live(P, 0);   // the pixel still composites (lanes outside the image never)
-    std::vector<int> row_live(TW, 0);  // live pixels per row: finished rows are skipped
+    std::vector<int32_t> lst(P + kLanes, -1);
+    std::vector<int32_t> live(P + kLanes, 0);  // the pixel still composites (lanes outside the image never)
+    std::vector<int> row_live(TW, 0);          // live pixels per row: finished rows are skipped
     for (int64_t py = st.y0; py < st.y1; ++py)
       for (int64_t px = st.x0; px < st.x1; ++px) live[st.row(py) * TW + st.lane(px)] = 1;
     for (int64_t py = st.y0; py < st.y1; ++py) row_live[st.row(py)] = static_cast<int>(st.x1 - st.x0);
@@ -183,7 +304,6 @@ void forward_impl(const std::vector<Splat<T>>& splats, const T* colors, const Bi
       const int64_t rx0 = std::max<int64_t>(st.x0, sp.x0), rx1 = std::min<int64_t>(st.x1, sp.x1);
       const int64_t ry0 = std::max<int64_t>(st.y0, sp.y0), ry1 = std::min<int64_t>(st.y1, sp.y1);
       if (rx0 >= rx1 || ry0 >= ry1) continue;
-      const T* col = colors + D * g;
       const int32_t idx = static_cast<int32_t>(k - bins.offsets[tile]);
       for (int64_t py = ry0; py < ry1; ++py) {
         const int64_t r = st.row(py);
@@ -192,28 +312,8 @@ void forward_impl(const std::vector<Splat<T>>& splats, const T* colors, const Bi
         int64_t x0, x1;
         row_span(sp, dy, rx0, rx1, x0, x1);
         if (x0 >= x1) continue;
-        const int64_t base = r * TW - st.x0;  // pixel index = base + px
-        int stops = 0;
-        for (int64_t px = x0; px < x1; ++px) {
-          const int64_t p = base + px;
-          if (!live[p]) continue;
-          const T dx = sp.mx - (static_cast<T>(px) + T(0.5));
-          const T sigma = T(0.5) * (sp.a * dx * dx + sp.c * dy * dy) + sp.b * dx * dy;
-          if (sigma < T(0) || sigma > sp.skip) continue;
-          const T al = std::min(max_alpha, sp.o * fast_exp(-sigma));
-          if (al < alpha_thr) continue;
-          const T next = st.Tr[p] * (T(1) - al);
-          if (next <= min_T) {  // stop before the splat that would make the pixel opaque
-            live[p] = 0;
-            ++stops;
-            continue;
-          }
-          const T w = al * st.Tr[p];
-          T* Cp = st.C.data() + p;
-          for (int64_t ch = 0; ch < D; ++ch) Cp[ch * P] += w * col[ch];
-          st.Tr[p] = next;
-          lst[p] = idx;
-        }
+        const int stops = ForwardRow<TW>::run(sp, dy, x0, x1, r * TW - st.x0, colors + D * g, D, idx, st,
+                                              live.data(), lst.data());
         n_done += stops;
         row_live[r] -= stops;
       }
@@ -229,23 +329,137 @@ void forward_impl(const std::vector<Splat<T>>& splats, const T* colors, const Bi
   });
 }
 
+// One splat's gradient sums over the pixels it reaches in a tile (scalar: V = T; eight lanes,
+// summed at the end: V = F8). colour [D] lanes in `colour`.
+template <typename V>
+struct SplatGrad {
+  V mx{}, my{}, a{}, b{}, c{}, o{};
+  std::vector<V> colour;
+  bool touched = false;
+  explicit SplatGrad(int64_t D) : colour(D, V{}) {}
+  void reset() {
+    mx = my = a = b = c = o = V{};
+    std::fill(colour.begin(), colour.end(), V{});
+    touched = false;
+  }
+};
+
+template <typename T>
+T total(T v) { return v; }
+inline float total(F8 v) { return sum8(v); }
+
+// One splat over the pixels [x0, x1) of one row of a tile, in backward (back to front): adds the
+// splat's gradient from the pixels it composited into `grad` and takes it off their state.
+template <int TW>
+struct BackwardRow {
+  template <typename T>
+  static void run(const Splat<T>& sp, T dy, int64_t x0, int64_t x1, int64_t base, const T* col, int64_t D,
+                  int32_t id, TileState<T, TW>& st, const int32_t* lst, const T* gC, const T* gAT,
+                  SplatGrad<T>& grad) {
+    constexpr int P = TileState<T, TW>::P;
+    const T max_alpha = static_cast<T>(kMaxAlpha), alpha_thr = static_cast<T>(kAlphaThreshold);
+    for (int64_t px = x0; px < x1; ++px) {
+      const int64_t p = base + px;
+      if (id > lst[p]) continue;
+      const T dx = sp.mx - (static_cast<T>(px) + T(0.5));
+      const T sigma = T(0.5) * (sp.a * dx * dx + sp.c * dy * dy) + sp.b * dx * dy;
+      if (sigma < T(0) || sigma > sp.skip) continue;
+      const T e = fast_exp(-sigma);
+      const T raw = sp.o * e;
+      const T al = std::min(max_alpha, raw);
+      if (al < alpha_thr) continue;
+      grad.touched = true;
+      const T inv = T(1) / (T(1) - al);
+      const T Ti = st.Tr[p] * inv;  // transmittance in front of this splat
+      const T w = al * Ti;
+      T dL_dalpha = gAT[p] * inv;
+      T* S = st.C.data() + p;
+      const T* gCp = gC + p;
+      for (int64_t ch = 0; ch < D; ++ch) {
+        const T gch = gCp[ch * P];
+        grad.colour[ch] += w * gch;
+        dL_dalpha += gch * (Ti * col[ch] - S[ch * P] * inv);
+        S[ch * P] += w * col[ch];
+      }
+      st.Tr[p] = Ti;
+      if (raw <= max_alpha) {  // no gradient through the 0.999 clamp
+        grad.o += dL_dalpha * e;
+        const T dL_dsigma = -dL_dalpha * al;
+        grad.mx += dL_dsigma * (sp.a * dx + sp.b * dy);
+        grad.my += dL_dsigma * (sp.b * dx + sp.c * dy);
+        grad.a += dL_dsigma * T(0.5) * dx * dx;
+        grad.b += dL_dsigma * dx * dy;
+        grad.c += dL_dsigma * T(0.5) * dy * dy;
+      }
+    }
+  }
+
+  // The same, eight pixels at a time: masked lanes add nothing and keep their state.
+  static void run(const Splat<float>& sp, float dy, int64_t x0, int64_t x1, int64_t base, const float* col,
+                  int64_t D, int32_t id, TileState<float, TW>& st, const int32_t* lst, const float* gC,
+                  const float* gAT, SplatGrad<F8>& grad) {
+    constexpr int P = TileState<float, TW>::P;
+    const float cdy2 = sp.c * dy * dy;
+    for (int64_t px = x0; px < x1; px += kLanes) {
+      const int64_t p = base + px;
+      I8 m = (kLaneIndex < static_cast<int32_t>(x1 - px)) & (load8(lst + p) >= id);
+      if (!any8(m)) continue;
+      const F8 dx = sp.mx - (static_cast<float>(px) + kLaneOffsets);
+      const F8 sigma = 0.5f * (sp.a * dx * dx + cdy2) + sp.b * dx * dy;
+      m &= (sigma >= 0.0f) & (sigma <= sp.skip);
+      const F8 e = fast_exp(-sigma);
+      const F8 raw = sp.o * e;
+      const F8 al = raw < static_cast<float>(kMaxAlpha) ? raw : splat8(static_cast<float>(kMaxAlpha));
+      m &= al >= static_cast<float>(kAlphaThreshold);
+      if (!any8(m)) continue;
+      grad.touched = true;
+      const F8 inv = 1.0f / (1.0f - al);
+      const F8 tr = load8(st.Tr.data() + p);
+      const F8 Ti = tr * inv;
+      const F8 w = m ? al * Ti : F8{};
+      F8 dL_dalpha = load8(gAT + p) * inv;
+      float* S = st.C.data() + p;
+      for (int64_t ch = 0; ch < D; ++ch) {
+        const F8 gch = load8(gC + ch * P + p), s = load8(S + ch * P);
+        grad.colour[ch] += w * gch;
+        dL_dalpha += gch * (Ti * col[ch] - s * inv);
+        store8(S + ch * P, s + w * col[ch]);
+      }
+      store8(st.Tr.data() + p, m ? Ti : tr);
+      const I8 g = m & (raw <= static_cast<float>(kMaxAlpha));  // no gradient through the 0.999 clamp
+      const F8 dL_dsigma = g ? -dL_dalpha * al : F8{};
+      grad.o += g ? dL_dalpha * e : F8{};
+      grad.mx += dL_dsigma * (sp.a * dx + sp.b * dy);
+      grad.my += dL_dsigma * (sp.b * dx + sp.c * dy);
+      grad.a += dL_dsigma * 0.5f * dx * dx;
+      grad.b += dL_dsigma * dx * dy;
+      grad.c += dL_dsigma * (0.5f * dy * dy);
+    }
+  }
+};
+
+template <typename T>
+struct Lanes { using type = T; };  // the accumulator lanes of the backward's row kernel
+template <>
+struct Lanes<float> { using type = F8; };
+
 template <typename T, int TW>
 void backward_impl(const std::vector<Splat<T>>& splats, const T* colors, const Bins& bins, int64_t D, int64_t W,
                    int64_t H, const T* final_T, const int32_t* last, const T* g_image, const T* g_alpha, T* g_means,
                    T* g_conics, T* g_opac, T* g_colors) {
   const int64_t N = static_cast<int64_t>(splats.size());
   const int64_t tiles_x = (W + TW - 1) / TW, tiles_y = (H + TW - 1) / TW;
-  const T max_alpha = static_cast<T>(kMaxAlpha), alpha_thr = static_cast<T>(kAlphaThreshold);
   const int64_t workers = std::max<int64_t>(1, at::get_num_threads());
   const int64_t stride = 6 + D;  // means 2, conics 3, opacity 1, colours D
   std::vector<std::vector<T>> buffers(workers);
-  run_tiles(tiles_x * tiles_y, [&, max_alpha, alpha_thr](int64_t worker, int64_t tile) {
+  run_tiles(tiles_x * tiles_y, [&](int64_t worker, int64_t tile) {
     std::vector<T>& buf = buffers[worker];
     if (buf.empty()) buf.assign(N * stride, T(0));
     TileState<T, TW> st(tile, tiles_x, W, H, D);  // st.C holds S, the colour composited behind
     constexpr int P = TileState<T, TW>::P;
-    std::vector<T> gC(P * D, T(0)), gAT(P, T(0));  // dL/dC [D][P]; dL/d(alpha out) * final T [P]
-    std::vector<int32_t> lst(P, -1), row_last(TW, -1);
+    // dL/dC [D][P]; dL/d(alpha out) * final T [P]
+    std::vector<T> gC(P * D + kLanes, T(0)), gAT(P + kLanes, T(0));
+    std::vector<int32_t> lst(P + kLanes, -1), row_last(TW, -1);
     int32_t max_last = -1;
     for (int64_t py = st.y0; py < st.y1; ++py)
       for (int64_t px = st.x0; px < st.x1; ++px) {
@@ -257,17 +471,15 @@ void backward_impl(const std::vector<Splat<T>>& splats, const T* colors, const B
         max_last = std::max(max_last, last[q]);
         for (int64_t ch = 0; ch < D; ++ch) gC[ch * P + p] = g_image[q * D + ch];
       }
-    std::vector<T> gcol(D);
+    SplatGrad<typename Lanes<T>::type> grad(D);
     for (int64_t idx = max_last; idx >= 0; --idx) {
       const int64_t g = bins.gauss[bins.offsets[tile] + idx];
       const Splat<T>& sp = splats[g];
       const int64_t rx0 = std::max<int64_t>(st.x0, sp.x0), rx1 = std::min<int64_t>(st.x1, sp.x1);
       const int64_t ry0 = std::max<int64_t>(st.y0, sp.y0), ry1 = std::min<int64_t>(st.y1, sp.y1);
       if (rx0 >= rx1 || ry0 >= ry1) continue;
-      const T* col = colors + D * g;
       const int32_t id = static_cast<int32_t>(idx);
-      T gmx = 0, gmy = 0, ga = 0, gb = 0, gc = 0, go = 0, touched = 0;
-      std::fill(gcol.begin(), gcol.end(), T(0));
+      grad.reset();
       for (int64_t py = ry0; py < ry1; ++py) {
         const int64_t r = st.row(py);
         if (id > row_last[r]) continue;
@@ -275,46 +487,14 @@ void backward_impl(const std::vector<Splat<T>>& splats, const T* colors, const B
         int64_t x0, x1;
         row_span(sp, dy, rx0, rx1, x0, x1);
         if (x0 >= x1) continue;
-        const int64_t base = r * TW - st.x0;  // pixel index = base + px
-        for (int64_t px = x0; px < x1; ++px) {
-          const int64_t p = base + px;
-          if (id > lst[p]) continue;
-          const T dx = sp.mx - (static_cast<T>(px) + T(0.5));
-          const T sigma = T(0.5) * (sp.a * dx * dx + sp.c * dy * dy) + sp.b * dx * dy;
-          if (sigma < T(0) || sigma > sp.skip) continue;
-          const T e = fast_exp(-sigma);
-          const T raw = sp.o * e;
-          const T al = std::min(max_alpha, raw);
-          if (al < alpha_thr) continue;
-          touched = T(1);
-          const T inv = T(1) / (T(1) - al);
-          const T Ti = st.Tr[p] * inv;  // transmittance in front of this splat
-          const T w = al * Ti;
-          T dL_dalpha = gAT[p] * inv;
-          T* S = st.C.data() + p;
-          const T* gCp = gC.data() + p;
-          for (int64_t ch = 0; ch < D; ++ch) {
-            const T gch = gCp[ch * P];
-            gcol[ch] += w * gch;
-            dL_dalpha += gch * (Ti * col[ch] - S[ch * P] * inv);
-            S[ch * P] += w * col[ch];
-          }
-          st.Tr[p] = Ti;
-          if (raw <= max_alpha) {  // no gradient through the 0.999 clamp
-            go += dL_dalpha * e;
-            const T dL_dsigma = -dL_dalpha * al;
-            gmx += dL_dsigma * (sp.a * dx + sp.b * dy);
-            gmy += dL_dsigma * (sp.b * dx + sp.c * dy);
-            ga += dL_dsigma * T(0.5) * dx * dx;
-            gb += dL_dsigma * dx * dy;
-            gc += dL_dsigma * T(0.5) * dy * dy;
-          }
-        }
+        BackwardRow<TW>::run(sp, dy, x0, x1, r * TW - st.x0, colors + D * g, D, id, st, lst.data(), gC.data(),
+                             gAT.data(), grad);
       }
-      if (touched == T(0)) continue;
+      if (!grad.touched) continue;
       T* out = buf.data() + g * stride;
-      out[0] += gmx; out[1] += gmy; out[2] += ga; out[3] += gb; out[4] += gc; out[5] += go;
-      for (int64_t ch = 0; ch < D; ++ch) out[6 + ch] += gcol[ch];
+      out[0] += total(grad.mx); out[1] += total(grad.my); out[2] += total(grad.a); out[3] += total(grad.b);
+      out[4] += total(grad.c); out[5] += total(grad.o);
+      for (int64_t ch = 0; ch < D; ++ch) out[6 + ch] += total(grad.colour[ch]);
     }
   });
   at::parallel_for(0, N, 1024, [&](int64_t begin, int64_t end) {

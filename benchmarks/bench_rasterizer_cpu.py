@@ -1,0 +1,175 @@
+"""The C++ rasterizer's compositing on a real training iteration's inputs, against an earlier build.
+
+``python -m benchmarks.bench_rasterizer_cpu EPISODE --warm-iters 500 --baseline 7de011e --out r.json``
+builds the reconstruction of EPISODE as ``manisplat-reconstruct`` does, trains ``--warm-iters``
+iterations on the CPU (so the Gaussians are densified as in a real run), then records the
+compositing calls of one more iteration: the camera image (RGB and one alpha channel per scene
+group) and the shadow map's light pass (one channel), forward and backward. Each call is then
+timed with this checkout's build and with the build of the ``--baseline`` git revision's
+``manisplat/splat/csrc`` (built into the same cache), alternating the two so that load on the
+machine hits both alike, at 1 and 2 threads; medians and minima over ``--reps`` calls, and the
+largest difference between the two builds' outputs.
+
+Through the harness (``python -m benchmarks rasterizer_cpu``) it times this checkout's build
+alone on the built-in sample (a baseline needs a git revision: use the command above).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+from types import ModuleType
+
+import torch
+
+THREADED = False  # it sets 1 and 2 threads itself
+
+REPO = Path(__file__).resolve().parent.parent
+CSRC_IN_REPO = "manisplat/splat/csrc"
+
+
+def baseline_sources(revision: str, into: Path) -> Path:
+    """The rasterizer's C++ sources at git ``revision``, written into ``into``; raises with the
+    git error when the revision or the files are not there."""
+    from manisplat.splat.backends import cpu_raster
+
+    into.mkdir(parents=True, exist_ok=True)
+    for name in cpu_raster.SOURCE_NAMES + cpu_raster.HEADER_NAMES:
+        done = subprocess.run(["git", "-C", str(REPO), "show", f"{revision}:{CSRC_IN_REPO}/{name}"],
+                              capture_output=True)
+        if done.returncode != 0:
+            raise RuntimeError(f"git show {revision}:{CSRC_IN_REPO}/{name} failed: {done.stderr.decode().strip()}")
+        (into / name).write_bytes(done.stdout)
+    return into
+
+
+def record_calls(episode: Path, warm_iters: int, threads: int) -> tuple[list[tuple[str, list]], int]:
+    """The compositing calls (``("forward" | "backward", arguments)``) of the training iteration
+    after ``warm_iters`` iterations, and the number of Gaussians then."""
+    from benchmarks.bench_reconstruct_device import build_reconstruction
+    from manisplat.reconstruct.config import TrainConfig
+    from manisplat.splat.backends import cpu_raster
+
+    torch.set_num_threads(threads)
+    rec, _, _ = build_reconstruction(episode, TrainConfig(iters=warm_iters, device="cpu"))
+    rec.train(progress=False)
+    extension = cpu_raster.load_extension()
+    calls: list[tuple[str, list]] = []
+
+    class Recording:
+        def __getattr__(self, name: str):
+            return getattr(extension, name)
+
+        def forward(self, *args):
+            calls.append(("forward", [a.clone() if torch.is_tensor(a) else a for a in args]))
+            return extension.forward(*args)
+
+        def backward(self, *args):
+            calls.append(("backward", [a.clone() if torch.is_tensor(a) else a for a in args]))
+            return extension.backward(*args)
+
+    load = cpu_raster.load_extension
+    cpu_raster.load_extension = Recording
+    rec.config.iters = rec.step + 1
+    rec.refit_exposure = lambda: None  # the end of training's exposure refit is not an iteration
+    try:
+        rec.train(progress=False)
+    finally:
+        cpu_raster.load_extension = load
+    gaussians = sum(len(n.gaussians) for n in rec.graph.nodes())
+    # the iteration's own passes: forward and backward of each compositing call before the first
+    # backward-less tail (the evaluation at the end of training renders more frames)
+    n_backward = sum(kind == "backward" for kind, _ in calls)
+    return calls[: 2 * n_backward], gaussians
+
+
+def describe(kind: str, args: list) -> dict:
+    means2d, colors = args[0], args[3]
+    width, height = (args[7], args[8]) if kind == "forward" else (args[11], args[12])
+    channels = colors.shape[1]
+    return {"pass": "shadow map (light)" if channels == 1 else "camera image", "call": kind,
+            "gaussians": int(means2d.shape[0]), "size": f"{width}x{height}", "channels": int(channels)}
+
+
+def compare(calls: list[tuple[str, list]], builds: dict[str, ModuleType], reps: int) -> list[dict]:
+    """Rows of median / min ms per call and build, at 1 and 2 threads (builds alternated)."""
+    rows = []
+    for threads in (1, 2):
+        torch.set_num_threads(threads)
+        for kind, args in calls:
+            outputs = {name: getattr(ext, kind)(*args) for name, ext in builds.items()}  # warm-up
+            times: dict[str, list[float]] = {name: [] for name in builds}
+            for _ in range(reps):
+                for name, ext in builds.items():
+                    fn = getattr(ext, kind)
+                    t0 = time.perf_counter()
+                    fn(*args)
+                    times[name].append(time.perf_counter() - t0)
+            first, *others = outputs.values()
+            diff = max((float((a - b).abs().max()) for other in others for a, b in zip(first, other)
+                        if a.dtype.is_floating_point and a.numel()), default=0.0)
+            row = {**describe(kind, args), "threads": threads}
+            for name, ts in times.items():
+                row[f"{name}_ms_median"] = round(statistics.median(ts) * 1e3, 2)
+                row[f"{name}_ms_min"] = round(min(ts) * 1e3, 2)
+            if len(builds) == 2:
+                a, b = (row[f"{name}_ms_median"] for name in builds)
+                row["speedup_median"] = round(b / a, 2)
+            row["max_abs_output_difference"] = diff
+            rows.append(row)
+    return rows
+
+
+def measure(episode: Path, *, warm_iters: int, baseline: str | None, reps: int) -> dict:
+    from manisplat.splat.backends import cpu_raster
+
+    calls, gaussians = record_calls(episode, warm_iters, threads=2)
+    builds = {"current": cpu_raster.load_extension()}
+    if baseline:
+        with tempfile.TemporaryDirectory() as tmp:
+            builds[f"baseline_{baseline}"] = cpu_raster._load(baseline_sources(baseline, Path(tmp)))
+    head = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+    return {
+        "episode": str(episode), "warm_iters": warm_iters, "gaussians_after_warm_up": gaussians,
+        "current": head.stdout.strip() or None, "baseline": baseline, "reps": reps,
+        "rows": compare(calls, builds, reps),
+        "torch": torch.__version__, "cpu_capability": torch.backends.cpu.get_cpu_capability(),
+        "platform": platform.platform(), "processor": platform.processor() or platform.machine(),
+    }
+
+
+def run(ctx) -> list[dict]:
+    """Harness entry: the built-in sample, this build alone (no baseline: that needs a revision)."""
+    from manisplat.episode.synthetic import write_sample_episode
+
+    with tempfile.TemporaryDirectory() as tmp:
+        episode = write_sample_episode(Path(tmp) / "sample")
+        result = measure(episode, warm_iters=20 if ctx.quick else 300, baseline=None, reps=5 if ctx.quick else 21)
+    return result["rows"]
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.bench_rasterizer_cpu", description=__doc__.splitlines()[0])
+    p.add_argument("episode", type=Path)
+    p.add_argument("--warm-iters", type=int, default=500, help="training iterations before the recorded one")
+    p.add_argument("--baseline", help="git revision whose rasterizer sources to compare with (e.g. 7de011e)")
+    p.add_argument("--reps", type=int, default=21)
+    p.add_argument("--out", type=Path, help="write the result as JSON here")
+    args = p.parse_args(argv)
+    result = measure(args.episode, warm_iters=args.warm_iters, baseline=args.baseline, reps=args.reps)
+    text = json.dumps(result, indent=1)
+    print(text)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
