@@ -30,6 +30,10 @@
 #include <type_traits>
 #include <vector>
 
+#if defined(__AVX__)
+#include <immintrin.h>
+#endif
+
 namespace {
 
 constexpr double kMaxAlpha = 0.999;
@@ -165,7 +169,11 @@ inline I8 load8(const int32_t* p) { I8 v; std::memcpy(&v, p, sizeof(v)); return 
 inline void store8(float* p, F8 v) { std::memcpy(p, &v, sizeof(v)); }
 inline void store8(int32_t* p, I8 v) { std::memcpy(p, &v, sizeof(v)); }
 inline F8 splat8(float v) { return F8{} + v; }
-inline int lanes_set(I8 m) {  // how many lanes of a mask are set
+#if defined(__AVX__)
+inline int lanes_set(I8 m) { return __builtin_popcount(_mm256_movemask_ps((__m256)m)); }  // lanes set in a mask
+inline bool any8(I8 m) { return !_mm256_testz_si256((__m256i)m, (__m256i)m); }
+#else
+inline int lanes_set(I8 m) {
   int n = 0;
   for (int l = 0; l < kLanes; ++l) n += m[l] != 0;
   return n;
@@ -174,6 +182,7 @@ inline bool any8(I8 m) {
   const I8 folded = m | __builtin_shufflevector(m, m, 4, 5, 6, 7, 0, 1, 2, 3);
   return (folded[0] | folded[1] | folded[2] | folded[3]) != 0;
 }
+#endif
 inline float sum8(F8 v) {  // a fixed pairwise order: the same result on every run
   const F8 a = v + __builtin_shufflevector(v, v, 4, 5, 6, 7, 0, 1, 2, 3);
   return (a[0] + a[2]) + (a[1] + a[3]);
