@@ -128,13 +128,26 @@ def quality(rec, alignments) -> dict:
     return {k: metrics.get(k) for k in ("psnr", "ssim", "pose", "pose_anchored", "pose_baseline")}
 
 
-def measure(episode: Path, *, device: str, iters: int, profile_iters: int, sync_iters: int, threads: int | None) -> dict:
+def use_rasterizer_of(revision: str, into: Path) -> None:
+    """Make the CPU backend use the C++ rasterizer built from git ``revision``'s sources (for a
+    before/after comparison of the rasterizer alone: everything else stays this checkout's)."""
+    from benchmarks.bench_rasterizer_cpu import baseline_sources
+    from manisplat.splat.backends import cpu_raster
+
+    cpu_raster._extension = cpu_raster._load(baseline_sources(revision, into))
+
+
+def measure(episode: Path, *, device: str, iters: int, profile_iters: int, sync_iters: int, threads: int | None,
+            rasterizer_revision: str | None = None) -> dict:
     """One training run on ``device`` and its measurements (see the module docstring)."""
     from manisplat.reconstruct.config import TrainConfig
     from manisplat.splat.backends import resolve_backend
 
     if threads:
         torch.set_num_threads(threads)
+    if rasterizer_revision:
+        with tempfile.TemporaryDirectory() as tmp:
+            use_rasterizer_of(rasterizer_revision, Path(tmp))
     config = TrainConfig(iters=iters, device=device)
     rec, alignments, setup_s = build_reconstruction(episode, config)
     dev = rec.device
@@ -151,7 +164,7 @@ def measure(episode: Path, *, device: str, iters: int, profile_iters: int, sync_
         "threads": torch.get_num_threads(), "setup_s": round(setup_s, 2), "train_s": round(train_s, 2),
         "ms_per_iter": round(train_s / iters * 1e3, 2), "gaussians": sum(len(n.gaussians) for n in rec.graph.nodes()),
         "quality": quality(rec, alignments),
-        "torch": torch.__version__, "machine": platform.node(),
+        "rasterizer_revision": rasterizer_revision, "torch": torch.__version__, "machine": platform.node(),
         "gpu": torch.cuda.get_device_name(dev) if dev.type == "cuda" else None,
     }
     if dev.type == "cuda":
@@ -183,10 +196,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--profile-iters", type=int, default=50)
     p.add_argument("--sync-iters", type=int, default=20)
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    p.add_argument("--rasterizer-revision", metavar="REV",
+                   help="CPU: train with the C++ rasterizer of git revision REV (the rest is this checkout)")
     p.add_argument("--out", type=Path, help="write the result as JSON here")
     args = p.parse_args(argv)
     result = measure(args.episode, device=args.device, iters=args.iters, profile_iters=args.profile_iters,
-                     sync_iters=args.sync_iters, threads=args.threads)
+                     sync_iters=args.sync_iters, threads=args.threads, rasterizer_revision=args.rasterizer_revision)
     text = json.dumps(result, indent=1, default=lambda x: float(x) if isinstance(x, np.floating) else str(x))
     print(text)
     if args.out:
