@@ -128,13 +128,29 @@ def quality(rec, alignments) -> dict:
     return {k: metrics.get(k) for k in ("psnr", "ssim", "pose", "pose_anchored", "pose_baseline")}
 
 
+class _TorchDepthOrder:
+    """An older build of the C++ extension, with the depth sort its revision did in Python."""
+
+    def __init__(self, extension) -> None:
+        self._extension = extension
+
+    def __getattr__(self, name: str):
+        return getattr(self._extension, name)
+
+    @staticmethod
+    def depth_order(depths: torch.Tensor) -> torch.Tensor:
+        return torch.argsort(depths, stable=True)
+
+
 def use_rasterizer_of(revision: str, into: Path) -> None:
     """Make the CPU backend use the C++ rasterizer built from git ``revision``'s sources (for a
-    before/after comparison of the rasterizer alone: everything else stays this checkout's)."""
+    before/after comparison of the rasterizer alone: everything else stays this checkout's; a
+    revision from before the C++ depth sort sorts with ``torch.argsort``, as it did)."""
     from benchmarks.bench_rasterizer_cpu import baseline_sources
     from manisplat.splat.backends import cpu_raster
 
-    cpu_raster._extension = cpu_raster._load(baseline_sources(revision, into))
+    extension = cpu_raster._load(baseline_sources(revision, into))
+    cpu_raster._extension = extension if hasattr(extension, "depth_order") else _TorchDepthOrder(extension)
 
 
 def measure(episode: Path, *, device: str, iters: int, profile_iters: int, sync_iters: int, threads: int | None,

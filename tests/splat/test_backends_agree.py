@@ -27,6 +27,25 @@ def assert_close_relative(a, b, rtol):
     assert float((a - b).norm()) <= rtol * max(float(a.norm()), 1e-30)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_cpu_depth_order_is_torchs_stable_argsort(dtype):
+    """The C++ backend sorts splats front to back with a radix sort: the same indices as
+    torch.argsort(stable=True) with ties (in index order), -0 and +0 equal, infinities, NaN last."""
+    from manisplat.splat.backends.cpu_raster import load_extension
+
+    order = load_extension().depth_order
+    g = torch.Generator().manual_seed(3)
+    ties = (torch.rand(5000, generator=g, dtype=dtype) * 20).round() / 4 - 1  # many equal depths
+    spread = torch.randn(5000, generator=g, dtype=dtype) * 1e3
+    special = torch.tensor([0.0, -0.0, float("inf"), float("-inf"), float("nan"), -float("nan"), 1e-40, -1e-40,
+                            torch.finfo(dtype).max, torch.finfo(dtype).tiny], dtype=dtype)
+    depths = torch.cat([ties, spread, special, ties[:100]])[torch.randperm(10_110, generator=g)]
+    # positive quarter steps alone: their keys' low bytes are all equal (passes that sort nothing are skipped)
+    for d in (depths, ties.abs(), depths[:1], depths[:0], torch.full((300,), 2.5, dtype=dtype)):
+        got = order(d)
+        assert got.dtype == torch.int64 and torch.equal(got, torch.argsort(d, stable=True))
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize("mode", ["RGB", "RGB+D", "RGB+ED", "D"])
 def test_float64_images_and_gradients_match(seed, mode):

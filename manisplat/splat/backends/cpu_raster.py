@@ -247,7 +247,7 @@ def composite(means2d, conics, opacities, colors, depths, radii, width, height, 
         raise BackendUnavailable("the 'cpu' backend takes CPU tensors")
     dtype = colors.dtype
     rects = tile_rects(means2d, radii, width, height, tile_size)
-    order = torch.argsort(depths.detach(), stable=True)
+    order = load_extension().depth_order(depths.detach().contiguous())  # torch.argsort(stable=True), radix
     return _Composite.apply(
         means2d.to(dtype), conics.to(dtype), opacities.to(dtype), colors, radii.to(torch.int32), rects, order,
         width, height, tile_size,

@@ -22,6 +22,7 @@
 #include <ATen/Parallel.h>
 
 #include <algorithm>
+#include <array>
 #include <atomic>
 #include <cmath>
 #include <cstdint>
@@ -519,6 +520,43 @@ void backward_impl(const std::vector<Splat<T>>& splats, const T* colors, const B
   });
 }
 
+// The indices that sort `values` [n] ascending, ties in index order, -0 equal to +0, NaN last:
+// torch.argsort(values, stable=True), by a least-significant-digit radix sort (8-bit digits) on
+// the floats' bits mapped to unsigned keys of the same order. A pass whose digit is the same for
+// every key is skipped.
+template <typename T>
+void radix_argsort(const T* values, int64_t n, int64_t* out) {
+  using Key = std::conditional_t<sizeof(T) == 4, uint32_t, uint64_t>;
+  constexpr Key kSign = Key(1) << (8 * sizeof(Key) - 1);
+  std::vector<Key> key(n), key_next(n);
+  std::vector<int64_t> index(n), index_next(n);
+  for (int64_t i = 0; i < n; ++i) {
+    T v = values[i];
+    Key k = ~Key(0);  // NaN: after +inf
+    if (!std::isnan(v)) {
+      if (v == T(0)) v = T(0);  // -0 sorts as +0
+      std::memcpy(&k, &v, sizeof(k));
+      k = (k & kSign) ? ~k : (k | kSign);  // negatives reversed below the positives
+    }
+    key[i] = k;
+    index[i] = i;
+  }
+  for (int shift = 0; shift < static_cast<int>(8 * sizeof(Key)) && n > 0; shift += 8) {
+    std::array<int64_t, 257> start{};
+    for (int64_t i = 0; i < n; ++i) ++start[((key[i] >> shift) & 0xFF) + 1];
+    if (start[((key[0] >> shift) & 0xFF) + 1] == n) continue;
+    for (int d = 0; d < 256; ++d) start[d + 1] += start[d];
+    for (int64_t i = 0; i < n; ++i) {
+      const int64_t at = start[(key[i] >> shift) & 0xFF]++;
+      key_next[at] = key[i];
+      index_next[at] = index[i];
+    }
+    key.swap(key_next);
+    index.swap(index_next);
+  }
+  std::copy(index.begin(), index.end(), out);
+}
+
 // Calls f<TW>() for the supported tile sides.
 template <typename F>
 void with_tile_width(int64_t tile_size, F&& f) {
@@ -537,6 +575,16 @@ void check(const torch::Tensor& t, const char* name, int64_t dim) {
 }
 
 }  // namespace
+
+// Indices [N] (int64) that sort depths [N] front to back: torch.argsort(depths, stable=True).
+torch::Tensor depth_order(torch::Tensor depths) {
+  check(depths, "depths", 1);
+  auto order = torch::empty({depths.size(0)}, depths.options().dtype(torch::kInt64));
+  AT_DISPATCH_FLOATING_TYPES(depths.scalar_type(), "manisplat_depth_order", [&] {
+    radix_argsort<scalar_t>(depths.data_ptr<scalar_t>(), depths.size(0), order.data_ptr<int64_t>());
+  });
+  return order;
+}
 
 // Returns image [H, W, D], alpha [H, W], final transmittance [H, W], last contributor [H, W]
 // (index in the tile's list, -1 for none), tile offsets [tiles + 1] and tile lists [pairs].
@@ -599,6 +647,7 @@ std::vector<torch::Tensor> backward(torch::Tensor means2d, torch::Tensor conics,
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("depth_order", &depth_order, "indices that sort depths front to back, stably (CPU)");
   m.def("forward", &forward, "composite projected Gaussians (CPU)");
   m.def("backward", &backward, "gradients of composite (CPU)");
   m.def("project_forward", &project_forward, "EWA projection into one camera (CPU)");
