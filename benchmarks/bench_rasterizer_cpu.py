@@ -4,7 +4,8 @@
 builds the reconstruction of EPISODE as ``manisplat-reconstruct`` does, trains ``--warm-iters``
 iterations on the CPU (so the Gaussians are densified as in a real run), then records the
 compositing calls of one more iteration: the camera image (RGB and one alpha channel per scene
-group) and the shadow map's light pass (one channel), forward and backward. Each call is then
+group) and the shadow map's light pass (one channel): depth sort, forward and backward (a
+revision without the C++ depth sort is timed with ``torch.argsort``, as it sorted). Each call is then
 timed with this checkout's build and with the build of the ``--baseline`` git revision's
 ``manisplat/splat/csrc`` (built into the same cache), alternating the two so that load on the
 machine hits both alike, at 1 and 2 threads; medians and minima over ``--reps`` calls, and the
@@ -74,6 +75,10 @@ def record_calls(episode: Path, warm_iters: int, threads: int) -> tuple[list[tup
             calls.append(("backward", [a.clone() if torch.is_tensor(a) else a for a in args]))
             return extension.backward(*args)
 
+        def depth_order(self, depths):
+            calls.append(("depth_order", [depths.clone()]))
+            return extension.depth_order(depths)
+
     load = cpu_raster.load_extension
     cpu_raster.load_extension = Recording
     rec.config.iters = rec.step + 1
@@ -83,13 +88,18 @@ def record_calls(episode: Path, warm_iters: int, threads: int) -> tuple[list[tup
     finally:
         cpu_raster.load_extension = load
     gaussians = sum(len(n.gaussians) for n in rec.graph.nodes())
-    # the iteration's own passes: forward and backward of each compositing call before the first
-    # backward-less tail (the evaluation at the end of training renders more frames)
-    n_backward = sum(kind == "backward" for kind, _ in calls)
-    return calls[: 2 * n_backward], gaussians
+    # the iteration's own calls end with its last backward (the evaluation at the end of
+    # training renders more frames)
+    last_backward = max(i for i, (kind, _) in enumerate(calls) if kind == "backward")
+    return calls[: last_backward + 1], gaussians
 
 
-def describe(kind: str, args: list) -> dict:
+def describe(calls: list[tuple[str, list]], i: int) -> dict:
+    """What call ``i`` is: its pass (a depth sort belongs to the forward after it), size, channels."""
+    kind, args = calls[i]
+    if kind == "depth_order":
+        following = next(j for j in range(i + 1, len(calls)) if calls[j][0] == "forward")
+        return {**describe(calls, following), "call": kind}
     means2d, colors = args[0], args[3]
     width, height = (args[7], args[8]) if kind == "forward" else (args[11], args[12])
     channels = colors.shape[1]
@@ -97,24 +107,32 @@ def describe(kind: str, args: list) -> dict:
             "gaussians": int(means2d.shape[0]), "size": f"{width}x{height}", "channels": int(channels)}
 
 
+def _function(extension: ModuleType, kind: str):
+    """The build's function for a call; builds from before the C++ depth sort sort with torch."""
+    if kind == "depth_order" and not hasattr(extension, "depth_order"):
+        return lambda depths: torch.argsort(depths, stable=True)
+    return getattr(extension, kind)
+
+
 def compare(calls: list[tuple[str, list]], builds: dict[str, ModuleType], reps: int) -> list[dict]:
     """Rows of median / min ms per call and build, at 1 and 2 threads (builds alternated)."""
     rows = []
     for threads in (1, 2):
         torch.set_num_threads(threads)
-        for kind, args in calls:
-            outputs = {name: getattr(ext, kind)(*args) for name, ext in builds.items()}  # warm-up
+        for i, (kind, args) in enumerate(calls):
+            functions = {name: _function(ext, kind) for name, ext in builds.items()}
+            outputs = {name: fn(*args) for name, fn in functions.items()}  # warm-up
+            outputs = {name: out if isinstance(out, (list, tuple)) else [out] for name, out in outputs.items()}
             times: dict[str, list[float]] = {name: [] for name in builds}
             for _ in range(reps):
-                for name, ext in builds.items():
-                    fn = getattr(ext, kind)
+                for name, fn in functions.items():
                     t0 = time.perf_counter()
                     fn(*args)
                     times[name].append(time.perf_counter() - t0)
             first, *others = outputs.values()
-            diff = max((float((a - b).abs().max()) for other in others for a, b in zip(first, other)
-                        if a.dtype.is_floating_point and a.numel()), default=0.0)
-            row = {**describe(kind, args), "threads": threads}
+            diff = max((float((a.double() - b.double()).abs().max()) for other in others for a, b in zip(first, other)
+                        if a.numel()), default=0.0)
+            row = {**describe(calls, i), "threads": threads}
             for name, ts in times.items():
                 row[f"{name}_ms_median"] = round(statistics.median(ts) * 1e3, 2)
                 row[f"{name}_ms_min"] = round(min(ts) * 1e3, 2)
