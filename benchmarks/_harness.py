@@ -53,6 +53,18 @@ class BenchContext:
         return path
 
 
+def print_and_write_json(result: dict, out: Path | None) -> None:
+    """Print ``result`` as JSON (numpy floats as floats, other objects as strings) and write it to
+    ``out`` as well when given (its folder made)."""
+    import numpy as np
+
+    text = json.dumps(result, indent=1, default=lambda x: float(x) if isinstance(x, np.floating) else str(x))
+    print(text)
+    if out:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(text + "\n")
+
+
 def time_call(fn: Callable[[], Any], *, repeat: int = 20, warmup: int = 3, min_time: float = 0.0) -> float:
     """Median wall time of ``fn()`` in seconds over ``repeat`` runs after ``warmup`` runs.
 

@@ -18,7 +18,6 @@ alone on the built-in sample (a baseline needs a git revision: use the command a
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import statistics
 import subprocess
@@ -28,6 +27,8 @@ from pathlib import Path
 from types import ModuleType
 
 import torch
+
+from benchmarks._harness import print_and_write_json
 
 THREADED = False  # it sets 1 and 2 threads itself
 
@@ -180,12 +181,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--reps", type=int, default=21)
     p.add_argument("--out", type=Path, help="write the result as JSON here")
     args = p.parse_args(argv)
-    result = measure(args.episode, warm_iters=args.warm_iters, baseline=args.baseline, reps=args.reps)
-    text = json.dumps(result, indent=1)
-    print(text)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+    print_and_write_json(measure(args.episode, warm_iters=args.warm_iters, baseline=args.baseline, reps=args.reps),
+                         args.out)
     return 0
 
 

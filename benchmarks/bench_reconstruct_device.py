@@ -20,14 +20,14 @@ from __future__ import annotations
 
 import argparse
 import collections
-import json
 import platform
 import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
+
+from benchmarks._harness import print_and_write_json
 
 THREADED = True
 
@@ -218,11 +218,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     result = measure(args.episode, device=args.device, iters=args.iters, profile_iters=args.profile_iters,
                      sync_iters=args.sync_iters, threads=args.threads, rasterizer_revision=args.rasterizer_revision)
-    text = json.dumps(result, indent=1, default=lambda x: float(x) if isinstance(x, np.floating) else str(x))
-    print(text)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+    print_and_write_json(result, args.out)
     return 0
 
 

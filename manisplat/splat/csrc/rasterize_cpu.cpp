@@ -136,6 +136,18 @@ void run_tiles(int64_t tiles, const std::function<void(int64_t worker, int64_t t
   });
 }
 
+// Cephes' single-precision exp polynomial: exp(r) for |r| <= ln(2) / 2, on a float or on lanes.
+template <typename V>
+inline V exp_polynomial(V r) {
+  V p = V{} + 1.9875691500e-4f;  // the constant on a float or on every lane
+  p = p * r + 1.3981999507e-3f;
+  p = p * r + 8.3334519073e-3f;
+  p = p * r + 4.1665795894e-2f;
+  p = p * r + 1.6666665459e-1f;
+  p = p * r + 5.0000001201e-1f;
+  return p * r * r + r + 1.0f;
+}
+
 // A fast exp for float: Cephes' single-precision range reduction and polynomial (relative error
 // below 2 ulp). Double precision keeps std::exp (the reference path in tests).
 inline float fast_exp(float x) {
@@ -143,13 +155,7 @@ inline float fast_exp(float x) {
   const float n = std::floor(x * 1.44269504088896341f + 0.5f);
   float r = x - n * 0.693359375f;
   r = r - n * -2.12194440e-4f;
-  float p = 1.9875691500e-4f;
-  p = p * r + 1.3981999507e-3f;
-  p = p * r + 8.3334519073e-3f;
-  p = p * r + 4.1665795894e-2f;
-  p = p * r + 1.6666665459e-1f;
-  p = p * r + 5.0000001201e-1f;
-  const float y = p * r * r + r + 1.0f;
+  const float y = exp_polynomial(r);
   const int32_t bits = (static_cast<int32_t>(n) + 127) << 23;
   float scale;
   std::memcpy(&scale, &bits, sizeof(scale));
@@ -194,13 +200,7 @@ inline F8 fast_exp(F8 x) {
   n = n > t ? n - 1.0f : n;
   F8 r = x - n * 0.693359375f;
   r = r - n * -2.12194440e-4f;
-  F8 p = splat8(1.9875691500e-4f);
-  p = p * r + 1.3981999507e-3f;
-  p = p * r + 8.3334519073e-3f;
-  p = p * r + 4.1665795894e-2f;
-  p = p * r + 1.6666665459e-1f;
-  p = p * r + 5.0000001201e-1f;
-  const F8 y = p * r * r + r + 1.0f;
+  const F8 y = exp_polynomial(r);
   const I8 bits = (__builtin_convertvector(n, I8) + 127) << 23;
   return y * (F8)bits;  // a vector cast keeps the bits
 }
