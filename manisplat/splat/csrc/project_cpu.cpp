@@ -175,7 +175,7 @@ void project_backward_impl(const T* means, const T* quats, const T* scales, cons
   at::parallel_for(0, workers, 1, [&](int64_t wb, int64_t we) {
     for (int64_t worker = wb; worker < we; ++worker) {
       const int64_t chunk = (N + workers - 1) / workers;
-      std::array<double, 12>& gv = view_parts[worker];
+      std::array<double, 12> gv{};  // this worker's sum, kept local (no cache line shared with another's)
       for (int64_t g = worker * chunk; g < std::min(N, (worker + 1) * chunk); ++g) {
         for (int i = 0; i < 3; ++i) g_means[3 * g + i] = 0, g_scales[3 * g + i] = 0;
         for (int i = 0; i < 4; ++i) g_quats[4 * g + i] = 0;
@@ -262,6 +262,7 @@ void project_backward_impl(const T* means, const T* quats, const T* scales, cons
         for (int i = 0; i < 4; ++i)
           g_quats[4 * g + i] = static_cast<T>((floored ? gqn[i] : gqn[i] - f.qn[i] * dot) / f.qnorm);
       }
+      view_parts[worker] = gv;
     }
   });
   for (const auto& part : view_parts)
