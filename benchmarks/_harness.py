@@ -13,8 +13,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-import torch
-
 BENCH_DIR = Path(__file__).resolve().parent
 REPO_DIR = BENCH_DIR.parent
 
@@ -96,6 +94,8 @@ def list_benchmarks() -> dict[str, str]:
 
 
 def machine_info() -> dict[str, Any]:
+    import torch
+
     return {
         "python": platform.python_version(),
         "torch": torch.__version__,
@@ -128,6 +128,8 @@ def format_table(rows: list[dict[str, Any]]) -> str:
 
 def run_benchmark(name: str, *, threads: list[int], quick: bool, out_dir: Path) -> dict[str, Any]:
     """Run benchmark ``name`` once per thread count; print its table; write ``out_dir/NAME.json``."""
+    import torch
+
     module = importlib.import_module(f"benchmarks.bench_{name}")
     threaded = getattr(module, "THREADED", True)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -25,10 +25,12 @@ import tempfile
 import time
 from pathlib import Path
 from types import ModuleType
-
-import torch
+from typing import TYPE_CHECKING
 
 from benchmarks._harness import print_and_write_json
+
+if TYPE_CHECKING:
+    import torch
 
 THREADED = False  # it sets 1 and 2 threads itself
 
@@ -51,9 +53,48 @@ def baseline_sources(revision: str, into: Path) -> Path:
     return into
 
 
+class _TorchDepthOrder:
+    """A build from before the C++ depth sort, with the sort its revision did in Python."""
+
+    def __init__(self, extension: ModuleType) -> None:
+        self._extension = extension
+
+    def __getattr__(self, name: str):
+        return getattr(self._extension, name)
+
+    @staticmethod
+    def depth_order(depths: torch.Tensor) -> torch.Tensor:
+        import torch
+
+        return torch.argsort(depths, stable=True)
+
+
+def build_of(revision: str):
+    """The C++ extension built from git ``revision``'s sources (built once into torch's cache,
+    keyed by the sources as ever); a revision from before the C++ depth sort gets
+    ``torch.argsort`` for it, as it sorted."""
+    from manisplat.splat.backends import cpu_raster
+
+    with tempfile.TemporaryDirectory() as tmp:
+        extension = cpu_raster._load(baseline_sources(revision, Path(tmp)))
+    return extension if hasattr(extension, "depth_order") else _TorchDepthOrder(extension)
+
+
+def check_revision(parser: argparse.ArgumentParser, revision: str | None) -> None:
+    """Exit through ``parser`` (status 2) unless ``revision`` names a commit of this repository."""
+    if revision is None:
+        return
+    done = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--verify", "--quiet", f"{revision}^{{commit}}"],
+                          capture_output=True)
+    if done.returncode != 0:
+        parser.error(f"{revision!r} is not a commit of {REPO} (git rev-parse)")
+
+
 def record_calls(episode: Path, warm_iters: int, threads: int) -> tuple[list[tuple[str, list]], int]:
     """The compositing calls (``("forward" | "backward", arguments)``) of the training iteration
     after ``warm_iters`` iterations, and the number of Gaussians then."""
+    import torch
+
     from benchmarks.bench_reconstruct_device import build_reconstruction
     from manisplat.reconstruct.config import TrainConfig
     from manisplat.splat.backends import cpu_raster
@@ -108,20 +149,15 @@ def describe(calls: list[tuple[str, list]], i: int) -> dict:
             "gaussians": int(means2d.shape[0]), "size": f"{width}x{height}", "channels": int(channels)}
 
 
-def _function(extension: ModuleType, kind: str):
-    """The build's function for a call; builds from before the C++ depth sort sort with torch."""
-    if kind == "depth_order" and not hasattr(extension, "depth_order"):
-        return lambda depths: torch.argsort(depths, stable=True)
-    return getattr(extension, kind)
-
-
-def compare(calls: list[tuple[str, list]], builds: dict[str, ModuleType], reps: int) -> list[dict]:
+def compare(calls: list[tuple[str, list]], builds: dict, reps: int) -> list[dict]:
     """Rows of median / min ms per call and build, at 1 and 2 threads (builds alternated)."""
+    import torch
+
     rows = []
     for threads in (1, 2):
         torch.set_num_threads(threads)
         for i, (kind, args) in enumerate(calls):
-            functions = {name: _function(ext, kind) for name, ext in builds.items()}
+            functions = {name: getattr(ext, kind) for name, ext in builds.items()}
             outputs = {name: fn(*args) for name, fn in functions.items()}  # warm-up
             outputs = {name: out if isinstance(out, (list, tuple)) else [out] for name, out in outputs.items()}
             times: dict[str, list[float]] = {name: [] for name in builds}
@@ -146,13 +182,14 @@ def compare(calls: list[tuple[str, list]], builds: dict[str, ModuleType], reps: 
 
 
 def measure(episode: Path, *, warm_iters: int, baseline: str | None, reps: int) -> dict:
+    import torch
+
     from manisplat.splat.backends import cpu_raster
 
     calls, gaussians = record_calls(episode, warm_iters, threads=2)
     builds = {"current": cpu_raster.load_extension()}
     if baseline:
-        with tempfile.TemporaryDirectory() as tmp:
-            builds[f"baseline_{baseline}"] = cpu_raster._load(baseline_sources(baseline, Path(tmp)))
+        builds[f"baseline_{baseline}"] = build_of(baseline)
     head = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
     return {
         "episode": str(episode), "warm_iters": warm_iters, "gaussians_after_warm_up": gaussians,
@@ -181,6 +218,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--reps", type=int, default=21)
     p.add_argument("--out", type=Path, help="write the result as JSON here")
     args = p.parse_args(argv)
+    check_revision(p, args.baseline)
     print_and_write_json(measure(args.episode, warm_iters=args.warm_iters, baseline=args.baseline, reps=args.reps),
                          args.out)
     return 0

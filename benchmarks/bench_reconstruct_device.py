@@ -24,15 +24,20 @@ import platform
 import tempfile
 import time
 from pathlib import Path
-
-import torch
+from typing import TYPE_CHECKING
 
 from benchmarks._harness import print_and_write_json
+from benchmarks.bench_rasterizer_cpu import check_revision
+
+if TYPE_CHECKING:
+    import torch
 
 THREADED = True
 
 
 def _sync(device: torch.device) -> None:
+    import torch
+
     if device.type == "cuda":
         torch.cuda.synchronize(device)
 
@@ -69,6 +74,8 @@ class PhaseTimer:
 
 def profile_split(rec, iters: int) -> dict[str, float]:
     """ms per iteration of each phase over ``iters`` more iterations (see the module docstring)."""
+    import torch
+
     import manisplat.reconstruct.trainer as trainer_module
     import manisplat.scene.render as render_module
 
@@ -128,42 +135,21 @@ def quality(rec, alignments) -> dict:
     return {k: metrics.get(k) for k in ("psnr", "ssim", "pose", "pose_anchored", "pose_baseline")}
 
 
-class _TorchDepthOrder:
-    """An older build of the C++ extension, with the depth sort its revision did in Python."""
-
-    def __init__(self, extension) -> None:
-        self._extension = extension
-
-    def __getattr__(self, name: str):
-        return getattr(self._extension, name)
-
-    @staticmethod
-    def depth_order(depths: torch.Tensor) -> torch.Tensor:
-        return torch.argsort(depths, stable=True)
-
-
-def use_rasterizer_of(revision: str, into: Path) -> None:
-    """Make the CPU backend use the C++ rasterizer built from git ``revision``'s sources (for a
-    before/after comparison of the rasterizer alone: everything else stays this checkout's; a
-    revision from before the C++ depth sort sorts with ``torch.argsort``, as it did)."""
-    from benchmarks.bench_rasterizer_cpu import baseline_sources
-    from manisplat.splat.backends import cpu_raster
-
-    extension = cpu_raster._load(baseline_sources(revision, into))
-    cpu_raster._extension = extension if hasattr(extension, "depth_order") else _TorchDepthOrder(extension)
-
-
 def measure(episode: Path, *, device: str, iters: int, profile_iters: int, sync_iters: int, threads: int | None,
             rasterizer_revision: str | None = None) -> dict:
     """One training run on ``device`` and its measurements (see the module docstring)."""
+    import torch
+
     from manisplat.reconstruct.config import TrainConfig
     from manisplat.splat.backends import resolve_backend
 
     if threads:
         torch.set_num_threads(threads)
-    if rasterizer_revision:
-        with tempfile.TemporaryDirectory() as tmp:
-            use_rasterizer_of(rasterizer_revision, Path(tmp))
+    if rasterizer_revision:  # a before/after of the rasterizer alone: the rest is this checkout
+        from benchmarks.bench_rasterizer_cpu import build_of
+        from manisplat.splat.backends import cpu_raster
+
+        cpu_raster._extension = build_of(rasterizer_revision)
     config = TrainConfig(iters=iters, device=device)
     rec, alignments, setup_s = build_reconstruction(episode, config)
     dev = rec.device
@@ -216,6 +202,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="CPU: train with the C++ rasterizer of git revision REV (the rest is this checkout)")
     p.add_argument("--out", type=Path, help="write the result as JSON here")
     args = p.parse_args(argv)
+    check_revision(p, args.rasterizer_revision)
     result = measure(args.episode, device=args.device, iters=args.iters, profile_iters=args.profile_iters,
                      sync_iters=args.sync_iters, threads=args.threads, rasterizer_revision=args.rasterizer_revision)
     print_and_write_json(result, args.out)
