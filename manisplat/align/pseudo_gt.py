@@ -20,6 +20,11 @@
   with its model points by one shift of position (:func:`fit_rest`; the orientation stays the
   prior's). The rigid grasp misses a slip in the hand and the drop onto the support, 2-4 mm
   (MAX_REST_SHIFT bounds it: a larger shift is not a settle).
+* While held, the depth shows the object slipping in the hand (:func:`follow_slip`): each held
+  frame's visible surface is aligned with the model by a shift of position, the shifts (in the
+  TCP's frame) are smoothed by a running median, and the carry takes them only when the depth
+  fits the shifted poses clearly better than the rigid grasp (misfit below
+  :data:`SLIP_EVIDENCE_RATIO` of the rigid grasp's and :data:`SLIP_EVIDENCE_M` less).
 * Skills: tracked keypoints (:func:`manisplat.align.tracking.track_object`), starting from the
   pose the previous phase ended with, guided by the gripper prior (rest until the grasp, move
   with the gripper until the release): tracking overrides it only when confident and different.
@@ -52,12 +57,17 @@ class PseudoPoses:
     source: list[str]
     from_tracking: np.ndarray
     rest_shifts: list[np.ndarray] = field(default_factory=list)  # [3] (m, base frame) per settled release
+    slips: list[np.ndarray] = field(default_factory=list)  # [3] (m, TCP frame): each followed slip where it ended
 
 
 MAX_CENTRING = 0.015  # m: a larger offset between the pads' centre and the object's is not a squeeze
 MAX_SETTLE_DEG = 10.0  # a larger tilt at the release is a deliberate re-orientation, not a slip
 MAX_REST_SHIFT = 0.01  # m: a larger shift of where an object was let go is not a slip or a drop
 MIN_REST_POINTS = 100  # fewer surface points after a release than this, and the prior stands
+MIN_SLIP_POINTS = 30  # a held frame with fewer visible surface points says nothing about a slip
+SLIP_WINDOW = 3  # frames each side of the running median over the per-frame slips
+SLIP_EVIDENCE_RATIO = 0.8  # the slipped carry's depth misfit must be below this share of the rigid one's...
+SLIP_EVIDENCE_M = 3e-4  # ...and this much (m) less, else the rigid grasp stands
 
 
 def kinematic_prior(T_start: np.ndarray, tcp: np.ndarray, events: list[GripperEvents], *,
@@ -210,6 +220,78 @@ def fit_rest(surfaces: list[np.ndarray], poses: list[np.ndarray], model_points: 
     return shift, before, after
 
 
+def surface_misfit(surfaces: list[np.ndarray], poses: list[np.ndarray], model_points: np.ndarray, *,
+                   cap: float = 0.01) -> float:
+    """Mean distance (m, each capped at ``cap``) of the surfaces [M_k, 3] (base frame) to the
+    model points [M, 3] (object frame) placed at the frames' ``poses`` [4, 4]."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(model_points)
+    distances = [np.minimum(tree.query((X - T[:3, 3]) @ T[:3, :3], distance_upper_bound=cap)[0], cap)
+                 for X, T in zip(surfaces, poses)]
+    return float(np.concatenate(distances).mean())
+
+
+def follow_slip(poses: np.ndarray, events: list[GripperEvents], surface: Callable[[int], np.ndarray | None],
+                model_points: np.ndarray, tcp: np.ndarray, width: np.ndarray | None = None,
+                observe: frozenset[int] = frozenset(), keep: np.ndarray | None = None) -> list[np.ndarray]:
+    """Shift ``poses`` [T, 4, 4] (in place) over each held stretch, from the frame the pads stopped
+    closing to the release, by the object's slip in the hand that the frames' depth shows.
+
+    Each held frame's visible surface (``surface(f)`` [M, 3], base frame, or None) is aligned with
+    ``model_points`` [M, 3] (object frame) by one shift of position (:func:`fit_rest`); the shifts,
+    in the TCP's frame (``tcp`` [T, 4, 4]), are smoothed by a running median over
+    2 :data:`SLIP_WINDOW` + 1 fitted frames and interpolated between them (held-out frames,
+    ``observe``, and frames that ``keep`` [T] bool marks, e.g. tracked poses, are not fitted; the
+    held-out ones are shifted). A stretch takes its slip only when the depth misfit of its fitted
+    frames drops clearly (:data:`SLIP_EVIDENCE_RATIO`, :data:`SLIP_EVIDENCE_M`); the object then
+    rests, until the next grasp, shifted as it was let go. Returns each taken slip where its
+    stretch ended [3] (m, TCP frame)."""
+    T, slips = len(poses), []
+    grasps = sorted(e.grasp for e in events)
+    for e in events:
+        first = close_end(width, e.grasp, e.release) if width is not None else e.grasp
+        end = e.release if e.release is not None else T
+        fitted, shifts, surfaces = [], [], []
+        for f in range(first, end):
+            if f in observe or (keep is not None and keep[f]) or (X := surface(f)) is None or len(X) < MIN_SLIP_POINTS:
+                continue
+            shift, before, after = fit_rest([X], [poses[f]], model_points)
+            if np.linalg.norm(shift) <= MAX_REST_SHIFT and after < before:
+                fitted.append(f)
+                shifts.append(tcp[f, :3, :3].T @ shift)
+                surfaces.append(X)
+        if len(fitted) < 2 * SLIP_WINDOW + 1:
+            log.info("grasp at frame %d: the depth fits %d of %d held frames, too few to follow a slip in the hand",
+                     e.grasp, len(fitted), end - first)
+            continue
+        shifts = np.array(shifts)
+        smooth = np.array([np.median(shifts[max(0, i - SLIP_WINDOW): i + SLIP_WINDOW + 1], axis=0)
+                           for i in range(len(fitted))])
+        frames = np.arange(first, end)
+        in_hand = np.stack([np.interp(frames, fitted, smooth[:, k]) for k in range(3)], -1)  # [n, 3] TCP frame
+        if keep is not None:
+            in_hand[keep[first:end]] = 0.0  # a tracked pose is the tracker's own
+        slipped = poses[first:end].copy()
+        slipped[:, :3, 3] += np.einsum("nij,nj->ni", tcp[first:end, :3, :3], in_hand)
+        rigid = surface_misfit(surfaces, [poses[f] for f in fitted], model_points)
+        taken = surface_misfit(surfaces, [slipped[f - first] for f in fitted], model_points)
+        if not (taken < SLIP_EVIDENCE_RATIO * rigid and rigid - taken > SLIP_EVIDENCE_M):
+            log.info("grasp at frame %d: the depth shows no clear slip in the hand (misfit %.2f -> %.2f mm); "
+                     "the rigid grasp stands", e.grasp, 1000 * rigid, 1000 * taken)
+            continue
+        let_go = slipped[-1, :3, 3] - poses[end - 1, :3, 3]
+        poses[first:end] = slipped
+        if e.release is not None:
+            rest_end = min([g for g in grasps if g > e.release], default=T)
+            poses[e.release:rest_end, :3, 3] += let_go
+        slips.append(in_hand[-1])
+        log.info("grasp at frame %d: the object slipped %.1f mm in the hand by the release (largest %.1f mm; "
+                 "depth misfit %.2f -> %.2f mm)", e.grasp, 1000 * np.linalg.norm(in_hand[-1]),
+                 1000 * np.linalg.norm(in_hand, axis=1).max(), 1000 * rigid, 1000 * taken)
+    return slips
+
+
 def settle_at_rest(poses: np.ndarray, events: list[GripperEvents], surface: Callable[[int], np.ndarray | None],
                    model_points: np.ndarray, width: np.ndarray | None = None,
                    observe: frozenset[int] = frozenset()) -> list[np.ndarray]:
@@ -249,6 +331,7 @@ def hybrid_pseudo_poses(
     observe: frozenset[int] = frozenset(),
     width: np.ndarray | None = None,
     surface: Callable[[int], np.ndarray | None] | None = None,
+    slip_from_depth: bool = True,
 ) -> PseudoPoses:
     """Pseudo poses for every frame from the phases.
 
@@ -264,7 +347,8 @@ def hybrid_pseudo_poses(
             set, takes their poses without learning from them).
         width: the gripper opening [T] (m): grasps close over time (:func:`kinematic_prior`).
         surface: frame -> the object's visible surface [M, 3] (base frame; None without depth):
-            with ``model_points``, where a released object rests (:func:`settle_at_rest`).
+            with ``model_points``, where a released object rests (:func:`settle_at_rest`) and,
+            with ``slip_from_depth``, how it slipped in the hand while held (:func:`follow_slip`).
     """
     T = len(tcp)
     poses = np.zeros((T, 4, 4))
@@ -291,10 +375,12 @@ def hybrid_pseudo_poses(
             n = seg.end - seg.start
             poses[seg.start:seg.end] = prior[offset:offset + n]
             source[seg.start:seg.end] = [ATTACHED if h else STATIC for h in held[offset:offset + n]]
-    shifts = []
+    shifts, slips = [], []
     if surface is not None and model_points is not None:
+        if slip_from_depth:
+            slips = follow_slip(poses, events, surface, model_points, tcp, width, observe, keep=from_tracking)
         shifts = settle_at_rest(poses, events, surface, model_points, width, observe)
-    return PseudoPoses(poses, source, from_tracking, shifts)
+    return PseudoPoses(poses, source, from_tracking, shifts, slips)
 
 
 def _shift(events: list[GripperEvents], start: int) -> list[GripperEvents]:

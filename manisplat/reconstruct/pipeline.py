@@ -103,7 +103,8 @@ def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.nda
                  tau: float = DEFAULT_TAU, model: ObjectView | None = None,
                  masks_from_model: bool = False, model_points: np.ndarray | None = None,
                  settings: TrackerSettings = TrackerSettings(),
-                 observe: frozenset[int] = frozenset(), rest_from_depth: bool = True) -> ObjectAlignment:
+                 observe: frozenset[int] = frozenset(), rest_from_depth: bool = True,
+                 slip_from_depth: bool = True) -> ObjectAlignment:
     """Phases, hybrid pseudo poses and (for moving objects) the tracking-only baseline.
 
     ``model`` stands in for the depth (monocular) and, with ``masks_from_model``, for the masks
@@ -113,7 +114,8 @@ def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.nda
     ``settings``: the tracker's; ``observe``: the held-out frames, whose poses are tracked without
     anything learning from them. ``rest_from_depth``: with ``model_points`` and depth, a released
     object is placed where the depth says it rests
-    (:func:`~manisplat.align.pseudo_gt.settle_at_rest`).
+    (:func:`~manisplat.align.pseudo_gt.settle_at_rest`); with it and ``slip_from_depth``, a held one
+    follows its slip in the hand (:func:`~manisplat.align.pseudo_gt.follow_slip`).
     """
     events = gripper_events(data.gripper.numpy())
     segments = segment_phases(tcp[:, :3, 3], data.gripper.numpy(), T_start[:3, 3], tau=tau)
@@ -140,7 +142,8 @@ def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.nda
         return visible_surface((data.masks[f] == label).numpy(), data.depth[f].numpy(), K, T_base_cam)
 
     pseudo = hybrid_pseudo_poses(segments, T_start, tcp, events, tracker, model_points, observe,
-                                 width=data.gripper.double().numpy(), surface=surface)
+                                 width=data.gripper.double().numpy(), surface=surface,
+                                 slip_from_depth=slip_from_depth)
     baseline = tracked_baseline(tracker, data.n_frames, T_start)
     return ObjectAlignment(segments, events, pseudo, baseline)
 
