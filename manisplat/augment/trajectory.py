@@ -14,6 +14,10 @@ joint space (:mod:`.planning`: straight line, else OMPL RRT-Connect) in the coll
 :mod:`.collision` (the object held during it attached to the gripper) and timed by toppra under
 ``speed`` x the velocity/acceleration limits (x 0.95 headroom for the frame-rate finite
 differences), leaving and entering the skills at their own joint velocities (:mod:`.timing`).
+Where no spline does that within the limits (a planned path that turns sharply next to a skill),
+the arm brakes along the skill's last velocity to rest, the path is planned again from rest to
+rest, and it speeds up into the next skill along the mirror of braking (the planner record's
+``joined``: "at speed" or "at rest").
 A demonstration whose last skill ends moving gets an extra Motion, "M_settle", that brings the
 arm to rest along its direction of travel (so the last commanded frame is at rest).
 
@@ -43,7 +47,7 @@ from manisplat.augment.planning import RESOLUTION, plan_path, segment_free
 from manisplat.augment.sampling import ObjectTarget, sample_targets
 from manisplat.augment.skills import SkillResult, SourceSpline, solve_skill
 from manisplat.augment.source import SourceDemo, SourceError, source_demo
-from manisplat.augment.timing import TimingError, time_motion
+from manisplat.augment.timing import REST, TimedMotion, TimingError, time_motion
 from manisplat.augment.validation import check_all, dense_collision, skill_relative_errors
 from manisplat.twin.support import MAX_STEP
 
@@ -324,20 +328,14 @@ class Augmenter:
         waypoints = path.waypoints
         for attempt in range(3):
             t0 = time.perf_counter()
-            timed = None
-            options = [(waypoints, vl, al), (waypoints, self.vlim * config.headroom, self.alim * config.headroom)]
-            if len(waypoints) > 2:  # a planner's polyline: more knots give the spline local control
-                options.append((_densify(waypoints, 0.05), self.vlim * config.headroom, self.alim * config.headroom))
-            err = ""
-            for wps, lim_v, lim_a in options:
-                try:
-                    timed = time_motion(wps, v_a, v_b, vlim=lim_v, alim=lim_a, dt=self.dt)
-                    break
-                except TimingError as exc:
-                    err = str(exc)
+            timed, err = self._time_path(waypoints, v_a, v_b, vl, al, config)
             timings["timing_s"] += time.perf_counter() - t0
+            record["joined"] = "at speed"
             if timed is None:
-                raise Rejected("timing", f"{name}: no time-parametrization within the limits ({err})")
+                # the path turns too sharply to be joined at the skills' speeds: stop at the ends
+                timed = self._through_rest(name, q_a, q_b, v_a, v_b, width, config, seed + 7 * attempt, err,
+                                           timings)
+                record["joined"] = "at rest"
             # the commanded path is linear between frames: check exactly that
             t0 = time.perf_counter()
             ok = all(segment_free(self.scene, a, b, width) for a, b in zip(timed.q[:-1], timed.q[1:]))
@@ -363,9 +361,60 @@ class Augmenter:
             timings["planning_s"] += time.perf_counter() - t0
         raise Rejected("collision", f"{name}: the timed motion collides after re-planning")
 
+    def _time_path(self, waypoints, v_a, v_b, vl, al, config) -> tuple[TimedMotion | None, str]:
+        """Timed along ``waypoints`` within ``speed`` x the limits, else the full limits, else
+        (a planner's polyline) densified knots; ``(None, last error)`` when none can be timed."""
+        options = [(waypoints, vl, al), (waypoints, self.vlim * config.headroom, self.alim * config.headroom)]
+        if len(waypoints) > 2:  # a planner's polyline: more knots give the spline local control
+            options.append((_densify(waypoints, 0.05), self.vlim * config.headroom, self.alim * config.headroom))
+        err = ""
+        for wps, lim_v, lim_a in options:
+            try:
+                return time_motion(wps, v_a, v_b, vlim=lim_v, alim=lim_a, dt=self.dt), ""
+            except TimingError as exc:
+                err = str(exc)
+        return None, err
+
+    def _stop_point(self, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Where the arm comes to rest from ``q`` moving at ``v`` (rad/s) when braking along ``v``
+        at half the acceleration limit (clipped to the joint limits)."""
+        stop_t = float((np.abs(v) / (0.5 * self.alim)).max())
+        return np.clip(q + v * stop_t / 2, self.kin.lower, self.kin.upper)
+
+    def _through_rest(self, name, q_a, q_b, v_a, v_b, width, config, seed, why, timings) -> TimedMotion:
+        """The fallback when no spline joins the skills at their own speeds (a planner's path that
+        turns sharply near an end): brake along the last skill's velocity to rest, the path
+        re-planned from rest to rest, and speed up into the next skill along its first velocity
+        (the mirror of braking). Raises :class:`Rejected`."""
+        lim_v, lim_a = self.vlim * config.headroom, self.alim * config.headroom
+        moving_a, moving_b = np.abs(v_a).max() >= REST, np.abs(v_b).max() >= REST
+        rest_a = self._stop_point(q_a, v_a) if moving_a else q_a
+        rest_b = self._stop_point(q_b, -v_b) if moving_b else q_b
+        t0 = time.perf_counter()
+        path = plan_path(self.scene, rest_a, rest_b, width, lower=self.kin.lower, upper=self.kin.upper,
+                         timeout=config.planner_timeout_s, seed=seed, name=name)
+        timings["planning_s"] += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        zero = np.zeros_like(v_a)
+        middle, err = self._time_path(path.waypoints, zero, zero, lim_v, lim_a, config)
+        try:
+            if middle is None:
+                raise TimingError(err)
+            parts = [middle.q]
+            if moving_a:
+                parts.insert(0, time_motion(np.stack([q_a, rest_a]), v_a, zero, vlim=lim_v, alim=lim_a, dt=self.dt).q[:-1])
+            if moving_b:
+                parts.append(time_motion(np.stack([rest_b, q_b]), zero, v_b, vlim=lim_v, alim=lim_a, dt=self.dt).q[1:])
+        except TimingError as exc:
+            raise Rejected("timing", f"{name}: no time-parametrization within the limits ({why}; and through rest: "
+                                     f"{exc})") from exc
+        finally:
+            timings["timing_s"] += time.perf_counter() - t0
+        q = np.concatenate(parts)
+        return TimedMotion(q, (len(q) - 1) * self.dt, middle.optimal, middle.sample)
+
     def _settle(self, q_end, v_end, width, plan, s, config, timings, attempts) -> dict:
-        stop_t = float((np.abs(v_end) / (0.5 * self.alim)).max())
-        q_stop = np.clip(q_end + v_end * stop_t / 2, self.kin.lower, self.kin.upper)
+        q_stop = self._stop_point(q_end, v_end)
         world, held = self._world_at(plan, s)
         state = _State(world, held, plan[held]["src"].G if held else None)
         state.apply(self.scene)
@@ -490,7 +539,7 @@ class Augmenter:
                    for name in object_poses}
         planner = {"libraries": {"kinematics_ik": "pinocchio (pin) Levenberg-Marquardt, warm-started",
                                  "collision": "coal via pinocchio GeometryModel",
-                                 "planner": "straight joint line, else OMPL RRTConnect + simplifySolution",
+                                 "planner": "straight joint line, else OMPL RRTConnect + PathSimplifier.simplifyMax",
                                  "timing": "toppra (TOPPRA, ParametrizeConstAccel)"},
                    "speed": config.speed, "seed": config.seed, "segments": attempts,
                    "skills": [{"name": s.name, "object": s.object, "slowed": round(float(r.slow), 4),

@@ -13,7 +13,8 @@ from scipy.interpolate import CubicSpline
 from manisplat.augment.collision import BoxObstacle
 from manisplat.augment.sampling import perturb
 from manisplat.augment.source import source_demo
-from manisplat.augment.trajectory import AugmentConfig, ObjectTarget, Rejected, augment_trajectory, sample_targets
+from manisplat.augment.trajectory import (AugmentConfig, ObjectTarget, Rejected, augment_trajectory, augmenter_for,
+                                          sample_targets)
 from manisplat.drivers.piper.trajectory import ReplayLimits, Trajectory, check_trajectory, trajectory_figures
 from manisplat.robot import builtin_piper
 
@@ -177,6 +178,37 @@ def test_an_obstacle_on_the_straight_path_forces_a_collision_free_detour(twin):
     assert traj.validation["collision_free"]
     problems, _ = _replay_problems(traj)
     assert problems == []
+
+
+@pytest.mark.parametrize("speed, back", [(0.6, 0.02), (1.5, 0.1)])
+def test_a_motion_that_must_reverse_the_skills_velocity_brakes_to_rest_first(twin, speed, back):
+    """The motion after a skill that ends moving at ``speed`` rad/s (joint 1) goes ``back`` rad
+    the other way: no spline leaves at that speed and turns within the limits, so the arm brakes
+    along its velocity to rest, goes back, and the joins keep the replay's limits."""
+    augmenter, config = augmenter_for(twin), AugmentConfig()
+    q_a = source_demo(twin).q[0].copy()
+    v_a = np.zeros(6)
+    v_a[0] = speed
+    q_b = q_a - back * np.eye(6)[0]
+    records: list[dict] = []
+    piece = augmenter._motion("M_test", q_a, q_b, v_a, np.zeros(6), 0.07, augmenter._object_plan(_source_targets(twin)),
+                              0.0, augmenter.vlim * config.headroom, augmenter.alim * config.headroom, config, seed=0,
+                              timings={"planning_s": 0.0, "timing_s": 0.0}, attempts=records)
+    q = piece["q"]
+    assert records[-1]["joined"] == "at rest"
+    assert np.array_equal(q[0], q_a) and np.array_equal(q[-1], q_b)
+    # it keeps going the skill's way while it brakes (a stop distance of v^2 / alim at half the
+    # acceleration limit, within 1 %) and is at rest before it turns
+    stop = speed ** 2 / augmenter.alim[0]
+    assert (q[:, 0] - q_a[0]).max() == pytest.approx(stop, rel=0.01)
+    # the skill's last frames moving at v_a, then the motion: the replay's checks pass across the join
+    dt = augmenter.dt
+    joined = np.concatenate([q_a - np.outer([3, 2, 1], v_a) * dt, q])
+    t = np.arange(len(joined)) * dt
+    robot = builtin_piper(with_geometry=False)
+    assert check_trajectory(Trajectory(t, joined, np.full(len(t), 0.07), "actions", 1.0), robot, ReplayLimits()) == []
+    v = np.diff(joined, axis=0) / dt
+    assert np.abs(np.diff(v, axis=0) / dt).max() <= augmenter.alim.max() * 1.001
 
 
 def test_an_obstacle_that_blocks_everything_is_rejected(twin):
