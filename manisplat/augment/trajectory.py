@@ -333,9 +333,9 @@ class Augmenter:
             record["joined"] = "at speed"
             if timed is None:
                 # the path turns too sharply to be joined at the skills' speeds: stop at the ends
-                timed = self._through_rest(name, q_a, q_b, v_a, v_b, width, config, seed + 7 * attempt, err,
-                                           timings)
-                record["joined"] = "at rest"
+                timed, method = self._through_rest(name, q_a, q_b, v_a, v_b, width, vl, al, config,
+                                                   seed + 7 * attempt, err, timings)
+                record.update(joined="at rest", method=method)
             # the commanded path is linear between frames: check exactly that
             t0 = time.perf_counter()
             ok = all(segment_free(self.scene, a, b, width) for a, b in zip(timed.q[:-1], timed.q[1:]))
@@ -381,11 +381,13 @@ class Augmenter:
         stop_t = float((np.abs(v) / (0.5 * self.alim)).max())
         return np.clip(q + v * stop_t / 2, self.kin.lower, self.kin.upper)
 
-    def _through_rest(self, name, q_a, q_b, v_a, v_b, width, config, seed, why, timings) -> TimedMotion:
+    def _through_rest(self, name, q_a, q_b, v_a, v_b, width, vl, al, config, seed, why,
+                      timings) -> tuple[TimedMotion, str]:
         """The fallback when no spline joins the skills at their own speeds (a planner's path that
         turns sharply near an end): brake along the last skill's velocity to rest, the path
         re-planned from rest to rest, and speed up into the next skill along its first velocity
-        (the mirror of braking). Raises :class:`Rejected`."""
+        (the mirror of braking). Returns the timed motion and how its rest-to-rest path was
+        planned ("straight" or "rrtconnect"). Raises :class:`Rejected`."""
         lim_v, lim_a = self.vlim * config.headroom, self.alim * config.headroom
         moving_a, moving_b = np.abs(v_a).max() >= REST, np.abs(v_b).max() >= REST
         rest_a = self._stop_point(q_a, v_a) if moving_a else q_a
@@ -396,7 +398,7 @@ class Augmenter:
         timings["planning_s"] += time.perf_counter() - t0
         t0 = time.perf_counter()
         zero = np.zeros_like(v_a)
-        middle, err = self._time_path(path.waypoints, zero, zero, lim_v, lim_a, config)
+        middle, err = self._time_path(path.waypoints, zero, zero, vl, al, config)
         try:
             if middle is None:
                 raise TimingError(err)
@@ -411,7 +413,7 @@ class Augmenter:
         finally:
             timings["timing_s"] += time.perf_counter() - t0
         q = np.concatenate(parts)
-        return TimedMotion(q, (len(q) - 1) * self.dt, middle.optimal, middle.sample)
+        return TimedMotion(q, (len(q) - 1) * self.dt, middle.optimal, middle.sample), path.method
 
     def _settle(self, q_end, v_end, width, plan, s, config, timings, attempts) -> dict:
         q_stop = self._stop_point(q_end, v_end)
