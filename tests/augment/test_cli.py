@@ -34,6 +34,11 @@ def test_writes_valid_episodes_with_their_augmentation_record(augmented, recon):
     assert code == 0
     report = json.loads((out / "augment_report.json").read_text())
     assert report["written"] == 2 and report["valid"] == 2 and 0 < report["validity_rate"] <= 1
+    motions = [r for n in ("episode_0000", "episode_0001")
+               for r in json.loads((out / n / "augmentation.json").read_text())["planner"]["segments"]]
+    assert report["motions"]["planned"] == len(motions) > 0
+    assert sum(report["motions"]["by_method"].values()) == len(motions)
+    assert report["motions"]["joined_at_rest"] == sum(r.get("joined") == "at rest" for r in motions)
     assert sorted(p.name for p in out.iterdir() if p.is_dir()) == ["episode_0000", "episode_0001", "sheets"]
     assert (out / "tcp_paths.png").stat().st_size > 0
     assert sorted(p.name for p in (out / "sheets").iterdir()) == ["episode_0000.png", "episode_0001.png"]
@@ -142,3 +147,24 @@ def test_an_augmented_episode_replays_on_the_simulated_arm(augmented, capsys):
                    "--max-tracking-error-deg", "45"]) == 0
     text = capsys.readouterr().out
     assert "0 resets" in text and "0 disables" in text
+
+
+def test_the_report_counts_how_the_motions_were_planned():
+    from types import SimpleNamespace
+
+    from manisplat.augment.run import Sample, _report
+
+    def valid(*records):
+        return SimpleNamespace(validation={}, planner={"segments": list(records)})
+
+    samples = [Sample(0, 0, {}, valid({"method": "straight", "joined": "at speed"},
+                                      {"method": "rrtconnect", "joined": "at rest"})),
+               Sample(1, 1, {}, valid({"method": "rrtconnect", "joined": "at rest"},
+                                      {"method": "stop along the last velocity"})),
+               Sample(2, 2, {}, None, reason="collision")]
+    args = SimpleNamespace(recon="twin", seed=0, object_range=(0.08, 0.08, 45), target_range=(0.05, 0.05, 45),
+                           speed=1.0, workers=1)
+    report = _report(SimpleNamespace(episode="ep"), args, samples, 2, {})
+    assert report["motions"] == {"planned": 4, "joined_at_rest": 2,
+                                 "by_method": {"straight": 1, "rrtconnect": 2, "stop along the last velocity": 1}}
+    assert report["reasons"] == {"collision": 1} and report["valid"] == 2
