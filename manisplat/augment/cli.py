@@ -118,6 +118,10 @@ def summary(report: dict, out: Path) -> str:
     if report.get("skill_error_max"):
         err = report["skill_error_max"]
         lines.append(f"skill-relative TCP error max: {err['mm']:.4f} mm, {err['deg']:.4f} deg")
+    if report.get("motions", {}).get("planned"):
+        motions = report["motions"]
+        lines.append(f"motions: {motions['planned']} (" + ", ".join(f"{v} {k}" for k, v in motions["by_method"].items())
+                     + f"); {motions['joined_at_rest']} stopped at a skill to turn (joined at rest)")
     lines.append(f"look at: {out / 'tcp_paths.png'}, {out / 'sheets'}/, {out / REPORT}")
     return "\n".join(lines)
 

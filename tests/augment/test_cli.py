@@ -4,6 +4,7 @@ validity rate, nothing half-written, and clear errors for bad input."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -168,3 +169,7 @@ def test_the_report_counts_how_the_motions_were_planned():
     assert report["motions"] == {"planned": 4, "joined_at_rest": 2,
                                  "by_method": {"straight": 1, "rrtconnect": 2, "stop along the last velocity": 1}}
     assert report["reasons"] == {"collision": 1} and report["valid"] == 2
+    from manisplat.augment.cli import summary
+
+    assert ("motions: 4 (1 straight, 2 rrtconnect, 1 stop along the last velocity); 2 stopped at a skill to turn"
+            in summary(report, Path("out")))
