@@ -195,26 +195,15 @@ def fit_rest(surfaces: list[np.ndarray], poses: list[np.ndarray], model_points: 
     from scipy.spatial import cKDTree
 
     tree = cKDTree(model_points)
-
-    def matches(shift):
-        residuals, distances = [], []
-        for X, T in zip(surfaces, poses):
-            local = (X - T[:3, 3] - shift) @ T[:3, :3]  # the surface in the object frame
-            d, idx = tree.query(local, distance_upper_bound=cap)
-            near = np.isfinite(d)
-            residuals.append(X[near] - (model_points[idx[near]] @ T[:3, :3].T + T[:3, 3] + shift))
-            distances.append(np.minimum(d, cap))
-        return np.concatenate(residuals), float(np.concatenate(distances).mean())
-
     shift = np.zeros(3)
-    residuals, before = matches(shift)
+    residuals, before = _match(tree, model_points, surfaces, poses, shift, cap)
     after = before
     for _ in range(iterations):
         if len(residuals) == 0:
             break
         step = residuals.mean(0)
         shift = shift + step
-        residuals, after = matches(shift)
+        residuals, after = _match(tree, model_points, surfaces, poses, shift, cap)
         if np.linalg.norm(step) < 1e-5:
             break
     return shift, before, after
@@ -226,10 +215,22 @@ def surface_misfit(surfaces: list[np.ndarray], poses: list[np.ndarray], model_po
     model points [M, 3] (object frame) placed at the frames' ``poses`` [4, 4]."""
     from scipy.spatial import cKDTree
 
-    tree = cKDTree(model_points)
-    distances = [np.minimum(tree.query((X - T[:3, 3]) @ T[:3, :3], distance_upper_bound=cap)[0], cap)
-                 for X, T in zip(surfaces, poses)]
-    return float(np.concatenate(distances).mean())
+    return _match(cKDTree(model_points), model_points, surfaces, poses, np.zeros(3), cap)[1]
+
+
+def _match(tree, model_points: np.ndarray, surfaces: list[np.ndarray], poses: list[np.ndarray], shift: np.ndarray,
+           cap: float) -> tuple[np.ndarray, float]:
+    """The surfaces' points matched to their nearest model point (``tree`` over ``model_points``)
+    with the model at ``poses`` moved by ``shift`` [3] (m, base frame): the residuals [K, 3] (base
+    frame) of the points within ``cap``, and the mean distance of all points, each capped at ``cap``."""
+    residuals, distances = [], []
+    for X, T in zip(surfaces, poses):
+        local = (X - T[:3, 3] - shift) @ T[:3, :3]  # the surface in the object frame
+        d, idx = tree.query(local, distance_upper_bound=cap)
+        near = np.isfinite(d)
+        residuals.append(X[near] - (model_points[idx[near]] @ T[:3, :3].T + T[:3, 3] + shift))
+        distances.append(np.minimum(d, cap))
+    return np.concatenate(residuals), float(np.concatenate(distances).mean())
 
 
 def follow_slip(poses: np.ndarray, events: list[GripperEvents], surface: Callable[[int], np.ndarray | None],
