@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from manisplat.augment.cli import main
+from manisplat.augment.cli import main, summary
+from manisplat.augment.run import Sample, _report
 from manisplat.episode import Episode, validate
 from manisplat.episode.synthetic import write_sample_episode
 from manisplat.reconstruct.cli import main as reconstruct
@@ -151,10 +153,6 @@ def test_an_augmented_episode_replays_on_the_simulated_arm(augmented, capsys):
 
 
 def test_the_report_counts_how_the_motions_were_planned():
-    from types import SimpleNamespace
-
-    from manisplat.augment.run import Sample, _report
-
     def valid(*records):
         return SimpleNamespace(validation={}, planner={"segments": list(records)})
 
@@ -169,7 +167,5 @@ def test_the_report_counts_how_the_motions_were_planned():
     assert report["motions"] == {"planned": 4, "joined_at_rest": 2,
                                  "by_method": {"straight": 1, "rrtconnect": 2, "stop along the last velocity": 1}}
     assert report["reasons"] == {"collision": 1} and report["valid"] == 2
-    from manisplat.augment.cli import summary
-
     assert ("motions: 4 (1 straight, 2 rrtconnect, 1 stop along the last velocity); 2 stopped at a skill to turn"
             in summary(report, Path("out")))

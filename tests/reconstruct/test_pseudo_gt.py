@@ -11,8 +11,8 @@ import torch
 from manisplat.align.phases import GripperEvents, Segment
 from manisplat.align.pseudo_gt import (ATTACHED, MAX_REST_SHIFT, STATIC, TRACKED, close_end, fit_rest, follow_slip,
                                       hybrid_pseudo_poses, kinematic_prior, open_end, pad_push, settle_at_rest)
-from manisplat.geometry import so3_exp
 from manisplat.align.tracking import DepthEvidence, TrackerSettings, track_object
+from manisplat.geometry import so3_exp
 
 
 def tcp_track(T=60):
