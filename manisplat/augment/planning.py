@@ -51,9 +51,11 @@ def path_free(checker, waypoints: np.ndarray, width: float, resolution: float = 
 
 
 def plan_path(checker, q_start: np.ndarray, q_goal: np.ndarray, width: float, *, lower: np.ndarray,
-              upper: np.ndarray, timeout: float, seed: int, name: str = "motion") -> PlanResult:
-    """A collision-free path from ``q_start`` to ``q_goal`` (gripper ``width``); raises
-    :class:`Rejected` ("collision" when an end collides, "planner_timeout")."""
+              upper: np.ndarray, timeout: float, seed: int, name: str = "motion",
+              straight: bool = True) -> PlanResult:
+    """A collision-free path from ``q_start`` to ``q_goal`` (gripper ``width``): the straight
+    segment when it is free (and ``straight``), else RRT-Connect's; raises :class:`Rejected`
+    ("collision" when an end collides or no path passes the dense check, "planner_timeout")."""
     t0 = time.perf_counter()
     checks0 = checker.checks
     for what, q in (("start", q_start), ("goal", q_goal)):
@@ -61,7 +63,7 @@ def plan_path(checker, q_start: np.ndarray, q_goal: np.ndarray, width: float, *,
             pair = checker.first_collision(q, width)
             raise Rejected("collision", f"{name}: its {what} configuration collides ({pair[0]} with {pair[1]})"
                            if pair else f"{name}: its {what} configuration collides")
-    if segment_free(checker, q_start, q_goal, width):
+    if straight and segment_free(checker, q_start, q_goal, width):
         return PlanResult(np.stack([q_start, q_goal]), "straight", time.perf_counter() - t0, checker.checks - checks0)
     # OMPL checks a segment at its own sample points (spaced in the L2 norm); a sliver of collision
     # between them fails this module's check: plan again with 4x finer checks before giving up

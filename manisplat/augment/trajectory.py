@@ -350,14 +350,10 @@ class Augmenter:
             if attempt == 0:
                 waypoints = _densify(waypoints, 0.05)
             else:
-                from manisplat.augment.planning import _rrt_connect
-                wps = _rrt_connect(self.scene, q_a, q_b, width, self.kin.lower, self.kin.upper,
-                                   config.planner_timeout_s, seed + 7)
-                if wps is None:
-                    raise Rejected("planner_timeout", f"{name}: RRT-Connect found no path in "
-                                                      f"{config.planner_timeout_s:g} s")
-                waypoints = _densify(wps, 0.05)
-                record["method"] = "rrtconnect"
+                replanned = plan_path(self.scene, q_a, q_b, width, lower=self.kin.lower, upper=self.kin.upper,
+                                      timeout=config.planner_timeout_s, seed=seed + 7, name=name, straight=False)
+                waypoints = _densify(replanned.waypoints, 0.05)
+                record["method"] = replanned.method
             timings["planning_s"] += time.perf_counter() - t0
         raise Rejected("collision", f"{name}: the timed motion collides after re-planning")
 

@@ -33,6 +33,15 @@ def test_the_straight_line_when_it_is_free():
     assert result.method == "straight" and len(result.waypoints) == 2
 
 
+def test_the_planner_when_asked_not_to_go_straight():
+    """The re-plan after a timed spline left a straight segment: a planner path (not the same
+    straight line again), still collision-free."""
+    checker = WallWithGap(0.1)
+    result = plan_path(checker, np.array([-0.5, 0.0]), np.array([0.5, 0.0]), 0.0, lower=LOWER,
+                       upper=UPPER, timeout=1.0, seed=0, straight=False)
+    assert result.method == "rrtconnect" and path_free(checker, result.waypoints, 0.0)
+
+
 def test_a_wall_is_passed_through_its_gap():
     checker = WallWithGap(0.1)
     result = plan_path(checker, np.array([-0.5, 0.5]), np.array([0.5, 0.5]), 0.0, lower=LOWER, upper=UPPER,
