@@ -17,7 +17,7 @@
   benchmarks/results_reconstruct/pseudo_gt.json).
 * Where an object is let go, the frames' depth says where it came to rest: once the pads have
   opened, the object's visible surface in every later frame (until the next grasp) is aligned
-  with its model points by one shift of position (:func:`fit_rest`; the orientation stays the
+  with its model points by one shift of position (:meth:`SurfaceModel.fit_shift`; the orientation stays the
   prior's). The rigid grasp misses a slip in the hand and the drop onto the support, 2-4 mm
   (MAX_REST_SHIFT bounds it: a larger shift is not a settle).
 * While held, the depth shows the object slipping in the hand (:func:`follow_slip`): each held
@@ -40,6 +40,7 @@ from typing import Callable
 import numpy as np
 
 from manisplat.align.phases import GripperEvents, Segment
+from manisplat.align.surface_fit import SurfaceModel
 from manisplat.align.tracking import ObjectView, TrackerSettings, track_object
 
 log = logging.getLogger(__name__)
@@ -185,54 +186,6 @@ def open_end(width: np.ndarray, release: int, end: int, *, tolerance: float = 2e
     return _until_still(width, release, end - 1, tolerance)
 
 
-def fit_rest(surfaces: list[np.ndarray], poses: list[np.ndarray], model_points: np.ndarray, *,
-             cap: float = 0.01, iterations: int = 30) -> tuple[np.ndarray, float, float]:
-    """One shift of position (m, base frame) [3] that aligns the model with the object's visible
-    surface in several frames (translation-only ICP): ``surfaces`` [M_k, 3] (base frame) with the
-    frames' ``poses`` [4, 4]; ``model_points`` [M, 3] (object frame). Points farther than ``cap``
-    from the model are left out of a step (surface the model lacks, stray depth). Returns (shift,
-    misfit before, misfit after): mean distances (m) capped at ``cap``."""
-    from scipy.spatial import cKDTree
-
-    tree = cKDTree(model_points)
-    shift = np.zeros(3)
-    residuals, before = _match(tree, model_points, surfaces, poses, shift, cap)
-    after = before
-    for _ in range(iterations):
-        if len(residuals) == 0:
-            break
-        step = residuals.mean(0)
-        shift = shift + step
-        residuals, after = _match(tree, model_points, surfaces, poses, shift, cap)
-        if np.linalg.norm(step) < 1e-5:
-            break
-    return shift, before, after
-
-
-def surface_misfit(surfaces: list[np.ndarray], poses: list[np.ndarray], model_points: np.ndarray, *,
-                   cap: float = 0.01) -> float:
-    """Mean distance (m, each capped at ``cap``) of the surfaces [M_k, 3] (base frame) to the
-    model points [M, 3] (object frame) placed at the frames' ``poses`` [4, 4]."""
-    from scipy.spatial import cKDTree
-
-    return _match(cKDTree(model_points), model_points, surfaces, poses, np.zeros(3), cap)[1]
-
-
-def _match(tree, model_points: np.ndarray, surfaces: list[np.ndarray], poses: list[np.ndarray], shift: np.ndarray,
-           cap: float) -> tuple[np.ndarray, float]:
-    """The surfaces' points matched to their nearest model point (``tree`` over ``model_points``)
-    with the model at ``poses`` moved by ``shift`` [3] (m, base frame): the residuals [K, 3] (base
-    frame) of the points within ``cap``, and the mean distance of all points, each capped at ``cap``."""
-    residuals, distances = [], []
-    for X, T in zip(surfaces, poses):
-        local = (X - T[:3, 3] - shift) @ T[:3, :3]  # the surface in the object frame
-        d, idx = tree.query(local, distance_upper_bound=cap)
-        near = np.isfinite(d)
-        residuals.append(X[near] - (model_points[idx[near]] @ T[:3, :3].T + T[:3, 3] + shift))
-        distances.append(np.minimum(d, cap))
-    return np.concatenate(residuals), float(np.concatenate(distances).mean())
-
-
 def follow_slip(poses: np.ndarray, events: list[GripperEvents], surface: Callable[[int], np.ndarray | None],
                 model_points: np.ndarray, tcp: np.ndarray, width: np.ndarray | None = None,
                 observe: frozenset[int] = frozenset(), keep: np.ndarray | None = None) -> list[np.ndarray]:
@@ -240,7 +193,7 @@ def follow_slip(poses: np.ndarray, events: list[GripperEvents], surface: Callabl
     closing to the release, by the object's slip in the hand that the frames' depth shows.
 
     Each held frame's visible surface (``surface(f)`` [M, 3], base frame, or None) is aligned with
-    ``model_points`` [M, 3] (object frame) by one shift of position (:func:`fit_rest`); the shifts,
+    ``model_points`` [M, 3] (object frame) by one shift of position (:meth:`SurfaceModel.fit_shift`); the shifts,
     in the TCP's frame (``tcp`` [T, 4, 4]), are smoothed by a running median over
     2 :data:`SLIP_WINDOW` + 1 fitted frames and interpolated between them (held-out frames,
     ``observe``, and frames that ``keep`` [T] bool marks, e.g. tracked poses, are not fitted; the
@@ -248,7 +201,7 @@ def follow_slip(poses: np.ndarray, events: list[GripperEvents], surface: Callabl
     frames drops clearly (:data:`SLIP_EVIDENCE_RATIO`, :data:`SLIP_EVIDENCE_M`); the object then
     rests, until the next grasp, shifted as it was let go. Returns each taken slip where its
     stretch ended [3] (m, TCP frame)."""
-    T, slips = len(poses), []
+    T, slips, model = len(poses), [], SurfaceModel(model_points)
     grasps = sorted(e.grasp for e in events)
     for e in events:
         first = close_end(width, e.grasp, e.release) if width is not None else e.grasp
@@ -257,7 +210,7 @@ def follow_slip(poses: np.ndarray, events: list[GripperEvents], surface: Callabl
         for f in range(first, end):
             if f in observe or (keep is not None and keep[f]) or (X := surface(f)) is None or len(X) < MIN_SLIP_POINTS:
                 continue
-            shift, before, after = fit_rest([X], [poses[f]], model_points)
+            shift, before, after = model.fit_shift([X], [poses[f]])
             if np.linalg.norm(shift) <= MAX_REST_SHIFT and after < before:
                 fitted.append(f)
                 shifts.append(tcp[f, :3, :3].T @ shift)
@@ -275,8 +228,8 @@ def follow_slip(poses: np.ndarray, events: list[GripperEvents], surface: Callabl
             in_hand[keep[first:end]] = 0.0  # a tracked pose is the tracker's own
         slipped = poses[first:end].copy()
         slipped[:, :3, 3] += np.einsum("nij,nj->ni", tcp[first:end, :3, :3], in_hand)
-        rigid = surface_misfit(surfaces, [poses[f] for f in fitted], model_points)
-        taken = surface_misfit(surfaces, [slipped[f - first] for f in fitted], model_points)
+        rigid = model.misfit(surfaces, [poses[f] for f in fitted])
+        taken = model.misfit(surfaces, [slipped[f - first] for f in fitted])
         if not (taken < SLIP_EVIDENCE_RATIO * rigid and rigid - taken > SLIP_EVIDENCE_M):
             log.info("grasp at frame %d: the depth shows no clear slip in the hand (misfit %.2f -> %.2f mm); "
                      "the rigid grasp stands", e.grasp, 1000 * rigid, 1000 * taken)
@@ -297,10 +250,10 @@ def settle_at_rest(poses: np.ndarray, events: list[GripperEvents], surface: Call
                    model_points: np.ndarray, width: np.ndarray | None = None,
                    observe: frozenset[int] = frozenset()) -> list[np.ndarray]:
     """Shift ``poses`` [T, 4, 4] (in place) from each release to the next grasp by where the
-    frames' depth says the object rests (:func:`fit_rest` over the frames after the pads opened;
+    frames' depth says the object rests (:meth:`SurfaceModel.fit_shift` over the frames after the pads opened;
     ``surface(f)``: the object's visible surface [M, 3] in frame f, or None without depth).
     Held-out frames (``observe``) are shifted but not fitted. Returns the shifts applied."""
-    T, shifts = len(poses), []
+    T, shifts, model = len(poses), [], SurfaceModel(model_points)
     grasps = sorted(e.grasp for e in events)
     for e in events:
         if e.release is None:
@@ -310,7 +263,7 @@ def settle_at_rest(poses: np.ndarray, events: list[GripperEvents], surface: Call
         fitted = [(f, X) for f in range(first, end) if f not in observe and (X := surface(f)) is not None]
         if sum(len(X) for _, X in fitted) < MIN_REST_POINTS:
             continue
-        shift, before, after = fit_rest([X for _, X in fitted], [poses[f] for f, _ in fitted], model_points)
+        shift, before, after = model.fit_shift([X for _, X in fitted], [poses[f] for f, _ in fitted])
         if np.linalg.norm(shift) > MAX_REST_SHIFT or not after < before:
             log.info("release at frame %d: the depth's rest shift %.1f mm is not a settle; the prior stands",
                      e.release, 1000 * np.linalg.norm(shift))

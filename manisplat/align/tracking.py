@@ -38,6 +38,7 @@ import cv2
 import numpy as np
 import torch
 
+from manisplat.align.surface_fit import SurfaceModel
 from manisplat.geometry import GeometryError, kabsch_ransac, rotation_error
 
 log = logging.getLogger(__name__)
@@ -156,13 +157,11 @@ class DepthEvidence:
     def __init__(self, mask: np.ndarray, depth: np.ndarray, K: np.ndarray, T_base_cam: np.ndarray,
                  T_base_obj: np.ndarray, *, model_points: np.ndarray | None = None, cap: float = 0.01,
                  max_points: int = 1500) -> None:
-        from scipy.spatial import cKDTree
-
-        self._K, self._T_base_cam, self._cap, self._max = K, T_base_cam, cap, max_points
+        self._K, self._T_base_cam, self._max = K, T_base_cam, max_points
         model = _to_object(self.surface(mask, depth), T_base_obj)
         if model_points is not None:
             model = np.concatenate([model, np.asarray(model_points, dtype=np.float64).reshape(-1, 3)])
-        self._tree = cKDTree(model) if len(model) >= 10 else None
+        self._model = SurfaceModel(model, cap) if len(model) >= 10 else None
 
     def surface(self, mask: np.ndarray, depth: np.ndarray) -> np.ndarray:
         """Base-frame points [M, 3] of the mask's pixels with valid depth (M <= max_points)."""
@@ -171,10 +170,9 @@ class DepthEvidence:
     def misfit(self, surface: np.ndarray, T_base_obj: np.ndarray) -> float:
         """Mean capped distance (m) of ``surface`` [M, 3] to the model at ``T_base_obj``; inf
         without enough points to judge."""
-        if self._tree is None or len(surface) < 10:
+        if self._model is None or len(surface) < 10:
             return float("inf")
-        distance, _ = self._tree.query(_to_object(surface, T_base_obj), distance_upper_bound=self._cap)
-        return float(np.minimum(distance, self._cap).mean())
+        return self._model.misfit([surface], [T_base_obj])
 
 
 def visible_surface(mask: np.ndarray, depth: np.ndarray, K: np.ndarray, T_base_cam: np.ndarray,

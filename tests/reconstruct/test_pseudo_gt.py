@@ -9,8 +9,9 @@ import pytest
 import torch
 
 from manisplat.align.phases import GripperEvents, Segment
-from manisplat.align.pseudo_gt import (ATTACHED, MAX_REST_SHIFT, STATIC, TRACKED, close_end, fit_rest, follow_slip,
+from manisplat.align.pseudo_gt import (ATTACHED, MAX_REST_SHIFT, STATIC, TRACKED, close_end, follow_slip,
                                       hybrid_pseudo_poses, kinematic_prior, open_end, pad_push, settle_at_rest)
+from manisplat.align.surface_fit import SurfaceModel
 from manisplat.align.tracking import DepthEvidence, TrackerSettings, track_object
 from manisplat.geometry import so3_exp
 
@@ -252,14 +253,14 @@ def visible_box_surface(pose, size=(0.04, 0.04, 0.05), n=2000, seed=1):
     return points @ pose[:3, :3].T + pose[:3, 3]
 
 
-def test_fit_rest_finds_where_the_object_came_to_rest():
+def test_the_shift_fit_finds_where_the_object_came_to_rest():
     model = box_points(n=41)  # about 1 mm spacing
     prior = np.eye(4)
     prior[:3, 3] = [0.3, 0.1, 0.025]
     rest = prior.copy()
     rest[:3, 3] += [0.002, -0.003, -0.0025]  # slipped in the hand and dropped onto its support
     surfaces = [visible_box_surface(rest, seed=k) for k in range(3)]
-    shift, before, after = fit_rest(surfaces, [prior] * 3, model)
+    shift, before, after = SurfaceModel(model).fit_shift(surfaces, [prior] * 3)
     assert np.linalg.norm(shift - [0.002, -0.003, -0.0025]) < 3e-4  # 0.3 mm: the model's 1 mm grid
     assert after < 0.5 * before
 
