@@ -336,16 +336,16 @@ class Augmenter:
                 timed, method = self._through_rest(name, q_a, q_b, v_a, v_b, width, vl, al, config,
                                                    seed + 7 * attempt, err, timings)
                 record.update(joined="at rest", method=method)
-            # the commanded path is linear between frames: check exactly that
+            # the commanded path is linear between frames: check exactly that, and the limits
             t0 = time.perf_counter()
-            ok = all(segment_free(self.scene, a, b, width) for a, b in zip(timed.q[:-1], timed.q[1:]))
+            problem = self._departure(timed.q, width)
             timings["planning_s"] += time.perf_counter() - t0
-            if ok:
+            if problem is None:
                 record.update(frames=len(timed.q) - 1, duration_s=round(timed.duration, 4),
                               optimal_s=round(timed.optimal, 4), timing_attempts=attempt + 1)
                 attempts.append(record)
                 return {"kind": "motion", "name": name, "q": timed.q, "width": width, "state": state}
-            # the timed spline left the checked polyline: follow it more closely, or plan around
+            # the timed spline left the checked polyline (or the limits): follow it more closely, or plan around
             t0 = time.perf_counter()
             if attempt == 0:
                 waypoints = _densify(waypoints, 0.05)
@@ -355,7 +355,16 @@ class Augmenter:
                 waypoints = _densify(replanned.waypoints, 0.05)
                 record["method"] = replanned.method
             timings["planning_s"] += time.perf_counter() - t0
-        raise Rejected("collision", f"{name}: the timed motion collides after re-planning")
+        raise Rejected(problem, f"{name}: the timed motion {'collides' if problem == 'collision' else 'leaves the joint limits'} "
+                                "after re-planning")
+
+    def _departure(self, q: np.ndarray, width: float) -> str | None:
+        """Why the timed motion ``q`` [n, dof] cannot be commanded: "limits" (a frame outside the
+        joint limits, the tolerance of the validation's), "collision" (the frames' joint-linear
+        path collides), or None."""
+        if np.any(q < self.kin.lower - 1e-9) or np.any(q > self.kin.upper + 1e-9):
+            return "limits"
+        return None if all(segment_free(self.scene, a, b, width) for a, b in zip(q[:-1], q[1:])) else "collision"
 
     def _time_path(self, waypoints, v_a, v_b, vl, al, config) -> tuple[TimedMotion | None, str]:
         """Timed along ``waypoints`` within ``speed`` x the limits, else the full limits, else

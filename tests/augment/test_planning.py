@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from manisplat.augment.errors import Rejected
-from manisplat.augment.planning import RESOLUTION, path_free, plan_path
+from manisplat.augment.planning import LIMIT_MARGIN, RESOLUTION, path_free, plan_path
 
 LOWER, UPPER = np.array([-1.0, -1.0]), np.array([1.0, 1.0])
 
@@ -65,6 +65,33 @@ def test_a_path_the_planners_coarser_checks_let_through_is_planned_again_finer()
         result = plan_path(checker, np.array([-0.5, 0.5]), np.array([0.5, 0.5]), 0.0, lower=LOWER, upper=UPPER,
                            timeout=2.0, seed=seed)
         assert path_free(checker, result.waypoints, 0.0)
+
+
+class WallWithPassageAtTheLimit(WallWithGap):
+    """A wall whose only passage is the band q1 in [0.97, 1.0], up to the joint limit (1.0)."""
+
+    def collides(self, q: np.ndarray, width: float) -> bool:
+        self.checks += 1
+        return bool(0.0 <= q[0] <= self.thickness and q[1] < 0.97)
+
+
+def test_the_planners_waypoints_keep_a_margin_inside_the_joint_limits():
+    """A timed spline bulges past a waypoint at a corner: waypoints on a limit would carry the
+    motion past it. The passage reaches the limit; the path keeps LIMIT_MARGIN inside it (without
+    the margin 3 of these 8 seeds put a waypoint nearer the limit)."""
+    highest = []
+    for seed in range(8):
+        checker = WallWithPassageAtTheLimit(0.1)
+        result = plan_path(checker, np.array([-0.5, 0.5]), np.array([0.5, 0.5]), 0.0, lower=LOWER, upper=UPPER,
+                           timeout=2.0, seed=seed)
+        assert result.method == "rrtconnect" and path_free(checker, result.waypoints, 0.0)
+        highest.append(result.waypoints[:, 1].max())
+    assert max(highest) <= UPPER[1] - LIMIT_MARGIN
+    # ends beyond the margin are still reached (the sampled box widened to take them in)
+    end = np.array([0.5, UPPER[1] - LIMIT_MARGIN / 2])
+    result = plan_path(WallWithPassageAtTheLimit(0.1), np.array([-0.5, 0.5]), end, 0.0, lower=LOWER, upper=UPPER,
+                       timeout=2.0, seed=0)
+    assert np.array_equal(result.waypoints[-1], end)
 
 
 def test_an_end_inside_the_wall_is_rejected_by_name():

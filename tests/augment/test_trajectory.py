@@ -211,6 +211,20 @@ def test_a_motion_that_must_reverse_the_skills_velocity_brakes_to_rest_first(twi
     assert np.abs(np.diff(v, axis=0) / dt).max() <= augmenter.alim.max() * 1.001
 
 
+def test_a_timed_motion_that_leaves_the_joint_limits_is_not_taken(twin):
+    """The timed spline can bulge past a planner's waypoint: a frame beyond a limit (the
+    validation's tolerance) sends the motion back to be followed more closely or re-planned."""
+    augmenter = augmenter_for(twin)
+    q = source_demo(twin).q[:3].copy()
+    assert augmenter._departure(q, 0.07) != "limits"
+    q[1, 4] = augmenter.kin.upper[4]  # on the limit is inside
+    assert augmenter._departure(q, 0.07) != "limits"
+    q[1, 4] = augmenter.kin.upper[4] + 2e-9
+    assert augmenter._departure(q, 0.07) == "limits"
+    q[1, 4] = augmenter.kin.lower[4] - 2e-9
+    assert augmenter._departure(q, 0.07) == "limits"
+
+
 def test_an_obstacle_that_blocks_everything_is_rejected(twin):
     box = source_demo(twin).objects["box"]
     T = np.eye(4)
