@@ -355,8 +355,8 @@ class Augmenter:
                 waypoints = _densify(replanned.waypoints, 0.05)
                 record["method"] = replanned.method
             timings["planning_s"] += time.perf_counter() - t0
-        raise Rejected(problem, f"{name}: the timed motion {'collides' if problem == 'collision' else 'leaves the joint limits'} "
-                                "after re-planning")
+        what = "collides" if problem == "collision" else "leaves the joint limits"
+        raise Rejected(problem, f"{name}: the timed motion {what} after re-planning")
 
     def _departure(self, q: np.ndarray, width: float) -> str | None:
         """Why the timed motion ``q`` [n, dof] cannot be commanded: "limits" (a frame outside the
