@@ -6,7 +6,8 @@
    +-5 cm, +-5 cm, +-45 deg): validity rate with reasons, skill-relative TCP error, time split.
 3. Every written episode: ``validate`` and the replay checks of ``manisplat-replay`` at speed 1.
 4. Physics (``$MANISPLAT_SIMENV``: the python of a venv with mujoco 4.0.0, see
-   shared/tools/sim/README.md; skipped without): ``execute_episode.py`` on every demonstration:
+   shared/tools/sim/README.md; skipped without; ``$MUJOCO_GL``, default osmesa, picks its
+   OpenGL): ``execute_episode.py`` on every demonstration:
    success (grasped, carried, left within 1.5 cm / 10 deg of ``T_end``, upright) and collisions.
 5. Visual fidelity on the first 5 demonstrations: our renders against the simulator's renders of
    the same new demonstrations (``--render``): PSNR / SSIM on the full image and over the
@@ -96,7 +97,8 @@ def _execute(simenv: Path, episode: Path, parent: Path, ctx: BenchContext, rende
     cmd = [str(simenv), "execute_episode.py", str(episode), "--parent", str(parent)]
     if render is not None:
         cmd += ["--render", str(render)]
-    proc = subprocess.run(cmd, cwd=tools, capture_output=True, text=True, env={**os.environ, "MUJOCO_GL": "osmesa"})
+    gl = os.environ.get("MUJOCO_GL", "osmesa")  # egl where a GPU driver or Mesa's EGL is installed
+    proc = subprocess.run(cmd, cwd=tools, capture_output=True, text=True, env={**os.environ, "MUJOCO_GL": gl})
     if proc.returncode != 0:
         raise MissingBenchmarkData(f"execute_episode.py failed on {episode}: {proc.stderr[-500:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
