@@ -23,9 +23,6 @@ class SurfaceModel:
         self.cap = float(cap)
         self._tree = cKDTree(self.points)
 
-    def __len__(self) -> int:
-        return len(self.points)
-
     def match(self, surfaces: list[np.ndarray], poses: list[np.ndarray],
               shift: np.ndarray | None = None) -> tuple[np.ndarray, float]:
         """The ``surfaces`` [M_k, 3] (base frame) matched to their nearest model point with the

@@ -8,6 +8,7 @@ import json
 import logging
 import shutil
 import time
+from collections import Counter
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
@@ -190,9 +191,6 @@ def _report(twin: Twin, args: argparse.Namespace, samples: list[Sample], wanted:
         if s.reason:
             reasons[s.reason] = reasons.get(s.reason, 0) + 1
     motions = [r for s in valid for r in s.trajectory.planner["segments"]]
-    by_method: dict[str, int] = {}
-    for r in motions:
-        by_method[r["method"]] = by_method.get(r["method"], 0) + 1
     skill_mm = [s.trajectory.validation.get("skill_error_mm", 0.0) for s in valid]
     skill_deg = [s.trajectory.validation.get("skill_error_deg", 0.0) for s in valid]
     return {
@@ -202,7 +200,7 @@ def _report(twin: Twin, args: argparse.Namespace, samples: list[Sample], wanted:
         "ranges": {"object": args.object_range, "target": args.target_range, "units": "m, m, deg"},
         "speed": args.speed, "workers": args.workers,
         "skill_error_max": {"mm": max(skill_mm, default=0.0), "deg": max(skill_deg, default=0.0)},
-        "motions": {"planned": len(motions), "by_method": by_method,
+        "motions": {"planned": len(motions), "by_method": dict(Counter(r["method"] for r in motions)),
                     "joined_at_rest": sum(r.get("joined") == "at rest" for r in motions)},
         "timing_s": {k: round(v, 2) for k, v in timing.items()},
         "plan_s_per_sample": round(float(np.mean([s.plan_s for s in samples])) if samples else 0.0, 4),

@@ -43,12 +43,12 @@ from manisplat.augment.collision import BoxObstacle, SceneCollision
 from manisplat.augment.errors import Rejected
 from manisplat.augment.frames import solid_points
 from manisplat.augment.kinematics import PinRobot
-from manisplat.augment.planning import RESOLUTION, plan_path, segment_free
+from manisplat.augment.planning import RESOLUTION, path_free, plan_path
 from manisplat.augment.sampling import ObjectTarget, sample_targets
 from manisplat.augment.skills import SkillResult, SourceSpline, solve_skill
 from manisplat.augment.source import SourceDemo, SourceError, source_demo
 from manisplat.augment.timing import REST, TimedMotion, TimingError, time_motion
-from manisplat.augment.validation import check_all, dense_collision, skill_relative_errors
+from manisplat.augment.validation import check_all, dense_collision, skill_relative_errors, within_limits
 from manisplat.twin.support import MAX_STEP
 
 __all__ = ["AugmentConfig", "BoxObstacle", "NewTrajectory", "ObjectTarget", "Rejected", "augment_trajectory",
@@ -360,11 +360,11 @@ class Augmenter:
 
     def _departure(self, q: np.ndarray, width: float) -> str | None:
         """Why the timed motion ``q`` [n, dof] cannot be commanded: "limits" (a frame outside the
-        joint limits, the tolerance of the validation's), "collision" (the frames' joint-linear
-        path collides), or None."""
-        if np.any(q < self.kin.lower - 1e-9) or np.any(q > self.kin.upper + 1e-9):
+        joint limits, as the validation judges it), "collision" (the frames' joint-linear path
+        collides), or None."""
+        if not within_limits(q, self.kin.lower, self.kin.upper):
             return "limits"
-        return None if all(segment_free(self.scene, a, b, width) for a, b in zip(q[:-1], q[1:])) else "collision"
+        return None if path_free(self.scene, q, width) else "collision"
 
     def _time_path(self, waypoints, v_a, v_b, vl, al, config) -> tuple[TimedMotion | None, str]:
         """Timed along ``waypoints`` within ``speed`` x the limits, else the full limits, else

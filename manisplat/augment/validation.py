@@ -46,6 +46,11 @@ def _arm():
     return _ARM
 
 
+def within_limits(q: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> bool:
+    """Every joint position of ``q`` [T, dof] (rad) within [``lower``, ``upper``] (1e-9 rad of rounding)."""
+    return bool(np.all(q >= lower - 1e-9) and np.all(q <= upper + 1e-9))
+
+
 def dense_collision(scene, q: np.ndarray, gripper: np.ndarray, states: list, first: int, last: int) -> tuple[int, tuple] | None:
     """First frame interval ``[i, i+1]`` (``first <= i < last``) whose joint-linear interpolation
     collides, with the pair; ``states[i]`` is the collision state (a key for ``scene``) of frame i."""
@@ -77,7 +82,7 @@ def check_all(*, t, q, action_q, gripper, action_gripper, convention, lower, upp
               ik_errors) -> dict:
     """The limit, IK, skill-pose and continuity checks; raises :class:`Rejected`, returns the figures."""
     out: dict = {}
-    inside = bool(np.all(q >= lower - 1e-9) and np.all(q <= upper + 1e-9))
+    inside = within_limits(q, lower, upper)
     out["joint_limits_ok"] = inside
     problems_q, figures_q = replay_problems(t, q, gripper, convention)
     problems_a, figures_a = replay_problems(t, action_q, action_gripper, convention)
