@@ -4,6 +4,7 @@ next episode would push the open file past its size limit (as LeRobot's writer d
 
 from __future__ import annotations
 
+import logging
 import os
 from dataclasses import dataclass
 from fractions import Fraction
@@ -14,6 +15,8 @@ import av
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
+
+log = logging.getLogger(__name__)
 
 CHUNKS_SIZE = 1000
 DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
@@ -43,7 +46,13 @@ def _codec_options(codec: str, crf: int, gop: int) -> dict[str, str]:
 
 
 class VideoSeries:
-    """One camera's video files: a continuous stream per file, frame n at pts n (time base 1/fps)."""
+    """One camera's video files: a continuous stream per file, frame n at pts n (time base 1/fps).
+
+    Packets reach the file in frame order. AV1 from SVT-AV1 has one packet (a temporal unit) per
+    frame with dts = pts = the frame's index, but SVT-AV1 4.1 rarely hands a key frame's packet
+    over ahead of its predecessors (seen: frame 148 right after 122), which the MP4 muxer refuses
+    ("non monotonically increasing dts"); such a packet waits here for its turn. Other encoders'
+    packets go to the file as they come. Closing a file checks that every frame's packet reached it."""
 
     def __init__(self, root: Path, key: str, codec: str, fps: int, width: int, height: int, crf: int, gop: int,
                  limit_bytes: float) -> None:
@@ -53,12 +62,18 @@ class VideoSeries:
         self.files = 0
         self._container: Any = None
         self._stream: Any = None
+        self._in_frame_order = codec == "libsvtav1"
+        self._waiting: dict[int, Any] = {}  # frame index -> packet handed over ahead of its turn
         self.frames = 0  # frames in the open file
+        self.packets = 0  # packets muxed into the open file
         self.bytes = 0  # bytes muxed into the open file
 
-    def _open(self) -> None:
-        path = self.root / VIDEO_PATH.format(video_key=self.key, chunk_index=self.index.chunk,
+    def _path(self) -> Path:
+        return self.root / VIDEO_PATH.format(video_key=self.key, chunk_index=self.index.chunk,
                                              file_index=self.index.file)
+
+    def _open(self) -> None:
+        path = self._path()
         path.parent.mkdir(parents=True, exist_ok=True)
         os.environ.setdefault("SVT_LOG", "1")  # SVT-AV1 prints its configuration to stderr otherwise
         self._container = av.open(str(path), "w")
@@ -67,13 +82,31 @@ class VideoSeries:
         stream.width, stream.height, stream.pix_fmt = self.width, self.height, "yuv420p"
         stream.time_base = Fraction(1, self.fps)
         self._stream = stream
-        self.frames = self.bytes = 0
+        self.frames = self.packets = self.bytes = 0
+        self._waiting = {}
         self.files += 1
 
     def _mux(self, packets: list[Any]) -> None:
         for packet in packets:
-            self.bytes += packet.size
-            self._container.mux(packet)
+            if not self._in_frame_order:
+                self._write(packet)
+                continue
+            if packet.dts != packet.pts or not self.packets <= packet.dts < self.frames \
+                    or packet.dts in self._waiting:
+                raise RuntimeError(f"{self.codec} returned a packet with pts {packet.pts}, dts {packet.dts} while "
+                                   f"frame {self.packets} of {self.frames} was next: not one packet per frame in "
+                                   "frame order (an encoder this exporter does not know)")
+            if packet.dts > self.packets and not self._waiting:
+                log.debug("%s handed frame %d over ahead of frame %d: packets wait for their turn",
+                          self.codec, packet.dts, self.packets)
+            self._waiting[packet.dts] = packet
+            while (ready := self._waiting.pop(self.packets, None)) is not None:
+                self._write(ready)
+
+    def _write(self, packet: Any) -> None:
+        self.bytes += packet.size
+        self.packets += 1
+        self._container.mux(packet)
 
     def begin_episode(self, length: int) -> tuple[int, int, float]:
         """Start an episode of ``length`` frames; returns its (chunk, file, from_timestamp)."""
@@ -90,17 +123,21 @@ class VideoSeries:
         """Append one (H, W, 3) uint8 RGB frame."""
         frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb), format="rgb24")
         frame.pts, frame.time_base = self.frames, Fraction(1, self.fps)
-        self._mux(self._stream.encode(frame))
         self.frames += 1
+        self._mux(self._stream.encode(frame))
 
     def end_timestamp(self) -> float:
         return self.frames / self.fps
 
     def close(self) -> None:
+        """Flush the encoder and finish the open file (RuntimeError if a frame's packet is missing)."""
         if self._container is not None:
             self._mux(self._stream.encode())
             self._container.close()
             self._container = self._stream = None
+            if self.packets != self.frames:
+                raise RuntimeError(f"{self.codec} returned {self.packets} packets for the {self.frames} frames "
+                                   f"of {self._path()}")
 
 
 class DataSeries:
