@@ -14,8 +14,10 @@ simulated time as timestamp (``t0`` + model time, 130 us apart within a cycle li
 (a virtual bus otherwise stamps its own send time).
 
 Timing: :meth:`start` runs cycles on a thread scheduled by ``clock`` (default
-``time.monotonic``); :meth:`step` / :meth:`advance` run cycles synchronously, for deterministic
-tests without the thread.
+``time.monotonic``); when that thread is starved (a loaded machine), the model time still keeps
+up with the clock, as a real arm's would: the missed cycles' dynamics are run at once, their
+feedback is not sent (receivers see a gap, as after lost frames). :meth:`step` / :meth:`advance`
+run cycles synchronously, for deterministic tests without the thread.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ from manisplat.robot import RobotModel
 log = logging.getLogger(__name__)
 
 FRAME_SPACING_S = 130e-6  # one 8-byte standard frame at 1 Mbit/s, stuff bits included
+MAX_CATCH_UP_STEPS = 200  # a longer stall (a suspended machine) is caught up in longer steps
 
 
 class SimulatedPiper:
@@ -60,7 +63,8 @@ class SimulatedPiper:
         self.clock = clock
         self.t0 = time.time() if t0 is None else float(t0)
         self.cycles = 0
-        self.overruns = 0
+        self.overruns = 0  # times the thread fell behind the clock
+        self.missed_cycles = 0  # cycles advanced then without feedback
         self.frames_sent = 0
         self.send_errors = 0
         self._lock = threading.Lock()
@@ -110,16 +114,30 @@ class SimulatedPiper:
         while not self._stop.is_set():
             try:
                 self.step()
+                deadline += self.period
+                missed = int((self.clock() - deadline) / self.period)
+                if missed > 0:
+                    self._catch_up(missed)
+                    deadline += missed * self.period
             except Exception:
                 log.exception("SimulatedPiper: cycle failed; stopping")
                 return
-            deadline += self.period
             delay = deadline - self.clock()
             if delay > 0:
                 self._stop.wait(delay)
-            elif delay < -10 * self.period:
-                self.overruns += 1
-                deadline = self.clock()  # fell behind (a loaded machine): skip, do not burst
+
+    def _catch_up(self, cycles: int) -> None:
+        """The thread was starved (a loaded machine) for ``cycles`` periods: a real arm moved on
+        meanwhile, so advance the dynamics by them (commands read first), without their feedback."""
+        with self._lock:
+            while (msg := self.bus.recv(timeout=0)) is not None:
+                for reply in self.model.handle(P.decode_message(msg)):
+                    self._send(reply, self.t0 + self.model.time)
+            steps = min(cycles, MAX_CATCH_UP_STEPS)
+            for _ in range(steps):
+                self.model.step(cycles * self.period / steps)
+            self.overruns += 1
+            self.missed_cycles += cycles
 
     def stop(self) -> None:
         """Stop the thread (the bus stays open: it belongs to the caller)."""

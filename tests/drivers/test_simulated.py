@@ -5,6 +5,7 @@ plays back trajectories, and accepts the vendor SDK's exact wire bytes from any 
 from __future__ import annotations
 
 import math
+import time
 
 import can
 import numpy as np
@@ -212,3 +213,31 @@ def test_threaded_cycles_with_an_injected_clock(sim_bus: can.BusABC, host_bus: c
     assert sim.cycles >= 20 and sim.period == 1 / 400
     frames = drain(host_bus)
     assert len(frames) >= 20 * 14
+
+
+class OffsetClock:
+    """time.monotonic plus an offset the test moves: the simulator's thread sees time pass that it
+    did not run (as when a loaded machine starves it)."""
+
+    def __init__(self) -> None:
+        self.offset = 0.0
+
+    def __call__(self) -> float:
+        return time.monotonic() + self.offset
+
+
+def test_a_starved_simulator_keeps_up_with_the_clock_like_a_real_arm(sim_bus: can.BusABC, host_bus: can.BusABC):
+    clock = OffsetClock()
+    sim = SimulatedPiper(sim_bus, clock=clock)
+    with sim:
+        send_raw(host_bus, "471#0702000000000000", "151#0101320000000000", "155#0000271000004E20",
+                 "156#FFFF8AD000000000", "157#00003A98FFFFFFFF")  # enable, CAN/J at 50 %, targets
+        sim.wait_cycles(5, timeout=5.0)
+        before = sim.state()["time"]
+        clock.offset += 3.0  # 3 s the thread did not run
+        sim.wait_cycles(5, timeout=5.0)
+        state = sim.state()
+    assert state["time"] - before >= 3.0
+    # the arm reached its targets meanwhile (3 s of dynamics; the same move as stepped by hand above)
+    np.testing.assert_allclose(state["q"], np.array([10, 20, -30, 0, 15, -0.001]) * D, atol=1e-6)
+    assert sim.missed_cycles >= 590 and sim.overruns >= 1
