@@ -77,15 +77,19 @@ class SimulatedPiper:
     def step(self) -> None:
         """One cycle: read pending commands, advance by one period, send the feedback."""
         with self._lock:
-            while (msg := self.bus.recv(timeout=0)) is not None:
-                for reply in self.model.handle(P.decode_message(msg)):
-                    self._send(reply, self.t0 + self.model.time)
+            self._read_commands()
             self.model.step(self.period)
             t = self.t0 + self.model.time
             for i, frame in enumerate(self.model.feedback()):
                 self._send(frame, t + i * FRAME_SPACING_S)
             self.cycles += 1
             self._cycle_done.notify_all()
+
+    def _read_commands(self) -> None:
+        """Apply every command pending on the bus, sending the model's replies (lock held)."""
+        while (msg := self.bus.recv(timeout=0)) is not None:
+            for reply in self.model.handle(P.decode_message(msg)):
+                self._send(reply, self.t0 + self.model.time)
 
     def advance(self, seconds: float) -> None:
         """Run ``round(seconds * rate)`` cycles now, synchronously."""
@@ -130,9 +134,7 @@ class SimulatedPiper:
         """The thread was starved (a loaded machine) for ``cycles`` periods: a real arm moved on
         meanwhile, so advance the dynamics by them (commands read first), without their feedback."""
         with self._lock:
-            while (msg := self.bus.recv(timeout=0)) is not None:
-                for reply in self.model.handle(P.decode_message(msg)):
-                    self._send(reply, self.t0 + self.model.time)
+            self._read_commands()
             steps = min(cycles, MAX_CATCH_UP_STEPS)
             for _ in range(steps):
                 self.model.step(cycles * self.period / steps)

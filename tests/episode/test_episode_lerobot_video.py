@@ -27,9 +27,6 @@ class ReorderingStream:
         self.held: list[Any] = []
         self.order: list[int] = []
 
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self.stream, name)
-
     def encode(self, frame: Any = None) -> list[Any]:
         out = []
         for packet in self.stream.encode(frame):
