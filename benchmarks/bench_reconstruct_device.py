@@ -81,19 +81,18 @@ def profile_split(rec, iters: int) -> dict[str, float]:
 
     timer = PhaseTimer(rec.device)
     originals = (rec.losses, rec._step_and_densify, rec.object_poses, rec.graph.compose, render_module.rasterization,
-                 trainer_module._error_maps, torch.Tensor.backward)
-    optimizer_step = rec.optimizer.step
+                 trainer_module.frame_loss, torch.Tensor.backward)
     rec.losses = timer.wrap("forward (poses + compose + rasterize + loss)", rec.losses)
     rec.object_poses = timer.wrap("object poses (se3_exp)", rec.object_poses)
     rec.graph.compose = timer.wrap("compose (incl. shadow map)", rec.graph.compose)
     render_module.rasterization = timer.wrap("rasterize", render_module.rasterization)
-    trainer_module._error_maps = timer.wrap("loss maps (L1, SSIM)", trainer_module._error_maps)
+    trainer_module.frame_loss = timer.wrap("loss (exposure, L1, SSIM, mask, pose)", trainer_module.frame_loss)
     torch.Tensor.backward = timer.wrap("backward", torch.Tensor.backward)
     rec.optimizer.step = timer.wrap("optimizer step", rec.optimizer.step)
     rec._step_and_densify = timer.wrap("optimizer step + densify", rec._step_and_densify)
     shadows = rec.graph.shadows
     if shadows is not None:
-        shadows.occlusion = timer.wrap("shadow map (light pass, in compose)", shadows.occlusion)
+        shadows._shadow_map = timer.wrap("shadow map (light pass, in compose)", shadows._shadow_map)
     rec.config.iters = rec.step + iters
     rec.refit_exposure = lambda: None  # the end of training's exposure refit renders every frame: not an iteration
     _sync(rec.device)
@@ -103,17 +102,32 @@ def profile_split(rec, iters: int) -> dict[str, float]:
         _sync(rec.device)
     finally:
         (rec.losses, rec._step_and_densify, rec.object_poses, rec.graph.compose, render_module.rasterization,
-         trainer_module._error_maps, torch.Tensor.backward) = originals
-        rec.optimizer.step = optimizer_step
+         trainer_module.frame_loss, torch.Tensor.backward) = originals
         for name in ("losses", "_step_and_densify", "object_poses", "refit_exposure"):
             rec.__dict__.pop(name, None)
+        rec.optimizer.__dict__.pop("step", None)
         rec.graph.__dict__.pop("compose", None)
         if shadows is not None:
-            shadows.__dict__.pop("occlusion", None)
+            shadows.__dict__.pop("_shadow_map", None)
     total = time.perf_counter() - t0
     split = {k: round(v / iters * 1e3, 3) for k, v in timer.totals.items()}
     split["iteration (phases timed apart)"] = round(total / iters * 1e3, 3)
     return split
+
+
+def steady_ms_per_iter(rec, iters: int) -> float:
+    """ms per iteration of ``iters`` more plain iterations (after training: compiled code, if
+    any, is ready; no densification once past its stop)."""
+    rec.config.iters = rec.step + iters
+    refit, rec.refit_exposure = rec.refit_exposure, lambda: None
+    _sync(rec.device)
+    t0 = time.perf_counter()
+    try:
+        rec.train(progress=False)
+        _sync(rec.device)
+    finally:
+        rec.__dict__.pop("refit_exposure", None)
+    return round((time.perf_counter() - t0) / iters * 1e3, 3)
 
 
 def count_syncs(rec, iters: int) -> dict[str, int]:
@@ -136,8 +150,13 @@ def quality(rec, alignments) -> dict:
 
 
 def measure(episode: Path, *, device: str, iters: int, profile_iters: int, sync_iters: int, threads: int | None,
-            rasterizer_revision: str | None = None) -> dict:
-    """One training run on ``device`` and its measurements (see the module docstring)."""
+            rasterizer_revision: str | None = None, compile: str = "off", steady_iters: int = 0,
+            overrides: dict | None = None, callback=None) -> dict:
+    """One training run on ``device`` and its measurements (see the module docstring).
+
+    ``compile``: TrainConfig.compile; ``steady_iters``: iterations timed after training (compiled
+    code ready); ``overrides``: other TrainConfig fields; ``callback(rec, seconds_since_start)``
+    is called after every training iteration."""
     import torch
 
     from manisplat.reconstruct.config import TrainConfig
@@ -150,7 +169,7 @@ def measure(episode: Path, *, device: str, iters: int, profile_iters: int, sync_
         from manisplat.splat.backends import cpu_raster
 
         cpu_raster._extension = build_of(rasterizer_revision)
-    config = TrainConfig(iters=iters, device=device)
+    config = TrainConfig(iters=iters, device=device, compile=compile, **(overrides or {}))
     rec, alignments, setup_s = build_reconstruction(episode, config)
     dev = rec.device
     resolve_backend(config.backend, dev)  # a first build of the C++ rasterizer is not training time
@@ -158,19 +177,22 @@ def measure(episode: Path, *, device: str, iters: int, profile_iters: int, sync_
         torch.cuda.reset_peak_memory_stats(dev)
     _sync(dev)
     t0 = time.perf_counter()
-    rec.train(progress=False)
+    rec.train(progress=False, callback=None if callback is None else lambda r: callback(r, time.perf_counter() - t0))
     _sync(dev)
     train_s = time.perf_counter() - t0
     result = {
         "episode": str(episode), "device": str(dev), "backend": config.backend, "iters": iters,
-        "threads": torch.get_num_threads(), "setup_s": round(setup_s, 2), "train_s": round(train_s, 2),
-        "ms_per_iter": round(train_s / iters * 1e3, 2), "gaussians": sum(len(n.gaussians) for n in rec.graph.nodes()),
+        "compiled": rec.compiled, "threads": torch.get_num_threads(), "setup_s": round(setup_s, 2),
+        "train_s": round(train_s, 2), "ms_per_iter": round(train_s / iters * 1e3, 2),
+        "gaussians": sum(len(n.gaussians) for n in rec.graph.nodes()),
         "quality": quality(rec, alignments),
         "rasterizer_revision": rasterizer_revision, "torch": torch.__version__, "machine": platform.node(),
         "gpu": torch.cuda.get_device_name(dev) if dev.type == "cuda" else None,
     }
     if dev.type == "cuda":
         result["peak_gpu_mib"] = round(torch.cuda.max_memory_allocated(dev) / 2 ** 20)
+    if steady_iters:
+        result["steady_ms_per_iter"] = steady_ms_per_iter(rec, steady_iters)
     if profile_iters:
         result["split_ms"] = profile_split(rec, profile_iters)
     if sync_iters and dev.type == "cuda":
@@ -198,13 +220,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--profile-iters", type=int, default=50)
     p.add_argument("--sync-iters", type=int, default=20)
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    p.add_argument("--compile", default="off", choices=("auto", "on", "off"), help="TrainConfig.compile (default off)")
+    p.add_argument("--steady-iters", type=int, default=0, help="iterations timed after training (compiled code ready)")
     p.add_argument("--rasterizer-revision", metavar="REV",
                    help="CPU: train with the C++ rasterizer of git revision REV (the rest is this checkout)")
     p.add_argument("--out", type=Path, help="write the result as JSON here")
     args = p.parse_args(argv)
     check_revision(p, args.rasterizer_revision)
     result = measure(args.episode, device=args.device, iters=args.iters, profile_iters=args.profile_iters,
-                     sync_iters=args.sync_iters, threads=args.threads, rasterizer_revision=args.rasterizer_revision)
+                     sync_iters=args.sync_iters, threads=args.threads, rasterizer_revision=args.rasterizer_revision,
+                     compile=args.compile, steady_iters=args.steady_iters)
     print_and_write_json(result, args.out)
     return 0
 

@@ -34,6 +34,10 @@ class TrainConfig:
             "torch", "gsplat").
         device: torch device of training ("cpu", "cuda", "cuda:N", or "auto": CUDA when
             available); resolved by :func:`resolve_device` (a string here: no torch import).
+        compile: run the iteration's tensor functions (placement, shadows, loss, densification
+            statistics) through ``torch.compile`` ("on", "off"; "auto": on CUDA only;
+            :func:`resolve_compile`). The same training with fewer, fused kernels; the first
+            iterations pay the compilation.
         eval_every: iterations between held-out PSNR estimates (for the progress bar).
         log_every: iterations between reads of the running loss for the progress bar. The
             training iteration never reads a value back from the device otherwise (no
@@ -62,6 +66,7 @@ class TrainConfig:
     exposure: bool = True
     backend: str = "auto"
     device: str = "auto"
+    compile: str = "auto"
     eval_every: int = 250
     log_every: int = 50
     seed: int = 0
@@ -74,6 +79,20 @@ def default_iters(device: str) -> int:
     """Iterations when none are asked for: ``TrainConfig.iters`` (3000) on the CPU, the paper's
     30 000 on CUDA (``device`` as :func:`resolve_device` returns it)."""
     return GPU_ITERS if device.startswith("cuda") else TrainConfig.iters
+
+
+COMPILE_CHOICES = ("auto", "on", "off")
+
+
+def resolve_compile(name: str, device_type: str) -> str | None:
+    """The ``torch.compile`` mode training runs its iteration in (:mod:`manisplat.compilation`),
+    or None (eager), for ``name``: "on", "off", or "auto": on for CUDA; off on the CPU, where
+    compiling costs more than it saves (README, the CPU iteration)."""
+    if name not in COMPILE_CHOICES:
+        raise ValueError(f"unknown compile setting {name!r}; choose one of {', '.join(COMPILE_CHOICES)}")
+    if name == "auto":
+        name = "on" if device_type == "cuda" else "off"
+    return "default" if name == "on" else None
 
 
 DEVICES = ("auto", "cpu", "cuda")

@@ -45,9 +45,12 @@ class FrameExposure:
         self._upper = torch.as_tensor(upper, device=device)
         self._weight = torch.as_tensor(weight, dtype=torch.float32, device=device)[:, None]
         self._train = torch.as_tensor(sorted(train_frames), device=device)
+        self._frames = torch.arange(n_frames, device=device)
+        self._train_weight = torch.zeros(n_frames, device=device)
+        self._train_weight[self._train] = 1.0 / len(self._train)
 
     def to(self, device: torch.device | str) -> "FrameExposure":
-        for name in ("fitted", "_lower", "_upper", "_weight", "_train"):
+        for name in ("fitted", "_lower", "_upper", "_weight", "_train", "_frames", "_train_weight"):
             setattr(self, name, getattr(self, name).to(device))
         return self
 
@@ -55,14 +58,19 @@ class FrameExposure:
         """Fit and keep frame ``frame``'s gains from a render and the recorded image [H, W, 3] over
         ``region`` [H, W] (0/1 weights; None: every pixel); return them normalised [3]
         (:meth:`gains_of`). The render is not differentiated."""
-        r = render.detach()
-        w = torch.ones_like(r[..., 0]) if region is None else region
-        count = w.sum().clamp_min(1.0)
-        rt = (r * target * w[..., None]).sum((0, 1))
-        rr = (r * r * w[..., None]).sum((0, 1))
-        gains = (rt + RIDGE * count) / (rr + RIDGE * count)
-        self.fitted[frame] = gains
+        gains = fit_gains(render.detach(), target, region)
+        self.keep(frame, gains)
         return gains / self._mean()
+
+    def keep(self, frame: int, gains: torch.Tensor) -> None:
+        """Keep ``gains`` [3] (as :func:`fit_gains` fitted them) as frame ``frame``'s."""
+        self.fitted[frame] = gains
+
+    def fit_inputs(self, frame: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """What :func:`relative_gains` needs for training frame ``frame``: (the gains fitted so far
+        [T, 3], the frame's index [] int64, each frame's weight in the training frames' mean [T]),
+        without a host-to-device copy."""
+        return self.fitted, self._frames[frame], self._train_weight
 
     def gains_of(self, frame: int) -> torch.Tensor:
         """[3] gains of ``frame`` relative to the training frames' mean: as fitted for a training
@@ -82,6 +90,25 @@ class FrameExposure:
         return self.fitted[self._train].mean(0)
 
 
+def fit_gains(render: torch.Tensor, target: torch.Tensor, region: torch.Tensor | None) -> torch.Tensor:
+    """[3] the gains that best map ``render`` onto ``target`` ([H, W, 3]) over ``region`` [H, W]
+    (0/1 weights; None: every pixel), by least squares with a ridge of :data:`RIDGE` towards 1."""
+    w = torch.ones_like(render[..., 0]) if region is None else region
+    count = w.sum().clamp_min(1.0)
+    rt = (render * target * w[..., None]).sum((0, 1))
+    rr = (render * render * w[..., None]).sum((0, 1))
+    return (rt + RIDGE * count) / (rr + RIDGE * count)
+
+
+def relative_gains(gains: torch.Tensor, fitted: torch.Tensor, frame: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """[3] a training frame's new ``gains`` relative to the training frames' mean with them in
+    place of the frame's old ones (``fitted`` [T, 3], ``frame`` [] its index, ``weight`` [T]
+    each frame's share of the mean): what :meth:`FrameExposure.fit` returns, as tensor algebra."""
+    this = torch.arange(len(fitted), device=fitted.device) == frame
+    updated = torch.where(this[:, None], gains, fitted)
+    return gains / (weight[:, None] * updated).sum(0)
+
+
 def _interpolation(n: int, train: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For every frame the training frames before and after it and the weight of the later one
     (training frames: themselves, weight 0; before the first / after the last: the nearest)."""
@@ -97,4 +124,4 @@ def _interpolation(n: int, train: list[int]) -> tuple[np.ndarray, np.ndarray, np
     return lo.astype(np.int64), hi.astype(np.int64), weight
 
 
-__all__ = ["FrameExposure", "RIDGE"]
+__all__ = ["FrameExposure", "RIDGE", "fit_gains", "relative_gains"]

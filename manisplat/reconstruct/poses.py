@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from manisplat.align.pseudo_gt import STATIC
+from manisplat.compilation import compilable
 from manisplat.geometry import se3_exp
 from manisplat.geometry.rotation import hat
 
@@ -53,12 +54,15 @@ class ObjectTrajectory(torch.nn.Module):
 
     def pose(self, t: int) -> torch.Tensor:
         """T_base_obj [4, 4] (float64, on the trajectory's device) at frame ``t``."""
-        return self.pseudo[t] @ twist_exp(self.xi[self._twist_of[t]])
+        return corrected_pose(self.pseudo[t], self.twist(t))
+
+    def twist(self, t: int) -> torch.Tensor:
+        """[6] float64 the correction twist of frame ``t`` (a view of the trained table)."""
+        return self.xi[self._twist_of[t]]
 
     def pose_loss(self, t: int) -> torch.Tensor:
         """[] float64: the squared SE(3) distance of frame ``t``'s correction, in sigma units."""
-        xi = self.xi[self._twist_of[t]]
-        return (xi[:3].norm() / SIGMA_T) ** 2 + (xi[3:].norm() / SIGMA_R) ** 2
+        return pose_penalty(self.twist(t))
 
     @torch.no_grad()
     def evaluation_poses(self, trained: list[int]) -> np.ndarray:
@@ -130,6 +134,17 @@ class TwistAdam:
             self.exp_avg_sq[name] = state["exp_avg_sq"][name].to(traj.xi.device)
             self.steps[name] = list(state["steps"][name])
         self.lr = state["lr"]
+
+
+def pose_penalty(xi: torch.Tensor) -> torch.Tensor:
+    """[] the squared SE(3) distance of a correction twist [6] in units of SIGMA_T and SIGMA_R."""
+    return (xi[:3].norm() / SIGMA_T) ** 2 + (xi[3:].norm() / SIGMA_R) ** 2
+
+
+@compilable
+def corrected_pose(pseudo: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
+    """[4, 4] ``pseudo @ exp(xi)``: a pose [4, 4] corrected by a twist [6] in its own frame."""
+    return pseudo @ twist_exp(xi)
 
 
 def twist_exp(xi: torch.Tensor) -> torch.Tensor:

@@ -1,11 +1,6 @@
-"""Joint optimisation of the scene graph, the object poses and the light (the ManiSplat loss).
-
-``L = L_render + l_app * L_app + l_mask * L_mask + l_pose * L_pose`` (paper: all weights 1):
-L_render is (1 - s) L1 + s D-SSIM on the frame (s = 0.2); L_app the same over the dynamic
-pixels (robot and objects in the ground-truth mask); L_mask the L1 between the rendered alpha of
-the dynamic nodes and that mask; L_pose the objects' squared SE(3) distance to the pseudo ground
-truth (:mod:`manisplat.reconstruct.poses`). Each iteration renders one training frame, drawn
-from the plan's distinct states. Every node densifies with its own strategy state.
+"""Joint optimisation of the scene graph, the object poses and the light (the ManiSplat loss,
+:mod:`manisplat.reconstruct.loss`). Each iteration renders one training frame, drawn from the
+plan's distinct states. Every node densifies with its own strategy state.
 """
 
 from __future__ import annotations
@@ -19,15 +14,16 @@ import warnings
 from dataclasses import asdict
 from pathlib import Path
 
-import kornia
 import numpy as np
 import torch
 from tqdm import tqdm
 
-from manisplat.reconstruct.config import TrainConfig, resolve_device
+from manisplat.compilation import compilation
+from manisplat.reconstruct.config import TrainConfig, resolve_compile, resolve_device
 from manisplat.reconstruct.data import EpisodeData
 from manisplat.reconstruct.exposure import FrameExposure
 from manisplat.reconstruct.extrinsic import ExtrinsicCorrection
+from manisplat.reconstruct.loss import frame_loss
 from manisplat.reconstruct.metrics import psnr
 from manisplat.reconstruct.plan import Plan
 from manisplat.reconstruct.poses import ObjectTrajectory, TwistAdam
@@ -36,6 +32,7 @@ from manisplat.scene.render import render_graph
 from manisplat.scene.shadows import DirectionalShadows, matched_resolution, search_direction
 from manisplat.geometry import se3_exp
 from manisplat.splat import DefaultStrategy, value_checks
+from manisplat.splat.strategy import gradient_statistics
 from manisplat.splat.backends import resolve_backend
 
 log = logging.getLogger(__name__)
@@ -60,6 +57,8 @@ class Reconstruction:
     def __init__(self, data: EpisodeData, plan: Plan, graph: SceneGraph, trajectories: dict[str, ObjectTrajectory],
                  config: TrainConfig) -> None:
         self.device = torch.device(resolve_device(config.device, config.backend))
+        #: the torch.compile mode of the iteration's tensor functions, None: eager (:mod:`manisplat.compilation`)
+        self.compiled = resolve_compile(config.compile, self.device.type)
         self.data, self.plan, self.graph, self.trajectories, self.config = data.to(self.device), plan, graph, trajectories, config
         self.graph.to(self.device)
         for t in trajectories.values():
@@ -92,6 +91,8 @@ class Reconstruction:
         self._rng = random.Random(config.seed)
         torch.manual_seed(config.seed)
         self._loss_average: torch.Tensor | None = None  # running mean of the loss, on the device
+        #: the latest :meth:`quick_psnr` of training (dB; every ``eval_every`` iterations), NaN before the first
+        self.held_out_psnr = math.nan
 
     def _make_optimizer(self) -> torch.optim.Adam:
         """One Adam over every trained tensor: the Gaussians of all nodes, one group per parameter
@@ -176,26 +177,19 @@ class Reconstruction:
         return view.rgb, view.alpha, dynamic, view.meta, view.composed
 
     # ------------------------------------------------------------------ losses
-    def losses(self, frame: int) -> tuple[dict[str, torch.Tensor], dict, object]:
+    def losses(self, frame: int) -> tuple[torch.Tensor, dict, object]:
+        """(the loss [] of training frame ``frame``, the rasterizer's meta, the composed union);
+        the frame's exposure gains are fitted and kept on the way (:func:`frame_loss`)."""
         c = self.config
         image, _, dynamic_alpha, meta, composed = self._render_scene(frame)
-        target = self.data.image(frame)
-        if self.exposure is not None:  # the frame's gains, fitted on its static pixels
-            image = image * self.exposure.fit(frame, image, target, self._static_region(frame))
-        l1, ssim_map = _error_maps(image, target)  # computed once for the render and appearance terms
-        valid = self._valid  # pixels the recording covers (None: all)
-        terms = {"render": _photometric(l1, ssim_map, valid, c.ssim_weight)}
-        if self._dynamic_masks is not None:
-            dyn_mask = self._dynamic_masks[frame].float()
-            mask_error = (dynamic_alpha - dyn_mask).abs()
-            if valid is not None:
-                dyn_mask, mask_error = dyn_mask * valid, mask_error * valid
-            # 0 in a frame without dynamic pixels (a weighted mean: nothing is read back to decide)
-            terms["app"] = c.lambda_app * _photometric(l1, ssim_map, dyn_mask, c.ssim_weight)
-            terms["mask"] = c.lambda_mask * mask_error.mean()
-        if self.trajectories:
-            terms["pose"] = c.lambda_pose * sum(t.pose_loss(frame) for t in self.trajectories.values()).float()
-        return terms, meta, composed
+        dynamic = self._dynamic_masks[frame] if self._dynamic_masks is not None else None
+        exposure = self.exposure.fit_inputs(frame) if self.exposure is not None else None
+        twists = [t.twist(frame) for t in self.trajectories.values()]
+        loss, gains = frame_loss(image, dynamic_alpha, self.data.rgb[frame], dynamic, self._valid, exposure, twists,
+                                 (c.ssim_weight, c.lambda_app, c.lambda_mask, c.lambda_pose))
+        if gains is not None:
+            self.exposure.keep(frame, gains)
+        return loss, meta, composed
 
     # ------------------------------------------------------------------ training
     def train(self, *, progress: bool = True, callback=None) -> None:
@@ -212,34 +206,42 @@ class Reconstruction:
         states = self.plan.distinct_train_states or self.plan.train_frames
         resolve_backend(c.backend, self.device)  # a first build of the C++ rasterizer logs before the bar
         bar = tqdm(total=c.iters, initial=self.step, desc="reconstructing", unit="it", disable=not progress)
-        last_psnr, mean_loss = math.nan, math.nan  # mean_loss: over about the last 50 frames
-        while self.step < c.iters:
-            if c.shadows and self.graph.shadows is None and self.step >= c.shadow_start and self.data.masks is not None:
-                self.start_shadows()
-            degree = min(c.sh_degree, self.step // max(c.sh_every, 1))
-            for node in self.graph.nodes():
-                node.gaussians.active_degree = min(degree, node.gaussians.sh_degree)
-            frame = self._rng.choice(states)
-            with value_checks(False):
-                terms, meta, composed = self.losses(frame)
-                loss = sum(terms.values())
-                self._before_backward(meta)
-                loss.backward()
-                self._step_and_densify(frame, meta, composed)
-            self._average_loss(loss.detach())
-            self.step += 1
-            if self.step % max(c.log_every, 1) == 0 or self.step % c.eval_every == 0 or self.step == c.iters:
-                mean_loss = self._read_loss()
-            if self.step % c.eval_every == 0 or self.step == c.iters:
-                last_psnr = self.quick_psnr()
-            bar.set_postfix(_progress_fields(mean_loss, last_psnr, sum(len(n.gaussians) for n in self.graph.nodes())),
-                            refresh=False)
-            bar.update(1)
-            if callback is not None:
-                callback(self)
+        mean_loss = math.nan  # over about the last 50 frames
+        with compilation(self.compiled):  # entered once: see manisplat.compilation
+            while self.step < c.iters:
+                self._iteration(states)
+                if self.step % max(c.log_every, 1) == 0 or self.step % c.eval_every == 0 or self.step == c.iters:
+                    mean_loss = self._read_loss()
+                with compilation(None):  # evaluation and callbacks run eagerly
+                    if self.step % c.eval_every == 0 or self.step == c.iters:
+                        self.held_out_psnr = self.quick_psnr()
+                    if callback is not None:
+                        callback(self)
+                bar.set_postfix(_progress_fields(mean_loss, self.held_out_psnr, sum(len(n.gaussians) for n in self.graph.nodes())),
+                                refresh=False)
+                bar.update(1)
         bar.close()
         if self.exposure is not None and self.step >= c.iters:
             self.refit_exposure()
+
+    def _iteration(self, states: list[int]) -> None:
+        """One training iteration on a frame drawn from ``states`` (the light is searched first,
+        eagerly, when its start is reached)."""
+        c = self.config
+        if c.shadows and self.graph.shadows is None and self.step >= c.shadow_start and self.data.masks is not None:
+            with compilation(None):
+                self.start_shadows()
+        degree = min(c.sh_degree, self.step // max(c.sh_every, 1))
+        for node in self.graph.nodes():
+            node.gaussians.active_degree = min(degree, node.gaussians.sh_degree)
+        frame = self._rng.choice(states)
+        with value_checks(False):
+            loss, meta, composed = self.losses(frame)
+            self._before_backward(meta)
+            loss.backward()
+            self._step_and_densify(frame, meta, composed)
+        self._average_loss(loss.detach())
+        self.step += 1
 
     def _average_loss(self, loss: torch.Tensor) -> None:
         """Fold this iteration's loss into the running mean (weight 0.02, about 50 frames), on the device."""
@@ -270,13 +272,15 @@ class Reconstruction:
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         self.pose_optimizer.step(frame)
-        if self.config.densify:
-            grad = meta["means2d"].grad
+        if self.config.densify and any(self.step < s.refine_stop_iter for s in self.strategies.values()):
+            # the image-space statistics of the whole union at once, each node given its slice
+            norms, visible = gradient_statistics(meta["means2d"].grad, meta["radii"], meta["width"], meta["height"])
             for node in self.graph.nodes():
                 start, end = composed.slices[node.name]
                 g = node.gaussians
-                info = {"means2d_grad": grad[:, start:end], "radii": meta["radii"][:, start:end],
-                        "width": meta["width"], "height": meta["height"], "n_cameras": meta["n_cameras"]}
+                info = {"grad2d_norms": norms[start:end], "visible": visible[start:end],
+                        "radii": meta["radii"][:, start:end], "width": meta["width"], "height": meta["height"],
+                        "n_cameras": meta["n_cameras"]}
                 self.strategies[node.name].step_post_backward(g.params, g.optimizers, g.strategy_state, self.step, info)
         if self.graph.background is not None:
             lr = self._means_lr()
@@ -465,48 +469,3 @@ def _replace_node(graph: SceneGraph, name: str, g: GaussianSet) -> None:
         graph.links[rest] = g
     else:
         graph.objects[rest] = g
-
-
-def _error_maps(image: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-pixel L1 [H, W] and SSIM [H, W] (11 x 11 Gaussian window, sigma 1.5) of [H, W, 3] images
-    (:func:`ssim_map`: kornia's SSIM, its five local moments filtered in one grouped convolution)."""
-    return (image - target).abs().mean(-1), ssim_map(image, target)
-
-
-_WINDOWS: dict[tuple[str, torch.dtype], torch.Tensor] = {}
-
-
-def ssim_map(x: torch.Tensor, y: torch.Tensor, window_size: int = 11) -> torch.Tensor:
-    """SSIM [H, W] (channel mean) of images [H, W, C] in [0, 1], as ``kornia.metrics.ssim`` computes it
-    (Gaussian window sigma 1.5, reflect padding, C1 = 0.01^2, C2 = 0.03^2, eps 1e-12), with the
-    window made once per device and the five local moments filtered in one grouped convolution:
-    about twice as fast as kornia's five filters on the CPU (README, the CPU iteration), and one
-    launch instead of ten on a GPU, where kornia also builds its window on every call (a
-    host-to-device copy that waits for the GPU)."""
-    key = (str(x.device), x.dtype)
-    if key not in _WINDOWS:
-        _WINDOWS[key] = kornia.filters.get_gaussian_kernel1d(window_size, 1.5, device=x.device, dtype=x.dtype)[0]
-    k = _WINDOWS[key]
-    H, W, C = x.shape
-    stack = torch.stack([x, y, x * x, y * y, x * y]).permute(0, 3, 1, 2).reshape(1, 5 * C, H, W)
-    pad = window_size // 2
-    stack = torch.nn.functional.pad(stack, (pad, pad, pad, pad), mode="reflect")
-    stack = torch.nn.functional.conv2d(stack, k.view(1, 1, 1, -1).expand(5 * C, 1, 1, window_size), groups=5 * C)
-    stack = torch.nn.functional.conv2d(stack, k.view(1, 1, -1, 1).expand(5 * C, 1, window_size, 1), groups=5 * C)
-    mu1, mu2, xx, yy, xy = stack.view(5, C, H, W)
-    mu1_sq, mu2_sq, mu12 = mu1 * mu1, mu2 * mu2, mu1 * mu2
-    c1, c2 = 0.01 ** 2, 0.03 ** 2
-    num = (2.0 * mu12 + c1) * (2.0 * (xy - mu12) + c2)
-    den = (mu1_sq + mu2_sq + c1) * ((xx - mu1_sq) + (yy - mu2_sq) + c2)
-    return (num / (den + 1e-12)).mean(0)
-
-
-def _photometric(l1: torch.Tensor, ssim_map: torch.Tensor, region: torch.Tensor | None, ssim_weight: float) -> torch.Tensor:
-    """(1 - w) L1 + w (1 - SSIM) over the image, or averaged over the pixels of ``region`` [H, W]
-    (float weights 0/1; 0 when it is empty), without selecting them (no synchronisation)."""
-    if region is None:
-        return (1 - ssim_weight) * l1.mean() + ssim_weight * (1 - ssim_map.mean())
-    count = region.sum()
-    mean_l1 = (l1 * region).sum() / count.clamp_min(1)
-    mean_dssim = ((1 - ssim_map) * region).sum() / count.clamp_min(1)
-    return (1 - ssim_weight) * mean_l1 + ssim_weight * mean_dssim

@@ -17,7 +17,8 @@ import math
 
 import torch
 
-from manisplat.splat.sh import C0, spherical_harmonics
+from manisplat.scene.placement import activate
+from manisplat.splat.sh import C0
 
 LEARNING_RATES = {"means": 1.6e-4, "scales": 5e-3, "quats": 1e-3, "opacities": 5e-2, "sh0": 2.5e-3, "shN": 2.5e-3 / 20}
 
@@ -117,13 +118,7 @@ class GaussianSet:
 
         ``camera_center`` [3], in this node's frame, enables the view-dependent bands.
         """
-        p = self.params
-        if self.active_degree > 0 and camera_center is not None:
-            coeffs = torch.cat([p["sh0"][:, None], p["shN"][:, : (self.active_degree + 1) ** 2 - 1]], dim=1)
-            colors = (spherical_harmonics(self.active_degree, p["means"] - camera_center, coeffs) + 0.5).clamp_min(0.0)
-        else:
-            colors = (0.5 + C0 * p["sh0"]).clamp_min(0.0)
-        return p["means"], p["quats"], torch.exp(p["scales"]), torch.sigmoid(p["opacities"]), colors
+        return activate(self.params, camera_center, self.active_degree)
 
     def step(self) -> None:
         """One optimizer step for every parameter, then clear the gradients."""

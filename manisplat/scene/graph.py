@@ -11,11 +11,11 @@ from dataclasses import dataclass
 
 import torch
 
-from manisplat.geometry import matrix_to_quat, quat_multiply
+from manisplat.compilation import compilable
 from manisplat.scene.gaussians import GaussianSet
-from manisplat.scene.shadows import DirectionalShadows
+from manisplat.scene.placement import Activated, join, place_scene
+from manisplat.scene.shadows import DirectionalShadows, darken
 from manisplat.scene.transforms import transform_gaussians
-from manisplat.splat.sh import C0, spherical_harmonics
 
 BACKGROUND, ROBOT = 0, 1
 
@@ -95,11 +95,12 @@ class SceneGraph:
                 link_quats: torch.Tensor | None = None, camera_center: torch.Tensor | None = None) -> Composed:
         """G(t) for link poses [L, 4, 4] (T_base_link, FK order) and object poses name -> [4, 4].
 
-        ``link_quats`` [L, 4], the links' rotations as quaternions, may be passed precomputed.
+        ``link_quats`` [L, 4], the links' rotations as quaternions, may be passed precomputed (the
+        batched placement derives every node's from its pose).
         ``camera_center`` [3] (base frame) enables view-dependent colour, evaluated in each
         node's own frame.
         """
-        batched = self._compose_batched(link_poses, object_poses, link_quats, camera_center)
+        batched = self._compose_batched(link_poses, object_poses, camera_center)
         if batched is not None:
             return batched
         parts, slices, start = [], {}, 0
@@ -128,13 +129,14 @@ class SceneGraph:
         return Composed(*cat, slices=slices)
 
     def _compose_batched(self, link_poses: torch.Tensor, object_poses: dict[str, torch.Tensor],
-                         link_quats: torch.Tensor | None, camera_center: torch.Tensor | None) -> Composed | None:
-        """:meth:`compose` with every link and object placed in one set of operations: their raw
-        parameters concatenated, each Gaussian's node pose gathered by an index [M] (rebuilt
-        only when a node changes size), one activation, one SH evaluation and one transform.
-        The same values as placing node by node, with about a tenth of the operations (on a GPU
-        the per-node version is bound by kernel launches). None when the dynamic nodes differ in
-        parameters or active SH degree (then :meth:`compose` goes node by node)."""
+                         camera_center: torch.Tensor | None) -> Composed | None:
+        """:meth:`compose` with every link and object placed in one set of operations
+        (:func:`~manisplat.scene.placement.place_nodes`: their raw parameters concatenated, each
+        Gaussian's node pose gathered by an index [M] rebuilt only when a node changes size, one
+        activation, one SH evaluation and one transform). The same values as placing node by
+        node, with about a tenth of the operations (on a GPU the per-node version is bound by
+        kernel launches), and pure tensor functions that can run compiled. None when the dynamic
+        nodes differ in parameters or active SH degree (then :meth:`compose` goes node by node)."""
         nodes = self.nodes()
         dynamic = [n for n in nodes if n.name != "background"]
         if not dynamic:
@@ -144,63 +146,51 @@ class SceneGraph:
         if any(set(n.gaussians.params) != keys or n.gaussians.active_degree != degree for n in dynamic):
             return None
         device = dynamic[0].gaussians.device
-        poses, quats_T, names = [], [], []
+        poses = []
         for n in dynamic:
             kind, _, name = n.name.partition("/")
-            if kind == "robot":
-                i = self.link_index[name]
-                poses.append(link_poses[i])
-                quats_T.append(None if link_quats is None else link_quats[i])
-            else:
-                poses.append(object_poses[name])
-                quats_T.append(None)
-            names.append(n.name)
-        P = torch.stack([p.float() for p in poses])  # [K, 4, 4]
-        if any(q is None for q in quats_T):
-            Q = matrix_to_quat(P[:, :3, :3].double()).float()
-            Q = torch.stack([Q[k] if q is None else q.float() for k, q in enumerate(quats_T)])
-        else:
-            Q = torch.stack([q.float() for q in quats_T])  # [K, 4]
+            poses.append(link_poses[self.link_index[name]] if kind == "robot" else object_poses[name])
         counts = tuple(len(n.gaussians) for n in dynamic)
-        index, groups = self._node_index(counts, [n.group for n in dynamic], device)
-        raw = {k: torch.cat([n.gaussians.params[k] for n in dynamic]) for k in keys}
-        R, t = P[:, :3, :3], P[:, :3, 3]
-        local = raw["means"]
-        if degree > 0 and camera_center is not None:
-            centers = torch.einsum("kj,kji->ki", camera_center.float()[None] - t, R)  # camera in each node frame
-            coeffs = torch.cat([raw["sh0"][:, None], raw["shN"][:, : (degree + 1) ** 2 - 1]], dim=1)
-            colors = (spherical_harmonics(degree, local - centers[index], coeffs) + 0.5).clamp_min(0.0)
-        else:
-            colors = (0.5 + C0 * raw["sh0"]).clamp_min(0.0)
-        means = torch.einsum("nij,nj->ni", R[index], local) + t[index]
-        quats = quat_multiply(Q[index], raw["quats"])
-        scales, opacities = torch.exp(raw["scales"]), torch.sigmoid(raw["opacities"])
+        background = 0 if self.background is None else len(self.background)
+        index, groups = self._node_index(background, counts, [n.group for n in dynamic], device)
+        background_params = None if self.background is None else self.background.params
+        bg, moving = place_scene(background_params, [n.gaussians.params for n in dynamic], torch.stack(poses).float(),
+                                 index, camera_center, degree)
+        shadow = None
+        if self.shadows is not None and bg is not None:
+            shadow = self.shadows.shadow_inputs(moving[:4])
         slices, start = {}, 0
-        bg = None
-        if self.background is not None:
-            bg = list(self.background.activated(camera_center))
-            start = len(bg[0])
-            slices["background"] = (0, start)
-            if self.shadows is not None:
-                bg[4] = self.shadows.shade(bg[4], bg[0], (means, quats, scales, opacities))
-        for name, count in zip(names, counts):
-            slices[name] = (start, start + count)
+        if bg is not None:
+            slices["background"], start = (0, background), background
+        for n, count in zip(dynamic, counts):
+            slices[n.name] = (start, start + count)
             start += count
-        dyn = [means, quats, scales, opacities, colors, groups]
-        if bg is None:
-            return Composed(*dyn, slices=slices)
-        bg_groups = torch.full((len(bg[0]),), BACKGROUND, dtype=torch.long, device=device)
-        return Composed(*[torch.cat([a, b]) for a, b in zip(bg + [bg_groups], dyn)], slices=slices)
+        return Composed(*_shade_and_join(bg, moving, shadow), groups, slices=slices)
 
-    def _node_index(self, counts: tuple[int, ...], groups: list[int], device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
-        """(node index [M], group id [M]) of the dynamic nodes' Gaussians for their ``counts``,
-        cached until a count changes (built on the host, copied once)."""
-        key = (counts, tuple(groups), str(device))
+    def _node_index(self, background: int, counts: tuple[int, ...], groups: list[int],
+                    device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+        """(node index [M] of the dynamic nodes' Gaussians, group id [background + M] of the
+        union) for ``background`` Gaussians and the dynamic nodes' ``counts``, cached until a
+        count changes (built on the host, copied once)."""
+        key = (background, counts, tuple(groups), str(device))
         cached = self._index_cache
         if cached is None or cached[0] != key:
             sizes = torch.tensor(counts)
             index = torch.repeat_interleave(torch.arange(len(counts)), sizes)
-            group_ids = torch.repeat_interleave(torch.tensor(groups, dtype=torch.long), sizes)
+            group_ids = torch.cat([torch.full((background,), BACKGROUND, dtype=torch.long),
+                                   torch.repeat_interleave(torch.tensor(groups, dtype=torch.long), sizes)])
             cached = (key, index.to(device), group_ids.to(device))
             self._index_cache = cached
         return cached[1], cached[2]
+
+
+@compilable
+def _shade_and_join(background: Activated | None, moving: Activated, shadow: tuple | None) -> Activated:
+    """The union of the background (its colours darkened where ``shadow``, the inputs of
+    :func:`~manisplat.scene.shadows.darken` after the colours and points, says) and the moving nodes."""
+    if background is None:
+        return moving
+    if shadow is not None:
+        means, quats, scales, opacities, colors = background
+        background = (means, quats, scales, opacities, darken(colors, means, *shadow))
+    return join([background, moving])

@@ -17,11 +17,13 @@ import math
 import torch
 import torch.nn.functional as F
 
+from manisplat.compilation import compilable
 from manisplat.splat import rasterization
 
 LIGHT_DISTANCE = 100.0  # m: far enough that the pinhole light camera is nearly orthographic
 
 
+@compilable
 def light_camera(direction: torch.Tensor, center: torch.Tensor, extent: float, resolution: int) -> tuple[torch.Tensor, torch.Tensor]:
     """(viewmat [4, 4], K [3, 3]) of a camera far along ``direction`` [3] (towards the light) looking
     at ``center`` [3], whose image of ``resolution`` pixels spans ``extent`` metres there.
@@ -96,24 +98,50 @@ class DirectionalShadows(torch.nn.Module):
 
         ``occluders`` = (means, quats, scales, opacities) of the dynamic Gaussians (world frame).
         """
+        return _sample_occlusion(points, *self._shadow_map(occluders), self.softness)
+
+    def shade(self, colors: torch.Tensor, points: torch.Tensor, occluders: tuple[torch.Tensor, ...]) -> torch.Tensor:
+        """Colours [N, 3] of points [N, 3] darkened where the occluders shadow them."""
+        return darken(colors, points, *self.shadow_inputs(occluders))
+
+    def shadow_inputs(self, occluders: tuple[torch.Tensor, ...]) -> tuple:
+        """What :func:`darken` needs after the colours and points: (strength logit [3], the
+        occluders' shadow map, its light camera, softness)."""
+        return (self.strength_logit, *self._shadow_map(occluders), self.softness)
+
+    def _shadow_map(self, occluders: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, ...]:
+        """(alpha [R, R, 1], expected depth [R, R, 1], light viewmat [4, 4], K [3, 3]): the
+        occluders rendered from the light (their geometry detached)."""
         view, K = light_camera(self.direction, self.center, self.extent, self.resolution)
         means, quats, scales, opacities = (x.detach() for x in occluders)
         depth_map, alpha_map, _ = rasterization(
             means, quats, scales, opacities, means.new_zeros(len(means), 0), view[None], K[None],
             self.resolution, self.resolution, render_mode="ED",
         )
-        cam = points @ view[:3, :3].T + view[:3, 3]  # [N, 3] in the light camera
-        uv = cam[:, :2] / cam[:, 2:3] * K[0, 0] + K[0, 2]
-        grid = (uv / self.resolution * 2 - 1)[None, None]  # [1, 1, N, 2], half-pixel convention
-        maps = torch.cat([alpha_map[0], depth_map[0]], dim=-1).permute(2, 0, 1)[None]  # [1, 2, R, R]
-        sampled = F.grid_sample(maps, grid, mode="bilinear", padding_mode="zeros", align_corners=False)[0, :, 0]
-        alpha, occluder_depth = sampled[0], sampled[1]
-        in_front = torch.sigmoid((cam[:, 2] - occluder_depth - self.softness) / (0.5 * self.softness))
-        return alpha * in_front
+        return alpha_map[0], depth_map[0], view, K
 
-    def shade(self, colors: torch.Tensor, points: torch.Tensor, occluders: tuple[torch.Tensor, ...]) -> torch.Tensor:
-        """Colours [N, 3] of points [N, 3] darkened where the occluders shadow them."""
-        return colors * (1.0 - self.strength * self.occlusion(points, occluders)[:, None])
+
+def _sample_occlusion(points: torch.Tensor, alpha_map: torch.Tensor, depth_map: torch.Tensor, view: torch.Tensor,
+                      K: torch.Tensor, softness: float) -> torch.Tensor:
+    """[N] occlusion of points [N, 3] by the shadow map (alpha and expected depth [R, R, 1]) of the
+    light camera ``view`` [4, 4], ``K`` [3, 3]: the map's alpha where its occluder lies in front."""
+    resolution = alpha_map.shape[0]
+    cam = points @ view[:3, :3].T + view[:3, 3]  # [N, 3] in the light camera
+    uv = cam[:, :2] / cam[:, 2:3] * K[0, 0] + K[0, 2]
+    grid = (uv / resolution * 2 - 1)[None, None]  # [1, 1, N, 2], half-pixel convention
+    maps = torch.cat([alpha_map, depth_map], dim=-1).permute(2, 0, 1)[None]  # [1, 2, R, R]
+    sampled = F.grid_sample(maps, grid, mode="bilinear", padding_mode="zeros", align_corners=False)[0, :, 0]
+    alpha, occluder_depth = sampled[0], sampled[1]
+    in_front = torch.sigmoid((cam[:, 2] - occluder_depth - softness) / (0.5 * softness))
+    return alpha * in_front
+
+
+def darken(colors: torch.Tensor, points: torch.Tensor, strength_logit: torch.Tensor, alpha_map: torch.Tensor,
+           depth_map: torch.Tensor, view: torch.Tensor, K: torch.Tensor, softness: float) -> torch.Tensor:
+    """Colours [N, 3] of points [N, 3] scaled by ``1 - strength * occlusion`` (strength [3] from its
+    logit; the occlusion from the shadow map, as :func:`_sample_occlusion`)."""
+    occlusion = _sample_occlusion(points, alpha_map, depth_map, view, K, softness)
+    return colors * (1.0 - torch.sigmoid(strength_logit) * occlusion[:, None])
 
 
 @torch.no_grad()

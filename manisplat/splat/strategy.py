@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
+from manisplat.compilation import compilable
 from manisplat.splat import ops
 
 log = logging.getLogger(__name__)
@@ -113,25 +114,26 @@ class DefaultStrategy:
         """Add this step's image-space gradient norms [N], visibility counts [N] and (with the
         screen-size rules) largest radii [N] to ``state``, with masked element-wise sums: no
         index lists whose length would have to be read back from a GPU (no synchronisation)."""
-        # "means2d_grad" lets a caller that rendered several nodes in one pass hand each node its slice
-        grads = info["means2d_grad"] if "means2d_grad" in info else info["means2d"].grad  # [C, N, 2]
-        if grads is None:
-            raise RuntimeError("means2d has no gradient: call step_pre_backward before loss.backward()")
+        if "grad2d_norms" in info:  # computed for a larger union this node is a slice of
+            norms, visible = info["grad2d_norms"], info["visible"]
+        else:
+            # "means2d_grad" lets a caller that rendered several nodes in one pass hand each node its slice
+            grads = info["means2d_grad"] if "means2d_grad" in info else info["means2d"].grad  # [C, N, 2]
+            if grads is None:
+                raise RuntimeError("means2d has no gradient: call step_pre_backward before loss.backward()")
+            norms, visible = gradient_statistics(grads, info["radii"], info["width"], info["height"])
         n = len(params["means"])
         if state["grad2d"] is None or len(state["grad2d"]) != n:
-            device = grads.device
+            device = norms.device
             state["grad2d"] = torch.zeros(n, device=device)
             state["count"] = torch.zeros(n, device=device)
             state["radii"] = torch.zeros(n, device=device)
-        C = info["n_cameras"]
-        sx, sy = info["width"] / 2.0 * C, info["height"] / 2.0 * C
-        visible = (info["radii"] > 0).all(dim=-1)  # [C, N]
-        norms = torch.hypot(grads[..., 0] * sx, grads[..., 1] * sy).float()  # [C, N]
-        state["grad2d"] += torch.where(visible, norms, torch.zeros_like(norms)).sum(0)
-        state["count"] += visible.sum(0, dtype=torch.float32)
+        state["grad2d"] += norms
+        state["count"] += visible
         if self.refine_scale2d_stop_iter > 0:
+            seen = (info["radii"] > 0).all(dim=-1)  # [C, N]
             r = info["radii"].max(dim=-1).values.float() / max(info["width"], info["height"])  # [C, N]
-            r = torch.where(visible, r, torch.zeros_like(r)).amax(0)
+            r = torch.where(seen, r, torch.zeros_like(r)).amax(0)
             torch.maximum(state["radii"], r, out=state["radii"])
 
     @torch.no_grad()
@@ -170,3 +172,15 @@ class DefaultStrategy:
         if n:
             ops.remove(params, optimizers, state, prune)
         return n
+
+
+@compilable
+@torch.no_grad()
+def gradient_statistics(grads: torch.Tensor, radii: torch.Tensor, width: int, height: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(summed image-space gradient norm [N], number of cameras that saw each Gaussian [N] float)
+    of one rasterization's ``means2d`` gradient [C, N, 2] and radii [C, N, 2] (pixels), the
+    gradient in half-image units as gsplat measures it; 0 where a Gaussian was not seen."""
+    C = grads.shape[0]
+    visible = (radii > 0).all(dim=-1)  # [C, N]
+    norms = torch.hypot(grads[..., 0] * (width / 2.0 * C), grads[..., 1] * (height / 2.0 * C)).float()  # [C, N]
+    return torch.where(visible, norms, torch.zeros_like(norms)).sum(0), visible.sum(0, dtype=torch.float32)

@@ -238,11 +238,18 @@ def test_an_obstacle_that_blocks_everything_is_rejected(twin):
 def test_deterministic_for_a_seed(twin):
     again = sample_targets(twin, np.random.default_rng(5))
     assert np.array_equal(sample_targets(twin, np.random.default_rng(5))["box"].T_start, again["box"].T_start)
-    # with the planner in play (OMPL re-seeded from the seed)
-    config = AugmentConfig(obstacles=(_obstacle_on_transfer(twin),), planner_timeout_s=5.0, seed=11)
-    a = augment_trajectory(twin, _spread_targets(twin), config)
+    # with the planner in play (OMPL re-seeded from the seed); whether a seed's straight path
+    # passes the cube depends on the twin to the last bit (the IK's seeded solutions), so the
+    # first seed that needs the planner is taken
+    obstacle = _obstacle_on_transfer(twin)
+    for seed in range(11, 31):
+        config = AugmentConfig(obstacles=(obstacle,), planner_timeout_s=5.0, seed=seed)
+        a = augment_trajectory(twin, _spread_targets(twin), config)
+        if next(r for r in a.planner["segments"] if r["segment"] == "M_transfer")["method"] == "rrtconnect":
+            break
+    else:
+        pytest.fail("no seed of 11-30 needed the planner for the transfer past the cube")
     b = augment_trajectory(twin, _spread_targets(twin), config)
-    assert next(r for r in a.planner["segments"] if r["segment"] == "M_transfer")["method"] == "rrtconnect"
     assert np.array_equal(a.q, b.q) and np.array_equal(a.gripper, b.gripper)
     assert [s["frames"] for s in a.segments] == [s["frames"] for s in b.segments]
 

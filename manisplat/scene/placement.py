@@ -1,0 +1,73 @@
+"""The scene graph's per-frame tensor work as pure functions: activating a node's parameters,
+placing every moving node at its pose in one batch, and joining the parts into one union.
+
+They take and return tensors only (the graph decides what goes in); :func:`place_scene` is
+:func:`~manisplat.compilation.compilable`, so that compiled, all of a state's placement is one
+graph of a few fused kernels.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from manisplat.compilation import compilable
+from manisplat.geometry import matrix_to_quat, quat_multiply
+from manisplat.splat.sh import C0, spherical_harmonics
+
+Activated = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
+
+
+def _colors(means: torch.Tensor, sh0: torch.Tensor, shN: torch.Tensor | None, viewer: torch.Tensor | None,
+            degree: int) -> torch.Tensor:
+    """[N, 3] colours of SH coefficients seen from ``viewer`` ([3] or [N, 3], the node's frame)."""
+    if degree > 0 and viewer is not None:
+        coeffs = torch.cat([sh0[:, None], shN[:, : (degree + 1) ** 2 - 1]], dim=1)
+        return (spherical_harmonics(degree, means - viewer, coeffs) + 0.5).clamp_min(0.0)
+    return (0.5 + C0 * sh0).clamp_min(0.0)
+
+
+def activate(params: dict[str, torch.Tensor], camera_center: torch.Tensor | None, degree: int) -> Activated:
+    """(means [N, 3], quats [N, 4], scales [N, 3], opacities [N], colours [N, 3]) of raw parameters
+    (:class:`~manisplat.scene.gaussians.GaussianSet`'s), the first ``degree`` SH bands seen from
+    ``camera_center`` [3] in the same frame (None: the base colour only)."""
+    colors = _colors(params["means"], params["sh0"], params.get("shN"), camera_center, degree)
+    return params["means"], params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]), colors
+
+
+@compilable
+def place_scene(background: dict[str, torch.Tensor] | None, moving: list[dict[str, torch.Tensor]], poses: torch.Tensor,
+                index: torch.Tensor, camera_center: torch.Tensor | None, degree: int) -> tuple[Activated | None, Activated]:
+    """(the background activated in place or None, the moving nodes placed by :func:`place_nodes`):
+    the scene's Gaussians at one state, before any shading, in one function (one compiled graph)."""
+    placed = place_nodes(moving, poses, index, camera_center, degree)
+    return (None if background is None else activate(background, camera_center, degree)), placed
+
+
+def place_nodes(params: list[dict[str, torch.Tensor]], poses: torch.Tensor, index: torch.Tensor,
+                camera_center: torch.Tensor | None, degree: int) -> Activated:
+    """Nodes' Gaussians activated and moved to their poses, as one union in node order.
+
+    Args:
+        params: each node's raw parameters (the same keys in every node), in local frames.
+        poses: [K, 4, 4] float32 ``T_base_node`` of the K nodes.
+        index: [M] int64, the node of each Gaussian of the union (M = the nodes' sizes summed).
+        camera_center: [3] base frame, for the view-dependent bands (None: base colour only).
+        degree: SH bands in use.
+    Returns (means, quats, scales, opacities, colours) [M, ...] in the base frame.
+    """
+    raw = {k: torch.cat([p[k] for p in params]) for k in params[0]}
+    R, t = poses[:, :3, :3], poses[:, :3, 3]
+    rotations = matrix_to_quat(R.double()).float()  # [K, 4]
+    local = raw["means"]
+    viewer = None
+    if camera_center is not None:
+        viewer = torch.einsum("kj,kji->ki", camera_center.float()[None] - t, R)[index]  # camera in each node's frame
+    colors = _colors(local, raw["sh0"], raw.get("shN"), viewer, degree)
+    means = torch.einsum("nij,nj->ni", R[index], local) + t[index]
+    quats = quat_multiply(rotations[index], raw["quats"])
+    return means, quats, torch.exp(raw["scales"]), torch.sigmoid(raw["opacities"]), colors
+
+
+def join(parts: list[Activated]) -> Activated:
+    """The parts' Gaussians in one union (each of the five tensors concatenated in part order)."""
+    return tuple(torch.cat(tensors) for tensors in zip(*parts))  # type: ignore[return-value]

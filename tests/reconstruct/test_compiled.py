@@ -1,0 +1,139 @@
+"""The iteration's compilable tensor functions: compiled (torch.compile, Inductor's C++ on the CPU)
+they compute what they compute eagerly, gradients included, and a change in the number of
+Gaussians (densification) reuses the compiled code instead of compiling again."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torch._dynamo.utils import counters
+
+from manisplat.compilation import MODES, compilable, compilation
+from manisplat.reconstruct.config import resolve_compile
+from manisplat.reconstruct.loss import frame_loss
+from manisplat.scene.placement import place_scene
+
+
+def _node(n: int, g: torch.Generator) -> dict[str, torch.Tensor]:
+    return {"means": torch.randn(n, 3, generator=g), "quats": torch.randn(n, 4, generator=g),
+            "scales": torch.randn(n, 3, generator=g) - 3, "opacities": torch.randn(n, generator=g),
+            "sh0": torch.randn(n, 3, generator=g), "shN": torch.randn(n, 8, 3, generator=g) * 0.1}
+
+
+def _poses(k: int, g: torch.Generator) -> torch.Tensor:
+    from manisplat.geometry import se3_exp
+
+    return se3_exp(torch.randn(k, 6, generator=g, dtype=torch.float64)).float()
+
+
+def _placement_inputs(sizes: tuple[int, ...], seed: int = 0):
+    """(background params, moving nodes' params, poses, index, camera centre) for place_scene."""
+    g = torch.Generator().manual_seed(seed)
+    background, *moving = [{k: torch.nn.Parameter(v) for k, v in _node(n, g).items()} for n in sizes]
+    index = torch.repeat_interleave(torch.arange(len(moving)), torch.tensor(sizes[1:]))
+    return background, moving, _poses(len(moving), g), index, torch.tensor([0.3, -0.2, 1.5])
+
+
+def _placed(inputs, degree: int) -> list[torch.Tensor]:
+    background, moving = place_scene(*inputs, degree)
+    return [*background, *moving]
+
+
+def _gradients(outputs, inputs) -> list[torch.Tensor]:
+    weights = torch.Generator().manual_seed(7)
+    loss = sum((o * torch.rand(o.shape, generator=weights)).sum() for o in outputs)
+    params = [p for node in [inputs[0], *inputs[1]] for p in node.values()]
+    return torch.autograd.grad(loss, params, allow_unused=True)
+
+
+@pytest.mark.parametrize("degree", [0, 2])
+def test_compiled_placement_equals_eager_with_gradients(degree):
+    inputs = _placement_inputs((30, 40, 1, 25))
+    eager = _placed(inputs, degree)
+    with compilation("default"):
+        compiled = _placed(inputs, degree)
+    for a, b in zip(compiled, eager):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+    for a, b in zip(_gradients(compiled, inputs), _gradients(eager, inputs)):
+        assert (a is None) == (b is None)  # the bands above the degree are not used
+        if a is not None:
+            torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
+
+
+def test_new_numbers_of_gaussians_reuse_the_compiled_placement():
+    """Densification changes every node's size (parameters included): compiled once for any size."""
+    with compilation("default"):
+        _placed(_placement_inputs((20, 30, 12, 9), seed=1), 2)
+        compiled_before = counters["stats"]["unique_graphs"]
+        for sizes in ((21, 31, 12, 9), (7, 50, 2, 17), (64, 64, 64, 3)):
+            _placed(_placement_inputs(sizes, seed=2), 2)
+    assert counters["stats"]["unique_graphs"] == compiled_before
+
+
+def _loss_inputs(seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    H, W, T = 24, 32, 9
+    image = torch.rand(H, W, 3, generator=g).requires_grad_()
+    alpha = torch.rand(H, W, generator=g).requires_grad_()
+    target = (torch.rand(H, W, 3, generator=g) * 255).to(torch.uint8)
+    dynamic = torch.rand(H, W, generator=g) > 0.7
+    valid = (torch.rand(H, W, generator=g) > 0.1).float()
+    fitted = 1 + 0.1 * torch.rand(T, 3, generator=g)
+    weight = torch.zeros(T)
+    weight[::2] = 1 / len(weight[::2])
+    exposure = (fitted, torch.arange(T)[4], weight)
+    twists = [(torch.randn(6, generator=g, dtype=torch.float64) * 0.01).requires_grad_() for _ in range(2)]
+    return image, alpha, target, dynamic, valid, exposure, twists, (0.2, 1.0, 1.0, 1.0)
+
+
+def test_the_compiled_frame_loss_equals_eager_with_gradients_and_gains():
+    inputs = _loss_inputs()
+    image, alpha, *_, twists, _ = inputs
+    eager, eager_gains = frame_loss(*inputs)
+    with compilation("default"):
+        compiled, compiled_gains = frame_loss(*inputs)
+    torch.testing.assert_close(compiled, eager, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(compiled_gains, eager_gains, rtol=1e-5, atol=1e-6)
+    leaves = [image, alpha, *twists]
+    for a, b in zip(torch.autograd.grad(compiled, leaves), torch.autograd.grad(eager, leaves)):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-7)
+
+
+def test_the_exposure_gains_in_the_loss_are_those_fit_returns():
+    """frame_loss fits the frame's gains on its static pixels and scales the render by them
+    relative to the training frames' mean, as FrameExposure.fit does."""
+    from manisplat.reconstruct.exposure import FrameExposure
+
+    image, alpha, target, dynamic, valid, _, twists, weights = _loss_inputs(3)
+    exposure = FrameExposure(9, list(range(0, 9, 2)))
+    exposure.fitted.uniform_(0.8, 1.2)
+    loss, gains = frame_loss(image, alpha, target, dynamic, valid, exposure.fit_inputs(4), twists, weights)
+    used = exposure.fit(4, image, target.float() / 255, (1 - dynamic.float()) * valid)
+    torch.testing.assert_close(gains, exposure.fitted[4])
+    assert (used - 1).abs().max() > 0.01  # the gains do something
+    reference, _ = frame_loss(image * used, alpha, target, dynamic, valid, None, twists, weights)
+    torch.testing.assert_close(loss, reference, rtol=1e-6, atol=1e-7)
+
+
+def test_compilation_is_off_outside_its_block_and_modes_are_checked():
+    calls = []
+
+    @compilable
+    def double(x):
+        calls.append(torch.compiler.is_compiling())
+        return 2 * x
+
+    assert double(torch.ones(2)).tolist() == [2.0, 2.0] and calls == [False]
+    with pytest.raises(ValueError, match="unknown compilation mode"):
+        with compilation("fast"):
+            pass
+    assert MODES == ("default",)
+
+
+def test_the_compile_setting_resolves_per_device():
+    assert resolve_compile("auto", "cuda") == "default"
+    assert resolve_compile("auto", "cpu") is None
+    assert resolve_compile("on", "cpu") == "default"
+    assert resolve_compile("off", "cuda") is None
+    with pytest.raises(ValueError, match="unknown compile setting"):
+        resolve_compile("yes", "cpu")
