@@ -125,7 +125,7 @@ def step_cpu(run: Run, args) -> None:
 
     sample = write_sample_episode(args.work / "sample_cpu")
     episodes = {"sample": sample, "pp": args.pp}
-    for label in args.episodes.split(","):
+    for label in args.cpu_episodes.split(","):
         for threads in (os.cpu_count(), 2):
             _train(run, f"cpu/{label}/{threads}_threads", episodes[label], device="cpu", iters=args.cpu_iters,
                    compile="off", steady_iters=0, profile_iters=0, sync_iters=0, threads=threads)
@@ -203,6 +203,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--budget-s", type=float, default=420.0, help="start no step after this many seconds")
     p.add_argument("--episodes", default="sample,pp", help="the iteration step's episodes (sample, pp)")
     p.add_argument("--variants", default=",".join(VARIANTS), help="the iteration step's variants")
+    p.add_argument("--cpu-episodes", default="sample,pp", help="the cpu step's episodes (sample, pp)")
     p.add_argument("--sample-iters", type=int, default=700)
     p.add_argument("--pp-iters", type=int, default=700)
     p.add_argument("--steady-iters", type=int, default=100)
