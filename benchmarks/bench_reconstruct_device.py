@@ -93,23 +93,17 @@ def profile_split(rec, iters: int) -> dict[str, float]:
     shadows = rec.graph.shadows
     if shadows is not None:
         shadows._shadow_map = timer.wrap("shadow map (light pass, in compose)", shadows._shadow_map)
-    rec.config.iters = rec.step + iters
-    rec.refit_exposure = lambda: None  # the end of training's exposure refit renders every frame: not an iteration
-    _sync(rec.device)
-    t0 = time.perf_counter()
     try:
-        rec.train(progress=False)
-        _sync(rec.device)
+        total = _train_more(rec, iters)
     finally:
         (rec.losses, rec._step_and_densify, rec.object_poses, rec.graph.compose, render_module.rasterization,
          trainer_module.frame_loss, torch.Tensor.backward) = originals
-        for name in ("losses", "_step_and_densify", "object_poses", "refit_exposure"):
+        for name in ("losses", "_step_and_densify", "object_poses"):
             rec.__dict__.pop(name, None)
         rec.optimizer.__dict__.pop("step", None)
         rec.graph.__dict__.pop("compose", None)
         if shadows is not None:
             shadows.__dict__.pop("_shadow_map", None)
-    total = time.perf_counter() - t0
     split = {k: round(v / iters * 1e3, 3) for k, v in timer.totals.items()}
     split["iteration (phases timed apart)"] = round(total / iters * 1e3, 3)
     return split
@@ -118,8 +112,14 @@ def profile_split(rec, iters: int) -> dict[str, float]:
 def steady_ms_per_iter(rec, iters: int) -> float:
     """ms per iteration of ``iters`` more plain iterations (after training: compiled code, if
     any, is ready; no densification once past its stop)."""
+    return round(_train_more(rec, iters) / iters * 1e3, 3)
+
+
+def _train_more(rec, iters: int) -> float:
+    """Seconds ``iters`` more training iterations take, without the exposure refit that ends a
+    training run (it renders every frame: not an iteration)."""
     rec.config.iters = rec.step + iters
-    refit, rec.refit_exposure = rec.refit_exposure, lambda: None
+    rec.refit_exposure = lambda: None
     _sync(rec.device)
     t0 = time.perf_counter()
     try:
@@ -127,7 +127,7 @@ def steady_ms_per_iter(rec, iters: int) -> float:
         _sync(rec.device)
     finally:
         rec.__dict__.pop("refit_exposure", None)
-    return round((time.perf_counter() - t0) / iters * 1e3, 3)
+    return time.perf_counter() - t0
 
 
 def count_syncs(rec, iters: int) -> dict[str, int]:

@@ -24,9 +24,11 @@ import torch
 
 F = TypeVar("F", bound=Callable)
 
-#: ``torch.compile`` modes offered: "default" (fused kernels). "reduce-overhead" (the same in CUDA
-#: graphs) ended the process with a segmentation fault on an H100 with torch 2.11.0 and is not offered.
-MODES = ("default",)
+#: how each mode compiles: "default", Inductor's fused kernels; "trace", Dynamo and AOTAutograd
+#: without generating code (the graphs, guards and backward that compiling sees, in seconds: for
+#: tests and for finding a fault). torch.compile's "reduce-overhead" (CUDA graphs) ended the process
+#: with a segmentation fault on an H100 with torch 2.11.0 and is not offered.
+MODES: dict[str, dict[str, str]] = {"default": {"mode": "default"}, "trace": {"backend": "aot_eager"}}
 
 _MODE: contextvars.ContextVar[str | None] = contextvars.ContextVar("manisplat_compilation", default=None)
 
@@ -66,7 +68,7 @@ def compilable(fn: F) -> F:
         if mode is None or torch.compiler.is_compiling():
             return fn(*args, **kwargs)
         if mode not in compiled:
-            compiled[mode] = torch.compile(fn, mode=mode, dynamic=True)
+            compiled[mode] = torch.compile(fn, dynamic=True, **MODES[mode])
         return compiled[mode](*args, **kwargs)
 
     return dispatch  # type: ignore[return-value]

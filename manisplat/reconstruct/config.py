@@ -35,7 +35,7 @@ class TrainConfig:
         device: torch device of training ("cpu", "cuda", "cuda:N", or "auto": CUDA when
             available); resolved by :func:`resolve_device` (a string here: no torch import).
         compile: run the iteration's tensor functions (placement, shadows, loss, densification
-            statistics) through ``torch.compile`` ("on", "off"; "auto": on CUDA only;
+            statistics) through ``torch.compile`` ("on", "off"; "auto": on CUDA for long runs;
             :func:`resolve_compile`). The same training with fewer, fused kernels; the first
             iterations pay the compilation.
         eval_every: iterations between held-out PSNR estimates (for the progress bar).
@@ -82,16 +82,21 @@ def default_iters(device: str) -> int:
 
 
 COMPILE_CHOICES = ("auto", "on", "off")
+#: "auto" compiles a CUDA run of at least this many iterations: on an H100, compiling took 114 s
+#: and saved 9.6 ms an iteration (22.6 -> 13.0 ms on sim_pick_place_small), so it pays after
+#: about 11 900 (benchmarks/results_device/gpu_compile/pp_600.json)
+COMPILE_MIN_ITERS = 12_000
 
 
-def resolve_compile(name: str, device_type: str) -> str | None:
+def resolve_compile(name: str, device_type: str, iters: int) -> str | None:
     """The ``torch.compile`` mode training runs its iteration in (:mod:`manisplat.compilation`),
-    or None (eager), for ``name``: "on", "off", or "auto": on for CUDA; off on the CPU, where
-    compiling costs more than it saves (README, the CPU iteration)."""
+    or None (eager), for ``name``: "on", "off", or "auto": on for a CUDA run of at least
+    :data:`COMPILE_MIN_ITERS` iterations (where the compilation pays for itself); off on the CPU,
+    where compiling costs minutes and saves a few per cent (README, the CPU iteration)."""
     if name not in COMPILE_CHOICES:
         raise ValueError(f"unknown compile setting {name!r}; choose one of {', '.join(COMPILE_CHOICES)}")
     if name == "auto":
-        name = "on" if device_type == "cuda" else "off"
+        name = "on" if device_type == "cuda" and iters >= COMPILE_MIN_ITERS else "off"
     return "default" if name == "on" else None
 
 

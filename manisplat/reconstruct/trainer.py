@@ -58,7 +58,7 @@ class Reconstruction:
                  config: TrainConfig) -> None:
         self.device = torch.device(resolve_device(config.device, config.backend))
         #: the torch.compile mode of the iteration's tensor functions, None: eager (:mod:`manisplat.compilation`)
-        self.compiled = resolve_compile(config.compile, self.device.type)
+        self.compiled = resolve_compile(config.compile, self.device.type, config.iters)
         self.data, self.plan, self.graph, self.trajectories, self.config = data.to(self.device), plan, graph, trajectories, config
         self.graph.to(self.device)
         for t in trajectories.values():

@@ -36,11 +36,13 @@ def activate(params: dict[str, torch.Tensor], camera_center: torch.Tensor | None
 
 @compilable
 def place_scene(background: dict[str, torch.Tensor] | None, moving: list[dict[str, torch.Tensor]], poses: torch.Tensor,
-                index: torch.Tensor, camera_center: torch.Tensor | None, degree: int) -> tuple[Activated | None, Activated]:
-    """(the background activated in place or None, the moving nodes placed by :func:`place_nodes`):
-    the scene's Gaussians at one state, before any shading, in one function (one compiled graph)."""
+                index: torch.Tensor, camera_center: torch.Tensor | None, degree: int,
+                background_degree: int) -> tuple[Activated | None, Activated]:
+    """(the background activated in place with its ``background_degree`` SH bands, or None; the
+    moving nodes placed by :func:`place_nodes` with ``degree``): the scene's Gaussians at one
+    state, before any shading, in one function (one compiled graph)."""
     placed = place_nodes(moving, poses, index, camera_center, degree)
-    return (None if background is None else activate(background, camera_center, degree)), placed
+    return (None if background is None else activate(background, camera_center, background_degree)), placed
 
 
 def place_nodes(params: list[dict[str, torch.Tensor]], poses: torch.Tensor, index: torch.Tensor,

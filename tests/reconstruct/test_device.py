@@ -215,9 +215,11 @@ def test_every_tensor_of_a_cuda_run_is_on_cuda_and_its_outputs_load_on_the_cpu(p
 
 @needs_cuda
 def test_a_cuda_iteration_does_not_synchronise_outside_gsplat(pick):
-    """Between densification and logging steps the trainer reads nothing back from the GPU; only
-    gsplat's own tile-intersection count (one per rasterization) remains."""
-    rec, _ = _reconstruction(pick, iters=12, device="cuda", refine_start=10 ** 6, shadow_start=2)
+    """Between densification and logging steps the eager trainer reads nothing back from the GPU;
+    only gsplat's own tile-intersection count (one per rasterization) remains. (Compiled, the
+    iterations are as free of them once compiled, as the device benchmark counts; a compilation
+    itself synchronises, and a new frame can still compile a variant: README, Device.)"""
+    rec, _ = _reconstruction(pick, iters=12, device="cuda", refine_start=10 ** 6, shadow_start=2, compile="off")
     rec.train(progress=False)  # warm up: shadows started, kernels loaded, the loss read once
     rec._read_loss = lambda: float("nan")  # the reads every log_every / eval_every iterations
     rec.quick_psnr = lambda: float("nan")
@@ -309,7 +311,8 @@ def test_a_compiled_iteration_computes_the_eager_loss_and_gradients(pick, device
     rec.train(progress=False)
     frame = rec.plan.train_frames[3]
     eager = _gradients_of_one_iteration(rec, frame, None)
-    compiled = _gradients_of_one_iteration(rec, frame, "default")
+    # the CPU: Dynamo's and AOTAutograd's graphs without Inductor's C++ (minutes on 2 cores)
+    compiled = _gradients_of_one_iteration(rec, frame, "default" if device == "cuda" else "trace")
     assert eager.keys() == compiled.keys() and len(eager) > 10
     torch.testing.assert_close(compiled.pop("loss"), eager.pop("loss"), rtol=1e-5, atol=0)
     for name, g in eager.items():

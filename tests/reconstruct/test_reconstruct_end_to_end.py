@@ -128,7 +128,8 @@ def test_densification_follows_the_optimizer_step(pick):
     """gsplat's order: backward, one optimizer step over everything, then each node's
     densification, so a node that grows or is pruned still takes that iteration's update."""
     data = load_episode_data(pick)
-    rec, _ = build(data, make_plan(data), TrainConfig(iters=3, shadows=False, eval_every=100))
+    config = TrainConfig(iters=3, shadows=False, eval_every=100, refine_stop_fraction=1.0)  # densifying throughout
+    rec, _ = build(data, make_plan(data), config)
     events = []
     step = rec.optimizer.step
     rec.optimizer.step = lambda *a, **k: (events.append("step"), step(*a, **k))[1]
