@@ -14,6 +14,7 @@ from pathlib import Path
 
 from manisplat.cli_args import finite_numbers, positive
 from manisplat.output_folder import check_output_folder
+from manisplat.threads import THREADS_HELP, use_threads
 
 log = logging.getLogger("manisplat.augment")
 REPORT = "augment_report.json"
@@ -72,6 +73,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="seconds the planner may spend on one motion before the sample is given up (default %(default)s)")
     p.add_argument("--workers", type=positive(int), default=1,
                    help="processes rendering and writing demonstrations in parallel (default %(default)s)")
+    p.add_argument("--threads", type=positive(int), metavar="N",
+                   help=THREADS_HELP + "; the --workers processes render with one each")
     p.add_argument("--image-format", choices=("png", "jpg"), default="png", help="rgb file format (default %(default)s)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace earlier results in --out (episode_* folders, report, plot; default: refused)")
@@ -92,6 +95,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         parser.error(str(exc))
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="%(message)s")
+    use_threads(args.threads)
     from manisplat.augment.run import AugmentError, run_augmentation
 
     try:

@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 from manisplat.cli_args import positive
+from manisplat.threads import THREADS_HELP, use_threads
 
 EPILOG = """\
 PIPELINE.toml (paths relative to its folder):
@@ -53,6 +54,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--sequential", action="store_true",
                      help="run the tasks one after another in this process, without Ray (default when Ray is "
                           "not installed)")
+    run.add_argument("--threads", type=positive(int), metavar="N",
+                     help=THREADS_HELP + " when the tasks run here, one after another; on Ray each task uses as many "
+                                         "as the CPUs it is given")
     run.add_argument("-q", "--quiet", action="store_true", help="no progress bar, warnings only")
     status = sub.add_parser("status", help="the state of a batch, read from its output folder",
                             description="Per episode and stage: complete, running (a partial output with its "
@@ -88,6 +92,7 @@ def _run(args: argparse.Namespace) -> int:
         if not has_ray:
             print("Ray is not installed: running the tasks one after another here "
                   "(pip install 'manisplat[distributed]' to run them in parallel)", file=sys.stderr)
+        use_threads(args.threads)
         executor = LocalExecutor()
     else:
         executor = RayExecutor(args.address, config.max_retries, num_cpus=args.workers)

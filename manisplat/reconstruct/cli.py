@@ -21,6 +21,7 @@ from manisplat.cli_args import finite, non_negative, numbers, positive
 from manisplat.output_folder import check_output_folder
 from manisplat.reconstruct.config import (COMPILE_CHOICES, COMPILE_MIN_ITERS, GPU_ITERS, DeviceUnavailable,
                                           TrainConfig, default_iters, resolve_compile, resolve_device)
+from manisplat.threads import THREADS_HELP, use_threads
 
 log = logging.getLogger("manisplat.reconstruct")
 CHECKPOINT = "checkpoint.pt"
@@ -65,6 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
                    help="where training runs: auto (CUDA when available, else cpu; the default), cpu, or cuda "
                         "(needs a CUDA build of torch and gsplat: pip install 'manisplat[gpu]'); exit 1 if unusable")
+    p.add_argument("--threads", type=positive(int), metavar="N", help=THREADS_HELP)
     p.add_argument("--compile", default="auto", choices=COMPILE_CHOICES,
                    help="run the training iteration's tensor work through torch.compile: auto (on for CUDA runs "
                         f"of {COMPILE_MIN_ITERS} iterations or more: 1.7x faster iterations after about 2 minutes of "
@@ -148,6 +150,7 @@ def _run(args: argparse.Namespace, prompt: tuple[str, tuple | None, tuple | None
     from manisplat.splat import BackendUnavailable
 
     start = time.perf_counter()
+    use_threads(args.threads)
     if not args.plan:
         try:
             device = resolve_device(args.device, args.backend)

@@ -14,7 +14,8 @@ import sys
 import threading
 from pathlib import Path
 
-from manisplat.cli_args import bounded
+from manisplat.cli_args import bounded, positive
+from manisplat.threads import THREADS_HELP, use_threads
 
 log = logging.getLogger("manisplat.view")
 
@@ -55,6 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--episode", type=Path, metavar="EP",
                    help="the episode a reconstruction was made from (default: its name, beside it or here)")
     p.add_argument("--video", type=Path, metavar="OUT.mp4", help="write a video instead of serving the page")
+    p.add_argument("--threads", type=positive(int), metavar="N", help=THREADS_HELP)
     p.add_argument("--orbit", type=float, default=0.0, metavar="DEG",
                    help="with --video and a twin: turn the camera DEG degrees about the scene (default: 0, the "
                         "episode's camera)")
@@ -72,6 +74,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--orbit applies to --video only (in the browser, drag to orbit)")
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="%(message)s")
     logging.getLogger("websockets").setLevel(logging.WARNING)  # one line per connection otherwise
+    use_threads(args.threads)
     from manisplat.view.content import ViewInputError, load_content
 
     try:

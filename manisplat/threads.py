@@ -1,0 +1,85 @@
+"""CPU threads of a job: idle OpenMP workers that sleep, and as many threads as there are free cores.
+
+PyTorch's CPU kernels and the C++ rasterizer run on one OpenMP pool per process (libgomp on
+Linux), by default one thread per core, whose idle workers spin between parallel regions. On a
+machine whose cores other jobs use, those spinning workers take turns with the other jobs' work
+and with each other: on a 2-core machine at load 2.3-6, ``manisplat-view --video`` rendered 2.0
+frames/s with the defaults and 58 with one thread. So here:
+
+- idle workers sleep (``OMP_WAIT_POLICY=PASSIVE``), set when manisplat is imported, which must
+  come before torch's first import to take effect (every command line tool does); a user's own
+  ``OMP_WAIT_POLICY`` is kept;
+- a job takes the cores that are free when it starts: the cores this process may run on minus
+  the whole cores other work keeps busy (measured over 0.2 s), at least one (``--threads N`` on
+  every heavy command sets it); torch's pool and OpenCV's follow it, and the log says how many
+  and why.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+
+log = logging.getLogger(__name__)
+
+
+def sleep_when_idle() -> None:
+    """Make OpenMP's idle workers sleep instead of spin, unless ``OMP_WAIT_POLICY`` is set (only
+    effective before torch's first import loads OpenMP)."""
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+
+def free_cores(sample_s: float = 0.2) -> tuple[int, int, float]:
+    """(free cores, cores this process may use, cores busy with other work): the busy cores are
+    measured over ``sample_s`` seconds from ``/proc/stat`` (Linux; elsewhere the 1-minute load
+    average, which lags); free = cores minus the busy ones' whole part, within [1, cores] (a core
+    less than fully busy counts as free: idle workers sleep, so a thread too many costs little, one
+    too few halves a 2-core machine)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    busy = _busy_cores(sample_s)
+    if busy is None:
+        busy = os.getloadavg()[0] if hasattr(os, "getloadavg") else 0.0
+    return max(1, min(cores, cores - math.floor(busy))), cores, busy
+
+
+def _busy_cores(sample_s: float) -> float | None:
+    """Cores busy over the next ``sample_s`` seconds, from the kernel's CPU time counters (None
+    where ``/proc/stat`` cannot be read)."""
+    def totals() -> tuple[int, int, int]:
+        with open("/proc/stat") as f:
+            lines = f.read().splitlines()
+        fields = [int(v) for v in lines[0].split()[1:]]  # user nice system idle iowait irq softirq steal ...
+        n = sum(line.startswith("cpu") and line[3:4].isdigit() for line in lines)
+        return sum(fields[:8]), fields[3] + fields[4], n
+
+    try:
+        total0, idle0, n = totals()
+        time.sleep(sample_s)
+        total1, idle1, _ = totals()
+    except (OSError, ValueError, IndexError):
+        return None
+    spent = total1 - total0
+    return 0.0 if spent <= 0 else n * (spent - (idle1 - idle0)) / spent
+
+
+def use_threads(requested: int | None = None) -> int:
+    """Set this process's CPU threads (torch's pool, OpenCV's) to ``requested`` or, when None, to
+    the free cores; log the choice and return it."""
+    import cv2
+    import torch
+
+    if requested is not None and requested < 1:
+        raise ValueError(f"threads must be at least 1, got {requested}")
+    free, cores, busy = free_cores()
+    threads = requested if requested is not None else free
+    torch.set_num_threads(threads)
+    cv2.setNumThreads(threads)
+    why = "--threads" if requested is not None else f"the free cores: {cores}, {busy:.1f} busy with other work"
+    log.info("using %d CPU thread%s (%s; OpenMP wait policy %s)", threads, "" if threads == 1 else "s", why,
+             os.environ.get("OMP_WAIT_POLICY", "the default").lower())
+    return threads
+
+
+THREADS_HELP = "CPU threads (default: the cores free when it starts, measured over 0.2 s)"

@@ -1,0 +1,116 @@
+"""CPU threads: importing manisplat makes OpenMP's idle workers sleep (unless the user chose), a
+job takes the cores other work leaves free, --threads overrides, and the log says which and why."""
+
+from __future__ import annotations
+
+import logging
+import os
+import subprocess
+import sys
+
+import pytest
+
+from manisplat import threads
+
+
+def _wait_policy_after_import(env_policy: str | None) -> str:
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    if env_policy is not None:
+        env["OMP_WAIT_POLICY"] = env_policy
+    script = "import manisplat, os; print(os.environ.get('OMP_WAIT_POLICY'))"
+    return subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True,
+                          check=True).stdout.strip()
+
+
+def test_importing_manisplat_makes_idle_openmp_workers_sleep_unless_the_user_chose():
+    assert _wait_policy_after_import(None) == "PASSIVE"
+    assert _wait_policy_after_import("active") == "active"
+
+
+def test_a_new_process_sleeps_its_idle_workers_before_torch_loads_openmp():
+    """What a command line tool does: manisplat first, then torch, whose OpenMP reads the policy."""
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    script = ("import manisplat.reconstruct.cli, torch, os; "
+              "print(os.environ['OMP_WAIT_POLICY'], 'torch' in __import__('sys').modules)")
+    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["PASSIVE", "True"]
+
+
+@pytest.mark.parametrize(("cores", "busy", "free"), [(2, 0.0, 2), (2, 0.6, 2), (2, 1.2, 1), (2, 5.0, 1),
+                                                       (16, 3.7, 13), (16, 40.0, 1), (1, 0.0, 1)])
+def test_a_job_takes_the_cores_other_work_leaves_free(monkeypatch, cores, busy, free):
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(cores)))
+    monkeypatch.setattr(threads, "_busy_cores", lambda sample_s: busy)
+    assert threads.free_cores() == (free, cores, busy)
+
+
+def test_without_cpu_counters_the_load_average_stands_in(monkeypatch):
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1, 2, 3})
+    monkeypatch.setattr(threads, "_busy_cores", lambda sample_s: None)
+    monkeypatch.setattr(os, "getloadavg", lambda: (2.5, 1.0, 1.0))
+    assert threads.free_cores() == (2, 4, 2.5)
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/stat"), reason="reads Linux's /proc/stat")
+def test_a_spinning_process_counts_as_a_busy_core():
+    hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        assert threads._busy_cores(0.5) >= 0.8
+    finally:
+        hog.kill()
+        hog.wait()
+
+
+@pytest.fixture
+def restore_threads():
+    import cv2
+    import torch
+
+    before = torch.get_num_threads(), cv2.getNumThreads()
+    yield
+    torch.set_num_threads(before[0])
+    cv2.setNumThreads(before[1])
+
+
+def test_use_threads_sets_torch_and_opencv_and_says_why(monkeypatch, caplog, restore_threads):
+    import cv2
+    import torch
+
+    caplog.set_level(logging.INFO, logger="manisplat.threads")
+    assert threads.use_threads(3) == 3
+    assert torch.get_num_threads() == 3 and cv2.getNumThreads() == 3
+    assert "using 3 CPU threads (--threads" in caplog.text
+    monkeypatch.setattr(threads, "free_cores", lambda: (1, 2, 1.4))
+    assert threads.use_threads() == 1 and torch.get_num_threads() == 1
+    assert "using 1 CPU thread (the free cores: 2, 1.4 busy with other work" in caplog.text
+    with pytest.raises(ValueError, match="at least 1"):
+        threads.use_threads(0)
+
+
+def test_reconstruct_says_how_many_threads_it_uses(tmp_path, caplog, restore_threads):
+    from manisplat.episode.synthetic import write_sample_episode
+    from manisplat.reconstruct.cli import main
+
+    episode = write_sample_episode(tmp_path / "ep", frames=16, width=40, height=30)
+    caplog.set_level(logging.INFO)
+    assert main([str(episode), "--out", str(tmp_path / "out"), "--plan", "--threads", "1"]) == 0
+    assert "using 1 CPU thread (--threads" in caplog.text
+
+
+@pytest.mark.parametrize(("module", "argv"), [
+    ("manisplat.reconstruct.cli", ["ep", "--out", "o"]),
+    ("manisplat.augment.cli", ["recon", "--out", "o"]),
+    ("manisplat.view.cli", ["twin"]),
+])
+def test_every_heavy_command_takes_threads(module, argv):
+    import importlib
+
+    parser = importlib.import_module(module).build_parser()
+    assert parser.parse_args([*argv, "--threads", "2"]).threads == 2
+    assert parser.parse_args(argv).threads is None
+
+
+def test_batch_run_takes_threads():
+    from manisplat.batch.cli import build_parser
+
+    assert build_parser().parse_args(["run", "p.toml", "--threads", "2"]).threads == 2
