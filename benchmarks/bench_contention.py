@@ -149,8 +149,10 @@ def main(argv: list[str] | None = None) -> int:
                            check=True, capture_output=True)
             for name in ("drivers", "recorder", "calib"):  # installed under manisplat.*: linked for a plain path
                 (tree / "manisplat" / name).symlink_to(tree / name)
+            commit = subprocess.run(["git", "-C", str(tree), "rev-parse", "--short", "HEAD"], check=True,
+                                    capture_output=True, text=True).stdout.strip()
             try:
-                results["runs"].append(measure(tree, f"before ({args.before})", work))
+                results["runs"].append(measure(tree, f"before ({commit})", work))
             finally:
                 subprocess.run(["git", "-C", str(REPO_DIR), "worktree", "remove", "--force", str(tree)],
                                capture_output=True)
