@@ -206,7 +206,9 @@ class Twin:
         try:
             tensors = torch.load(tensors_path, weights_only=True, map_location="cpu")
         except Exception as exc:  # torch raises several types for damaged files
-            raise TwinFormatError(f"{tensors_path}: unreadable ({type(exc).__name__}: {exc})") from exc
+            first = (str(exc).strip().splitlines() or [""])[0]  # torch's messages run over many lines
+            raise TwinFormatError(f"{tensors_path}: unreadable, damaged or not written by manisplat-reconstruct "
+                                  f"({type(exc).__name__}: {first})") from exc
 
         def tensor(key: str) -> torch.Tensor:
             if key not in tensors:

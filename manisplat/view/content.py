@@ -132,9 +132,12 @@ def _find_episode(name: str, near: list[Path]) -> Path | None:
 
 
 def _load_twin(path: Path, episode: Path | None) -> tuple[Any, Demo, list[str]]:
-    from manisplat.twin import Twin
+    from manisplat.twin import Twin, TwinFormatError
 
-    twin = Twin.load(path)
+    try:
+        twin = Twin.load(path)
+    except TwinFormatError as exc:  # a missing or damaged twin.pt, a twin.json that does not match it
+        raise ViewInputError(str(exc)) from exc
     notes = []
     found = episode or _find_episode(twin.episode, [path.parent, Path.cwd()])
     ep = None

@@ -174,6 +174,20 @@ def test_command_line_errors(folders, tmp_path, capsys):
     assert report["written"] == 1
 
 
+@pytest.mark.parametrize("damage", ["missing", "garbage"])
+def test_a_twin_without_its_tensors_is_a_one_line_error(folders, tmp_path, capsys, damage):
+    broken = tmp_path / "twin"
+    shutil.copytree(folders["recon"], broken)
+    if damage == "missing":
+        (broken / "twin.pt").unlink()
+    else:
+        (broken / "twin.pt").write_bytes(b"not a torch file")
+    assert main([str(broken), "--video", str(tmp_path / "v.mp4"), "-q"]) == 1
+    err = capsys.readouterr().err
+    assert "twin.pt" in err and ("missing" in err if damage == "missing" else "unreadable" in err)
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
 def test_the_command_serves_on_localhost_says_where_and_stops_on_sigterm(folders, free_port):
     import signal
     import subprocess
