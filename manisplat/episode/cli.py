@@ -134,8 +134,8 @@ def _export_act(args: argparse.Namespace) -> int:
                                   dtype="float64" if args.float64 else "float32", fps=args.fps,
                                   overwrite=args.overwrite, progress=sys.stderr.isatty())
     except KeyboardInterrupt:
-        print("\ninterrupted: finished files stay in place; the one being written was removed, and "
-              f"{args.out}/augmentation.json says complete: false", file=sys.stderr)
+        print(f"\ninterrupted: nothing was written to {args.out} (the hidden folder being written was removed)",
+              file=sys.stderr)
         return 130
     augmented = sum(e["augmented"] for e in entries)
     frames = sum(e["frames"] for e in entries)

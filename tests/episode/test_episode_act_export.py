@@ -181,32 +181,45 @@ def test_non_empty_out_refused_unless_overwrite(sample, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("compress", [False, True])
-def test_interrupted_export_leaves_only_complete_files(sample, tmp_path, compress):
+def test_a_failed_export_leaves_nothing_and_the_same_command_runs_again(sample, tmp_path, compress):
     broken = _copy(sample, tmp_path / "broken")
     data = (broken / "rgb" / "000011.png").read_bytes()
     (broken / "rgb" / "000011.png").write_bytes(data[: len(data) // 2])  # truncated: fails mid-episode
-    out = tmp_path / "out"
+    out = tmp_path / "exports" / "out"
+    command = ["export", str(sample), str(broken), "--format", "act-hdf5", "--out", str(out)] + ["--compress"] * compress
     with pytest.raises(EpisodeFormatError, match="000011.png: cannot decode"):
         export_act_hdf5([sample, broken, sample], out, compress=compress)
-    assert sorted(p.name for p in out.iterdir()) == ["augmentation.json", "episode_0.hdf5"]
-    record = json.loads((out / "augmentation.json").read_text())
-    assert record["complete"] is False and [e["file"] for e in record["files"]] == ["episode_0.hdf5"]
-    with h5py.File(out / "episode_0.hdf5", "r") as f:  # the finished file is whole
-        assert f["observations/qpos"].shape == (16, 7)
+    assert list((tmp_path / "exports").iterdir()) == []  # neither OUT nor the hidden staging folder
+    (broken / "rgb" / "000011.png").write_bytes(data)
+    assert main(command) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["augmentation.json", "episode_0.hdf5", "episode_1.hdf5"]
+    assert json.loads((out / "augmentation.json").read_text())["complete"] is True
 
 
-def test_a_file_gets_its_final_name_only_when_closed(sample, tmp_path, monkeypatch):
+def test_a_failed_overwrite_keeps_the_earlier_export(sample, tmp_path):
+    out = tmp_path / "out"
+    export_act_hdf5([sample], out)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    broken = _copy(sample, tmp_path / "broken")
+    (broken / "rgb" / "000003.png").write_bytes(b"not a png")
+    with pytest.raises(EpisodeFormatError, match="000003.png: cannot decode"):
+        export_act_hdf5([sample, broken], out, overwrite=True)
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    assert not list(tmp_path.glob(".out.partial-*"))
+
+
+def test_files_reach_out_only_when_all_are_written(sample, tmp_path, monkeypatch):
     out, seen = tmp_path / "out", []
     rgb = Episode.rgb
 
     def spy(self, i):
-        seen.append(((out / "episode_0.hdf5").exists(), (out / "episode_0.hdf5.tmp").exists()))
+        seen.append(out.exists())
         return rgb(self, i)
 
     monkeypatch.setattr(Episode, "rgb", spy)
-    export_act_hdf5([sample], out)
-    assert len(seen) == 16 and all(not final and tmp for final, tmp in seen)
-    assert sorted(p.name for p in out.iterdir()) == ["augmentation.json", "episode_0.hdf5"]
+    export_act_hdf5([sample, sample], out)
+    assert len(seen) == 32 and not any(seen)
+    assert sorted(p.name for p in out.iterdir()) == ["augmentation.json", "episode_0.hdf5", "episode_1.hdf5"]
 
 
 def test_fps_resamples_to_the_nearest_frames(sample, tmp_path):

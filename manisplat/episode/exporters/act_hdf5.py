@@ -13,8 +13,9 @@ Layout written (``shared/reference/augmentation.md`` section 5.3, single arm, so
     /action                     (T, 7) same dtype [a1..a6, a_gripper]; attr ``source``: "actions" when the
                                 episode has them, else "next_qpos" (qpos of frame i+1, the last row repeats)
 
-``import-act --arm single`` reads these files back. Each file is written as ``episode_<N>.hdf5.tmp``
-and renamed when closed, and ``augmentation.json`` beside them records where every file came from.
+``import-act --arm single`` reads these files back. ``augmentation.json`` beside them records where
+every file came from. The export is written into a hidden folder beside ``OUT`` and moved there only
+when complete: a failed export leaves nothing in ``OUT``.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import json
 import logging
 import os
 import re
+import shutil
 import tempfile
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -34,7 +36,8 @@ from tqdm import tqdm
 
 from manisplat.episode.exporters.sources import (PROVENANCE_FILE, ExportDestinationError, ExportSource,
                                                  export_frames, open_sources, state_and_action)
-from manisplat.episode.fsio import atomic_write_bytes, fsync_path, temp_path
+from manisplat.episode.exporters.staging import merge_files, replace_folder, staging_folder
+from manisplat.episode.fsio import atomic_write_bytes, temp_path
 from manisplat.episode.reader import Episode
 from manisplat.output_folder import check_output_folder
 
@@ -77,40 +80,34 @@ def velocities(t: np.ndarray, values: np.ndarray) -> np.ndarray:
 
 def _write_file(src: ExportSource, frames: np.ndarray, fps: float, path: Path, key: str, *, compress: bool,
                 jpeg_quality: int, dtype: np.dtype, on_frame: Callable[[], None]) -> dict[str, Any]:
-    """Write frames ``frames`` of one episode to ``path`` through ``path.tmp``; returns its provenance entry."""
+    """Write frames ``frames`` of one episode to ``path`` (in the staging folder); returns its provenance entry."""
     ep = src.episode
     T, width, height = len(frames), ep.camera.width, ep.camera.height
     qpos, actions, recorded = state_and_action(ep, frames)
     action_source = "actions" if recorded else "next_qpos"
     qvel = velocities(ep.frames.t[frames], qpos)
-    tmp = temp_path(path)
-    try:
-        with h5py.File(tmp, "w") as f:
-            f.attrs["sim"] = src.sim
-            f.attrs["compress"] = compress
-            f.attrs["fps"] = float(fps)
-            f.attrs["manisplat_source"] = ep.meta.source
-            f.attrs["manisplat_episode"] = ep.path.name
-            if src.parent is not None:
-                f.attrs["manisplat_parent"] = src.parent
-            obs = f.create_group("observations")
-            obs.create_dataset("qpos", data=qpos.astype(dtype))
-            obs.create_dataset("qvel", data=qvel.astype(dtype))
-            f.create_dataset("action", data=actions.astype(dtype)).attrs["source"] = action_source
-            images = obs.create_group("images")
-            if compress:
-                _write_jpeg(f, images, key, ep, frames, jpeg_quality, path.parent, on_frame)
-            else:
-                ds = images.create_dataset(key, (T, height, width, 3), dtype=np.uint8, chunks=(1, height, width, 3))
-                for row, i in enumerate(frames):
-                    ds[row] = ep.rgb(int(i))
-                    on_frame()
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    with h5py.File(path, "w") as f:
+        f.attrs["sim"] = src.sim
+        f.attrs["compress"] = compress
+        f.attrs["fps"] = float(fps)
+        f.attrs["manisplat_source"] = ep.meta.source
+        f.attrs["manisplat_episode"] = ep.path.name
+        if src.parent is not None:
+            f.attrs["manisplat_parent"] = src.parent
+        obs = f.create_group("observations")
+        obs.create_dataset("qpos", data=qpos.astype(dtype))
+        obs.create_dataset("qvel", data=qvel.astype(dtype))
+        f.create_dataset("action", data=actions.astype(dtype)).attrs["source"] = action_source
+        images = obs.create_group("images")
+        if compress:
+            _write_jpeg(f, images, key, ep, frames, jpeg_quality, path.parent, on_frame)
+        else:
+            ds = images.create_dataset(key, (T, height, width, 3), dtype=np.uint8, chunks=(1, height, width, 3))
+            for row, i in enumerate(frames):
+                ds[row] = ep.rgb(int(i))
+                on_frame()
+    with open(path, "rb+") as fh:
+        os.fsync(fh.fileno())
     return {"file": path.name, **src.provenance(), "frames": T, "recorded_frames": [int(frames[0]), int(frames[-1])],
             "action": action_source}
 
@@ -140,9 +137,9 @@ def _write_jpeg(f: h5py.File, images: h5py.Group, key: str, ep: Episode, frames:
     f.create_dataset("compress_len", data=lengths[None].astype(np.float32))
 
 
-def _write_provenance(out_dir: Path, entries: list[dict[str, Any]], *, complete: bool, fps: float, camera: str,
+def _write_provenance(out_dir: Path, entries: list[dict[str, Any]], *, fps: float, camera: str,
                       key: str, compress: bool, dtype: str) -> None:
-    record = {"format": PROVENANCE_FORMAT, "version": 1, "complete": complete, "layout": "act_hdf5",
+    record = {"format": PROVENANCE_FORMAT, "version": 1, "complete": True, "layout": "act_hdf5",
               "fps": fps, "camera": camera, "image_key": key, "compress": compress, "dtype": dtype,
               "files": entries}
     atomic_write_bytes(out_dir / PROVENANCE_FILE, (json.dumps(record, indent=2) + "\n").encode())
@@ -156,9 +153,9 @@ def export_act_hdf5(episodes: Sequence[str | Path], out_dir: str | Path, *, came
 
     Everything is checked before anything is written: every episode complete and with an image
     for each frame, one camera, one fps (or ``fps`` given) and one image size for all. Images stream one frame at a
-    time into pre-sized datasets; each file is written under ``episode_<N>.hdf5.tmp`` and renamed
-    when closed, so an interrupted export leaves only whole files under final names (and
-    ``augmentation.json`` says ``complete: false`` until the last one is done).
+    time into pre-sized datasets, in a hidden folder beside ``out_dir`` (``.OUT.partial-*``) whose
+    files move into ``out_dir`` when the last one is written: a failed export leaves nothing there,
+    and the same command can simply run again.
 
     Args:
         episodes: episode folders.
@@ -195,18 +192,25 @@ def export_act_hdf5(episodes: Sequence[str | Path], out_dir: str | Path, *, came
     key = image_key or camera
     if "/" in key or not key:
         raise ValueError(f"image key must be a plain name; got {key!r}")
-    out_dir.mkdir(parents=True, exist_ok=True)
-    _clear_previous(out_dir)
+    in_use = out_dir.is_dir() and any(out_dir.iterdir())  # allowed by check_destination: --overwrite
     settings = dict(fps=rate, camera=camera, key=key, compress=compress, dtype=dtype)
     entries: list[dict[str, Any]] = []
-    _write_provenance(out_dir, entries, complete=False, **settings)
     total = sum(len(f) for f in frames)
-    with tqdm(total=total, desc="export act-hdf5", unit="frame", disable=not progress) as bar:
-        for n, src in enumerate(sources):
-            path = out_dir / f"episode_{n}.hdf5"
-            entries.append(_write_file(src, frames[n], rate, path, key, compress=compress, jpeg_quality=jpeg_quality,
-                                       dtype=np.dtype(dtype), on_frame=lambda: bar.update(1)))
-            _write_provenance(out_dir, entries, complete=n == len(sources) - 1, **settings)
-    fsync_path(out_dir)
+    staging = staging_folder(out_dir)
+    try:
+        with tqdm(total=total, desc="export act-hdf5", unit="frame", disable=not progress) as bar:
+            for n, src in enumerate(sources):
+                entries.append(_write_file(src, frames[n], rate, staging / f"episode_{n}.hdf5", key, compress=compress,
+                                           jpeg_quality=jpeg_quality, dtype=np.dtype(dtype),
+                                           on_frame=lambda: bar.update(1)))
+        _write_provenance(staging, entries, **settings)
+        if in_use:  # an earlier export's files go; anything else in the folder stays
+            _clear_previous(out_dir)
+            merge_files(staging, out_dir, last=PROVENANCE_FILE)
+        else:
+            replace_folder(staging, out_dir)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
     log.info("exported %d episodes (%d frames) to %s", len(sources), total, out_dir)
     return entries

@@ -35,7 +35,6 @@ import json
 import logging
 import os
 import shutil
-import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -51,6 +50,7 @@ from manisplat.episode.exporters.lerobot_stats import (DepthStats, ImageStats, a
                                                        stats_sample_indices, vector_stats)
 from manisplat.episode.exporters.sources import (ExportDestinationError, ExportSource, check_depth, export_frames,
                                                  open_sources, state_and_action)
+from manisplat.episode.exporters.staging import replace_folder, staging_folder
 from manisplat.episode.format import EpisodeFormatError
 from manisplat.episode.fsio import atomic_write_bytes, fsync_path
 
@@ -155,15 +155,6 @@ def _depth_column(frames: list[np.ndarray]) -> pa.Array:
 def _fixed_column(values: np.ndarray, dtype: str) -> pa.Array:
     values = np.ascontiguousarray(values, dtype=dtype)
     return pa.FixedSizeListArray.from_arrays(pa.array(values.ravel()), values.shape[1])
-
-
-def _staging_folder(out_dir: Path) -> Path:
-    """A new hidden folder beside ``out_dir`` for the dataset being written; warns about ones a killed
-    export left behind (they never look like the dataset, but take space)."""
-    stale = sorted(out_dir.parent.glob(f".{out_dir.name}.partial-*"))
-    if stale:
-        log.warning("left by an earlier export that was killed, safe to delete: %s", ", ".join(map(str, stale)))
-    return out_dir.parent / f".{out_dir.name}.partial-{uuid.uuid4().hex[:8]}"
 
 
 def check_destination(out_dir: str | Path, overwrite: bool) -> None:
@@ -331,20 +322,6 @@ def _fsync_tree(root: Path) -> None:
         fsync_path(Path(folder))
 
 
-def _move_into_place(staging: Path, out_dir: Path) -> None:
-    """Rename the finished dataset to ``out_dir``; an earlier dataset there goes only after that."""
-    old = None
-    if out_dir.is_dir() and any(out_dir.iterdir()):
-        old = out_dir.parent / f".{out_dir.name}.replaced-{uuid.uuid4().hex[:8]}"
-        os.replace(out_dir, old)
-    elif out_dir.is_dir():
-        out_dir.rmdir()
-    os.replace(staging, out_dir)
-    fsync_path(out_dir.parent)
-    if old is not None:
-        shutil.rmtree(old)
-
-
 def export_lerobot(episodes: Sequence[str | Path], out_dir: str | Path, *, task: str | None = None,
                    fps: int | None = None, camera: str | None = None, depth: bool | None = None,
                    codec: str = "libsvtav1", crf: int = DEFAULT_CRF, gop: int = DEFAULT_GOP, dtype: str = "float32",
@@ -397,8 +374,7 @@ def export_lerobot(episodes: Sequence[str | Path], out_dir: str | Path, *, task:
         raise EpisodeFormatError(f"{cam.width}x{cam.height} images: yuv420p video needs an even width and height")
     frames = [export_frames(src.episode, rate) for src in sources]  # raises now, before anything is written
     features = _features(cam.name, cam.width, cam.height, codec, rate, depth, dtype)
-    staging = _staging_folder(out_dir)
-    staging.mkdir(parents=True)
+    staging = staging_folder(out_dir)
     writers = _Writers(DataSeries(staging, _schema(features), data_file_size_mb * 1024 ** 2),
                        VideoSeries(staging, image_key(cam.name), codec, rate, cam.width, cam.height, crf, gop,
                                     video_file_size_mb * 1024 ** 2))
@@ -412,7 +388,7 @@ def export_lerobot(episodes: Sequence[str | Path], out_dir: str | Path, *, task:
         writers.close()
         _write_metadata(staging, writers, features, rate, settings)
         _fsync_tree(staging)
-        _move_into_place(staging, out_dir)
+        replace_folder(staging, out_dir)
     except BaseException:
         writers.close()
         shutil.rmtree(staging, ignore_errors=True)
