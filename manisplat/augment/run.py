@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import shlex
 import shutil
 import time
 from collections import Counter
@@ -101,11 +102,18 @@ def run_augmentation(args: argparse.Namespace) -> dict:
     return report
 
 
+def reconstruct_command(recon: Path) -> str:
+    """The manisplat-reconstruct command that makes a twin in ``recon``, as it must be typed there
+    (``--overwrite`` where the folder already holds something, which it would otherwise refuse)."""
+    in_use = recon.is_dir() and any(recon.iterdir())
+    return f"manisplat-reconstruct EPISODE --out {shlex.quote(str(recon))}" + " --overwrite" * in_use
+
+
 def _load_twin(recon: Path) -> Twin:
     try:
         twin = Twin.load(recon)
     except (TwinFormatError, FileNotFoundError) as exc:
-        raise AugmentError(f"{exc} (run manisplat-reconstruct EPISODE --out {recon} first)") from exc
+        raise AugmentError(f"{exc} (run {reconstruct_command(recon)} first)") from exc
     if not twin.objects:
         raise AugmentError(f"{recon}: the reconstruction has no manipulated object to move")
     for name in twin.objects:

@@ -4,6 +4,8 @@ validity rate, nothing half-written, and clear errors for bad input."""
 from __future__ import annotations
 
 import json
+import re
+import shlex
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -119,6 +121,20 @@ def test_a_folder_without_a_twin_is_a_clear_error(tmp_path, capsys):
     assert main([str(tmp_path), "--out", str(tmp_path / "aug"), "-q"]) == 1
     err = capsys.readouterr().err
     assert "twin.json" in err and "manisplat-reconstruct" in err
+
+
+@pytest.mark.parametrize("state", ["missing", "holding_something"])
+def test_the_advice_for_a_folder_without_a_twin_works_as_printed(recon, tmp_path, capsys, state):
+    target = tmp_path / "my twin"
+    if state == "holding_something":
+        target.mkdir()
+        (target / "notes.txt").write_text("not a twin")
+    assert main([str(target), "--out", str(tmp_path / "aug"), "-q"]) == 1
+    advice = re.search(r"run (manisplat-reconstruct .*) first\)", capsys.readouterr().err).group(1)
+    episode = shlex.quote(str(recon.parent / "ep"))
+    args = shlex.split(advice.replace("EPISODE", episode))
+    assert args[0] == "manisplat-reconstruct" and reconstruct(args[1:] + ["--iters", "2", "-q"]) == 0
+    assert (target / "twin.json").is_file()
 
 
 def test_an_interrupted_write_leaves_nothing_that_looks_complete(recon, tmp_path, monkeypatch):
