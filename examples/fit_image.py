@@ -2,15 +2,15 @@
 
     python examples/fit_image.py OUT_DIR [--steps 300] [--backend cpu]
 
-Uses frame 0 of the built-in sample episode as the target; writes OUT_DIR/fit.png (target |
-render) and OUT_DIR/fit.ply (open it in any 3DGS viewer).
+Uses frame 0 of the built-in sample episode as the target. OUT_DIR must be new or empty; it gets
+the sample (episode/), fit.png (target | render) and fit.ply (open it in any 3DGS viewer).
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 import math
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -19,13 +19,14 @@ from tqdm import tqdm
 
 from manisplat.episode import Episode
 from manisplat.episode.synthetic import write_sample_episode
+from manisplat.output_folder import new_or_empty_folder
 from manisplat.splat import DefaultStrategy, rasterization, save_ply
 from manisplat.splat.sh import C0
 
 
 def main(out_dir: str, steps: int = 300, backend: str = "cpu") -> dict:
-    out = Path(out_dir)
-    episode = Episode.open(write_sample_episode(out / "episode", frames=8, overwrite=True))
+    out = new_or_empty_folder(out_dir)  # never written into an existing episode or earlier results
+    episode = Episode.open(write_sample_episode(out / "episode", frames=8))
     target = torch.from_numpy(episode.rgb(0)).float() / 255.0  # [H, W, 3]
     H, W = target.shape[:2]
     torch.manual_seed(0)
@@ -77,4 +78,7 @@ if __name__ == "__main__":
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--backend", default="cpu", choices=("cpu", "torch"))
     args = parser.parse_args()
-    main(args.out_dir, args.steps, args.backend)
+    try:
+        main(args.out_dir, args.steps, args.backend)
+    except ValueError as exc:  # a used OUT_DIR
+        sys.exit(f"error: {exc}")

@@ -3,7 +3,7 @@ against the images by drawing the TCP (from forward kinematics) over every 8th f
 
     python examples/sample_overlay.py OUT_DIR
 
-Writes OUT_DIR/episode (the sample) and OUT_DIR/overlay.png (a contact sheet).
+OUT_DIR must be new or empty; it gets the sample (episode/) and overlay.png (a contact sheet).
 """
 
 from __future__ import annotations
@@ -16,12 +16,13 @@ import numpy as np
 
 from manisplat.episode import Episode
 from manisplat.episode.synthetic import write_sample_episode
+from manisplat.output_folder import new_or_empty_folder
 from manisplat.robot import load_robot
 
 
 def main(out_dir: str) -> Path:
-    out = Path(out_dir)
-    episode = Episode.open(write_sample_episode(out / "episode", overwrite=True))
+    out = new_or_empty_folder(out_dir)  # never written into an existing episode or earlier results
+    episode = Episode.open(write_sample_episode(out / "episode"))
     robot = load_robot(episode.meta.robot.description, base_dir=episode.path)
     T_base_tcp = robot.tcp_pose(episode.frames.q).numpy()  # [T, 4, 4]
     T_cam_base = np.linalg.inv(episode.camera.T_mount_cam)  # camera mount is the base
@@ -47,4 +48,7 @@ def main(out_dir: str) -> Path:
 if __name__ == "__main__":
     if len(sys.argv) != 2:
         sys.exit(__doc__)
-    main(sys.argv[1])
+    try:
+        main(sys.argv[1])
+    except ValueError as exc:  # a used OUT_DIR
+        sys.exit(f"error: {exc}")

@@ -3,8 +3,8 @@ saw, with joint 1 turned and the box moved (what augmentation builds on).
 
     python examples/twin_new_poses.py OUT_DIR [ITERS]
 
-Writes OUT_DIR/episode (the sample) and OUT_DIR/new_poses.png: the recorded frame | the twin at
-that frame | the twin with joint 1 turned by 15 deg and the box moved 6 cm along the base's y.
+OUT_DIR must be new or empty; it gets the sample (episode/) and new_poses.png: the recorded frame |
+the twin at that frame | the twin with joint 1 turned by 15 deg and the box moved 6 cm along the base's y.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from manisplat.episode.synthetic import write_sample_episode
+from manisplat.output_folder import new_or_empty_folder
 from manisplat.reconstruct.data import load_episode_data
 from manisplat.reconstruct.pipeline import build
 from manisplat.reconstruct.plan import make_plan
@@ -32,8 +33,8 @@ def main(out_dir: str, iters: int = 1000, frames: int = 64, width: int = 160, he
     """Returns the three images [H, W, 3] float in [0, 1] ("recorded", "twin", "new"), the box's
     pose before and after (``T_base_box``, ``T_base_box_new`` [4, 4]) and its rendered alpha [H, W]
     in the twin and in the new state (``box_alpha``, ``box_alpha_new``)."""
-    out = Path(out_dir)
-    episode = write_sample_episode(out / "episode", frames=frames, width=width, height=height, overwrite=True)
+    out = new_or_empty_folder(out_dir)  # never written into an existing episode or earlier results
+    episode = write_sample_episode(out / "episode", frames=frames, width=width, height=height)
     data = load_episode_data(episode)
     rec, _ = build(data, make_plan(data), TrainConfig(iters=iters))
     rec.train(progress=True)
@@ -56,5 +57,8 @@ def main(out_dir: str, iters: int = 1000, frames: int = 64, width: int = 160, he
 
 
 if __name__ == "__main__":
-    main(sys.argv[1], *(int(a) for a in sys.argv[2:3]))
+    try:
+        main(sys.argv[1], *(int(a) for a in sys.argv[2:3]))
+    except ValueError as exc:  # a used OUT_DIR
+        sys.exit(f"error: {exc}")
     print(f"wrote {Path(sys.argv[1]) / 'new_poses.png'}")

@@ -17,3 +17,12 @@ def check_output_folder(out: Path, *, allowed: bool, refusal: str, error: type[E
     if in_use and not allowed:
         raise error(f"--out {out} is not empty{refusal}")
     return in_use
+
+
+def new_or_empty_folder(out: str | Path) -> Path:
+    """``out`` as a Path when it does not exist or is an empty folder, else a ValueError naming it
+    (for tools with no ``--overwrite``, such as the examples: they never write into their inputs)."""
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise ValueError(f"{out} is not a new or empty folder; choose one that is (nothing already there is touched)")
+    return out

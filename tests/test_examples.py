@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import runpy
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -55,3 +58,15 @@ def test_twin_new_poses_example(tmp_path):
     moved = _centroid(r["box_alpha_new"].numpy()) - _centroid(r["box_alpha"].numpy())
     assert np.linalg.norm(expected) > 3.0 and np.linalg.norm(moved - expected) < 1.0, (moved, expected)
     assert cv2.imread(str(tmp_path / "new_poses.png")).shape[1] == 3 * 80
+
+
+@pytest.mark.parametrize("example", ["sample_overlay.py", "fit_image.py", "twin_new_poses.py"])
+def test_an_example_never_writes_into_a_used_folder(tmp_path, example):
+    from manisplat.episode.synthetic import write_sample_episode
+
+    users = write_sample_episode(tmp_path / "my_episode", frames=8, width=32, height=24)
+    before = {p: p.read_bytes() for p in users.rglob("*") if p.is_file()}
+    proc = subprocess.run([sys.executable, str(ROOT / "examples" / example), str(users)], capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 1 and "not a new or empty folder" in proc.stderr and "Traceback" not in proc.stderr
+    assert {p: p.read_bytes() for p in users.rglob("*") if p.is_file()} == before
