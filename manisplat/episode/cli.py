@@ -284,7 +284,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "root=OUT, video_backend='pyav') and back with import-lerobot. "
                                    "--format act-hdf5: OUT/episode_0.hdf5, ... (ACT / ALOHA layout, one arm: "
                                    "/observations/qpos and qvel (T, 7), /observations/images/<camera>, /action "
-                                   "(T, 7), attributes sim, compress, fps), each under a .tmp name until closed; "
+                                   "(T, 7), attributes sim, compress, fps), written beside OUT and moved into it when complete; "
                                    "read back with `import-act FILE --arm single --camera NAME`. Both write "
                                    "augmentation.json (LeRobot: meta/augmentation.json) naming each episode's "
                                    "source and, for augmented ones, their parent. Exit status: 0 done, 1 bad "
