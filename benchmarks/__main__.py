@@ -1,8 +1,12 @@
-"""python -m benchmarks [list | NAME... | all] [--threads 1,2] [--quick] [--out DIR]"""
+"""python -m benchmarks [list | NAME... | all] [--threads 1,2] [--quick] [--out DIR]
+
+A benchmark with options of its own (``OWN_OPTIONS = True`` and ``main(argv)``, e.g. policy_sim) runs alone:
+``python -m benchmarks NAME [its options]``."""
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 from pathlib import Path
 
@@ -10,6 +14,14 @@ from benchmarks._harness import BENCH_DIR, MissingBenchmarkData, list_benchmarks
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    own = _own_main(argv[0]) if argv else None
+    if own is not None:
+        try:
+            return own(argv[1:])
+        except MissingBenchmarkData as exc:
+            print(f"{argv[0]}: skipped: {exc}", file=sys.stderr)
+            return 2
     parser = argparse.ArgumentParser(
         prog="python -m benchmarks",
         description="Run ManiSplat benchmarks: each prints a table and writes NAME.json.",
@@ -38,6 +50,14 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{name}: skipped: {exc}", file=sys.stderr)
             status = 2
     return status
+
+
+def _own_main(name: str):
+    """The ``main(argv)`` of benchmark ``name`` when it takes options of its own, else None."""
+    if name.startswith("-") or not (BENCH_DIR / f"bench_{name}.py").exists():
+        return None
+    module = importlib.import_module(f"benchmarks.bench_{name}")
+    return module.main if getattr(module, "OWN_OPTIONS", False) else None
 
 
 if __name__ == "__main__":

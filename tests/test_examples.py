@@ -60,7 +60,7 @@ def test_twin_new_poses_example(tmp_path):
     assert cv2.imread(str(tmp_path / "new_poses.png")).shape[1] == 3 * 80
 
 
-@pytest.mark.parametrize("example", ["sample_overlay.py", "fit_image.py", "twin_new_poses.py"])
+@pytest.mark.parametrize("example", ["sample_overlay.py", "fit_image.py", "twin_new_poses.py", "augment_for_lerobot.py"])
 def test_an_example_never_writes_into_a_used_folder(tmp_path, example):
     from manisplat.episode.synthetic import write_sample_episode
 
@@ -70,3 +70,18 @@ def test_an_example_never_writes_into_a_used_folder(tmp_path, example):
                           text=True, timeout=120)
     assert proc.returncode == 1 and "not a new or empty folder" in proc.stderr and "Traceback" not in proc.stderr
     assert {p: p.read_bytes() for p in users.rglob("*") if p.is_file()} == before
+
+
+def test_augment_for_lerobot_example(tmp_path, capsys):
+    import json
+
+    from manisplat.episode.synthetic import write_sample_episode
+
+    episode = write_sample_episode(tmp_path / "recording", frames=32, width=64, height=48)
+    module = runpy.run_path(str(ROOT / "examples" / "augment_for_lerobot.py"))
+    result = module["main"](str(tmp_path / "out"), episode=str(episode), n=2, iters=5)
+    info = json.loads((result["dataset"] / "meta" / "info.json").read_text())
+    assert result["episodes"] == info["total_episodes"] == 3  # the recording and two new ones
+    provenance = json.loads((result["dataset"] / "meta" / "augmentation.json").read_text())
+    assert sum(e["augmented"] for e in provenance["episodes"]) == 2
+    assert "lerobot-train" in capsys.readouterr().out and f"--dataset.root={result['dataset']}" in result["train_command"]

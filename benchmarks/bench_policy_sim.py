@@ -1,0 +1,151 @@
+"""Policy in the loop: success of one policy trained on A (source), B (source + augmented), C (oracle), D (B in sim renders).
+
+    python -m benchmarks policy_sim [--source EP] [--n 50 [200]] [--eval-seeds 1000-1049] [--work DIR] [--quick]
+
+From one source episode of ``gen_pick_place.py`` (default shared/data/sim_pick_place_small), each
+data condition trains the same policy (``benchmarks/policy``: ACT-style chunks, small CNN, same
+budget and seed), then drives ``policy_env.PickPlaceEnv`` closed loop from the evaluation seeds'
+start poses (object within +-8 cm, +-8 cm, +-45 deg; no training demonstration starts there):
+
+- **A** the source demonstration alone;
+- **B** the source plus N demonstrations written by ``manisplat-augment`` from a twin that
+  ``manisplat-reconstruct`` made of the source (the twin's renders);
+- **C** N scripted demonstrations of ``gen_demos.py`` over the same ranges (the reference: as many
+  real demonstrations);
+- **D** B's demonstrations with the simulator's renders of the same motions (``execute_episode.py
+  --render``): what the images cost against what the trajectories cost.
+
+Everything is read as a user reads it (``manisplat.episode``: rgb, frames.csv's q, gripper and
+commanded a1..a6, a_gripper); no ground truth reaches training or the policy; the environment
+scores. Each stage's output is kept in ``--work`` and reused when the same command runs again.
+Needs ``$MANISPLAT_SIMENV``, the python of a venv with mujoco 4.0.0 (shared/tools/sim/README.md).
+Writes ``policy_sim.json`` (and ``policy_sim_quick.json`` with --quick), the heatmaps and a contact
+sheet to ``--out`` (default benchmarks/results_policy).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from benchmarks._harness import BENCH_DIR, MissingBenchmarkData, machine_info, shared_dir
+
+OWN_OPTIONS = True  # python -m benchmarks policy_sim [options] calls main()
+OBJECT_RANGE = (0.08, 0.08, 45.0)  # m, m, deg: policy_env's reset(seed) ranges
+PLACE_RANGE = (0.025, 0.025, 45.0)  # within the 6 cm mat with 1 cm to spare from the source's place
+CONDITIONS = ("A", "B", "C", "D")
+ENVS = 2  # environments rendering side by side (one per core)
+
+
+def _seeds(text: str) -> list[int]:
+    """'1000-1049' or '1000,1003,1010' -> seeds."""
+    seeds: list[int] = []
+    for part in text.split(","):
+        low, _, high = part.partition("-")
+        seeds += list(range(int(low), int(high) + 1)) if high else [int(low)]
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise argparse.ArgumentTypeError(f"{text!r}: distinct seeds, e.g. 1000-1049")
+    return seeds
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m benchmarks policy_sim", description=__doc__.splitlines()[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter,
+                                epilog="\n".join(__doc__.splitlines()[2:]))
+    p.add_argument("--source", type=Path, help="a gen_pick_place.py episode (default shared/data/sim_pick_place_small)")
+    p.add_argument("--n", type=int, nargs="+", help="demonstrations in B, C and D (default 50; --quick 4)")
+    p.add_argument("--eval-seeds", type=_seeds, help="evaluation start seeds (default 1000-1049; --quick 1000-1003)")
+    p.add_argument("--conditions", default="B,C,A,D", help="which conditions to run, in order (default B,C,A,D)")
+    p.add_argument("--steps", type=int, help="training steps per condition (default 3000; --quick 150)")
+    p.add_argument("--twin-iters", type=int, help="reconstruction iterations (default 1000; --quick 300)")
+    p.add_argument("--work", type=Path, help="stage outputs, reused when present (default a new temporary folder)")
+    p.add_argument("--out", type=Path, default=BENCH_DIR / "results_policy", help="JSON and plots")
+    p.add_argument("--quick", action="store_true", help="a smoke run: 4 demonstrations, short training, 4 rollouts")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    quick = args.quick
+    shared = shared_dir()
+    source = (args.source or shared / "data" / "sim_pick_place_small").resolve()
+    simenv = os.environ.get("MANISPLAT_SIMENV")
+    if not (source / "episode.json").exists():
+        raise MissingBenchmarkData(f"{source}: not an episode folder")
+    if not simenv:
+        raise MissingBenchmarkData("set MANISPLAT_SIMENV to the python of a venv with mujoco (shared/tools/sim)")
+    conditions = [c.strip() for c in args.conditions.split(",")]
+    if set(conditions) - set(CONDITIONS):
+        raise SystemExit(f"--conditions: choose among {','.join(CONDITIONS)}")
+    ns = sorted(args.n or ([4] if quick else [50]))
+    eval_seeds = args.eval_seeds or (list(range(1000, 1004)) if quick else list(range(1000, 1050)))
+    steps = args.steps or (150 if quick else 3000)
+    work = (args.work or Path(tempfile.mkdtemp(prefix="policy_sim_"))).resolve()
+    work.mkdir(parents=True, exist_ok=True)
+    print(f"policy_sim: source {source}, N {ns}, evaluation seeds {_seed_text(eval_seeds)}, "
+          f"{steps} training steps, work folder {work}", flush=True)
+
+    from benchmarks.policy.stages import Stages
+
+    stages = Stages(source=source, work=work, simenv=Path(simenv), tools=shared / "tools" / "sim",
+                    object_range=OBJECT_RANGE, place_range=PLACE_RANGE, twin_iters=args.twin_iters or
+                    (300 if quick else 1000))
+    started = time.perf_counter()
+    args.out.mkdir(parents=True, exist_ok=True)
+    suffix = "_quick" if quick else ""
+    rows: list[dict[str, Any]] = []
+    rollouts: dict[str, list] = {}
+    for n in ns:
+        for condition in conditions:
+            if condition == "A" and n != ns[0]:
+                continue  # the source alone does not depend on N
+            row, runs = stages.condition(condition, n, steps, eval_seeds, envs=ENVS)
+            rows.append(row)
+            rollouts[row["condition"]] = runs
+            print(f"  {row['condition']}: {row['successes']}/{row['rollouts']} = {row['success_rate']:.0%} "
+                  f"(95 % {row['ci95'][0]:.0%}-{row['ci95'][1]:.0%}), trained {row['train_s']:.0f} s", flush=True)
+            path = _write(args, argv, stages, source, eval_seeds, steps, rows, rollouts, started, suffix)
+    print(f"wrote {path} ({time.perf_counter() - started:.0f} s)")
+    return 0
+
+
+def _write(args: argparse.Namespace, argv: list[str] | None, stages: Any, source: Path, eval_seeds: list[int],
+           steps: int, rows: list[dict[str, Any]], rollouts: dict[str, list], started: float, suffix: str) -> Path:
+    """The results so far (rewritten after every condition): JSON, heatmaps, contact sheet."""
+    from benchmarks.policy.report import contact_sheet, heatmaps
+
+    plots = [heatmaps(rollouts, stages.training_starts, args.out / f"policy_sim_heatmap{suffix}.png"),
+             contact_sheet(rollouts, args.out / f"policy_sim_rollouts{suffix}.png")]
+    result = {
+        "benchmark": "policy_sim", "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "quick": args.quick,
+        "command": "python -m benchmarks policy_sim " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "machine": machine_info(), "source": str(source), "eval_seeds": eval_seeds,
+        "ranges": {"object_m_m_deg": OBJECT_RANGE, "place_m_m_deg": PLACE_RANGE},
+        "budget": stages.budget_of(steps).__dict__, "rows": rows, "data": stages.data_report,
+        "rollouts": {k: [{"seed": r.seed, "phase": r.phase, **{f: r.result[f] for f in (
+            "success", "object_start", "dist_to_mat_m", "tilt_deg", "lifted_m", "steps", "failed")}} for r in v]
+            for k, v in rollouts.items()},
+        "plots": [p.name for p in plots], "wall_s": round(time.perf_counter() - started, 1), "work": str(stages.work),
+    }
+    path = args.out / f"policy_sim{suffix}.json"
+    path.write_text(json.dumps(result, indent=1, default=float) + "\n")
+    return path
+
+
+def _seed_text(seeds: list[int]) -> str:
+    return f"{seeds[0]}-{seeds[-1]}" if seeds == list(range(seeds[0], seeds[-1] + 1)) else ",".join(map(str, seeds))
+
+
+def run(ctx: Any) -> list[dict[str, Any]]:
+    """``python -m benchmarks policy_sim`` runs :func:`main` with its own options instead."""
+    raise MissingBenchmarkData("run it as: python -m benchmarks policy_sim [options] (see --help)")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

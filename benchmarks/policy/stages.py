@@ -1,0 +1,248 @@
+"""The policy benchmark's stages, each kept in a work folder and reused when already complete:
+twin, augmented demonstrations, oracle demonstrations, simulator renders of the augmented motions,
+then per condition a trained policy and its rollouts."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from benchmarks.policy.data import episode_folders, load_demonstrations
+from benchmarks.policy.rollout import Rollout, evaluate, wilson_interval
+from benchmarks.policy.sim_env import SimEnv
+from benchmarks.policy.train import Budget, Normaliser, TrainedPolicy, train
+from benchmarks.policy.model import ChunkPolicy
+
+
+class Stages:
+    """Makes (or finds in ``work``) each condition's demonstrations, policy and rollouts.
+
+    Args:
+        source: the gen_pick_place.py episode everything starts from.
+        work: the folder that keeps every stage's output.
+        simenv, tools: the simulator venv's python and shared/tools/sim.
+        object_range, place_range: (x m, y m, yaw deg) half-ranges for augmentation and oracle.
+        twin_iters: manisplat-reconstruct iterations.
+    """
+
+    def __init__(self, source: Path, work: Path, simenv: Path, tools: Path, object_range: tuple[float, ...],
+                 place_range: tuple[float, ...], twin_iters: int) -> None:
+        self.source, self.work, self.simenv, self.tools = source, work, simenv, tools
+        self.object_range, self.place_range, self.twin_iters = object_range, place_range, twin_iters
+        self.data_report: dict[str, Any] = {}
+        self.training_starts: dict[str, np.ndarray] = {}
+
+    # ------------------------------------------------------------------ demonstrations
+    def twin(self) -> Path:
+        out = self.work / "twin"
+        if not (out / "twin.json").exists():
+            from manisplat.reconstruct.cli import main as reconstruct
+
+            _log(f"reconstructing the twin of {self.source.name} ({self.twin_iters} iterations)")
+            start = time.perf_counter()
+            if reconstruct([str(self.source), "--out", str(out), "--iters", str(self.twin_iters), "-q",
+                            "--overwrite"]) != 0:
+                raise RuntimeError("manisplat-reconstruct failed")
+            self.data_report["twin_s"] = round(time.perf_counter() - start, 1)
+        metrics = json.loads((out / "metrics.json").read_text())
+        self.data_report["twin_held_out_psnr"] = metrics.get("psnr")
+        return out
+
+    def augmented(self, n: int) -> list[Path]:
+        """n demonstrations of manisplat-augment (the first n of the largest set asked for so far)."""
+        out = self.work / f"augmented_{n}"
+        if not (out / "augment_report.json").exists():
+            from manisplat.augment.cli import main as augment
+
+            twin = self.twin()
+            _log(f"manisplat-augment: {n} demonstrations")
+            start = time.perf_counter()
+            augment([str(twin), "--n", str(n), "--out", str(out), "--workers", "2", "--seed", "0", "-q", "--overwrite",
+                     "--object-range", ",".join(map(str, self.object_range)),
+                     "--target-range", ",".join(map(str, self.place_range))])
+            self.data_report[f"augment_{n}_s"] = round(time.perf_counter() - start, 1)
+        report = json.loads((out / "augment_report.json").read_text())
+        self.data_report[f"augment_{n}"] = {k: report[k] for k in ("requested", "drawn", "valid", "reasons")}
+        folders = episode_folders(out)[:n]
+        if len(folders) < n:
+            raise RuntimeError(f"manisplat-augment wrote {len(folders)} of {n} demonstrations ({out})")
+        return folders
+
+    def oracle(self, n: int) -> list[Path]:
+        """n successful gen_demos.py demonstrations, seeds 1, 2, ... (failed seeds skipped)."""
+        root = self.work / "oracle"
+        start_seed = 1
+        while True:
+            made = self._oracle_made(root)
+            if len(made) >= n:
+                return made[:n]
+            batch = root / f"seeds_{start_seed:04d}"
+            want = n - len(made) + 2
+            if not (batch / "demos.json").exists():
+                _log(f"gen_demos.py: {want} seeds from {start_seed}")
+                start = time.perf_counter()
+                self._sim("gen_demos.py", "--source", str(self.source), "--out", str(batch), "--n", str(want),
+                          "--seed-start", str(start_seed), "--object-range", *map(str, self._radians(self.object_range)),
+                          "--place-range", *map(str, self._radians(self.place_range)), "--rgb-only", "--jobs", "2")
+                self.data_report.setdefault("oracle_s", 0.0)
+                self.data_report["oracle_s"] += round(time.perf_counter() - start, 1)
+            start_seed += json.loads((batch / "demos.json").read_text())["summary"]["seeds"][1] - start_seed + 1
+
+    def _oracle_made(self, root: Path) -> list[Path]:
+        made, skipped = [], []
+        for batch in sorted(root.glob("seeds_*")) if root.exists() else []:
+            demos = json.loads((batch / "demos.json").read_text())["demos"] if (batch / "demos.json").exists() else []
+            made += [batch / d["dir"] for d in demos if d["ok"]]
+            skipped += [d["seed"] for d in demos if not d["ok"]]
+        self.data_report["oracle_skipped_seeds"] = skipped
+        return made
+
+    def sim_rendered(self, augmented: list[Path]) -> list[Path]:
+        """The augmented demonstrations executed in the simulator with contact physics; each gets the
+        simulator's renders of its own motion as rgb/ (everything else linked from the original)."""
+        renders, out = self.work / "sim_render", self.work / "sim_rendered"
+        todo = [p for p in augmented if not (renders / f"{p.name}.json").exists()]
+        if todo:
+            _log(f"execute_episode.py --render: {len(todo)} augmented demonstrations")
+        running: list[tuple[Path, subprocess.Popen]] = []
+        for path in todo + [None] * 2:
+            if path is not None:
+                (renders / path.name).mkdir(parents=True, exist_ok=True)
+                running.append((path, self._sim_process("execute_episode.py", str(path), "--parent", str(self.source),
+                                                        "--render", str(renders / path.name),
+                                                        "--json", str(renders / f"{path.name}.json.part"))))
+            while running and (len(running) >= 2 or path is None):
+                done, proc = running.pop(0)
+                if proc.wait() != 0:
+                    raise RuntimeError(f"execute_episode.py failed on {done}")
+                (renders / f"{done.name}.json.part").rename(renders / f"{done.name}.json")
+        results, folders = [], []
+        for path in augmented:
+            results.append(json.loads((renders / f"{path.name}.json").read_text()))
+            target = out / path.name
+            if not target.exists():
+                target.mkdir(parents=True)
+                for item in path.iterdir():
+                    (target / item.name).symlink_to(renders / path.name / "rgb" if item.name == "rgb" else item)
+            folders.append(target)
+        self.data_report[f"augmented_{len(augmented)}_in_physics"] = {
+            "n": len(results), "success": sum(r["success"] for r in results),
+            "success_clean": sum(r["success_clean"] for r in results),
+            "final_pos_err_cm_max": max(r["final_pos_err_cm"] for r in results),
+            "failures": {r["episode"]: {k: r[k] for k in ("final_pos_err_cm", "final_rot_err_deg", "upright",
+                                                         "collisions")} for r in results if not r["success_clean"]}}
+        return folders
+
+    def folders(self, condition: str, n: int) -> list[Path]:
+        if condition == "A":
+            return [self.source]
+        if condition == "B":
+            return [self.source, *self.augmented(n)]
+        if condition == "C":
+            return self.oracle(n)
+        return [self.source, *self.sim_rendered(self.augmented(n))]
+
+    # ------------------------------------------------------------------ policies
+    @staticmethod
+    def budget_of(steps: int) -> Budget:
+        return Budget(steps=steps)
+
+    def condition(self, condition: str, n: int, steps: int, seeds: list[int], envs: int
+                  ) -> tuple[dict[str, Any], list[Rollout]]:
+        """Train the policy on the condition's demonstrations and evaluate it from ``seeds``."""
+        key = condition if condition == "A" else f"{condition}{n}"
+        folders = self.folders(condition, n)
+        self.training_starts[key] = np.array([_start_xy(f, self.source) for f in folders])
+        budget = self.budget_of(steps)
+        policy = self._policy(key, folders, budget)
+        rollouts = self._rollouts(key, policy, seeds, envs)
+        successes = sum(r.result["success"] for r in rollouts)
+        phases = {p: sum(r.phase == p for r in rollouts) for p in ("reach", "grasp", "transfer", "place")}
+        row = {"condition": key, "demonstrations": len(folders), "frames": policy.frames,
+               "successes": successes, "rollouts": len(rollouts), "success_rate": successes / len(rollouts),
+               "ci95": wilson_interval(successes, len(rollouts)), "train_s": round(policy.seconds, 1),
+               "train_loss_end": round(policy.final_loss, 4), "failed_in": phases,
+               "mean_steps": float(np.mean([r.result["steps"] for r in rollouts]))}
+        return row, rollouts
+
+    def _policy(self, key: str, folders: list[Path], budget: Budget) -> TrainedPolicy:
+        path = self.work / "policies" / f"{key}_{budget.steps}.pt"
+        if path.exists():
+            saved = torch.load(path, weights_only=False)
+            model = ChunkPolicy(chunk=budget.chunk)
+            model.load_state_dict(saved["model"])
+            model.eval()
+            return TrainedPolicy(model, Normaliser(**saved["normaliser"]), budget, saved["seconds"], saved["loss"],
+                                 saved["frames"])
+        demos = load_demonstrations(folders)
+        _log(f"training {key}: {len(folders)} demonstrations, {len(demos)} frames, {budget.steps} steps")
+        policy = train(demos, budget)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        torch.save({"model": policy.model.state_dict(), "normaliser": policy.normaliser.__dict__,
+                    "seconds": policy.seconds, "loss": policy.final_loss, "frames": len(demos)}, path)
+        return policy
+
+    def _rollouts(self, key: str, policy: TrainedPolicy, seeds: list[int], envs: int) -> list[Rollout]:
+        path = self.work / "rollouts" / f"{key}_{policy.budget.steps}_{seeds[0]}_{len(seeds)}.npz"
+        if path.exists():
+            saved = np.load(path, allow_pickle=True)
+            return list(saved["rollouts"])
+        _log(f"evaluating {key} on {len(seeds)} start poses")
+        torch.set_num_threads(1)  # the environments render on the other cores
+        pool: list[SimEnv] = []
+        try:
+            pool += [SimEnv(self.simenv, self.tools, self.source) for _ in range(envs)]
+            rollouts = evaluate(policy, pool, seeds, keep_frames=2, progress=_print_rollout)
+        finally:
+            for env in pool:
+                env.close()
+            torch.set_num_threads(max(1, os.cpu_count() or 1))
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez(path, rollouts=np.array(rollouts, dtype=object))
+        return rollouts
+
+    # ------------------------------------------------------------------ the simulator venv
+    @staticmethod
+    def _radians(ranges: tuple[float, ...]) -> tuple[float, ...]:
+        return ranges[0], ranges[1], float(np.radians(ranges[2]))
+
+    def _sim_process(self, script: str, *args: str) -> subprocess.Popen:
+        env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "osmesa")}
+        return subprocess.Popen([str(self.simenv), script, *args], cwd=self.tools, env=env,
+                                stdout=subprocess.DEVNULL, stderr=sys.stderr)
+
+    def _sim(self, script: str, *args: str) -> None:
+        if self._sim_process(script, *args).wait() != 0:
+            raise RuntimeError(f"{script} failed")
+
+
+def _start_xy(folder: Path, source: Path) -> tuple[float, float]:
+    """The object's start (x, y) of a training demonstration, for the plots only: augmentation.json's
+    T_start, gen_demos' record, or the source's first-frame pose."""
+    aug = folder / "augmentation.json"
+    if aug.exists():
+        T = np.array(next(iter(json.loads(aug.read_text())["objects"].values()))["T_start"])
+        return float(T[0, 3]), float(T[1, 3])
+    demos = folder.parent / "demos.json"
+    if demos.exists():
+        record = next(d for d in json.loads(demos.read_text())["demos"] if d["dir"] == folder.name)
+        return float(record["object_pose"][0]), float(record["object_pose"][1])
+    gt = np.load(source / "gt.npz", allow_pickle=True)
+    name = json.loads((source / "episode.json").read_text())["objects"][0]
+    return float(gt[f"T_base_{name}"][0][0, 3]), float(gt[f"T_base_{name}"][0][1, 3])
+
+
+def _print_rollout(rollout: Rollout) -> None:
+    print(f"    seed {rollout.seed}: {rollout.phase} ({rollout.result['steps']} steps)", flush=True)
+
+
+def _log(text: str) -> None:
+    print(f"[{time.strftime('%H:%M:%S')}] {text}", flush=True)

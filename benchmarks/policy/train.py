@@ -1,0 +1,106 @@
+"""Training with a fixed budget (steps x batch) and seed, the same for every data condition."""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from benchmarks.policy.data import Demonstrations
+from benchmarks.policy.model import ChunkPolicy
+
+IMAGE_MEAN, IMAGE_STD = 0.5, 0.25
+SHIFT_PX = 6  # random-shift augmentation (DrQ; the diffusion policy's crop): +-6 px at 128 x 96
+
+
+@dataclass(frozen=True)
+class Budget:
+    """The training budget: optimiser steps, batch size, chunk length, learning rate, seed."""
+
+    steps: int = 3000
+    batch: int = 32
+    chunk: int = 16
+    lr: float = 1e-3
+    seed: int = 0
+
+
+@dataclass
+class Normaliser:
+    """Mean and standard deviation of the state and the actions over the training frames."""
+
+    state_mean: torch.Tensor
+    state_std: torch.Tensor
+    action_mean: torch.Tensor
+    action_std: torch.Tensor
+
+    @classmethod
+    def fit(cls, demos: Demonstrations) -> Normaliser:
+        floor = torch.tensor([1e-2] * 6 + [1e-3])  # rad, m: a joint that never moves keeps a sane scale
+        return cls(demos.state.mean(0), demos.state.std(0).clamp_min(floor),
+                   demos.actions.mean(0), demos.actions.std(0).clamp_min(floor))
+
+    def state(self, state: torch.Tensor) -> torch.Tensor:
+        return (state - self.state_mean) / self.state_std
+
+    def action(self, action: torch.Tensor) -> torch.Tensor:
+        return (action - self.action_mean) / self.action_std
+
+    def unaction(self, action: torch.Tensor) -> torch.Tensor:
+        return action * self.action_std + self.action_mean
+
+
+def image_input(images: torch.Tensor) -> torch.Tensor:
+    """(B, 3, H, W) uint8 -> float, about [-2, 2]."""
+    return (images.float() / 255.0 - IMAGE_MEAN) / IMAGE_STD
+
+
+def random_shift(images: torch.Tensor, generator: torch.Generator, pad: int = SHIFT_PX) -> torch.Tensor:
+    """Each of the (B, C, H, W) images shifted by up to +-pad pixels, edge pixels repeated."""
+    b, c, h, w = images.shape
+    padded = F.pad(images, (pad, pad, pad, pad), mode="replicate")
+    dx = torch.randint(0, 2 * pad + 1, (b,), generator=generator)
+    dy = torch.randint(0, 2 * pad + 1, (b,), generator=generator)
+    rows = (dy[:, None] + torch.arange(h)[None, :])[:, None, :, None]
+    cols = (dx[:, None] + torch.arange(w)[None, :])[:, None, None, :]
+    return padded[torch.arange(b)[:, None, None, None], torch.arange(c)[None, :, None, None], rows, cols]
+
+
+@dataclass
+class TrainedPolicy:
+    model: ChunkPolicy
+    normaliser: Normaliser
+    budget: Budget
+    seconds: float
+    final_loss: float
+    frames: int
+
+
+def train(demos: Demonstrations, budget: Budget, progress: bool = True) -> TrainedPolicy:
+    """Train a ChunkPolicy on ``demos``: L1 on normalised action chunks, AdamW, cosine decay."""
+    torch.manual_seed(budget.seed)
+    generator = torch.Generator().manual_seed(budget.seed)
+    norm = Normaliser.fit(demos)
+    model = ChunkPolicy(chunk=budget.chunk)
+    optimiser = torch.optim.AdamW(model.parameters(), lr=budget.lr, weight_decay=1e-4)
+    schedule = torch.optim.lr_scheduler.LambdaLR(
+        optimiser, lambda s: 0.5 * (1 + math.cos(math.pi * min(s / budget.steps, 1.0))))
+    state = norm.state(demos.state)
+    start, losses = time.perf_counter(), []
+    from tqdm import tqdm
+
+    for _ in tqdm(range(budget.steps), desc="train", disable=not progress, mininterval=5):
+        index = torch.randint(0, len(demos), (budget.batch,), generator=generator)
+        images = random_shift(image_input(demos.images[index]), generator)
+        target = norm.action(demos.chunks(index, budget.chunk))
+        loss = F.l1_loss(model(images, state[index]), target)
+        optimiser.zero_grad(set_to_none=True)
+        loss.backward()
+        optimiser.step()
+        schedule.step()
+        losses.append(loss.item())
+    model.eval()
+    tail = losses[-max(1, len(losses) // 20):]
+    return TrainedPolicy(model, norm, budget, time.perf_counter() - start, sum(tail) / len(tail), len(demos))

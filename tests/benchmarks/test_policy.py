@@ -1,0 +1,77 @@
+"""The policy benchmark's own parts (benchmarks/policy): action chunks, temporal ensembling,
+failure phases, the success interval, and a policy that learns from image positions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from benchmarks.policy.data import Demonstrations
+from benchmarks.policy.rollout import _Ensemble, failed_phase, wilson_interval
+from benchmarks.policy.train import Budget, image_input, random_shift, train
+
+
+def _demos(images: torch.Tensor, actions: torch.Tensor, lengths: list[int]) -> Demonstrations:
+    ends = torch.tensor(np.cumsum(lengths))
+    episode = torch.repeat_interleave(torch.arange(len(lengths)), torch.tensor(lengths))
+    return Demonstrations(images, torch.zeros(len(actions), 7), actions, episode, ends, [f"e{i}" for i in lengths])
+
+
+def test_chunks_stop_at_their_own_episodes_end():
+    actions = torch.arange(7, dtype=torch.float32)[:, None].repeat(1, 7)  # frame i's action is i
+    demos = _demos(torch.zeros(7, 3, 4, 4, dtype=torch.uint8), actions, [3, 4])
+    chunks = demos.chunks(torch.tensor([1, 2, 3, 5]), 4)[..., 0]
+    assert chunks.tolist() == [[1, 2, 2, 2], [2, 2, 2, 2], [3, 4, 5, 6], [5, 6, 6, 6]]
+
+
+def test_temporal_ensembling_weights_the_oldest_prediction_most():
+    ensemble = _Ensemble()
+    first = ensemble.add(0, np.array([[0.0], [0.0], [0.0]]))
+    second = ensemble.add(1, np.array([[1.0], [1.0], [1.0]]))  # step 1: the old 0.0 and the new 1.0
+    assert first[0] == 0.0
+    w = np.exp(-0.01)
+    assert second[0] == pytest.approx(w / (1 + w)) and second[0] < 0.5
+
+
+def test_wilson_interval():
+    assert wilson_interval(0, 50) == pytest.approx((0.0, 0.0713), abs=1e-4)
+    assert wilson_interval(25, 50) == pytest.approx((0.3664, 0.6336), abs=1e-4)
+    assert wilson_interval(50, 50)[1] == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("result, touched, phase", [
+    ({"success": True, "lifted_m": 0.1, "failed": []}, True, "success"),
+    ({"success": False, "lifted_m": 0.0, "failed": ["not over the mat"]}, False, "reach"),
+    ({"success": False, "lifted_m": 0.005, "failed": ["not over the mat"]}, True, "grasp"),
+    ({"success": False, "lifted_m": 0.1, "failed": ["not over the mat"]}, True, "transfer"),
+    ({"success": False, "lifted_m": 0.1, "failed": ["tilted"]}, True, "place"),
+])
+def test_failed_phase(result, touched, phase):
+    assert failed_phase(result, touched) == phase
+
+
+def test_random_shift_moves_whole_images_by_at_most_the_pad():
+    image = torch.zeros(1, 3, 16, 16)
+    image[..., 8, 8] = 1.0
+    shifted = random_shift(image.repeat(64, 1, 1, 1), torch.Generator().manual_seed(0), pad=2)
+    rows, cols = torch.nonzero(shifted[:, 0] == 1.0, as_tuple=True)[1:]
+    assert len(rows) == 64 and (rows - 8).abs().max() <= 2 and (cols - 8).abs().max() <= 2
+    assert len(set(zip(rows.tolist(), cols.tolist()))) > 5  # not the same shift every time
+
+
+def test_the_policy_learns_where_a_bright_spot_is():
+    torch.manual_seed(0)
+    n, h, w = 64, 24, 32
+    xy = torch.rand(n, 2)
+    images = torch.zeros(n, 3, h, w, dtype=torch.uint8)
+    for i, (x, y) in enumerate(xy):
+        r, c = int(y * (h - 6)) + 3, int(x * (w - 6)) + 3
+        images[i, :, r - 2:r + 3, c - 2:c + 3] = 255
+    actions = torch.cat([xy, torch.zeros(n, 5)], 1)  # the action says where the spot is
+    demos = _demos(images, actions, [1] * n)
+    policy = train(demos, Budget(steps=150, batch=16, chunk=2, lr=3e-3), progress=False)
+    with torch.no_grad():
+        out = policy.normaliser.unaction(policy.model(image_input(images), policy.normaliser.state(demos.state)))
+    error = (out[:, 0, :2] - xy).abs().mean()
+    assert error < 0.08, error  # the mean of the targets would be off by 0.25
