@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from manisplat.calib.errors import CalibrationError, DegenerateMotionError, InputError, NotEnoughDataError
-from manisplat.cli_args import bounded, finite, positive
+from manisplat.cli_args import add_version, bounded, finite, positive
 
 if TYPE_CHECKING:
     import numpy as np
@@ -309,7 +309,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="episode folders whose episode.json gets the camera K, dist, mount, T_mount_cam and "
                          "latency_s (the image size must match)")
     ap.set_defaults(fn=cmd_apply)
-    return p
+    return add_version(p)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -18,7 +18,7 @@ import threading
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from manisplat.cli_args import bounded, finite_numbers, positive
+from manisplat.cli_args import add_version, bounded, finite_numbers, positive
 
 if TYPE_CHECKING:
     import numpy as np
@@ -93,7 +93,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="stop when no joint feedback arrives for this long (default 100)")
     p.add_argument("-v", "--verbose", action="count", default=0,
                    help="more log output: -v info, -vv debug (default: warnings only)")
-    return p
+    return add_version(p)
 
 
 class SimArm:

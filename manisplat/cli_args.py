@@ -80,3 +80,11 @@ def pinhole_intrinsics() -> Callable[[str], list[float]]:
         return values
 
     return parse
+
+
+def add_version(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """``--version``: prints ``PROG VERSION`` (manisplat's) and exits 0."""
+    from manisplat import __version__
+
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    return parser

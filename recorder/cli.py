@@ -20,7 +20,7 @@ import threading
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator, TextIO
 
-from manisplat.cli_args import bounded, positive
+from manisplat.cli_args import add_version, bounded, positive
 
 if TYPE_CHECKING:
     from manisplat.drivers.base import Camera
@@ -145,7 +145,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "(default: record)")
     p.add_argument("-v", "--verbose", action="count", default=0,
                    help="more log output: -v info, -vv debug (default: warnings and the recorder's progress)")
-    return p
+    return add_version(p)
 
 
 # -- devices ------------------------------------------------------------------------------------

@@ -105,3 +105,14 @@ def test_bad_numbers_are_usage_errors_before_anything_heavy(entry, argv):
     assert result["code"] == 2, result["stderr"]
     assert "error" in result["stderr"]
     assert result["heavy"] == [], f"{entry} {' '.join(argv)} imported {result['heavy']} to refuse its arguments"
+
+
+@pytest.mark.parametrize("entry", sorted(ENTRY_POINTS))
+def test_version(entry):
+    from manisplat import __version__
+
+    script = _PROBE.format(module=ENTRY_POINTS[entry], argv=["--version"], heavy=HEAVY)
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    lines = proc.stdout.strip().splitlines()
+    assert lines[0] == f"{entry} {__version__}"
+    assert json.loads(lines[-1]) == {"code": 0, "heavy": []}

@@ -46,3 +46,31 @@ def test_readme_opens_with_the_two_commands_and_ci_runs_the_test_one():
     ci = (ROOT / ".ci" / "run").read_text()
     assert "pip install torch==2.13.0" in ci
     assert ci.strip().splitlines()[-1].strip() == test
+
+
+def _readme_outputs() -> set[str]:
+    """Paths the README's commands write into the working folder (placeholders such as DIR or EP, and
+    benchmarks/ whose results are committed, left out)."""
+    blocks = re.findall(r"```([a-z]*)\n(.*?)```", (ROOT / "README.md").read_text(), flags=re.S)
+    found = set()
+    for language, block in blocks:
+        if language not in ("bash", "sh", "console"):
+            continue
+        found |= set(re.findall(r"(?:--out|--video|--report|episode sample)\s+([A-Za-z0-9_./-]+)", block))
+    return {p.rstrip("/") for p in found if not p.startswith(("benchmarks/", "-")) and not re.search(r"[A-Z]{2}", p)}
+
+
+def test_gitignore_covers_what_the_readmes_commands_write():
+    import shutil
+    import subprocess
+
+    if shutil.which("git") is None or not (ROOT / ".git").exists():
+        import pytest
+
+        pytest.skip("not a git checkout")
+    outputs = sorted(_readme_outputs())
+    assert "demo_twin" in outputs and "demo_lerobot" in outputs
+    as_either = [form for p in outputs for form in (p, p + "/")]  # a file or a folder, as it will be
+    proc = subprocess.run(["git", "check-ignore", "--no-index", *as_either], cwd=ROOT, capture_output=True, text=True)
+    ignored = {p.rstrip("/") for p in proc.stdout.split()}
+    assert ignored == set(outputs), f"not in .gitignore: {sorted(set(outputs) - ignored)}"

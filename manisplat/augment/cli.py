@@ -12,7 +12,7 @@ import math
 import sys
 from pathlib import Path
 
-from manisplat.cli_args import finite_numbers, positive
+from manisplat.cli_args import add_version, finite_numbers, positive
 from manisplat.output_folder import check_output_folder
 from manisplat.threads import THREADS_HELP, use_threads
 
@@ -79,7 +79,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true",
                    help="replace earlier results in --out (episode_* folders, report, plot; default: refused)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar, warnings only (default: off)")
-    return p
+    return add_version(p)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -11,7 +11,7 @@ import logging
 import sys
 from pathlib import Path
 
-from manisplat.cli_args import positive
+from manisplat.cli_args import add_version, positive
 from manisplat.threads import THREADS_HELP, use_threads
 
 EPILOG = """\
@@ -62,7 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
                             description="Per episode and stage: complete, running (a partial output with its "
                                         "process id), failed (OUT/errors/) or pending.")
     status.add_argument("out", type=Path, metavar="OUT", help="the batch's output folder")
-    return p
+    return add_version(p)
 
 
 def table(rows: list) -> str:

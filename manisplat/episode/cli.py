@@ -11,7 +11,8 @@ import logging
 import sys
 from pathlib import Path
 
-from manisplat.cli_args import bounded, finite_numbers, non_negative, pinhole_intrinsics, positive
+from manisplat.cli_args import (add_version, bounded, finite_numbers, non_negative, pinhole_intrinsics,
+                                positive)
 from manisplat.episode.format import DIST_LENGTHS, EpisodeFormatError
 
 ACT_ARMS = ("left", "right", "single")
@@ -400,7 +401,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing episode at DST (default: off, refused)")
     p.set_defaults(func=_cmd_copy)
-    return parser
+    return add_version(parser)
 
 
 def main(argv: list[str] | None = None) -> int:

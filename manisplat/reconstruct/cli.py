@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 from manisplat.align.phases import DEFAULT_TAU
-from manisplat.cli_args import finite, non_negative, numbers, positive
+from manisplat.cli_args import add_version, finite, non_negative, numbers, positive
 from manisplat.output_folder import check_output_folder
 from manisplat.reconstruct.config import (COMPILE_CHOICES, COMPILE_MIN_ITERS, GPU_ITERS, DeviceUnavailable,
                                           TrainConfig, default_iters, resolve_compile, resolve_device)
@@ -109,7 +109,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint-every", type=positive(int), default=500, help="iterations between checkpoints (default 500)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar, warnings only")
-    return p
+    return add_version(p)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -14,7 +14,7 @@ import sys
 import threading
 from pathlib import Path
 
-from manisplat.cli_args import bounded, positive
+from manisplat.cli_args import add_version, bounded, positive
 from manisplat.threads import THREADS_HELP, use_threads
 
 log = logging.getLogger("manisplat.view")
@@ -62,7 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "episode's camera)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --video file (default: refused)")
     p.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
-    return p
+    return add_version(p)
 
 
 def main(argv: list[str] | None = None) -> int:
