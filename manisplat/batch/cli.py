@@ -7,21 +7,19 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import textwrap
 import logging
 import sys
 from pathlib import Path
 
+from manisplat.batch.config import EXAMPLE
 from manisplat.cli_args import add_version, positive
 from manisplat.threads import THREADS_HELP, use_threads
 
 EPILOG = """\
-PIPELINE.toml (paths relative to its folder):
-  episodes = ["recordings/*/"]      out = "batch_out"
-  [reconstruct] iters = 3000, device = "cpu" | "cuda", cpus = 2, gpus = 1 (or 0.25: 4 tasks per GPU)
-  [augment]     n = 20, seed = 0
-  [export]      format = "lerobot" | "act-hdf5", task = "pick the box"
-  [retries]     max = 2
+PIPELINE.toml (paths relative to its folder), for example:
 
+""" + textwrap.indent(EXAMPLE, "  ") + """
 Each stage of each episode is a Ray task with its resources; `ray.init()` starts a local cluster
 (nothing to set up on one machine) and --address joins an existing one, whose machines must all see
 PIPELINE.toml's episode and output paths at the same place (a shared filesystem). Outputs:
@@ -47,7 +45,8 @@ def build_parser() -> argparse.ArgumentParser:
     run = sub.add_parser("run", help="run (or finish) a batch", epilog=EPILOG,
                          formatter_class=argparse.RawDescriptionHelpFormatter,
                          description="Run every stage of PIPELINE.toml that is not complete yet.")
-    run.add_argument("pipeline", type=Path, metavar="PIPELINE.toml")
+    run.add_argument("pipeline", type=Path, metavar="PIPELINE.toml",
+                     help="which episodes, where the outputs go and each stage's settings (example below)")
     run.add_argument("--address", help="join this Ray cluster (default: start a local one)")
     run.add_argument("--workers", type=positive(int), metavar="N",
                      help="CPUs of the local Ray cluster (default: all of this machine's)")

@@ -1,25 +1,4 @@
-"""PIPELINE.toml: which episodes, where the outputs go, and each stage's settings.
-
-    episodes = ["recordings/*/"]          # globs or folders, relative to the TOML's folder
-    out = "batch_out"                      # shared by every machine of the cluster
-
-    [reconstruct]
-    iters = 3000
-    device = "cpu"                         # "cuda": the task asks Ray for `gpus` GPUs
-    cpus = 2                               # CPUs a reconstruction task asks Ray for
-    gpus = 1                               # with device "cuda"; a fraction lets tasks share a GPU
-
-    [augment]
-    n = 20
-    seed = 0
-
-    [export]
-    format = "lerobot"                     # or "act-hdf5"
-    task = "pick the box and place it on the mat"   # default: each episode's own
-
-    [retries]
-    max = 2                                # a crashed task or dead worker is retried this often
-"""
+"""PIPELINE.toml: which episodes, where the outputs go, and each stage's settings (``EXAMPLE``)."""
 
 from __future__ import annotations
 
@@ -35,6 +14,29 @@ except ModuleNotFoundError:  # Python < 3.11
 
 EXPORT_FORMATS = ("lerobot", "act-hdf5")
 DEVICES = ("cpu", "cuda", "auto")
+
+EXAMPLE = """\
+episodes = ["recordings/*/"]          # globs or folders, relative to the TOML's folder
+out = "batch_out"                      # shared by every machine of the cluster
+
+[reconstruct]
+iters = 3000
+device = "cpu"                         # "cuda": the task asks Ray for `gpus` GPUs
+cpus = 2                               # CPUs a reconstruction task asks Ray for
+gpus = 1                               # with device "cuda"; a fraction lets tasks share a GPU
+
+[augment]
+n = 20
+seed = 0
+
+[export]
+format = "lerobot"                     # or "act-hdf5"
+task = "pick the box and place it on the mat"   # default: each episode's own
+
+[retries]
+max = 2                                # a crashed task or dead worker is retried this often
+"""
+"""A complete PIPELINE.toml, every key with its meaning (the help of ``manisplat-batch run`` prints it)."""
 
 
 class BatchConfigError(ValueError):

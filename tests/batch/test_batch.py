@@ -8,6 +8,7 @@ import json
 import os
 import shutil
 import signal
+import textwrap
 import threading
 import time
 from pathlib import Path
@@ -171,3 +172,16 @@ def test_configuration_errors_name_the_key(tmp_path):
         load_config(tmp_path / "p.toml")
     assert main(["run", str(tmp_path / "p.toml")]) == 1
     assert main(["status", str(tmp_path)]) == 1
+
+
+def test_the_pipeline_example_in_the_help_is_a_working_pipeline(tmp_path, capsys):
+    from manisplat.batch.config import load_config
+
+    with pytest.raises(SystemExit):
+        main(["run", "--help"])
+    shown = capsys.readouterr().out
+    example = shown[shown.index("for example:") + len("for example:"):shown.index("Each stage of each episode")]
+    (tmp_path / "recordings" / "ep0").mkdir(parents=True)
+    (tmp_path / "PIPELINE.toml").write_text(textwrap.dedent(example))
+    config = load_config(tmp_path / "PIPELINE.toml")
+    assert [p.name for p in config.episodes] == ["ep0"] and config.iters == 3000 and config.n == 20
