@@ -28,15 +28,16 @@ CHECKPOINT = "checkpoint.pt"
 
 EPILOG = f"""\
 output folder: --out must be new or empty. One that holds anything is refused (exit 2) unless
-  --overwrite (the files an earlier run wrote there are removed first: twin.json, twin.pt, PLYs,
-  object_poses*.csv, phases.csv, renders/, pose_plot.png, metrics.json, {CHECKPOINT}; other files
-  are kept) or --resume (continue from OUT/{CHECKPOINT}).
+  --overwrite (the outputs an earlier run wrote there, listed below, are removed first; other
+  files are kept) or --resume (continue from OUT/{CHECKPOINT}).
 
 outputs: twin.json + twin.pt (the twin: manisplat.twin.Twin.load(OUT) renders any state),
-  background.ply, robot_<link>.ply, object_<name>.ply (3DGS PLY), object_poses.csv,
-  phases.csv, renders/test/ (held-out renders), renders/sheets/ (ground truth | render | error),
-  pose_plot.png, metrics.json (PSNR dB, SSIM, pose error cm/deg), {CHECKPOINT}.
-  The episode format: docs/episode-format.md.
+  background.ply, robot_<link>.ply, object_<name>.ply (3DGS PLY), object_poses.csv
+  (object_poses_<name>.csv with several objects), phases.csv, renders/test/ (held-out renders),
+  renders/sheets/ (ground truth | render | error), pose_plot.png, metrics.json (PSNR dB, SSIM,
+  pose error cm/deg), exposure.csv (each frame's fitted colour gains), camera_refined.json (the
+  camera as the reconstruction found it: `manisplat-calibrate apply` writes it into an episode),
+  {CHECKPOINT}. The episode format: docs/episode-format.md.
 
 exit status: 0 done; 1 the episode cannot be reconstructed (the file and field are named), or
   the evaluation failed after the trained twin was written; 2 usage error; 130 interrupted

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -136,3 +137,21 @@ def test_progress_bar_shows_no_psnr_before_it_is_measured():
     assert "held-out PSNR" not in _progress_fields(0.1, math.nan, 100)
     fields = _progress_fields(0.1, 31.234, 100)
     assert fields["held-out PSNR"] == "31.23 dB"
+
+
+def test_the_help_names_every_output_and_overwrite_removes_them(finished, tmp_path):
+    import fnmatch
+    import re
+
+    from manisplat.reconstruct.cli import EPILOG
+
+    out, _ = finished
+    outputs_text = EPILOG[EPILOG.index("outputs:"):EPILOG.index("exit status")]
+    named = [re.sub(r"<\w+>", "*", t) for t in re.findall(r"[\w<>.]+\.(?:json|pt|ply|csv|png)|\w+/", outputs_text)]
+    written = [p.name + ("/" if p.is_dir() else "") for p in out.iterdir()]
+    assert not [w for w in written if not any(fnmatch.fnmatch(w, n) for n in named)], named
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    (copy / "notes.txt").write_text("mine")
+    outputs.remove_outputs(copy)
+    assert [p.name for p in copy.iterdir()] == ["notes.txt"]
