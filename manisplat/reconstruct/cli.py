@@ -160,10 +160,6 @@ def _run(args: argparse.Namespace, prompt: tuple[str, tuple | None, tuple | None
             return 1
         iters = args.iters if args.iters is not None else default_iters(device)
         compiled = resolve_compile(args.compile, device.partition(":")[0], iters)
-        log.info("training on %s (rasterizer backend %s), %d iterations%s; %s", device, args.backend, iters,
-                 "" if args.iters is not None else f" (the default on {device}; --iters to change)",
-                 "the iteration compiled by torch.compile (about 2 minutes, in the first iterations)" if compiled
-                 else "the iteration eager (--compile to change)")
     try:
         data = load_episode_data(args.episode, robot=args.robot, use_depth=not args.no_depth,
                                  use_masks=not args.no_masks, progress=not args.quiet)
@@ -181,6 +177,10 @@ def _run(args: argparse.Namespace, prompt: tuple[str, tuple | None, tuple | None
             print(plan.summary())
             return 0
         log.info("plan:\n%s", plan.summary())
+        log.info("training on %s (rasterizer backend %s), %d iterations%s; %s", device, args.backend, iters,
+                 "" if args.iters is not None else f" (the default on {device}; --iters to change)",
+                 "the iteration compiled by torch.compile (about 2 minutes, in the first iterations)" if compiled
+                 else "the iteration eager (--compile to change)")
         config = TrainConfig(
             iters=iters, backend=args.backend, shadows=not args.no_shadows, densify=not args.no_densify,
             refine_camera=args.refine_camera, exposure=not args.no_exposure, lambda_app=args.lambda_app, lambda_mask=args.lambda_mask,

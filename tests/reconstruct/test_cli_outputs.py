@@ -155,3 +155,13 @@ def test_the_help_names_every_output_and_overwrite_removes_them(finished, tmp_pa
     (copy / "notes.txt").write_text("mine")
     outputs.remove_outputs(copy)
     assert [p.name for p in copy.iterdir()] == ["notes.txt"]
+
+
+def test_bad_input_is_refused_before_training_is_announced(tmp_path, capsys, caplog):
+    import logging
+
+    caplog.set_level(logging.INFO, logger="manisplat.reconstruct")
+    (tmp_path / "not_an_episode").mkdir()
+    assert main([str(tmp_path / "not_an_episode"), "--out", str(tmp_path / "twin"), "--iters", "6"]) == 1
+    assert "episode.json" in capsys.readouterr().err
+    assert not [r for r in caplog.records if "training on" in r.getMessage()]
