@@ -41,6 +41,7 @@ from manisplat.reconstruct.data import load_ground_truth
 from manisplat.reconstruct.metrics import fit_constant_offset, pose_errors, psnr, ssim, start_anchored_errors
 from manisplat.reconstruct.pipeline import ObjectAlignment
 from manisplat.reconstruct.trainer import Reconstruction
+from manisplat.render.sheets import labelled_sheet
 from manisplat.splat import save_ply
 from manisplat.twin import Phase, Twin
 from manisplat.twin.support import SupportMap, support_map
@@ -273,20 +274,6 @@ def colour_fitted(image: torch.Tensor, target: torch.Tensor, fit_region: torch.T
 
 
 SHEET_COLUMNS = ("ground truth", "render", "|error| x4")
-
-
-def labelled_sheet(sheet: np.ndarray, columns: tuple[str, ...], caption: str) -> np.ndarray:
-    """``sheet`` [H, W, 3] uint8 (equal-width panels side by side) under a header strip naming each
-    panel, the caption (frame number, time) in its first panel."""
-    height, width = sheet.shape[:2]
-    panel = width // len(columns)
-    scale = max(0.3, min(0.6, panel / 400))
-    line = int(round(22 * scale / 0.4))
-    header = np.full((2 * line, width, 3), 255, np.uint8)
-    for k, name in enumerate(columns):
-        cv2.putText(header, name, (k * panel + 4, line - 6), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 1, cv2.LINE_AA)
-    cv2.putText(header, caption, (4, 2 * line - 6), cv2.FONT_HERSHEY_SIMPLEX, scale, (90, 90, 90), 1, cv2.LINE_AA)
-    return np.concatenate([header, sheet], axis=0)
 
 
 def _nanmean(values: list[float]) -> float | None:

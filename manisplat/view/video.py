@@ -15,9 +15,11 @@ import av
 import numpy as np
 from tqdm import tqdm
 
+from manisplat.render.sheets import labelled_sheet
 from manisplat.view.content import ViewContent
 
 log = logging.getLogger(__name__)
+SIDE_BY_SIDE = ("recorded", "twin")
 
 
 @dataclass(frozen=True)
@@ -46,7 +48,8 @@ def orbit_pose(T_base_cam: np.ndarray, target: np.ndarray, angle: float) -> np.n
 
 
 def _frames(content: ViewContent, orbit_deg: float) -> Iterator[np.ndarray]:
-    """Each video frame: an episode's recorded image; a reconstruction's [recorded | twin] (the twin
+    """Each video frame: an episode's recorded image; a reconstruction's [recorded | twin] under a
+    header naming the halves and the frame (the twin
     alone without its episode); an augmentation folder's twin view of every demonstration (augmented
     episodes hold the twin's renders already); with an orbit, the twin from the turning camera."""
     twin = content.twin
@@ -66,7 +69,8 @@ def _frames(content: ViewContent, orbit_deg: float) -> Iterator[np.ndarray]:
             else:
                 image = twin.render(q, gripper, content.object_poses_at(demo, i)).rgb
                 if content.kind == "reconstruction" and demo.episode is not None:
-                    image = np.concatenate([demo.episode.rgb(i), image], axis=1)
+                    image = labelled_sheet(np.concatenate([demo.episode.rgb(i), image], axis=1), SIDE_BY_SIDE,
+                                           f"frame {i}  t = {demo.t[i]:.2f} s")
             shown += 1
             yield image
 

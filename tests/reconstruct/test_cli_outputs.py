@@ -14,7 +14,8 @@ import pytest
 from manisplat.episode.synthetic import write_sample_episode
 from manisplat.reconstruct import outputs
 from manisplat.reconstruct.cli import main
-from manisplat.reconstruct.outputs import SHEET_COLUMNS, labelled_sheet, pose_figure
+from manisplat.reconstruct.outputs import SHEET_COLUMNS, pose_figure
+from manisplat.render.sheets import labelled_sheet
 from manisplat.reconstruct.trainer import _progress_fields
 
 

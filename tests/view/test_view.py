@@ -14,6 +14,7 @@ import torch
 import viser
 
 from manisplat.geometry.rotation import quat_to_matrix
+from manisplat.render.sheets import labelled_sheet
 from manisplat.scene.gaussians import GaussianSet
 from manisplat.view.app import Viewer, depth_points
 from manisplat.view.cli import main
@@ -124,17 +125,21 @@ def test_the_viewer_moves_the_links_to_their_fk_poses(folders, server):
         viewer.close()
 
 
-def test_video_of_a_reconstruction_is_recorded_beside_twin(folders, tmp_path):
+def test_video_of_a_reconstruction_is_recorded_beside_twin_under_labels(folders, tmp_path):
     content = load_content(folders["recon"])
     result = write_video(content, tmp_path / "twin.mp4")
-    assert (result.frames, result.width, result.height) == (32, 128, 48) and not (tmp_path / "twin.partial.mp4").exists()
+    header = result.height - 48
+    assert (result.frames, result.width) == (32, 128) and header > 0
+    assert not (tmp_path / "twin.partial.mp4").exists()
     with av.open(str(tmp_path / "twin.mp4")) as container:
         frames = [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
     assert len(frames) == 32
     demo = content.demos[0]
-    assert _psnr(frames[5][:, :64], demo.episode.rgb(5)) > 30  # left: the recording (H.264 CRF 20)
+    expected = labelled_sheet(np.zeros((48, 128, 3), np.uint8), ("recorded", "twin"), f"frame 5  t = {demo.t[5]:.2f} s")
+    assert _psnr(frames[5][:header], expected[:header]) > 25  # the header names both halves and the frame
+    assert _psnr(frames[5][header:, :64], demo.episode.rgb(5)) > 30  # left: the recording (H.264 CRF 20)
     twin_view = content.twin.render(demo.q[5], demo.gripper[5], {k: v[5] for k, v in demo.object_poses.items()}).rgb
-    assert _psnr(frames[5][:, 64:], twin_view) > 30  # right: the twin
+    assert _psnr(frames[5][header:, 64:], twin_view) > 30  # right: the twin
 
 
 def test_an_orbit_turns_the_camera_about_the_scene(folders, tmp_path):
