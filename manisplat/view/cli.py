@@ -35,8 +35,8 @@ unless --host says otherwise (0.0.0.0 exposes it to your network) and runs until
 
 --video OUT.mp4 writes the demonstrations instead (H.264, no browser): an episode's images, a
 reconstruction's [recorded | twin] side by side under a header naming them and the frame, an
-augmentation folder's demonstrations one after
-another; --orbit DEG turns the camera about the scene over the video.
+augmentation folder's demonstrations one after another; --orbit DEG turns the camera about the
+scene over the video.
 
 exit status: 0 done (or the server stopped with Ctrl-C); 1 PATH cannot be shown (what is missing is
 named); 2 usage error (an existing --video file without --overwrite included).
