@@ -61,7 +61,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--source", type=Path, help="a gen_pick_place.py episode (default shared/data/sim_pick_place_small)")
     p.add_argument("--n", type=int, nargs="+", help="demonstrations in B, C and D (default 50; --quick 4)")
     p.add_argument("--eval-seeds", type=_seeds, help="evaluation start seeds (default 1000-1049; --quick 1000-1003)")
-    p.add_argument("--conditions", default="B,C,A,D", help="which conditions to run, in order (default B,C,A,D)")
+    p.add_argument("--conditions", default="C,B,A,D", help="which conditions to run, in order (default C,B,A,D)")
     p.add_argument("--steps", type=int, help="training steps per condition (default 3000; --quick 150)")
     p.add_argument("--twin-iters", type=int, help="reconstruction iterations (default 1000; --quick 300)")
     p.add_argument("--work", type=Path, help="stage outputs, reused when present (default a new temporary folder)")
@@ -119,6 +119,7 @@ def _write(args: argparse.Namespace, argv: list[str] | None, stages: Any, source
            steps: int, rows: list[dict[str, Any]], rollouts: dict[str, list], started: float, suffix: str) -> Path:
     """The results so far (rewritten after every condition): JSON, heatmaps, contact sheet."""
     from benchmarks.policy.report import contact_sheet, heatmaps
+    from benchmarks.policy.stages import ENV_OPTIONS
 
     plots = [heatmaps(rollouts, stages.training_starts, args.out / f"policy_sim_heatmap{suffix}.png"),
              contact_sheet(rollouts, args.out / f"policy_sim_rollouts{suffix}.png")]
@@ -127,7 +128,7 @@ def _write(args: argparse.Namespace, argv: list[str] | None, stages: Any, source
         "command": "python -m benchmarks policy_sim " + " ".join(argv if argv is not None else sys.argv[1:]),
         "machine": machine_info(), "source": str(source), "eval_seeds": eval_seeds,
         "ranges": {"object_m_m_deg": OBJECT_RANGE, "place_m_m_deg": PLACE_RANGE},
-        "budget": stages.budget_of(steps).__dict__, "rows": rows, "data": stages.data_report,
+        "budget": stages.budget_of(steps).__dict__, "env_options": ENV_OPTIONS, "rows": rows, "data": stages.data_report,
         "rollouts": {k: [{"seed": r.seed, "phase": r.phase, **{f: r.result[f] for f in (
             "success", "object_start", "dist_to_mat_m", "tilt_deg", "lifted_m", "steps", "failed")}} for r in v]
             for k, v in rollouts.items()},

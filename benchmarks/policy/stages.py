@@ -22,6 +22,15 @@ from benchmarks.policy.train import Budget, Normaliser, TrainedPolicy, train
 from benchmarks.policy.model import ChunkPolicy
 
 
+ENV_OPTIONS = {"control": "linear", "terminate_on_collision": True}
+"""How the evaluation drives the simulated arm: targets ramped over each step with velocity feed-forward,
+as the generator recorded every demonstration and as manisplat-replay streams them (``"hold"``, a
+step target held, lags 0.15 s at the wrist: the B policy that grasps at the source's own start pose
+under ``"linear"`` missed it under ``"hold"``); an arm that touches the table, mat or mug has failed
+by the success criterion, so the episode ends there."""
+ENV_TAG = "linear_stop"
+
+
 class Stages:
     """Makes (or finds in ``work``) each condition's demonstrations, policy and rollouts.
 
@@ -191,7 +200,7 @@ class Stages:
         return policy
 
     def _rollouts(self, key: str, policy: TrainedPolicy, seeds: list[int], envs: int) -> list[Rollout]:
-        path = self.work / "rollouts" / f"{key}_{policy.budget.steps}_{seeds[0]}_{len(seeds)}.npz"
+        path = self.work / "rollouts" / f"{key}_{policy.budget.steps}_{seeds[0]}_{len(seeds)}_{ENV_TAG}.npz"
         if path.exists():
             saved = np.load(path, allow_pickle=True)
             return list(saved["rollouts"])
@@ -199,7 +208,7 @@ class Stages:
         torch.set_num_threads(1)  # the environments render on the other cores
         pool: list[SimEnv] = []
         try:
-            pool += [SimEnv(self.simenv, self.tools, self.source) for _ in range(envs)]
+            pool += [SimEnv(self.simenv, self.tools, self.source, **ENV_OPTIONS) for _ in range(envs)]
             rollouts = evaluate(policy, pool, seeds, keep_frames=2, progress=_print_rollout)
         finally:
             for env in pool:
