@@ -67,7 +67,7 @@ def replay_rows(path, robot, limits: ReplayLimits) -> list[dict[str, Any]]:
                  "tcp_map_mm": tcp_mm, "duration_s": traj.duration, "approach_s": report.approach_s,
                  "max_deg": float(tr.max_deg.max()), "rms_deg": float(tr.rms_deg.max()),
                  "lag_ms": tr.lag_s * 1e3, "lag_max_deg": float(tr.lag_max_deg.max()),
-                 "lag_rms_deg": float(tr.lag_rms_deg.max()), "gripper_max_mm": tr.gripper_max_mm,
+                 "lag_rms_deg": float(tr.lag_rms_deg.max()), "gripper_settled_max_mm": tr.gripper.settled_max_mm,
                  "final_deg": float(report.final_error_deg.max()) if report.final_error_deg is not None else None,
                  "resets": sim.audit.resets, "disables": sim.audit.disables, "late_ticks": report.late_ticks})
     return rows

@@ -72,7 +72,7 @@ class Tracking:
         max_deg, rms_deg: (6,) against the target in effect when each feedback sample arrived.
         lag_s: the constant delay that best explains the error (0..0.5 s).
         lag_rms_deg, lag_max_deg: (6,) what remains after removing that delay.
-        gripper_max_mm: gripper error, max.
+        gripper: the gripper's own account (its moves are not tracking error).
         samples: feedback samples compared.
     """
 
@@ -81,8 +81,47 @@ class Tracking:
     lag_s: float
     lag_rms_deg: np.ndarray
     lag_max_deg: np.ndarray
-    gripper_max_mm: float
+    gripper: GripperTracking
     samples: int
+
+
+GRIPPER_SETTLE_S = 0.5  # the gripper crosses its whole 70 mm range in about this time
+GRIPPER_BLOCKED_MM = 2.0
+
+
+@dataclass
+class GripperTracking:
+    """How the gripper followed its targets once each open or close had time to finish.
+
+    Attributes:
+        settled_max_mm: the largest error GRIPPER_SETTLE_S s or more after a target change,
+            where nothing stopped the fingers (0 with no such sample).
+        held_mm: the widest opening at which it held something it was told to close on (the fingers
+            stopped short of the target by more than GRIPPER_BLOCKED_MM), or None.
+    """
+
+    settled_max_mm: float
+    held_mm: float | None
+
+    @classmethod
+    def of(cls, sent_t: np.ndarray, sent_g: np.ndarray, fb_t: np.ndarray, fb_g: np.ndarray) -> GripperTracking:
+        """From the targets sent (times s, openings m) and the feedback (times s, openings m, NaN: none)."""
+        ok = np.isfinite(fb_g)
+        t, measured = fb_t[ok], fb_g[ok] * 1e3
+        changed = np.r_[True, np.abs(np.diff(sent_g)) > 1e-4]
+        change_t = sent_t[changed]
+        k = np.clip(np.searchsorted(sent_t, t, side="right") - 1, 0, len(sent_t) - 1)
+        target = sent_g[k] * 1e3
+        since = t - change_t[np.clip(np.searchsorted(change_t, t, side="right") - 1, 0, len(change_t) - 1)]
+        settled = since >= GRIPPER_SETTLE_S
+        blocked = settled & (measured > target + GRIPPER_BLOCKED_MM)
+        free = settled & ~blocked
+        return cls(float(np.abs(measured - target)[free].max()) if free.any() else 0.0,
+                   float(measured[blocked].max()) if blocked.any() else None)
+
+    def __str__(self) -> str:
+        text = f"gripper within {self.settled_max_mm:.2f} mm of its targets {GRIPPER_SETTLE_S:g} s after each change"
+        return text + (f"; held something at {self.held_mm:.1f} mm when told to close" if self.held_mm else "")
 
 
 @dataclass
@@ -126,7 +165,7 @@ class ReplayReport:
                       f"  rms            {joints(tr.rms_deg)}",
                       f"  after {tr.lag_s * 1e3:3.0f} ms lag: max {joints(tr.lag_max_deg)}",
                       f"                   rms {joints(tr.lag_rms_deg)}",
-                      f"  gripper max {tr.gripper_max_mm:.2f} mm"]
+                      f"  {tr.gripper}"]
         if self.final_error_deg is not None:
             lines.append(f"final error, deg: {' '.join(f'{v:.3f}' for v in self.final_error_deg)}")
         return "\n".join(lines)
@@ -335,10 +374,9 @@ class _Run:
         rms = [np.sqrt(np.mean(np.degrees(fq - held(st, sq, ft - d)) ** 2)) for d in lags]
         best = float(lags[int(np.argmin(rms))])
         lag_err = np.degrees(np.abs(fq - held(st, sq, ft - best)))
-        g_ok = np.isfinite(fg)
-        g_err = np.abs(fg[g_ok] - held(st, sg, ft[g_ok])) * 1e3 if g_ok.any() else np.zeros(1)
         return Tracking(err.max(axis=0), np.sqrt((err ** 2).mean(axis=0)), best,
-                        np.sqrt((lag_err ** 2).mean(axis=0)), lag_err.max(axis=0), float(g_err.max()), len(ft))
+                        np.sqrt((lag_err ** 2).mean(axis=0)), lag_err.max(axis=0), GripperTracking.of(st, sg, ft, fg),
+                        len(ft))
 
 
 def leave_holding(arm: PiperArm, last_target: np.ndarray | None, feedback_fresh: bool) -> str:

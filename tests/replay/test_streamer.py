@@ -124,3 +124,20 @@ def test_a_stop_request_ends_the_stream_with_the_arm_holding(sim: SimArm) -> Non
     state = sim.sim.state()
     np.testing.assert_allclose(state["target"], state["q"], atol=math.radians(0.5))
     assert_never_dropped(sim)
+
+
+def test_the_grippers_moves_and_grasps_are_not_reported_as_tracking_error() -> None:
+    from manisplat.drivers.piper.streamer import GripperTracking
+
+    sent_t = np.arange(0.0, 4.0, 0.005)
+    sent_g = np.where(sent_t < 1.0, 0.07, 0.0)  # open, then told to close at 1 s
+    fb_t = sent_t + 0.002
+    closing = np.clip(0.07 - 0.1 * (fb_t - 1.0), 0.040, 0.07)  # 0.3 s of travel, then the box stops it at 40 mm
+    fb_g = np.where(fb_t < 1.0, 0.0695, closing)
+    fb_g[::50] = np.nan  # feedback without a gripper reading
+    gripper = GripperTracking.of(sent_t, sent_g, fb_t, fb_g)
+    assert gripper.settled_max_mm == pytest.approx(0.5)  # the open hold, 0.5 mm short
+    assert gripper.held_mm == pytest.approx(40.0)
+    assert "within 0.50 mm" in str(gripper) and "held something at 40.0 mm" in str(gripper)
+    free = GripperTracking.of(sent_t, sent_g, fb_t, np.where(fb_t < 1.0, 0.07, np.clip(0.07 - 0.2 * (fb_t - 1.0), 0, 1)))
+    assert free.held_mm is None and free.settled_max_mm < 1e-9
