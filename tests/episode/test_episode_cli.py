@@ -109,7 +109,7 @@ def test_every_argument_has_help_and_shows_its_default():
     parser, commands = _subparsers()
     for name, p in [("", parser), *commands.items()]:
         for action in p._actions:
-            if isinstance(action, (argparse._HelpAction, argparse._SubParsersAction)):
+            if isinstance(action, (argparse._HelpAction, argparse._VersionAction, argparse._SubParsersAction)):
                 continue
             text = action.help or ""
             assert text, f"{name} {action.dest} has no help"
