@@ -25,8 +25,8 @@ from benchmarks.policy.model import ChunkPolicy
 ENV_OPTIONS = {"control": "linear", "terminate_on_collision": True}
 """How the evaluation drives the simulated arm: targets ramped over each step with velocity feed-forward,
 as the generator recorded every demonstration and as manisplat-replay streams them (``"hold"``, a
-step target held, lags 0.15 s at the wrist: the B policy that grasps at the source's own start pose
-under ``"linear"`` missed it under ``"hold"``); an arm that touches the table, mat or mug has failed
+step target held, lags 0.15 s at the wrist: in an ad-hoc check the B policy that grasps from the
+source's own start pose under ``"linear"`` missed under ``"hold"``); an arm that touches the table, mat or mug has failed
 by the success criterion, so the episode ends there."""
 ENV_TAG = "linear_stop"
 
