@@ -23,11 +23,11 @@ from benchmarks.policy.model import ChunkPolicy
 
 
 ENV_OPTIONS = {"control": "linear", "terminate_on_collision": True}
-"""How the evaluation drives the simulated arm: targets ramped over each step with velocity feed-forward,
-as the generator recorded every demonstration and as manisplat-replay streams them (``"hold"``, a
-step target held, lags 0.15 s at the wrist: in an ad-hoc check the B policy that grasps from the
-source's own start pose under ``"linear"`` missed under ``"hold"``); an arm that touches the table, mat or mug has failed
-by the success criterion, so the episode ends there."""
+"""How the evaluation drives the simulated arm: targets ramped over each step with velocity
+feed-forward, as the generator recorded every demonstration and as manisplat-replay streams them
+(``"hold"``, a step target held, lags 0.15 s at the wrist: in an ad-hoc check the B policy that
+grasps from the source's own start pose under ``"linear"`` missed under ``"hold"``); an arm that
+touches the table, mat or mug has failed by the success criterion, so the episode ends there."""
 ENV_TAG = "linear_stop"
 
 
@@ -66,7 +66,7 @@ class Stages:
         return out
 
     def augmented(self, n: int) -> list[Path]:
-        """n demonstrations of manisplat-augment (the first n of the largest set asked for so far)."""
+        """n demonstrations of manisplat-augment (seed 0), made once per n and kept in ``augmented_<n>``."""
         out = self.work / f"augmented_{n}"
         if not (out / "augment_report.json").exists():
             from manisplat.augment.cli import main as augment
@@ -103,7 +103,7 @@ class Stages:
                           "--place-range", *map(str, self._radians(self.place_range)), "--rgb-only", "--jobs", "2")
                 self.data_report.setdefault("oracle_s", 0.0)
                 self.data_report["oracle_s"] += round(time.perf_counter() - start, 1)
-            start_seed += json.loads((batch / "demos.json").read_text())["summary"]["seeds"][1] - start_seed + 1
+            start_seed = json.loads((batch / "demos.json").read_text())["summary"]["seeds"][1] + 1  # after its last
 
     def _oracle_made(self, root: Path) -> list[Path]:
         made, skipped = [], []
