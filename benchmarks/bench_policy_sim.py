@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks._harness import BENCH_DIR, MissingBenchmarkData, machine_info, shared_dir
+from manisplat.cli_args import positive
 
 OWN_OPTIONS = True  # python -m benchmarks policy_sim [options] calls main()
 OBJECT_RANGE = (0.08, 0.08, 45.0)  # m, m, deg: policy_env's reset(seed) ranges
@@ -59,11 +60,11 @@ def _parser() -> argparse.ArgumentParser:
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
                                 epilog="\n".join(__doc__.splitlines()[2:]))
     p.add_argument("--source", type=Path, help="a gen_pick_place.py episode (default shared/data/sim_pick_place_small)")
-    p.add_argument("--n", type=int, nargs="+", help="demonstrations in B, C and D (default 50; --quick 4)")
+    p.add_argument("--n", type=positive(int), nargs="+", help="demonstrations in B, C and D (default 50; --quick 4)")
     p.add_argument("--eval-seeds", type=_seeds, help="evaluation start seeds (default 1000-1049; --quick 1000-1003)")
     p.add_argument("--conditions", default="C,B,A,D", help="which conditions to run, in order (default C,B,A,D)")
-    p.add_argument("--steps", type=int, help="training steps per condition (default 3000; --quick 150)")
-    p.add_argument("--twin-iters", type=int, help="reconstruction iterations (default 1000; --quick 300)")
+    p.add_argument("--steps", type=positive(int), help="training steps per condition (default 3000; --quick 150)")
+    p.add_argument("--twin-iters", type=positive(int), help="reconstruction iterations (default 1000; --quick 300)")
     p.add_argument("--work", type=Path, help="stage outputs, reused when present (default a new temporary folder)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_policy", help="JSON and plots")
     p.add_argument("--quick", action="store_true", help="a smoke run: 4 demonstrations, short training, 4 rollouts")
