@@ -15,24 +15,23 @@ from typing import TYPE_CHECKING
 
 from manisplat.calib.errors import CalibrationError, DegenerateMotionError, InputError, NotEnoughDataError
 from manisplat.cli_args import add_version, bounded, finite, positive
+from manisplat.exit_codes import ExitCode, exit_status_help
 
 if TYPE_CHECKING:
     import numpy as np
 
-EXIT_OK, EXIT_FAILED, EXIT_INPUT, EXIT_NOT_ENOUGH, EXIT_DEGENERATE = 0, 1, 2, 3, 4
 
 DESCRIPTION = ("Calibrate a camera against a PiPER: print a ChArUco board, get the intrinsics, capture still "
                "poses, solve camera-to-base (eye-to-hand) or camera-to-flange (eye-in-hand), estimate the "
                "camera latency, and write the result into episodes. `manisplat-calibrate COMMAND --help` "
                "explains each command.")
-EPILOG = """\
-Exit codes:
-  0  success
-  1  the calibration failed for another reason (inconsistent data, divergence)
-  2  usage or unreadable input (missing file, bad JSON, wrong image size)
-  3  not enough data (too few usable views or detections)
-  4  degenerate motion (the poses do not determine the result)
-"""
+EPILOG = exit_status_help({
+    ExitCode.OK: "success",
+    ExitCode.FAILED: "the calibration failed for another reason (inconsistent data, divergence)",
+    ExitCode.BAD_INPUT: "bad arguments or unreadable input (missing file, bad JSON, wrong image size)",
+    ExitCode.INSUFFICIENT_DATA: "the data cannot determine the result: too few usable views or detections, or\n"
+                                "degenerate motion (the poses do not determine the result, nothing moves)",
+})
 
 
 def _board_args(p: argparse.ArgumentParser) -> None:
@@ -50,7 +49,7 @@ def cmd_board(a: argparse.Namespace) -> int:
         print(f"wrote {path}")
     print("print the PDF at 100 % scale (no 'fit to page'), check the 100 mm bar, measure one square and "
           "put the measured length into square_length_m")
-    return EXIT_OK
+    return ExitCode.OK
 
 
 def cmd_intrinsics(a: argparse.Namespace) -> int:
@@ -77,7 +76,7 @@ def cmd_intrinsics(a: argparse.Namespace) -> int:
               f"fy {k[1, 1]:.2f} cx {k[0, 2]:.2f} cy {k[1, 2]:.2f} (1-sigma {np.round(res.std, 2).tolist()} px)")
     Path(a.out).write_text(json.dumps(out, indent=1) + "\n", encoding="utf-8")
     print(f"wrote {a.out}")
-    return EXIT_OK
+    return ExitCode.OK
 
 
 def _images(a: argparse.Namespace) -> list[np.ndarray]:
@@ -122,9 +121,9 @@ def cmd_capture(a: argparse.Namespace) -> int:
         arm.close()
     if n < 3:
         print(f"only {n} poses recorded; hand-eye calibration needs at least 3 (15-25 recommended)", file=sys.stderr)
-        return EXIT_NOT_ENOUGH
+        return ExitCode.INSUFFICIENT_DATA
     print(f"next: manisplat-calibrate solve {a.out} --board {a.board} --out calibration.json --mount {a.mount}")
-    return EXIT_OK
+    return ExitCode.OK
 
 
 def cmd_solve(a: argparse.Namespace) -> int:
@@ -161,7 +160,7 @@ def cmd_solve(a: argparse.Namespace) -> int:
     if a.report:
         from manisplat.calib.report import write_report
         print(f"wrote {write_report(solved, a.report, cal, latency)}")
-    return EXIT_OK
+    return ExitCode.OK
 
 
 def cmd_latency(a: argparse.Namespace) -> int:
@@ -173,7 +172,7 @@ def cmd_latency(a: argparse.Namespace) -> int:
           f"to {est.window_s[1]:.2f} s, robot signal in {est.signal})")
     if a.json:
         Path(a.json).write_text(json.dumps(est.to_dict(), indent=1) + "\n", encoding="utf-8")
-    return EXIT_OK
+    return ExitCode.OK
 
 
 def cmd_apply(a: argparse.Namespace) -> int:
@@ -183,7 +182,7 @@ def cmd_apply(a: argparse.Namespace) -> int:
         apply_calibration(cal, ep, source=str(Path(a.calibration).resolve()))
         print(f"{ep}: camera calibrated (mount {cal['mount']}"
               + (f", latency {cal['latency_s'] * 1000:.1f} ms" if cal.get("latency_s") is not None else "") + ")")
-    return EXIT_OK
+    return ExitCode.OK
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -292,7 +291,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "late) by aligning optical flow with the robot's motion from joints.csv. "
                                    "Record 10-30 s of brisk moves with pauses, the arm well in view; with a "
                                    "calibrated camera (after `apply`) the robot signal is in pixels. Prints "
-                                   "the estimate with a bootstrap 1-sigma; exit 3 when nothing moves.")
+                                   "the estimate with a bootstrap 1-sigma; exit 5 when nothing moves.")
     t.add_argument("episode", type=Path, help="a recorded episode in which the arm moves")
     t.add_argument("--max-offset", type=positive(), default=0.25, help="search range +- s (default 0.25)")
     t.add_argument("--uncalibrated", action="store_true",
@@ -325,16 +324,16 @@ def main(argv: list[str] | None = None) -> int:
         return args.fn(args)
     except DegenerateMotionError as exc:
         print(f"error: degenerate motion: {exc}", file=sys.stderr)
-        return EXIT_DEGENERATE
+        return ExitCode.INSUFFICIENT_DATA
     except NotEnoughDataError as exc:
         print(f"error: not enough data: {exc}", file=sys.stderr)
-        return EXIT_NOT_ENOUGH
+        return ExitCode.INSUFFICIENT_DATA
     except (InputError, EpisodeFormatError, DriverError, FileNotFoundError, FileExistsError) as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return EXIT_INPUT
+        return ExitCode.BAD_INPUT
     except CalibrationError as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return EXIT_FAILED
+        return ExitCode.FAILED
 
 
 if __name__ == "__main__":

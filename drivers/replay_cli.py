@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from manisplat.cli_args import add_version, bounded, finite_numbers, positive
+from manisplat.exit_codes import ExitCode, exit_status_help
 
 if TYPE_CHECKING:
     import numpy as np
@@ -27,7 +28,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("manisplat.replay")
 
-EXIT_OK, EXIT_STOPPED, EXIT_USAGE, EXIT_DEVICE, EXIT_REFUSED, EXIT_INTERRUPTED = 0, 1, 2, 3, 4, 130
 MAX_CONVENTION_MM = 3.0  # a joint map that moves the TCP more than this is refused
 SIM_START_OFFSET_DEG = 3.0
 
@@ -48,14 +48,14 @@ disable (0x471 07 01) are never sent: both drop the arm.
 --sim replays on a simulated PiPER on a private virtual bus, which starts 3 deg away from the
 episode's start on every joint (so the approach runs) unless --sim-start says where.
 
-Exit status:
-  0    replayed to the end (or --dry-run: every check passed)
-  1    stopped during the replay (tracking error, lost feedback, an error); the arm is holding
-  2    bad arguments
-  3    the arm cannot be reached or sends no feedback
-  4    refused before anything moved (a check failed, or the convention cannot be mapped)
-  130  interrupted by Ctrl-C / SIGTERM; the arm is holding
-"""
+""" + exit_status_help({
+    ExitCode.OK: "replayed to the end (or --dry-run: every check passed)",
+    ExitCode.FAILED: "stopped during the replay (tracking error, lost feedback, an error); the arm is holding",
+    ExitCode.BAD_INPUT: "bad arguments, or an episode that cannot be read (a missing file, NaN in K: named)",
+    ExitCode.DEVICE: "the arm cannot be reached or sends no feedback",
+    ExitCode.REFUSED: "refused before anything moved (a check failed, or the convention cannot be mapped)",
+    ExitCode.INTERRUPTED: "interrupted by Ctrl-C / SIGTERM; the arm is holding",
+})
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -164,14 +164,14 @@ def main(argv: list[str] | None = None) -> int:
                                     episode.frames.actions[:, :6] if traj.source == "actions" else episode.frames.q)
     except (EpisodeFormatError, FileNotFoundError) as exc:
         print(f"manisplat-replay: {exc}", file=sys.stderr)
-        return EXIT_USAGE
+        return ExitCode.BAD_INPUT
     except (ConventionError, ValueError) as exc:
         print(f"manisplat-replay: refused: {exc}", file=sys.stderr)
-        return EXIT_REFUSED
+        return ExitCode.REFUSED
     if tcp_mm > MAX_CONVENTION_MM:
         print(f"manisplat-replay: refused: mapping {description} to the arm's convention moves the TCP by "
               f"{tcp_mm:.1f} mm (> {MAX_CONVENTION_MM} mm)", file=sys.stderr)
-        return EXIT_REFUSED
+        return ExitCode.REFUSED
 
     robot = builtin_piper(with_geometry=False)
     limits = ReplayLimits(arm_speed_pct=args.arm_speed_pct, max_step_deg=args.max_step_deg,
@@ -180,7 +180,7 @@ def main(argv: list[str] | None = None) -> int:
     if offline:
         print("manisplat-replay: refused, nothing was sent:\n" + "\n".join(f"  - {p}" for p in offline),
               file=sys.stderr)
-        return EXIT_REFUSED
+        return ExitCode.REFUSED
 
     stop = threading.Event()
 
@@ -202,18 +202,18 @@ def main(argv: list[str] | None = None) -> int:
             current = arm.wait_for_joint_state(timeout=2.0).q
         except (DriverError, TimeoutError, OSError) as exc:
             print(f"manisplat-replay: cannot read the arm's state: {exc}", file=sys.stderr)
-            return EXIT_DEVICE
+            return ExitCode.DEVICE
         problems = check_trajectory(traj, robot, limits, current_q=current)
         print(_describe_checks(trajectory_figures(traj, robot, limits), args.speed, traj.source, convention.name,
                                tcp_mm))
         if problems:
             print("manisplat-replay: refused, nothing was sent:\n" + "\n".join(f"  - {p}" for p in problems),
                   file=sys.stderr)
-            return EXIT_REFUSED
+            return ExitCode.REFUSED
         print(f"start is {np.degrees(np.abs(traj.q[0] - current)).max():.1f} deg from the arm's state: all checks pass")
         if args.dry_run:
             print("dry run: nothing was sent")
-            return EXIT_OK
+            return ExitCode.OK
         config = StreamConfig(arm_speed_pct=args.arm_speed_pct, max_tracking_error_deg=args.max_tracking_error_deg,
                               feedback_timeout_s=args.feedback_timeout_ms / 1e3)
         progress = _Progress() if sys.stderr.isatty() else None
@@ -230,7 +230,7 @@ def main(argv: list[str] | None = None) -> int:
             arm.close()
         for s, handler in previous.items():
             signal.signal(s, handler)
-    return {"completed": EXIT_OK, "interrupted": EXIT_INTERRUPTED}.get(report.outcome, EXIT_STOPPED)
+    return {"completed": ExitCode.OK, "interrupted": ExitCode.INTERRUPTED}.get(report.outcome, ExitCode.FAILED)
 
 
 class _Progress:

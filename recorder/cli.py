@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator, TextIO
 
 from manisplat.cli_args import add_version, bounded, positive
+from manisplat.exit_codes import ExitCode, exit_status_help
 
 if TYPE_CHECKING:
     from manisplat.drivers.base import Camera
@@ -30,7 +31,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("manisplat.recorder")
 
-EXIT_OK, EXIT_EPISODE_ERROR, EXIT_USAGE, EXIT_DEVICE, EXIT_RECOVERY = 0, 1, 2, 3, 4
 MAX_LATENCY_MS = 1000.0  # RecorderConfig accepts camera latencies within +-1 s
 
 EPILOG = """\
@@ -52,16 +52,16 @@ What is written (one folder per episode, --out/episode_NNNN, format v1 of docs/e
   An episode that ends before its first frame is written is removed (it holds no frame), and so
   is an --out folder this run created and left empty.
 
-Exit status:
-  0  every episode was recorded completely and validates
-  1  an episode ended with an error (disk full, write error, camera failure, no frame recorded);
-     every frame written is kept: after a storage error the episode is left incomplete and the
-     message says what to do (free space, run --recover)
-  2  bad arguments
-  3  the arm or the camera could not be opened (or the arm sends no feedback, or --depth was asked
-     of a replayed recording without depth)
-  4  --recover (or the recovery at start) could not make an episode valid
-"""
+""" + exit_status_help({
+    ExitCode.OK: "every episode was recorded completely and validates",
+    ExitCode.FAILED: "an episode ended with an error (disk full, write error, camera failure, no frame\n"
+                     "recorded), or --recover (or the recovery at start) could not make an episode valid;\n"
+                     "every frame written is kept: after a storage error the episode is left incomplete and\n"
+                     "the message says what to do (free space, run --recover)",
+    ExitCode.BAD_INPUT: "bad arguments: a replay:PATH that is not a recording (or lacks the depth or size\n"
+                        "asked for), a --recover folder that does not exist",
+    ExitCode.DEVICE: "the arm or the camera could not be opened, or the arm sends no feedback",
+})
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -76,6 +76,8 @@ def _camera(text: str) -> str:
         raise argparse.ArgumentTypeError(f"expected 'oak' or 'replay:PATH'; got {text!r}")
     if text.startswith("replay:") and not text[len("replay:"):]:
         raise argparse.ArgumentTypeError("replay: needs a path, e.g. replay:episodes/episode_0000")
+    if text.startswith("replay:") and not Path(text[len("replay:"):]).exists():
+        raise argparse.ArgumentTypeError(f"{text[len('replay:'):]} does not exist")
     return text
 
 
@@ -173,7 +175,8 @@ class Devices:
 
 
 def open_devices(args: argparse.Namespace, clock: Clock, stop: threading.Event) -> Devices:
-    """Open the arm (or simulator) and the camera the arguments name; DriverError when one fails."""
+    """Open the arm (or simulator) and the camera the arguments name; DriverError when one fails
+    (ReplayInputError when a replayed recording does not fit the arguments)."""
     from manisplat.drivers.piper import PiperArm
 
     dev = Devices()
@@ -197,9 +200,8 @@ def open_devices(args: argparse.Namespace, clock: Clock, stop: threading.Event) 
 def open_camera(args: argparse.Namespace, clock: Clock, stop: threading.Event, dev: Devices) -> Camera:
     """Open the camera ``--camera`` names and decide whether its depth is recorded (``dev.depth``):
     an OAK streams depth only with --depth; a replay's depth is recorded when it has any, unless
-    --no-depth. --depth for a replay without depth is a DriverError."""
-    from manisplat.drivers.base import DriverError
-
+    --no-depth. A replay that is not a recording, or lacks the depth or size asked for, is a
+    ReplayInputError."""
     if args.camera == "oak":
         from manisplat.drivers.oak import OakCamera, OakConfig
 
@@ -210,17 +212,17 @@ def open_camera(args: argparse.Namespace, clock: Clock, stop: threading.Event, d
         dev.nominal_fps = fps
         dev.info["camera"] = f"OAK {width}x{height} @ {fps:g} fps{' + depth' if dev.depth else ''}"
         return camera
-    from manisplat.recorder.replaycam import ReplayCamera, open_replay_source
+    from manisplat.recorder.replaycam import ReplayCamera, ReplayInputError, open_replay_source
 
     path = Path(args.camera[len("replay:"):])
     camera = ReplayCamera(open_replay_source(path), clock, loop=args.loop, fps=args.fps, stop=stop)
     if args.size is not None and args.size != (camera.width, camera.height):
         camera.close()
-        raise DriverError(f"--size {args.size[0]}x{args.size[1]} does not match the replayed recording "
+        raise ReplayInputError(f"--size {args.size[0]}x{args.size[1]} does not match the replayed recording "
                           f"({camera.width}x{camera.height}); leave --size out or pick that size")
     if args.depth and not camera.has_depth:
         camera.close()
-        raise DriverError(f"--depth: the replayed recording {path} has no depth; leave --depth out")
+        raise ReplayInputError(f"--depth: the replayed recording {path} has no depth; leave --depth out")
     dev.depth = camera.has_depth if args.depth is None else args.depth
     dev.nominal_fps = args.fps or _source_fps(path)
     dropped = " (its depth dropped: --no-depth)" if camera.has_depth and not dev.depth else ""
@@ -351,7 +353,7 @@ def _recover(folder: Path) -> int:
         print(f"{folder}: no incomplete episode")
     for r in results:
         print(r)
-    return EXIT_RECOVERY if any(r.error for r in results) else EXIT_OK
+    return ExitCode.FAILED if any(r.error for r in results) else ExitCode.OK
 
 
 def _make_folder(path: Path) -> list[Path]:
@@ -394,12 +396,13 @@ def _session(args: argparse.Namespace) -> int:
     from manisplat.drivers.base import DriverError
     from manisplat.recorder.clock import SystemClock
     from manisplat.recorder.recovery import recover_all
+    from manisplat.recorder.replaycam import ReplayInputError
     from manisplat.recorder.session import Recorder, RecorderConfig
 
     if any(r.error for r in recover_all(args.out)):
         print(f"an incomplete episode in {args.out} could not be recovered (see above); fix it or move it away",
               file=sys.stderr)
-        return EXIT_RECOVERY
+        return ExitCode.FAILED
     start = args.start or ("key" if sys.stdin.isatty() else "now")
     stop = threading.Event()      # ends the session
     episode_stop = threading.Event()
@@ -416,9 +419,12 @@ def _session(args: argparse.Namespace) -> int:
     try:
         try:
             devices = open_devices(args, clock, camera_stop)
+        except ReplayInputError as exc:
+            print(f"manisplat-record: {exc}", file=sys.stderr)
+            return ExitCode.BAD_INPUT
         except (DriverError, OSError) as exc:
             print(f"manisplat-record: {exc}", file=sys.stderr)
-            return EXIT_DEVICE
+            return ExitCode.DEVICE
         config = RecorderConfig(fps=args.fps, latency_s=args.latency_ms / 1e3, max_gap_s=args.max_gap_ms / 1e3,
                                 image_format=args.image_format, depth=devices.depth, task=args.task,
                                 actions=args.actions)
@@ -429,7 +435,7 @@ def _session(args: argparse.Namespace) -> int:
         except DriverError as exc:
             devices.close()
             print(f"manisplat-record: {exc}", file=sys.stderr)
-            return EXIT_DEVICE
+            return ExitCode.DEVICE
         try:
             results = _record(args, recorder, start, stop, episode_stop)
         finally:
@@ -439,8 +445,8 @@ def _session(args: argparse.Namespace) -> int:
         for s, handler in previous.items():
             signal.signal(s, handler)
     print(summary(results))
-    return EXIT_OK if results and all(r.valid and not r.error for r in results) else \
-        (EXIT_OK if not results else EXIT_EPISODE_ERROR)
+    return ExitCode.OK if results and all(r.valid and not r.error for r in results) else \
+        (ExitCode.OK if not results else ExitCode.FAILED)
 
 
 def _record(args: argparse.Namespace, recorder: Recorder, start: str, stop: threading.Event,

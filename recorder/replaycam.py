@@ -195,6 +195,11 @@ class ReplayCamera:
         self.close()
 
 
+class ReplayInputError(DriverError):
+    """A ``--camera replay:PATH`` that is not a recording the recorder can replay, or options that do
+    not fit it: bad input (exit 2), not a device that cannot be reached."""
+
+
 def open_replay_source(path: str | Path) -> Callable[[], Camera]:
     """A factory of the source camera a ``--camera replay:PATH`` names: an episode folder
     (:class:`~manisplat.drivers.replay.EpisodeCamera`) or a depthai recording ``.mkv``/``.avi``/
@@ -205,7 +210,7 @@ def open_replay_source(path: str | Path) -> Callable[[], Camera]:
     path = Path(path)
     if path.is_dir():
         if not (path / "episode.json").is_file():
-            raise DriverError(f"replay camera: {path} is a folder without episode.json (not an episode)")
+            raise ReplayInputError(f"replay camera: {path} is a folder without episode.json (not an episode)")
         return lambda: EpisodeCamera(path)
     if path.suffix in (".mkv", ".avi", ".mp4"):
         import json
@@ -219,6 +224,6 @@ def open_replay_source(path: str | Path) -> Callable[[], Camera]:
         if kfile.is_file():
             raw = json.loads(kfile.read_text())
             return lambda: DepthaiReplayCamera(path, K=np.asarray(raw["K"]), dist=np.asarray(raw.get("dist", [])))
-        raise DriverError(f"replay camera: {path} needs intrinsics: put calibration.json (depthai) or K.json "
+        raise ReplayInputError(f"replay camera: {path} needs intrinsics: put calibration.json (depthai) or K.json "
                           f"beside it")
-    raise DriverError(f"replay camera: {path} is neither an episode folder nor a depthai recording (.mkv/.avi/.mp4)")
+    raise ReplayInputError(f"replay camera: {path} is neither an episode folder nor a depthai recording (.mkv/.avi/.mp4)")

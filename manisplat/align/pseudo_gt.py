@@ -206,9 +206,12 @@ def follow_slip(poses: np.ndarray, events: list[GripperEvents], surface: Callabl
     for e in events:
         first = close_end(width, e.grasp, e.release) if width is not None else e.grasp
         end = e.release if e.release is not None else T
-        fitted, shifts, surfaces = [], [], []
+        fitted, shifts, surfaces, sparse = [], [], [], 0
         for f in range(first, end):
-            if f in observe or (keep is not None and keep[f]) or (X := surface(f)) is None or len(X) < MIN_SLIP_POINTS:
+            if f in observe or (keep is not None and keep[f]):
+                continue
+            if (X := surface(f)) is None or len(X) < MIN_SLIP_POINTS:
+                sparse += 1
                 continue
             shift, before, after = model.fit_shift([X], [poses[f]])
             if np.linalg.norm(shift) <= MAX_REST_SHIFT and after < before:
@@ -216,8 +219,13 @@ def follow_slip(poses: np.ndarray, events: list[GripperEvents], surface: Callabl
                 shifts.append(tcp[f, :3, :3].T @ shift)
                 surfaces.append(X)
         if len(fitted) < 2 * SLIP_WINDOW + 1:
-            log.info("grasp at frame %d: the depth fits %d of %d held frames, too few to follow a slip in the hand",
-                     e.grasp, len(fitted), end - first)
+            if sparse > (end - first) // 2:
+                log.info("grasp at frame %d: slip in the hand not checked: the object shows fewer than %d depth "
+                         "points in %d of %d held frames (small in the image, or hidden by the gripper); the rigid "
+                         "grasp stands", e.grasp, MIN_SLIP_POINTS, sparse, end - first)
+            else:
+                log.info("grasp at frame %d: the depth fits %d of %d held frames, too few to follow a slip in the "
+                         "hand; the rigid grasp stands", e.grasp, len(fitted), end - first)
             continue
         shifts = np.array(shifts)
         smooth = np.array([np.median(shifts[max(0, i - SLIP_WINDOW): i + SLIP_WINDOW + 1], axis=0)

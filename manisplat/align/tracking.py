@@ -231,6 +231,7 @@ def track_object(
     pts = _detect(gray(first), view.mask(first, poses[0]), np.zeros((0, 2)), settings)
     X, ok = _lift(pts, view.depth(first, poses[0]), K, T_base_cam)
     pts, canon = pts[ok], _to_object(X[ok], poses[0])
+    most_points = len(pts)  # the most trackable points the object showed in any frame
     evidence = None
     if prior is not None and depth(first) is not None:
         evidence = DepthEvidence(view.mask(first, poses[0]), depth(first), K, T_base_cam, poses[0],
@@ -311,10 +312,16 @@ def track_object(
             Xn, okn = _lift(new, measured if measured is not None else view.depth(f, pose), K, T_base_cam)
             pts = np.concatenate([pts, new[okn]])
             canon = np.concatenate([canon, _to_object(Xn[okn], pose)])
+            most_points = max(most_points, len(pts))
         prev = cur
     track = Track(first, np.stack(poses), np.array(solved), np.array(used), np.array(inliers))
-    log.info("tracking frames %d-%d: solved %d of %d, %d took the tracked pose", first, frames[-1],
-             int(track.solved[1:].sum()), len(frames) - 1, int(track.from_tracking.sum()))
+    if most_points < settings.min_inliers:  # nothing to track: say so, not "solved 0"
+        log.info("tracking frames %d-%d: not tracked: the object shows at most %d trackable points (%d needed; "
+                 "small in the image or plain); %s", first, frames[-1], most_points, settings.min_inliers,
+                 "the prior stands" if prior is not None else "its first pose is held")
+    else:
+        log.info("tracking frames %d-%d: solved %d of %d, %d took the tracked pose", first, frames[-1],
+                 int(track.solved[1:].sum()), len(frames) - 1, int(track.from_tracking.sum()))
     return track
 
 

@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 from manisplat.cli_args import add_version, finite_numbers, positive
+from manisplat.exit_codes import ExitCode, exit_status_help
 from manisplat.output_folder import check_output_folder
 from manisplat.threads import THREADS_HELP, use_threads
 
@@ -40,10 +41,13 @@ output: OUT/episode_NNNN/ (complete episodes only: each is written under a hidde
   centre frame (its bounding box's centre, the axes of its reconstructed frame), as
   augmentation.json writes them.
 
-exit status: 0 all requested demonstrations written; 1 fewer valid demonstrations than
-  requested (the valid ones are written), or the reconstruction cannot be augmented (named);
-  2 usage error; 130 interrupted (finished episodes stay; nothing half-written looks complete).
-"""
+""" + exit_status_help({
+    ExitCode.OK: "all requested demonstrations written",
+    ExitCode.FAILED: "fewer valid demonstrations than requested (the valid ones are written)",
+    ExitCode.BAD_INPUT: "bad arguments; a reconstruction that cannot be augmented or a --poses file that does\n"
+                        "not fit it (named); an --out in use without --overwrite",
+    ExitCode.INTERRUPTED: "interrupted (finished episodes stay; nothing half-written looks complete)",
+})
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -102,12 +106,12 @@ def main(argv: list[str] | None = None) -> int:
         report = run_augmentation(args)
     except AugmentError as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return 1
+        return ExitCode.BAD_INPUT
     except KeyboardInterrupt:
         print("\ninterrupted: finished episodes stay in place; nothing half-written looks complete", file=sys.stderr)
-        return 130
+        return ExitCode.INTERRUPTED
     print(summary(report, args.out))
-    return 0 if report["written"] >= report["requested"] else 1
+    return ExitCode.OK if report["written"] >= report["requested"] else ExitCode.FAILED
 
 
 def summary(report: dict, out: Path) -> str:

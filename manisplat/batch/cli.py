@@ -14,6 +14,7 @@ from pathlib import Path
 
 from manisplat.batch.config import EXAMPLE
 from manisplat.cli_args import add_version, positive
+from manisplat.exit_codes import ExitCode, exit_status_help
 from manisplat.threads import THREADS_HELP, use_threads
 
 EPILOG = """\
@@ -30,10 +31,13 @@ whose process crashes or dies is retried (retries.max), then reported; the other
 Without Ray installed, the same pipeline runs one task after another in this process
 (pip install 'manisplat[distributed]' for Ray).
 
-exit status: 0 every stage complete; 1 a stage failed (see the table and OUT/errors/) or the
-configuration is wrong; 2 usage error; 130 interrupted (finished outputs stay, partial ones never
-look complete).
-"""
+""" + exit_status_help({
+    ExitCode.OK: "every stage complete",
+    ExitCode.FAILED: "a stage failed (see the table and OUT/errors/)",
+    ExitCode.BAD_INPUT: "bad arguments; a PIPELINE.toml that is wrong (named); `status` of a folder that holds no\n"
+                        "batch",
+    ExitCode.INTERRUPTED: "interrupted (finished outputs stay, partial ones never look complete)",
+})
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -82,11 +86,11 @@ def _run(args: argparse.Namespace) -> int:
         config = load_config(args.pipeline)
     except BatchConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return 1
+        return ExitCode.BAD_INPUT
     has_ray = importlib.util.find_spec("ray") is not None
     if args.address and (args.sequential or not has_ray):
         print("error: --address needs Ray (pip install 'manisplat[distributed]') and no --sequential", file=sys.stderr)
-        return 2
+        return ExitCode.BAD_INPUT
     if args.sequential or not has_ray:
         if not has_ray:
             print("Ray is not installed: running the tasks one after another here "
@@ -100,7 +104,7 @@ def _run(args: argparse.Namespace) -> int:
         results = run_batch(config, executor, progress=not args.quiet and sys.stderr.isatty())
     except KeyboardInterrupt:
         print("\ninterrupted: finished outputs stay; run the same command again to do the rest", file=sys.stderr)
-        return 130
+        return ExitCode.INTERRUPTED
     finally:
         executor.shutdown()
     print(table(results))
@@ -108,7 +112,7 @@ def _run(args: argparse.Namespace) -> int:
     if failed:
         print(f"{sum(r.status == 'failed' for r in failed)} stage(s) failed; errors in {config.out / 'errors'}",
               file=sys.stderr)
-    return 1 if failed else 0
+    return ExitCode.FAILED if failed else ExitCode.OK
 
 
 def _status(args: argparse.Namespace) -> int:
@@ -118,9 +122,9 @@ def _status(args: argparse.Namespace) -> int:
         rows = batch_status(args.out)
     except FileNotFoundError as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return 1
+        return ExitCode.BAD_INPUT
     print(table(rows))
-    return 0
+    return ExitCode.OK
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -14,6 +14,7 @@ from pathlib import Path
 from manisplat.cli_args import (add_version, bounded, finite_numbers, non_negative, pinhole_intrinsics,
                                 positive)
 from manisplat.episode.format import DIST_LENGTHS, EpisodeFormatError
+from manisplat.exit_codes import ExitCode, exit_status_help
 
 ACT_ARMS = ("left", "right", "single")
 """``--arm`` choices of ``import-act`` (the keys of the importer's ``ARM_COLUMNS``)."""
@@ -21,6 +22,13 @@ EXPORT_FORMATS = ("lerobot", "act-hdf5")
 """``--format`` choices of ``export``."""
 SAMPLE_MIN_FRAMES = 8
 """The fewest frames ``write_sample_episode`` accepts."""
+EPILOG = exit_status_help({
+    ExitCode.OK: "done",
+    ExitCode.FAILED: "validate: an error in any episode; recover: the result is still invalid",
+    ExitCode.BAD_INPUT: "bad arguments; a missing, unreadable or damaged input (named); an output that exists\n"
+                        "without --overwrite",
+    ExitCode.INTERRUPTED: "interrupted (an export leaves nothing half-written)",
+})
 
 
 def _dataset_name(text: str) -> str:
@@ -35,17 +43,21 @@ def _cmd_info(args: argparse.Namespace) -> int:
     from manisplat.episode.summary import describe
 
     print(describe(Episode.open(args.episode)))
-    return 0
+    return ExitCode.OK
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
     from manisplat.episode.validation import validate
 
-    status = 0
+    status = ExitCode.OK
     for path in args.episodes:
+        if not path.exists():  # nothing to validate: bad input, as in every other command
+            print(f"error: {path} does not exist", file=sys.stderr)
+            status = max(status, ExitCode.BAD_INPUT)
+            continue
         report = validate(path, decode_images=not args.quick, progress=sys.stderr.isatty())
         print(report)
-        status = max(status, 0 if report.ok else 1)
+        status = max(status, ExitCode.OK if report.ok else ExitCode.FAILED)
     return status
 
 
@@ -54,7 +66,7 @@ def _cmd_recover(args: argparse.Namespace) -> int:
 
     report = recover(args.episode, drop_damaged=args.drop_damaged)
     print(report)
-    return 0 if report.validation is None or report.validation.ok else 1
+    return ExitCode.OK if report.validation is None or report.validation.ok else ExitCode.FAILED
 
 
 def _cmd_import_act(args: argparse.Namespace) -> int:
@@ -69,7 +81,7 @@ def _cmd_import_act(args: argparse.Namespace) -> int:
                               robot_description=args.robot_description, task=args.task,
                               image_format=args.image_format, overwrite=args.overwrite)
     print(f"imported {len(episode)} frames from {args.file} into {episode.path}")
-    return 0
+    return ExitCode.OK
 
 
 _FORMAT_ONLY_OPTIONS = {"lerobot": ("task", "no_depth", "codec", "crf"),
@@ -96,14 +108,14 @@ def _cmd_export(args: argparse.Namespace) -> int:
     if misplaced:
         print(f"manisplat-episode export: error: {', '.join(misplaced)} do not apply to --format {args.format}",
               file=sys.stderr)
-        return 2
+        return ExitCode.BAD_INPUT
     try:
         if args.format == "lerobot":
             return _export_lerobot(args)
         return _export_act(args)
     except ExportDestinationError as exc:  # a usage error, like the other commands' --out checks
         print(f"manisplat-episode export: error: {exc}", file=sys.stderr)
-        return 2
+        return ExitCode.BAD_INPUT
 
 
 def _export_lerobot(args: argparse.Namespace) -> int:
@@ -118,11 +130,11 @@ def _export_lerobot(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print(f"\ninterrupted: nothing was written to {args.out} (the partial dataset beside it was removed)",
               file=sys.stderr)
-        return 130
+        return ExitCode.INTERRUPTED
     print(f"exported {result.episodes} episodes ({result.frames} frames, {result.augmented} augmented) as a "
           f"LeRobot v3.0 dataset at {result.path} ({result.data_files} data and {result.video_files} video files); "
           f"provenance in {result.path}/meta/augmentation.json")
-    return 0
+    return ExitCode.OK
 
 
 def _export_act(args: argparse.Namespace) -> int:
@@ -137,12 +149,12 @@ def _export_act(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print(f"\ninterrupted: nothing was written to {args.out} (the hidden folder being written was removed)",
               file=sys.stderr)
-        return 130
+        return ExitCode.INTERRUPTED
     augmented = sum(e["augmented"] for e in entries)
     frames = sum(e["frames"] for e in entries)
     print(f"exported {len(entries)} episodes ({frames} frames, {augmented} augmented) to {args.out}/episode_*.hdf5; "
           f"provenance in {args.out}/augmentation.json")
-    return 0
+    return ExitCode.OK
 
 
 def _cmd_import_lerobot(args: argparse.Namespace) -> int:
@@ -157,7 +169,7 @@ def _cmd_import_lerobot(args: argparse.Namespace) -> int:
                              robot_description=args.robot_description, image_format=args.image_format,
                              overwrite=args.overwrite)
     print(f"imported episode {args.episode} ({len(episode)} frames) of {args.dataset} into {episode.path}")
-    return 0
+    return ExitCode.OK
 
 
 def _cmd_sample(args: argparse.Namespace) -> int:
@@ -166,7 +178,7 @@ def _cmd_sample(args: argparse.Namespace) -> int:
     path = write_sample_episode(args.out, frames=args.frames, fps=args.fps, width=args.width, height=args.height,
                                 seed=args.seed, task=args.task, overwrite=args.overwrite)
     print(f"wrote the sample episode ({args.frames} frames, {args.width}x{args.height}) to {path}")
-    return 0
+    return ExitCode.OK
 
 
 def _cmd_set_robot(args: argparse.Namespace) -> int:
@@ -176,9 +188,9 @@ def _cmd_set_robot(args: argparse.Namespace) -> int:
         old, new = set_robot(args.episode, args.description, embed=args.embed, overwrite=args.overwrite)
     except ValueError as exc:  # RobotModelError included: an unknown builtin, a URDF that does not load
         print(f"error: {exc}", file=sys.stderr)
-        return 1
+        return ExitCode.BAD_INPUT
     print(f"{args.episode}: robot.description {old!r} -> {new!r}")
-    return 0
+    return ExitCode.OK
 
 
 def _cmd_copy(args: argparse.Namespace) -> int:
@@ -188,10 +200,10 @@ def _cmd_copy(args: argparse.Namespace) -> int:
         old, new = copy_episode(args.source, args.destination, embed=args.embed, overwrite=args.overwrite)
     except ValueError as exc:  # RobotModelError included
         print(f"error: {exc}", file=sys.stderr)
-        return 1
+        return ExitCode.BAD_INPUT
     changed = f"; robot.description {old!r} -> {new!r}" if new != old else ""
     print(f"copied {args.source} to {args.destination}{changed}")
-    return 0
+    return ExitCode.OK
 
 
 def _add_import_options(p: argparse.ArgumentParser, source: str) -> None:
@@ -210,8 +222,9 @@ def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``manisplat-episode`` and its subcommands."""
     parser = argparse.ArgumentParser(
         prog="manisplat-episode",
-        description="Inspect, validate, recover, import, export, synthesize and copy ManiSplat episodes (format v1, "
-                    "docs/episode-format.md).")
+        description="Inspect, validate, recover, import, export, synthesize and copy ManiSplat episodes\n"
+                    "(format v1, docs/episode-format.md).",
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("-v", "--verbose", action="count", default=0,
                         help="log more: -v info, -vv debug (default: warnings only)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -226,7 +239,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("validate", help="check episodes against the format; exit 1 if any has an error",
                        description="Check every file of each episode and list every problem with its file and "
                                    "row. Exit status: 0 all valid (warnings allowed), 1 an error in any "
-                                   "episode, 2 usage error.")
+                                   "episode, 2 bad arguments or a folder that does not exist.")
     p.add_argument("episodes", type=Path, nargs="+", metavar="EPISODE", help="episode folder(s)")
     p.add_argument("--quick", action="store_true",
                    help="only check that image files exist and are not empty, without decoding them "
@@ -288,8 +301,8 @@ def build_parser() -> argparse.ArgumentParser:
                                    "(T, 7), attributes sim, compress, fps), written beside OUT and moved into it when complete; "
                                    "read back with `import-act FILE --arm single --camera NAME`. Both write "
                                    "augmentation.json (LeRobot: meta/augmentation.json) naming each episode's "
-                                   "source and, for augmented ones, their parent. Exit status: 0 done, 1 bad "
-                                   "input, 2 usage error (a non-empty --out without --overwrite included), "
+                                   "source and, for augmented ones, their parent. Exit status: 0 done, 2 bad "
+                                   "arguments or input (a non-empty --out without --overwrite included), "
                                    "130 interrupted.")
     p.add_argument("episodes", type=Path, nargs="+", metavar="EPISODE", help="episode folder(s)")
     p.add_argument("--format", choices=EXPORT_FORMATS, required=True, help="output layout (required)")
@@ -335,7 +348,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "matched to rows by timestamp (LeRobot's 1e-4 s tolerance); depth.<camera> "
                                    "(uint16 mm) when present; t = frame_index / fps. Joints are read as stored, so "
                                    "an export comes back bit-exact. The dataset holds no intrinsics: --K is "
-                                   "required. Exit status: 0 done, 1 bad input, 2 usage error.")
+                                   "required. Exit status: 0 done, 2 bad arguments or input.")
     p.add_argument("dataset", type=Path, metavar="DATASET_DIR", help="the LeRobot dataset folder")
     p.add_argument("--episode", type=non_negative(int), required=True, metavar="I",
                    help="episode_index to import (required)")
@@ -361,7 +374,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=bounded(SAMPLE_MIN_FRAMES, kind=int), default=64,
                    help=f"number of frames, at least {SAMPLE_MIN_FRAMES}; the motion is stretched over them "
                         "(default: %(default)s)")
-    p.add_argument("--fps", type=positive(float), default=16.0, help="frame rate in Hz (default: %(default)s)")
+    p.add_argument("--fps", type=positive(float), default=8.0, help="frame rate in Hz (default: %(default)s)")
     p.add_argument("--width", type=positive(int), default=160, help="image width in pixels (default: %(default)s)")
     p.add_argument("--height", type=positive(int), default=120, help="image height in pixels (default: %(default)s)")
     p.add_argument("--seed", type=non_negative(int), default=0,
@@ -415,9 +428,9 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(levelname)s %(name)s: %(message)s")
     try:
         return args.func(args)
-    except (EpisodeFormatError, OSError) as exc:
+    except (EpisodeFormatError, OSError) as exc:  # FileExistsError included: no --overwrite
         print(f"error: {exc}", file=sys.stderr)
-        return 1
+        return ExitCode.BAD_INPUT
 
 
 if __name__ == "__main__":

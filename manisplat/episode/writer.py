@@ -87,8 +87,7 @@ def check_destination(path: Path, overwrite: bool) -> bool:
     if not (path / META_FILE).exists():
         raise FileExistsError(f"{path}: folder is not empty and holds no episode; refusing to write into it")
     if not overwrite:
-        raise FileExistsError(f"{path}: an episode already exists here; replace it with --overwrite "
-                              "(overwrite=True in Python)")
+        raise FileExistsError(f"{path}: an episode already exists here; replace it with --overwrite")
     return True
 
 

@@ -1,8 +1,9 @@
 """manisplat-reconstruct: train the Gaussian scene graph of one episode and write the twin.
 
-Exit status: 0 done; 1 the episode cannot be reconstructed (a clear message says why), or the
-evaluation failed after the twin was written; 2 usage error (including an ``--out`` that holds
-earlier results, without ``--overwrite`` or ``--resume``); 130 interrupted (checkpoint saved).
+Exit status (:mod:`manisplat.exit_codes`): 0 done; 1 the training or the evaluation failed; 2 bad
+arguments or an episode that cannot be reconstructed (a clear message says why), an ``--out`` that
+holds earlier results without ``--overwrite`` or ``--resume``; 3 no usable ``--device``; 130
+interrupted (checkpoint saved).
 
 Only argparse and light modules are imported until the arguments are accepted: ``--help`` and
 usage errors answer at once; torch and OpenCV load when the work starts.
@@ -18,6 +19,7 @@ from pathlib import Path
 
 from manisplat.align.phases import DEFAULT_TAU
 from manisplat.cli_args import add_version, finite, non_negative, numbers, positive
+from manisplat.exit_codes import ExitCode, exit_status_help
 from manisplat.output_folder import check_output_folder
 from manisplat.reconstruct.config import (COMPILE_CHOICES, COMPILE_MIN_ITERS, GPU_ITERS, DeviceUnavailable,
                                           TrainConfig, default_iters, resolve_compile, resolve_device)
@@ -39,10 +41,15 @@ outputs: twin.json + twin.pt (the twin: manisplat.twin.Twin.load(OUT) renders an
   camera as the reconstruction found it: `manisplat-calibrate apply` writes it into an episode),
   {CHECKPOINT}. The episode format: docs/episode-format.md.
 
-exit status: 0 done; 1 the episode cannot be reconstructed (the file and field are named), or
-  the evaluation failed after the trained twin was written; 2 usage error; 130 interrupted
-  (a checkpoint is saved: continue with --resume).
-"""
+""" + exit_status_help({
+    ExitCode.OK: "done",
+    ExitCode.FAILED: "the training failed (the rasterizer did not build), or the evaluation failed after the\n"
+                     "twin was written",
+    ExitCode.BAD_INPUT: "bad arguments; an episode that cannot be reconstructed (the file and field are named),\n"
+                        "a damaged checkpoint for --resume; an --out in use without --overwrite or --resume",
+    ExitCode.DEVICE: "--device names a device that is not usable (no CUDA build, no GPU)",
+    ExitCode.INTERRUPTED: "interrupted (a checkpoint is saved: continue with --resume)",
+})
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -66,7 +73,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="rasterizer: auto (gsplat on CUDA, else the C++ CPU backend), cpu, torch (slow reference), gsplat")
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
                    help="where training runs: auto (CUDA when available, else cpu; the default), cpu, or cuda "
-                        "(needs a CUDA build of torch and gsplat: pip install 'manisplat[gpu]'); exit 1 if unusable")
+                        "(needs a CUDA build of torch and gsplat: pip install 'manisplat[gpu]'); exit 3 if unusable")
     p.add_argument("--threads", type=positive(int), metavar="N", help=THREADS_HELP)
     p.add_argument("--compile", default="auto", choices=COMPILE_CHOICES,
                    help="run the training iteration's tensor work through torch.compile: auto (on for CUDA runs "
@@ -157,7 +164,7 @@ def _run(args: argparse.Namespace, prompt: tuple[str, tuple | None, tuple | None
             device = resolve_device(args.device, args.backend)
         except DeviceUnavailable as exc:
             print(f"error: {exc}", file=sys.stderr)
-            return 1
+            return ExitCode.DEVICE
         iters = args.iters if args.iters is not None else default_iters(device)
         compiled = resolve_compile(args.compile, device.partition(":")[0], iters)
     try:
@@ -171,11 +178,11 @@ def _run(args: argparse.Namespace, prompt: tuple[str, tuple | None, tuple | None
         elif prompt is not None:
             print("error: the episode has masks; --object-point/--object-box are for episodes without "
                   "(add --no-masks to segment anew)", file=sys.stderr)
-            return 2
+            return ExitCode.BAD_INPUT
         plan = make_plan(data)
         if args.plan:
             print(plan.summary())
-            return 0
+            return ExitCode.OK
         log.info("plan:\n%s", plan.summary())
         log.info("training on %s (rasterizer backend %s), %d iterations%s; %s", device, args.backend, iters,
                  "" if args.iters is not None else f" (the default on {device}; --iters to change)",
@@ -190,7 +197,7 @@ def _run(args: argparse.Namespace, prompt: tuple[str, tuple | None, tuple | None
                                 masks_from_model=masks_from_model, check_extrinsic=not args.keep_extrinsic)
     except (ReconstructionInputError, EpisodeFormatError, RobotModelError, FileNotFoundError, NotImplementedError) as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return 1
+        return ExitCode.BAD_INPUT
     if args.overwrite:
         removed = remove_outputs(args.out)
         if removed:
@@ -205,7 +212,7 @@ def _run(args: argparse.Namespace, prompt: tuple[str, tuple | None, tuple | None
         except Exception as exc:  # torch raises several types for damaged or foreign files
             print(f"error: {checkpoint}: cannot resume from it ({type(exc).__name__}: {exc}); "
                   f"start a new run with --overwrite", file=sys.stderr)
-            return 1
+            return ExitCode.BAD_INPUT
         log.info("resumed from %s at iteration %d", checkpoint, rec.step)
 
     def save(r) -> None:
@@ -216,23 +223,23 @@ def _run(args: argparse.Namespace, prompt: tuple[str, tuple | None, tuple | None
         rec.train(progress=not args.quiet, callback=save)
     except BackendUnavailable as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return 1
+        return ExitCode.FAILED
     except KeyboardInterrupt:
         rec.save_checkpoint(checkpoint)
         print(f"\ninterrupted at iteration {rec.step}; continue with --resume", file=sys.stderr)
-        return 130
+        return ExitCode.INTERRUPTED
     rec.save_checkpoint(checkpoint)
     write_twin(rec, alignments, args.out)
     try:
         metrics = write_evaluation(rec, alignments, args.out, wall_s=time.perf_counter() - start)
-    except Exception as exc:  # the trained twin is on disk: report, keep it, exit 1
+    except Exception as exc:  # the trained twin is on disk: report, keep it, fail
         log.debug("evaluation failed", exc_info=True)
         print(f"error: the twin is trained and written to {args.out} (twin.json/.pt, PLYs, object poses, phases, "
               f"{CHECKPOINT}), "
               f"but its evaluation failed: {type(exc).__name__}: {exc}", file=sys.stderr)
-        return 1
+        return ExitCode.FAILED
     print(_summary(metrics, args.out))
-    return 0
+    return ExitCode.OK
 
 
 def _prompt(args: argparse.Namespace) -> tuple[str, tuple | None, tuple | None] | None:
@@ -281,10 +288,13 @@ def _summary(metrics: dict, out: Path) -> str:
                          f"{anchored['final']['et_cm']:.2f} cm, {anchored['final']['er_deg']:.2f} deg")
     camera = metrics.get("camera")
     if camera:
-        verb = "corrected" if camera["applied"] else "NOT corrected (" + camera["reason"] + ")"
-        lines.append(f"camera extrinsic {verb} by {camera['rotation_deg']:.3f} +- {camera['sigma_rotation_deg']:.3f} deg, "
-                     f"{camera['translation_mm']:.2f} +- {camera['sigma_translation_mm']:.2f} mm (robot depth, 1 sigma); "
-                     f"write it into the episode with `manisplat-calibrate apply {out / 'camera_refined.json'} EPISODE`")
+        if camera["applied"]:  # camera_refined.json differs from the episode's camera: the advice changes it
+            lines.append(f"camera extrinsic corrected by {camera['rotation_deg']:.3f} +- "
+                         f"{camera['sigma_rotation_deg']:.3f} deg, {camera['translation_mm']:.2f} +- "
+                         f"{camera['sigma_translation_mm']:.2f} mm (robot depth, 1 sigma); write it into the episode "
+                         f"with `manisplat-calibrate apply {out / 'camera_refined.json'} EPISODE`")
+        else:
+            lines.append(f"camera extrinsic kept as recorded: {camera['reason']}")
         if camera.get("time_offset_ms") is not None:
             lines.append(f"camera/joint time offset {camera['time_offset_ms']:+.1f} +- {camera['sigma_time_offset_ms']:.1f} ms "
                          + ("(applied: joints re-paired)" if camera["time_applied"] else "(not applied)"))

@@ -263,9 +263,10 @@ def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 
     Returns None when the episode cannot say (no depth, no robot masks, fewer than
     :data:`MIN_POINTS` robot points, a degenerate geometry); otherwise the correction, with
     ``applied`` False (and the reason) when the fit leaves a residual above
-    :data:`MAX_RESIDUAL_MM` (the depth or the model is wrong: one depth per triangle, as in the
-    built-in sample, leaves several millimetres and the fit proposes degrees) or is larger than
-    :data:`MAX_ROTATION_DEG` / :data:`MAX_TRANSLATION_MM`.
+    :data:`MAX_RESIDUAL_MM` (the depth or the model is wrong: the painter's one depth per triangle
+    leaves several millimetres and the fit proposes degrees), is larger than
+    :data:`MAX_ROTATION_DEG` / :data:`MAX_TRANSLATION_MM`, or does not lower the residual (the
+    recorded camera already fits).
     """
     if data.depth is None or data.masks is None or not data.labels.robot:
         log.info("camera extrinsic: not checked (needs depth and robot masks)")
@@ -336,6 +337,11 @@ def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 
                          f"{MAX_TRANSLATION_MM} mm: recalibrate (manisplat-calibrate) or check the robot description")
         result.T_after = T0.copy()
         log.warning("camera extrinsic: %s", result.reason)
+    elif rms_after >= rms_before:
+        result.applied, result.time_applied = False, False
+        result.reason = (f"the robot's depth fits the recorded camera (residual RMS {1000 * rms_before:.2f} mm; the "
+                         f"fit's {rot:.3f} deg, {trans:.2f} mm does not lower it)")
+        result.T_after = T0.copy()
     if solve_time:
         verdict = ("applied" if result.time_applied else "not applied: " + (
             "the extrinsic was not" if not result.applied else
@@ -343,9 +349,17 @@ def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 
         timing = f"; camera/joint time offset {1e3 * offset:+.1f} +- {1e3 * sig_time:.1f} ms ({verdict})"
     else:
         timing = ""
-    log.info("camera extrinsic: correction %.3f +- %.3f deg, %.2f +- %.2f mm from %d robot depth points in %d frames "
-             "(residual RMS %.2f -> %.2f mm)%s%s", rot, sig_rot, trans, sig_trans, total, len(chosen),
-             result.rms_before_mm, result.rms_after_mm, "" if result.applied else "; NOT applied", timing)
+    if not result.applied and rms_after < rms_before:  # refused above, with a warning saying why
+        log.info("camera extrinsic: correction %.3f +- %.3f deg, %.2f +- %.2f mm from %d robot depth points in %d "
+                 "frames (residual RMS %.2f -> %.2f mm); NOT applied%s", rot, sig_rot, trans, sig_trans, total,
+                 len(chosen), result.rms_before_mm, result.rms_after_mm, timing)
+    elif not result.applied:
+        log.info("camera extrinsic: kept: %s; %d robot depth points in %d frames%s", result.reason, total,
+                 len(chosen), timing)
+    else:
+        log.info("camera extrinsic: correction %.3f +- %.3f deg, %.2f +- %.2f mm from %d robot depth points in %d "
+                 "frames (residual RMS %.2f -> %.2f mm)%s", rot, sig_rot, trans, sig_trans, total, len(chosen),
+                 result.rms_before_mm, result.rms_after_mm, timing)
     return result
 
 

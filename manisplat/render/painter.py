@@ -74,9 +74,8 @@ def render(
     near: float = 0.02,
     exact_depth: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Render the scene (``exact_depth``: per-pixel depth on each triangle's plane, for tests
-    that need millimetres; the default, one depth per triangle, keeps the built-in sample as
-    published).
+    """Render the scene (``exact_depth``: per-pixel depth on each triangle's plane, exact to
+    millimetres, as the built-in sample uses; the default, one depth per triangle, is faster).
 
     Returns:
         rgb: (H, W, 3) uint8.

@@ -15,6 +15,7 @@ import threading
 from pathlib import Path
 
 from manisplat.cli_args import add_version, bounded, positive
+from manisplat.exit_codes import ExitCode, exit_status_help
 from manisplat.threads import THREADS_HELP, use_threads
 
 log = logging.getLogger("manisplat.view")
@@ -38,9 +39,12 @@ reconstruction's [recorded | twin] side by side under a header naming them and t
 augmentation folder's demonstrations one after another; --orbit DEG turns the camera about the
 scene over the video.
 
-exit status: 0 done (or the server stopped with Ctrl-C); 1 PATH cannot be shown (what is missing is
-named); 2 usage error (an existing --video file without --overwrite included).
-"""
+""" + exit_status_help({
+    ExitCode.OK: "done (or the server stopped with Ctrl-C)",
+    ExitCode.BAD_INPUT: "bad arguments; PATH cannot be shown (what is missing or damaged is named); an\n"
+                        "existing --video file without --overwrite",
+    ExitCode.INTERRUPTED: "--video interrupted (no video written)",
+})
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -82,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
         content = load_content(args.path, twin=args.twin, episode=args.episode)
     except (ViewInputError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return 1
+        return ExitCode.BAD_INPUT
     for note in content.notes:
         log.warning("not shown: %s", note)
     if args.video is not None:
@@ -97,13 +101,13 @@ def _write_video(content, args: argparse.Namespace) -> int:
         result = write_video(content, args.video, orbit_deg=args.orbit, progress=sys.stderr.isatty())
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return 1
+        return ExitCode.BAD_INPUT
     except KeyboardInterrupt:
         print("\ninterrupted: no video written", file=sys.stderr)
-        return 130
+        return ExitCode.INTERRUPTED
     print(f"wrote {result.path}: {result.frames} frames, {result.width}x{result.height}, "
           f"{result.frames_per_s:.1f} frames/s")
-    return 0
+    return ExitCode.OK
 
 
 def _serve(content, args: argparse.Namespace) -> int:
@@ -129,7 +133,7 @@ def _serve(content, args: argparse.Namespace) -> int:
         with contextlib.redirect_stdout(io.StringIO()):
             server.stop()
     print("stopped", file=sys.stderr)
-    return 0
+    return ExitCode.OK
 
 
 if __name__ == "__main__":

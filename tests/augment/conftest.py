@@ -15,7 +15,7 @@ from manisplat.reconstruct.trainer import TrainConfig
 
 @pytest.fixture(scope="module")
 def twin(tmp_path_factory):
-    episode = write_sample_episode(tmp_path_factory.mktemp("augment") / "ep", frames=32, width=80, height=60)
+    episode = write_sample_episode(tmp_path_factory.mktemp("augment") / "ep", frames=32, fps=16.0, width=80, height=60)
     data = load_episode_data(episode)
     rec, alignments = build(data, make_plan(data), TrainConfig(iters=5))
     rec.train(progress=False)

@@ -22,7 +22,7 @@ from manisplat.reconstruct.cli import main as reconstruct
 @pytest.fixture(scope="module")
 def recon(tmp_path_factory):
     root = tmp_path_factory.mktemp("augment_cli")
-    episode = write_sample_episode(root / "ep", frames=32, width=64, height=48)
+    episode = write_sample_episode(root / "ep", frames=32, fps=16.0, width=64, height=48)
     assert reconstruct([str(episode), "--out", str(root / "twin"), "--iters", "5", "-q"]) == 0
     return root / "twin"
 
@@ -118,7 +118,7 @@ def test_explicit_poses_and_an_unreachable_one(recon, tmp_path, capsys):
 
 
 def test_a_folder_without_a_twin_is_a_clear_error(tmp_path, capsys):
-    assert main([str(tmp_path), "--out", str(tmp_path / "aug"), "-q"]) == 1
+    assert main([str(tmp_path), "--out", str(tmp_path / "aug"), "-q"]) == 2
     err = capsys.readouterr().err
     assert "twin.json" in err and "manisplat-reconstruct" in err
 
@@ -129,7 +129,7 @@ def test_the_advice_for_a_folder_without_a_twin_works_as_printed(recon, tmp_path
     if state == "holding_something":
         target.mkdir()
         (target / "notes.txt").write_text("not a twin")
-    assert main([str(target), "--out", str(tmp_path / "aug"), "-q"]) == 1
+    assert main([str(target), "--out", str(tmp_path / "aug"), "-q"]) == 2
     advice = re.search(r"run (manisplat-reconstruct .*) first\)", capsys.readouterr().err).group(1)
     episode = shlex.quote(str(recon.parent / "ep"))
     args = shlex.split(advice.replace("EPISODE", episode))

@@ -170,8 +170,8 @@ def test_configuration_errors_name_the_key(tmp_path):
     (tmp_path / "p.toml").write_text('episodes = ["none"]\nout = "o"')
     with pytest.raises(BatchConfigError, match="'none' matches nothing"):
         load_config(tmp_path / "p.toml")
-    assert main(["run", str(tmp_path / "p.toml")]) == 1
-    assert main(["status", str(tmp_path)]) == 1
+    assert main(["run", str(tmp_path / "p.toml")]) == 2
+    assert main(["status", str(tmp_path)]) == 2
 
 
 def test_the_pipeline_example_in_the_help_is_a_working_pipeline(tmp_path, capsys):

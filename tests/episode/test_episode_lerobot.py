@@ -49,7 +49,7 @@ K = np.array([[60.0, 0.0, 31.5], [0.0, 60.0, 23.5], [0.0, 0.0, 1.0]])
 def samples(tmp_path_factory) -> list[Path]:
     """Two sample episodes (16 frames, 64x48, 16 fps, with actions and depth); tests must not modify them."""
     root = tmp_path_factory.mktemp("samples")
-    return [write_sample_episode(root / f"demo{s}", frames=16, width=64, height=48, seed=s) for s in (0, 1)]
+    return [write_sample_episode(root / f"demo{s}", frames=16, fps=16.0, width=64, height=48, seed=s) for s in (0, 1)]
 
 
 @pytest.fixture(scope="module")
@@ -349,11 +349,11 @@ def test_options_of_the_other_format_are_usage_errors(samples, tmp_path, capsys)
 
 def test_import_names_what_is_missing(dataset, tmp_path, capsys):
     base = ["import-lerobot", str(dataset), "--K", "60,60,31.5,23.5", "--out", str(tmp_path / "ep")]
-    assert main([*base, "--episode", "5", "--camera", "ego"]) == 1
+    assert main([*base, "--episode", "5", "--camera", "ego"]) == 2
     assert "no episode 5 (episodes 0..1)" in capsys.readouterr().err
-    assert main([*base, "--episode", "0", "--camera", "cam_high"]) == 1
+    assert main([*base, "--episode", "0", "--camera", "cam_high"]) == 2
     assert "no video camera 'cam_high' in the dataset; it has: observation.images.ego" in capsys.readouterr().err
-    assert main([*base, "--episode", "0", "--camera", "ego", "--arm", "left"]) == 1
+    assert main([*base, "--episode", "0", "--camera", "ego", "--arm", "left"]) == 2
     assert "has shape [7]; expected [14]" in capsys.readouterr().err
     assert main([*base, "--episode", "1", "--camera", "ego"]) == 0
     assert len(Episode.open(tmp_path / "ep")) == 16

@@ -93,10 +93,10 @@ def test_copy_rewrites_a_relative_description(relative_episode, toy, tmp_path, c
     assert (dst / "frames.csv").read_bytes() == (relative_episode / "frames.csv").read_bytes()
     assert validate(dst).ok and not validate(dst).warnings
 
-    assert main(["copy", str(relative_episode), str(dst)]) == 1
+    assert main(["copy", str(relative_episode), str(dst)]) == 2
     assert "--overwrite" in capsys.readouterr().err
     assert main(["copy", str(relative_episode), str(dst), "--overwrite"]) == 0
-    assert main(["copy", str(relative_episode), str(relative_episode / "inside")]) == 1
+    assert main(["copy", str(relative_episode), str(relative_episode / "inside")]) == 2
     assert "inside" in capsys.readouterr().err
 
 
@@ -125,15 +125,15 @@ def test_set_robot(relative_episode, toy, tmp_path, capsys, monkeypatch):
 
     before = (ep / "episode.json").read_bytes()
     for bad, said in (("builtin:franka", "known: builtin:agilex_piper"), ("nowhere.urdf", "not found")):
-        assert main(["set-robot", str(ep), bad]) == 1
+        assert main(["set-robot", str(ep), bad]) == 2
         assert said in capsys.readouterr().err
         assert (ep / "episode.json").read_bytes() == before  # unchanged
-    assert main(["set-robot", str(ep), "builtin:agilex_piper", "--embed"]) == 1
+    assert main(["set-robot", str(ep), "builtin:agilex_piper", "--embed"]) == 2
     assert "nothing to embed" in capsys.readouterr().err
 
     assert main(["set-robot", str(ep), "--embed"]) == 0  # embeds the current description
     assert description(ep) == "robot/toy.urdf" and len(load_robot("robot/toy.urdf", base_dir=ep).visuals) == 2
-    assert main(["set-robot", str(ep), "--embed"]) == 1
+    assert main(["set-robot", str(ep), "--embed"]) == 2
     assert "--overwrite" in capsys.readouterr().err
     assert main(["set-robot", str(ep), "--embed", "--overwrite"]) == 0  # from the embedded copy itself
     assert len(load_robot(description(ep), base_dir=ep).visuals) == 2

@@ -80,7 +80,7 @@ def test_ground_truth_of_another_length_is_refused_before_training(pick, tmp_pat
     arrays["T_base_box"] = np.concatenate([arrays["T_base_box"], arrays["T_base_box"][-1:]])
     np.savez(copy / "gt.npz", **arrays)
     out = tmp_path / "twin"
-    assert main([str(copy), "--out", str(out), "--iters", "6", "-q"]) == 1
+    assert main([str(copy), "--out", str(out), "--iters", "6", "-q"]) == 2
     err = capsys.readouterr().err
     assert "gt.npz" in err and "T_base_box" in err and "17" in err and "16" in err
     assert not out.exists(), "nothing should be trained or written for an episode refused at loading"
@@ -147,7 +147,7 @@ def test_the_help_names_every_output_and_overwrite_removes_them(finished, tmp_pa
     from manisplat.reconstruct.cli import EPILOG
 
     out, _ = finished
-    outputs_text = EPILOG[EPILOG.index("outputs:"):EPILOG.index("exit status")]
+    outputs_text = EPILOG[EPILOG.index("outputs:"):EPILOG.index("Exit status")]
     named = [re.sub(r"<\w+>", "*", t) for t in re.findall(r"[\w<>.]+\.(?:json|pt|ply|csv|png)|\w+/", outputs_text)]
     written = [p.name + ("/" if p.is_dir() else "") for p in out.iterdir()]
     assert not [w for w in written if not any(fnmatch.fnmatch(w, n) for n in named)], named
@@ -163,6 +163,36 @@ def test_bad_input_is_refused_before_training_is_announced(tmp_path, capsys, cap
 
     caplog.set_level(logging.INFO, logger="manisplat.reconstruct")
     (tmp_path / "not_an_episode").mkdir()
-    assert main([str(tmp_path / "not_an_episode"), "--out", str(tmp_path / "twin"), "--iters", "6"]) == 1
+    assert main([str(tmp_path / "not_an_episode"), "--out", str(tmp_path / "twin"), "--iters", "6"]) == 2
     assert "episode.json" in capsys.readouterr().err
     assert not [r for r in caplog.records if "training on" in r.getMessage()]
+
+
+def _camera_check(applied: bool) -> dict:
+    return {"applied": applied, "rotation_deg": 4.019, "sigma_rotation_deg": 0.292, "translation_mm": 79.94,
+            "sigma_translation_mm": 4.16, "time_offset_ms": None,
+            "reason": "" if applied else "the robot's depth does not fit its model (residual RMS 9.07 -> 8.84 mm)"}
+
+
+def test_the_summary_gives_the_calibration_advice_only_when_the_camera_was_corrected(tmp_path):
+    from manisplat.reconstruct.cli import _summary
+
+    base = {"wall_s": 1.0, "iters": 6}
+    kept = _summary({**base, "camera": _camera_check(False)}, tmp_path)
+    assert "manisplat-calibrate apply" not in kept, "advice that would write the unchanged camera"
+    assert "kept as recorded: the robot's depth does not fit" in kept and "4.019" not in kept
+    corrected = _summary({**base, "camera": _camera_check(True)}, tmp_path)
+    assert "corrected by 4.019 +- 0.292 deg" in corrected
+    assert f"manisplat-calibrate apply {tmp_path / 'camera_refined.json'} EPISODE" in corrected
+
+
+def test_the_built_in_samples_depth_fits_the_robot_model(tmp_path):
+    """The sample a newcomer reconstructs first must pass the camera check, not end with a depth that
+    "does not fit its model" (one depth per triangle left 9 mm RMS and a proposed 4 deg / 80 mm)."""
+    from manisplat.reconstruct.data import load_episode_data
+    from manisplat.reconstruct.extrinsic import MAX_RESIDUAL_MM, refine_extrinsic
+
+    episode = write_sample_episode(tmp_path / "sample", frames=24)
+    check = refine_extrinsic(load_episode_data(episode, progress=False), list(range(0, 24, 2)))
+    assert check is not None and "does not fit" not in check.reason, check and check.reason
+    assert check.rms_before_mm < MAX_RESIDUAL_MM / 5

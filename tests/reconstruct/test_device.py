@@ -81,9 +81,9 @@ def test_cuda_without_cuda_is_a_clear_error():
 
 
 @no_cuda
-def test_cli_device_cuda_without_cuda_exits_1_before_loading(pick, tmp_path, capsys):
+def test_cli_device_cuda_without_cuda_exits_3_before_loading(pick, tmp_path, capsys):
     out = tmp_path / "out"
-    assert main([str(pick), "--out", str(out), "--iters", "2", "--device", "cuda", "-q"]) == 1
+    assert main([str(pick), "--out", str(out), "--iters", "2", "--device", "cuda", "-q"]) == 3
     err = capsys.readouterr().err
     assert "CUDA is not available" in err and "pip install 'manisplat[gpu]'" in err
     assert not out.exists()  # refused before anything was written

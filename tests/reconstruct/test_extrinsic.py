@@ -40,7 +40,7 @@ def _miscalibrated(source, out, deg: float, mm: float):
 
 @pytest.fixture(scope="module")
 def sample(tmp_path_factory):
-    return write_sample_episode(tmp_path_factory.mktemp("extrinsic") / "ep", frames=24, exact_depth=True)
+    return write_sample_episode(tmp_path_factory.mktemp("extrinsic") / "ep", frames=24)
 
 
 def _refined(episode, **kwargs):
@@ -73,8 +73,12 @@ def test_held_out_frames_do_not_move_the_camera(sample, tmp_path):
 
 
 def test_a_calibrated_camera_is_left_where_it_is(sample):
+    """The sample's camera is exact: the fit's estimate (0.01 deg, 0.3 mm, its own bias) does not
+    lower the residual, so the recorded camera stays, exactly, and no advice follows."""
     c = _refined(sample)
-    assert c.applied and c.rotation_deg < 0.03 and c.translation_mm < 0.3
+    assert c.rotation_deg < 0.05 and c.translation_mm < 0.5
+    assert not c.applied and "fits the recorded camera" in c.reason
+    assert (c.T_after == c.T_before).all()
 
 
 def test_a_correction_too_large_to_be_a_calibration_error_is_not_applied(sample, tmp_path):
@@ -85,10 +89,10 @@ def test_a_correction_too_large_to_be_a_calibration_error_is_not_applied(sample,
 
 
 def test_depth_that_does_not_fit_the_robot_model_is_not_taken_for_a_calibration_error(tmp_path):
-    """One depth per triangle (the published sample's depth) leaves residuals of centimetres on
+    """One depth per triangle (the painter's fast depth) leaves residuals of centimetres on
     the robot's long primitives; the fit then proposes degrees of correction for a camera that
     is right. It must say the depth does not fit, keep the calibration, and not say recalibrate."""
-    coarse = write_sample_episode(tmp_path / "coarse", frames=24)
+    coarse = write_sample_episode(tmp_path / "coarse", frames=24, exact_depth=False)
     c = _refined(coarse)
     assert not c.applied and "does not fit" in c.reason and "recalibrate" not in c.reason
     assert c.rms_after_mm > 5.0 and (c.T_after == c.T_before).all()

@@ -75,7 +75,7 @@ def test_resume_continues_from_the_checkpoint(pick, tmp_path, capsys):
     assert main([str(pick), "--out", str(out), "--iters", "30", "--resume", "-q"]) == 0
     assert json.loads((out / "metrics.json").read_text())["iters"] == 30
     (out / "checkpoint.pt").write_bytes(b"not a checkpoint")
-    assert main([str(pick), "--out", str(out), "--iters", "40", "--resume", "-q"]) == 1
+    assert main([str(pick), "--out", str(out), "--iters", "40", "--resume", "-q"]) == 2
     assert "checkpoint.pt" in capsys.readouterr().err
 
 
@@ -120,7 +120,7 @@ def test_uncalibrated_camera_is_a_clear_error(pick, tmp_path, capsys):
     meta = load_meta(copy / "episode.json")
     meta.camera.T_mount_cam = None
     save_meta(copy / "episode.json", meta)
-    assert main([str(copy), "--out", str(tmp_path / "o"), "--iters", "5"]) == 1
+    assert main([str(copy), "--out", str(tmp_path / "o"), "--iters", "5"]) == 2
     assert "T_mount_cam" in capsys.readouterr().err
 
 

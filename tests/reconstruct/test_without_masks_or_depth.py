@@ -169,7 +169,7 @@ def test_cli_reconstructs_without_masks_or_depth(pick, tmp_path, flags):
 
 def test_cli_prompt_errors(pick, tmp_path, capsys):
     out = str(tmp_path / "o")
-    assert main([str(pick), "--out", out, "--no-masks", "--iters", "5"]) == 1
+    assert main([str(pick), "--out", out, "--no-masks", "--iters", "5"]) == 2
     assert "--object-point" in capsys.readouterr().err
     assert main([str(pick), "--out", out, "--object-point", "10,10", "--iters", "5"]) == 2
     assert "the episode has masks" in capsys.readouterr().err

@@ -77,7 +77,7 @@ def test_help_explains_every_flag_and_the_exit_codes(capsys: pytest.CaptureFixtu
                  "--depth", "--image-format", "--task", "--latency-ms", "--recover", "--start", "--actions"):
         assert flag in text
     for code in ("0  every episode", "1  an episode ended", "2  bad arguments", "3  the arm or the camera",
-                 "4  --recover"):
+                 "docs/exit-codes.md"):
         assert code in text
 
 
@@ -97,14 +97,22 @@ def test_an_out_folder_that_cannot_be_made_is_a_usage_error(tmp_path: Path, caps
 
 
 def test_devices_that_cannot_be_opened_exit_3(tmp_path: Path, source: Path, capsys: pytest.CaptureFixture) -> None:
-    assert main(["--sim", "--camera", f"replay:{tmp_path / 'none'}", "--out", str(tmp_path / "o"),
-                 "--start", "now", "--duration", "1"]) == 3
-    assert "neither an episode folder" in capsys.readouterr().err
     assert main(["--interface", "virtual", "--can", f"silent-{os.getpid()}-bus", "--camera", f"replay:{source}",
                  "--out", str(tmp_path / "o"), "--start", "now", "--duration", "1"]) == 3
     assert "no PiPER joint feedback" in capsys.readouterr().err
+
+
+def test_a_replay_source_that_does_not_fit_is_bad_input_exit_2(tmp_path: Path, source: Path,
+                                                               capsys: pytest.CaptureFixture) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["--sim", "--camera", f"replay:{tmp_path / 'none'}", "--out", str(tmp_path / "o")])
+    assert exc.value.code == 2 and "does not exist" in capsys.readouterr().err
+    (tmp_path / "notes.txt").write_text("x")
+    assert main(["--sim", "--camera", f"replay:{tmp_path / 'notes.txt'}", "--out", str(tmp_path / "o"),
+                 "--start", "now", "--duration", "1"]) == 2
+    assert "neither an episode folder" in capsys.readouterr().err
     assert main(["--sim", "--camera", f"replay:{source}", "--size", "320x240", "--out", str(tmp_path / "o"),
-                 "--start", "now"]) == 3
+                 "--start", "now"]) == 2
     assert "does not match" in capsys.readouterr().err
 
 
@@ -132,15 +140,16 @@ def test_depth_from_a_replay_without_depth_is_refused_before_anything_is_written
         tmp_path: Path, source: Path, capsys: pytest.CaptureFixture) -> None:
     out = tmp_path / "out"
     assert main(["--sim", "--camera", f"replay:{source}", "--depth", "--start", "now", "--duration", "1",
-                 "--out", str(out)]) == 3
+                 "--out", str(out)]) == 2  # bad input, not a device fault
     assert "--depth" in capsys.readouterr().err
     assert not out.exists()
 
 
 def test_a_failed_start_leaves_no_empty_out_folder(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     out = tmp_path / "new" / "episodes"
-    assert main(["--sim", "--camera", f"replay:{tmp_path / 'none'}", "--out", str(out), "--start", "now",
-                 "--duration", "1"]) == 3
+    (tmp_path / "notes.txt").write_text("not a recording")
+    assert main(["--sim", "--camera", f"replay:{tmp_path / 'notes.txt'}", "--out", str(out), "--start", "now",
+                 "--duration", "1"]) == 2
     assert "neither an episode folder" in capsys.readouterr().err
     assert not (tmp_path / "new").exists()
 

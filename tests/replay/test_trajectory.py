@@ -10,7 +10,7 @@ import pytest
 
 from manisplat.drivers.piper.convention import AGILEX_URDF_OLD, IDENTITY
 from manisplat.drivers.piper.trajectory import (ReplayLimits, Trajectory, approach, check_trajectory, sample,
-                                                trajectory_from_episode)
+                                                trajectory_figures, trajectory_from_episode)
 from manisplat.episode import Episode
 from manisplat.robot import builtin_piper
 from tests.replay.helpers import smooth_motion, write_episode
@@ -97,3 +97,16 @@ def test_the_approach_is_slow_and_ends_at_the_start() -> None:
     s = np.linspace(0, duration, 2001)
     speed = np.abs(np.diff([at(x) for x in s], axis=0)).max(axis=0) / (s[1] - s[0])
     assert np.all(speed <= ROBOT.velocity_limits * 0.1 * 1.001)
+
+
+def test_the_built_in_sample_passes_the_replays_checks_at_speed_1(tmp_path: Path) -> None:
+    """The sample a newcomer is told to try must replay as recorded (at 16 fps its wrist reached
+    15 rad/s^2 against the 5 allowed)."""
+    from manisplat.drivers.piper.convention import convention_for
+    from manisplat.episode.synthetic import write_sample_episode
+
+    episode = Episode.open(write_sample_episode(tmp_path / "sample", width=32, height=24))
+    traj = trajectory_from_episode(episode, convention_for(episode.meta.robot.description, episode.path), 1.0)
+    robot = builtin_piper(with_geometry=False)
+    assert check_trajectory(traj, robot, ReplayLimits()) == []
+    assert trajectory_figures(traj, robot, ReplayLimits())["peak_acceleration_of_limit"] < 0.9

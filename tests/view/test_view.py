@@ -164,7 +164,7 @@ def test_an_orbit_turns_the_camera_about_the_scene(folders, tmp_path):
 
 
 def test_command_line_errors(folders, tmp_path, capsys):
-    assert main([str(tmp_path / "none")]) == 1
+    assert main([str(tmp_path / "none")]) == 2
     assert "no such folder" in capsys.readouterr().err
     with pytest.raises(SystemExit) as exc:
         main([str(folders["episode"]), "--orbit", "30"])
@@ -173,7 +173,7 @@ def test_command_line_errors(folders, tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         main([str(folders["episode"]), "--video", str(tmp_path / "ep.mp4")])
     assert exc.value.code == 2 and "exists; pass --overwrite" in capsys.readouterr().err
-    assert main([str(folders["episode"]), "--video", str(tmp_path / "o.mp4"), "--orbit", "30"]) == 1
+    assert main([str(folders["episode"]), "--video", str(tmp_path / "o.mp4"), "--orbit", "30"]) == 2
     assert "--orbit needs a twin" in capsys.readouterr().err
     report = json.loads((folders["aug"] / "augment_report.json").read_text())
     assert report["written"] == 1
@@ -187,7 +187,7 @@ def test_a_twin_without_its_tensors_is_a_one_line_error(folders, tmp_path, capsy
         (broken / "twin.pt").unlink()
     else:
         (broken / "twin.pt").write_bytes(b"not a torch file")
-    assert main([str(broken), "--video", str(tmp_path / "v.mp4"), "-q"]) == 1
+    assert main([str(broken), "--video", str(tmp_path / "v.mp4"), "-q"]) == 2
     err = capsys.readouterr().err
     assert "twin.pt" in err and ("missing" in err if damage == "missing" else "unreadable" in err)
     assert "Traceback" not in err and len(err.strip().splitlines()) == 1
