@@ -1,9 +1,14 @@
-"""Names and constants of the episode format, version 1 (``docs/episode-format.md``), and its errors."""
+"""Names and constants of the episode format, versions 1 and 2 (``docs/episode-format.md``), and its errors."""
 
 from __future__ import annotations
 
 FORMAT = "manisplat-episode"
 VERSION = 1
+"""The one-arm, one-camera version (``robot`` and ``camera`` in ``episode.json``)."""
+VERSION_2 = 2
+"""Named arms and cameras (``arms`` and ``cameras`` in ``episode.json``)."""
+VERSIONS = (VERSION, VERSION_2)
+"""The versions this code reads and writes."""
 
 META_FILE = "episode.json"
 FRAMES_FILE = "frames.csv"
@@ -21,6 +26,15 @@ JOINT_COLUMNS = ("t", *Q_COLUMNS, "gripper")
 """Required leading columns of ``joints.csv``; optional extra columns may follow."""
 ACTION_COLUMNS = ("a1", "a2", "a3", "a4", "a5", "a6", "a_gripper")
 """Optional ``frames.csv`` columns holding the commanded (leader-arm) action at ``t``."""
+
+V1_ARM = "arm"
+"""The name the reader gives the one arm of a version 1 episode (``ep.arms``, ``ep.arm_frames``)."""
+WORLD_MOUNT = "world"
+"""Version 2 ``mount`` of a camera fixed in the world frame (else ``"<arm>/<link>"``)."""
+NAME_PATTERN = r"[A-Za-z0-9_-]{1,64}"
+"""Arm and camera names of version 2: they become column prefixes and folder names."""
+STATE_COLUMNS = (*Q_COLUMNS, "gripper")
+"""An arm's joint state; version 2 prefixes each with ``<arm>.``."""
 
 IMAGE_SUFFIXES = (".png", ".jpg")
 """RGB images may be PNG or JPEG; depth and masks must be PNG (lossless)."""
@@ -46,3 +60,18 @@ class DamagedEpisodeError(EpisodeFormatError):
 def image_name(index: int, suffix: str = ".png") -> str:
     """File name of frame ``index`` in ``rgb/``, ``depth/`` or ``masks/``: ``000007.png``."""
     return f"{index:0{INDEX_DIGITS}d}{suffix}"
+
+
+def arm_column(arm: str, column: str) -> str:
+    """Version 2 ``frames.csv`` column ``column`` of ``arm``: ``left.q1``, ``left.a_gripper``."""
+    return f"{arm}.{column}"
+
+
+def joints_file(arm: str) -> str:
+    """Version 2 joint stream of ``arm``: ``joints_left.csv``."""
+    return f"joints_{arm}.csv"
+
+
+def camera_time_column(camera: str) -> str:
+    """Optional version 2 ``frames.csv`` column with ``camera``'s own frame time: ``cam_high.t``."""
+    return f"{camera}.t"

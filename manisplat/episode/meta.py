@@ -1,9 +1,16 @@
-"""``episode.json``: typed metadata (camera, robot, episode), its rules, and JSON load/save.
+"""``episode.json``: the typed metadata of an episode (both format versions), its rules, and JSON load/save.
 
 Every rule lives in one ``*_problems`` function that returns all the violations of a raw JSON
 value as messages naming the field (``camera.K must be 3x3 ...``). ``validate`` reports them
-one by one; the dataclasses run the same functions and raise :class:`EpisodeFormatError`.
-Unknown keys are kept in ``extra`` dicts and written back unchanged.
+one by one; the classes run the same functions and raise :class:`EpisodeFormatError`. Unknown
+keys are kept in ``extra`` dicts and written back unchanged. The camera and arm descriptions and
+their rules live in :mod:`manisplat.episode.infos` (re-exported here).
+
+Version 1 has one ``robot`` and one ``camera``; version 2 has named ``arms`` and ``cameras``.
+:class:`EpisodeMeta` holds both as ``arms`` and ``cameras`` dicts (a version 1 episode has one arm,
+named ``"arm"``, whose base is the world), and offers the one-arm view (``robot``, ``camera``)
+that the tools that are not multi-arm yet read; on an episode with several arms or cameras
+that view raises :class:`EpisodeFormatError` saying so.
 """
 
 from __future__ import annotations
@@ -11,24 +18,31 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import math
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterable, Mapping
 
 import numpy as np
 
-from manisplat.episode.format import DIST_LENGTHS, FORMAT, VERSION, EpisodeFormatError
+from manisplat.episode.format import FORMAT, V1_ARM, VERSION, VERSION_2, WORLD_MOUNT, EpisodeFormatError
 from manisplat.episode.fsio import atomic_write_bytes
+from manisplat.episode.infos import (ARM_KEYS, CAMERA_KEYS, RIGID_TOL, ROBOT_KEYS, ArmInfo, CameraInfo, RobotInfo,
+                                     _is_int, _is_number, _raise_if, arm_problems, camera_problems,
+                                     camera_v2_problems, intrinsics_problems, mount_problem, name_problems,
+                                     rigid_problems, robot_problems)
+from manisplat.episode.layout import Layout, is_v2_raw, v1_layout, v2_layout
 
-RIGID_TOL = 1e-6
-"""Tolerance of the rigid-transform checks: max |R^T R - I|, |det R - 1| and the last row."""
+__all__ = ["ARM_KEYS", "CAMERA_KEYS", "RIGID_TOL", "ROBOT_KEYS", "ArmInfo", "CameraInfo", "EpisodeMeta", "RobotInfo",
+           "arm_problems", "camera_problems", "camera_v2_problems", "intrinsics_problems", "load_meta",
+           "meta_problems", "mount_problem", "name_problems", "parse_meta_text", "read_meta_json", "rigid_problems",
+           "robot_problems", "save_meta", "utc_now"]
 
-_CAMERA_KEYS = ("name", "width", "height", "K", "dist", "mount", "T_mount_cam")
-_ROBOT_KEYS = ("model", "joint_names", "description")
-_META_KEYS = ("format", "version", "complete", "source", "created", "robot", "camera", "fps",
-              "frame_count", "depth_scale", "labels", "objects")
-_META_REQUIRED = ("format", "version", "complete", "source", "created", "robot", "camera", "fps",
-                  "frame_count")
+_COMMON_KEYS = ("format", "version", "complete", "source", "created", "fps", "frame_count", "depth_scale", "labels",
+                "objects")
+_V1_KEYS = (*_COMMON_KEYS, "robot", "camera")
+_V2_KEYS = (*_COMMON_KEYS, "arms", "cameras")
+_COMMON_REQUIRED = ("format", "version", "complete", "source", "created", "fps", "frame_count")
+SINGLE_ARM_NOTE = "format version 1, or version 2 with one arm and one camera"
+"""What the one-arm view (``robot``, ``camera``, ``ep.frames``, ``ep.rgb(i)``) reads."""
 
 
 def utc_now() -> str:
@@ -36,128 +50,16 @@ def utc_now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
 
 
-def _is_number(x: Any) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool)
-
-
-def _is_int(x: Any) -> bool:
-    return isinstance(x, int) and not isinstance(x, bool)
-
-
-def _fmt(a: np.ndarray) -> str:
-    return np.array2string(a, precision=6, separator=", ", max_line_width=200).replace("\n", "")
-
-
-def _as_matrix(value: Any, name: str, shape: tuple[int, int]) -> tuple[np.ndarray | None, list[str]]:
-    """``value`` as a float64 array of ``shape``, or None with a message."""
-    try:
-        m = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        return None, [f"{name} must be a {shape[0]}x{shape[1]} array of numbers; got {value!r}"]
-    if m.shape != shape:
-        return None, [f"{name} must be {shape[0]}x{shape[1]}; got shape {m.shape}"]
-    if not np.isfinite(m).all():
-        return None, [f"{name} must be finite; got {_fmt(m)}"]
-    return m, []
-
-
-def intrinsics_problems(K: Any, width: Any = None, height: Any = None, name: str = "camera.K") -> list[str]:
-    """Violations of a pinhole matrix ``K`` (3,3) ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]``.
-
-    With a valid image size, the principal point must lie within half an image of the image
-    (``-W/2 <= cx <= 3W/2``, same for ``cy``).
-    """
-    m, problems = _as_matrix(K, name, (3, 3))
-    if m is None:
-        return problems
-    fx, fy = m[0, 0], m[1, 1]
-    if fx <= 0 or fy <= 0:
-        problems.append(f"{name} must be 3x3 with positive fx, fy; got fx={fx:g}, fy={fy:g}")
-    if m[1, 0] != 0 or np.abs(m[2] - [0.0, 0.0, 1.0]).max() > 1e-9:
-        problems.append(f"{name} must have the form [[fx, s, cx], [0, fy, cy], [0, 0, 1]]; got {_fmt(m)}")
-    if _is_int(width) and _is_int(height) and width > 0 and height > 0:
-        cx, cy = m[0, 2], m[1, 2]
-        if not (-width / 2 <= cx <= 1.5 * width and -height / 2 <= cy <= 1.5 * height):
-            problems.append(f"{name} principal point (cx, cy) = ({cx:g}, {cy:g}) is far outside the "
-                            f"{width}x{height} image")
-    return problems
-
-
-def rigid_problems(T: Any, name: str) -> list[str]:
-    """Violations of a rigid transform ``T`` (4,4): ``R^T R = I``, ``det R = +1``, last row ``0 0 0 1``."""
-    m, problems = _as_matrix(T, name, (4, 4))
-    if m is None:
-        return problems
-    R = m[:3, :3]
-    if np.abs(m[3] - [0.0, 0.0, 0.0, 1.0]).max() > RIGID_TOL:
-        problems.append(f"{name} last row must be [0, 0, 0, 1]; got {_fmt(m[3])}")
-    orth = np.abs(R.T @ R - np.eye(3)).max()
-    if orth > RIGID_TOL:
-        problems.append(f"{name} is not a rigid transform: max |R^T R - I| = {orth:.3g} > {RIGID_TOL:g}")
-    det = np.linalg.det(R)
-    if abs(det - 1.0) > RIGID_TOL:
-        problems.append(f"{name} is not a rigid transform: det R = {det:.6g}, expected +1")
-    return problems
-
-
-def camera_problems(raw: Any) -> list[str]:
-    """Violations of the ``camera`` object of ``episode.json``."""
-    if not isinstance(raw, dict):
-        return [f"camera must be an object; got {type(raw).__name__}"]
-    problems = [f"camera.{k} is missing" for k in ("name", "width", "height", "K") if k not in raw]
-    if "name" in raw and not isinstance(raw["name"], str):
-        problems.append(f"camera.name must be a string; got {raw['name']!r}")
-    for k in ("width", "height"):
-        if k in raw and not (_is_int(raw[k]) and raw[k] > 0):
-            problems.append(f"camera.{k} must be a positive integer; got {raw[k]!r}")
-    if "K" in raw:
-        problems += intrinsics_problems(raw["K"], raw.get("width"), raw.get("height"))
-    dist = raw.get("dist", [])
-    if not (isinstance(dist, list) and all(_is_number(d) and math.isfinite(d) for d in dist)
-            and len(dist) in DIST_LENGTHS):
-        problems.append(f"camera.dist must be a list of {DIST_LENGTHS} finite numbers "
-                        f"(OpenCV order); got {dist!r}")
-    mount = raw.get("mount", "base")
-    if not (isinstance(mount, str) and mount):
-        problems.append(f"camera.mount must be 'base' or a link name; got {mount!r}")
-    if raw.get("T_mount_cam") is not None:
-        problems += rigid_problems(raw["T_mount_cam"], "camera.T_mount_cam")
-    return problems
-
-
-def robot_problems(raw: Any) -> list[str]:
-    """Violations of the ``robot`` object of ``episode.json``."""
-    if not isinstance(raw, dict):
-        return [f"robot must be an object; got {type(raw).__name__}"]
-    problems = [f"robot.{k} is missing" for k in _ROBOT_KEYS if k not in raw]
-    for k in ("model", "description"):
-        if k in raw and not (isinstance(raw[k], str) and raw[k]):
-            problems.append(f"robot.{k} must be a non-empty string; got {raw[k]!r}")
-    names = raw.get("joint_names", [])
-    if "joint_names" in raw and not (isinstance(names, list) and len(names) == 6
-                                     and all(isinstance(n, str) for n in names)):
-        problems.append(f"robot.joint_names must be a list of 6 strings (q1..q6); got {names!r}")
-    return problems
-
-
-def meta_problems(raw: Any) -> list[str]:
-    """Every violation of the format in a parsed ``episode.json`` (empty when it is valid)."""
-    if not isinstance(raw, dict):
-        return [f"must hold a JSON object; got {type(raw).__name__}"]
-    problems = [f"missing field '{k}'" for k in _META_REQUIRED if k not in raw]
+def _common_problems(raw: dict[str, Any]) -> list[str]:
+    """Violations of the fields both versions share (all but the arms and cameras)."""
+    problems = []
     if "format" in raw and raw["format"] != FORMAT:
         problems.append(f"format must be {FORMAT!r}; got {raw['format']!r}")
-    if "version" in raw and not (_is_int(raw["version"]) and raw["version"] == VERSION):
-        problems.append(f"version must be {VERSION} (the version this code reads); got {raw['version']!r}")
     if "complete" in raw and not isinstance(raw["complete"], bool):
         problems.append(f"complete must be true or false; got {raw['complete']!r}")
     for k in ("source", "created"):
         if k in raw and not (isinstance(raw[k], str) and raw[k]):
             problems.append(f"{k} must be a non-empty string; got {raw[k]!r}")
-    if "robot" in raw:
-        problems += robot_problems(raw["robot"])
-    if "camera" in raw:
-        problems += camera_problems(raw["camera"])
     if "fps" in raw and not (_is_number(raw["fps"]) and math.isfinite(raw["fps"]) and raw["fps"] > 0):
         problems.append(f"fps must be a positive number; got {raw['fps']!r}")
     if "frame_count" in raw and not (_is_int(raw["frame_count"]) and raw["frame_count"] >= 0):
@@ -180,164 +82,223 @@ def meta_problems(raw: Any) -> list[str]:
     return problems
 
 
-def _raise_if(problems: list[str]) -> None:
-    if problems:
-        raise EpisodeFormatError("; ".join(problems))
+def _v1_problems(raw: dict[str, Any]) -> list[str]:
+    problems = [f"missing field '{k}'" for k in (*_COMMON_REQUIRED[:5], "robot", "camera", *_COMMON_REQUIRED[5:])
+                if k not in raw]
+    if "version" in raw and not (_is_int(raw["version"]) and raw["version"] == VERSION):
+        problems.append(f"version must be {VERSION} for an episode.json with robot and camera (version "
+                        f"{VERSION_2} has arms and cameras); got {raw['version']!r}")
+    problems += _common_problems(raw)
+    if "robot" in raw:
+        problems += robot_problems(raw["robot"])
+    if "camera" in raw:
+        problems += camera_problems(raw["camera"])
+    return problems
 
 
-@dataclass(eq=False)
-class CameraInfo:
-    """The camera that took an episode's images (OpenCV pinhole convention).
+def _v2_problems(raw: dict[str, Any]) -> list[str]:
+    problems = [f"missing field '{k}'" for k in (*_COMMON_REQUIRED[:5], "arms", "cameras", *_COMMON_REQUIRED[5:])
+                if k not in raw]
+    if "version" in raw and not (_is_int(raw["version"]) and raw["version"] == VERSION_2):
+        problems.append(f"version must be {VERSION_2} for an episode.json with arms and cameras (version "
+                        f"{VERSION} has robot and camera); got {raw['version']!r}")
+    problems += [f"{k}: a version {VERSION} field; version {VERSION_2} describes it under {k.replace('robot', 'arm')}s"
+                 for k in ("robot", "camera") if k in raw]
+    problems += _common_problems(raw)
+    arms, cameras = raw.get("arms"), raw.get("cameras")
+    if "arms" in raw:
+        if not (isinstance(arms, dict) and arms):
+            problems.append(f"arms must be an object mapping arm names to arms, with at least one; got {arms!r}")
+        else:
+            for name, arm in arms.items():
+                problems += arm_problems(name, arm)
+    if "cameras" in raw:
+        if not (isinstance(cameras, dict) and cameras):
+            problems.append(f"cameras must be an object mapping camera names to cameras, with at least one; "
+                            f"got {cameras!r}")
+        else:
+            arm_names = list(arms) if isinstance(arms, dict) else []
+            for name, camera in cameras.items():
+                problems += camera_v2_problems(name, camera, arm_names)
+    return problems
 
-    Attributes:
-        name: camera name, e.g. ``"ego"`` or ``"cam_high"``.
-        width, height: image size in pixels.
-        K: (3, 3) float64 intrinsics ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` in pixels.
-        dist: (D,) float64 distortion coefficients in OpenCV order, D in (0, 4, 5, 8, 12, 14).
-        mount: ``"base"`` for a camera fixed to the robot base, or a link name (``"link6"``).
-        T_mount_cam: (4, 4) float64 camera-to-mount transform (metres), None until calibrated.
-        extra: unknown ``camera`` keys, written back unchanged.
+
+def meta_problems(raw: Any) -> list[str]:
+    """Every violation of the format in a parsed ``episode.json`` of either version (empty when it is valid).
+
+    An ``episode.json`` with ``arms`` or ``cameras`` (or version 2 without ``robot`` and
+    ``camera``) is checked as version 2, any other as version 1.
     """
-
-    name: str
-    width: int
-    height: int
-    K: np.ndarray
-    dist: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    mount: str = "base"
-    T_mount_cam: np.ndarray | None = None
-    extra: dict[str, Any] = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        try:
-            self.K = np.asarray(self.K, dtype=np.float64)
-            self.dist = np.asarray(self.dist, dtype=np.float64).reshape(-1)
-            if self.T_mount_cam is not None:
-                self.T_mount_cam = np.asarray(self.T_mount_cam, dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise EpisodeFormatError(f"camera: K, dist and T_mount_cam must be arrays of numbers: {exc}") from None
-        _raise_if(camera_problems(self._raw()))
-        self.width, self.height = int(self.width), int(self.height)
-        _raise_if([f"camera.extra must not repeat the field {k!r}" for k in self.extra if k in _CAMERA_KEYS])
-
-    def _raw(self) -> dict[str, Any]:
-        def plain(a: Any) -> Any:
-            return a.tolist() if isinstance(a, (np.ndarray, np.generic)) else a
-
-        return {"name": self.name, "width": plain(self.width), "height": plain(self.height),
-                "K": plain(self.K), "dist": plain(self.dist), "mount": self.mount,
-                "T_mount_cam": plain(self.T_mount_cam)}
-
-    @classmethod
-    def from_dict(cls, raw: Any) -> CameraInfo:
-        """Parse the ``camera`` object; raises :class:`EpisodeFormatError` listing every problem."""
-        _raise_if(camera_problems(raw))
-        return cls(name=raw["name"], width=raw["width"], height=raw["height"], K=raw["K"],
-                   dist=raw.get("dist", []), mount=raw.get("mount", "base"),
-                   T_mount_cam=raw.get("T_mount_cam"),
-                   extra={k: v for k, v in raw.items() if k not in _CAMERA_KEYS})
-
-    def to_dict(self) -> dict[str, Any]:
-        """The JSON object (plain lists; unknown keys from ``extra`` last)."""
-        return {**self._raw(), **self.extra}
+    if not isinstance(raw, dict):
+        return [f"must hold a JSON object; got {type(raw).__name__}"]
+    return _v2_problems(raw) if is_v2_raw(raw) else _v1_problems(raw)
 
 
-@dataclass(eq=False)
-class RobotInfo:
-    """The arm that made an episode.
-
-    Attributes:
-        model: e.g. ``"agilex_piper"``.
-        joint_names: the 6 joint names that ``q1..q6`` are, in order.
-        description: how to read the joint angles: a URDF path relative to the episode folder,
-            or ``"builtin:agilex_piper"`` (piper_sdk's own kinematics).
-        extra: unknown ``robot`` keys, written back unchanged.
-    """
-
-    model: str = "agilex_piper"
-    joint_names: list[str] = field(default_factory=lambda: [f"joint{i}" for i in range(1, 7)])
-    description: str = "builtin:agilex_piper"
-    extra: dict[str, Any] = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        self.joint_names = list(self.joint_names)
-        _raise_if(robot_problems(self.to_dict()))
-        _raise_if([f"robot.extra must not repeat the field {k!r}" for k in self.extra if k in _ROBOT_KEYS])
-
-    @classmethod
-    def from_dict(cls, raw: Any) -> RobotInfo:
-        """Parse the ``robot`` object; raises :class:`EpisodeFormatError` listing every problem."""
-        _raise_if(robot_problems(raw))
-        return cls(model=raw["model"], joint_names=raw["joint_names"], description=raw["description"],
-                   extra={k: v for k, v in raw.items() if k not in _ROBOT_KEYS})
-
-    def to_dict(self) -> dict[str, Any]:
-        """The JSON object (unknown keys from ``extra`` last)."""
-        return {"model": self.model, "joint_names": list(self.joint_names),
-                "description": self.description, **self.extra}
+def _by_name(items: Mapping[str, Any] | Iterable[Any], what: str) -> dict[str, Any]:
+    """``items`` (a mapping name -> info, or infos with a ``name``) as a dict keyed by each info's name."""
+    if isinstance(items, Mapping):
+        wrong = [f"{k!r} -> {v.name!r}" for k, v in items.items() if k != v.name]
+        if wrong:
+            raise EpisodeFormatError(f"{what}: each key must be its {what[:-1]}'s name; got {', '.join(wrong)}")
+        return dict(items)
+    out: dict[str, Any] = {}
+    for item in items:
+        if item.name in out:
+            raise EpisodeFormatError(f"{what}: the name {item.name!r} is given twice")
+        out[item.name] = item
+    return out
 
 
-@dataclass(eq=False, kw_only=True)
+def _inverse(T: np.ndarray) -> np.ndarray:
+    R, t = T[:3, :3], T[:3, 3]
+    inv = np.eye(4)
+    inv[:3, :3], inv[:3, 3] = R.T, -R.T @ t
+    return inv
+
+
+def base_frame_camera(camera: CameraInfo, arm: ArmInfo) -> CameraInfo:
+    """A version 2 ``camera`` in version 1 terms, relative to ``arm``'s base: mount ``"world"``
+    becomes ``"base"`` with ``T_base_cam = inv(T_world_base) @ T_world_cam`` (None while either is
+    unknown), ``"<arm>/<link>"`` becomes ``"<link>"``."""
+    if camera.mount == WORLD_MOUNT:
+        mount = "base"
+        T = (None if camera.T_mount_cam is None or arm.T_world_base is None
+             else _inverse(arm.T_world_base) @ camera.T_mount_cam)
+    else:
+        mount, T = camera.mount.split("/", 1)[1], camera.T_mount_cam
+    return CameraInfo(name=camera.name, width=camera.width, height=camera.height, K=camera.K.copy(),
+                      dist=camera.dist.copy(), mount=mount, T_mount_cam=None if T is None else np.array(T),
+                      extra=dict(camera.extra))
+
+
 class EpisodeMeta:
-    """The content of ``episode.json`` (``docs/episode-format.md``).
+    """The content of ``episode.json`` (``docs/episode-format.md``), either version.
+
+    Give ``robot`` and ``camera`` for a version 1 episode, or ``arms`` and ``cameras`` (mappings
+    name -> info, or sequences of infos) for a version 2 one.
 
     Attributes:
-        format, version: ``"manisplat-episode"``, 1.
+        format, version: ``"manisplat-episode"``, 1 or 2.
         complete: False while recording and after a crash, until ``recover``.
         source: ``"recorder"``, ``"simulation"``, ``"augmentation"`` or ``"import:<format>"``.
         created: UTC creation time, ``2026-11-21T12:00:00Z``.
-        robot, camera: see :class:`RobotInfo`, :class:`CameraInfo`.
+        arms: name -> :class:`ArmInfo`, in file order (version 1: one, named ``"arm"``, based at the world origin).
+        cameras: name -> :class:`CameraInfo`, in file order (version 1: one).
         fps: declared camera rate in Hz.
         frame_count: number of rows of ``frames.csv`` (set when the episode is closed).
-        depth_scale: metres per unit of the uint16 depth images, None without depth.
+        depth_scale: metres per unit of the uint16 depth images (every camera), None without depth.
         labels: mask value -> name (``background``, ``robot/<link>``, ``object/<name>``, ...).
         objects: names of the objects the task manipulates.
         extra: unknown top-level keys (and ``recovery`` entries), written back unchanged.
+        origin: where it was read from, for messages (not stored).
     """
 
-    format: str = FORMAT
-    version: int = VERSION
-    complete: bool = False
-    source: str = "recorder"
-    created: str = field(default_factory=utc_now)
-    robot: RobotInfo
-    camera: CameraInfo
-    fps: float
-    frame_count: int = 0
-    depth_scale: float | None = None
-    labels: dict[int, str] = field(default_factory=dict)
-    objects: list[str] = field(default_factory=list)
-    extra: dict[str, Any] = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        self.fps = float(self.fps)
-        if self.depth_scale is not None:
-            self.depth_scale = float(self.depth_scale)
-        self.labels = {int(k): v for k, v in self.labels.items()}
-        self.objects = list(self.objects)
+    def __init__(self, *, format: str = FORMAT, version: int | None = None, complete: bool = False,
+                 source: str = "recorder", created: str | None = None, robot: RobotInfo | None = None,
+                 camera: CameraInfo | None = None, arms: Mapping[str, ArmInfo] | Iterable[ArmInfo] | None = None,
+                 cameras: Mapping[str, CameraInfo] | Iterable[CameraInfo] | None = None, fps: float,
+                 frame_count: int = 0, depth_scale: float | None = None, labels: Mapping[int, str] | None = None,
+                 objects: Iterable[str] | None = None, extra: Mapping[str, Any] | None = None) -> None:
+        one = robot is not None or camera is not None
+        many = arms is not None or cameras is not None
+        if one == many or (one and (robot is None or camera is None)) or (many and (arms is None or cameras is None)):
+            raise EpisodeFormatError("EpisodeMeta needs robot and camera (version 1) or arms and cameras (version 2)")
+        self.format = format
+        self.version = (VERSION if one else VERSION_2) if version is None else version
+        self.complete = complete
+        self.source = source
+        self.created = utc_now() if created is None else created
+        if one:
+            if self.version != VERSION:
+                raise EpisodeFormatError(f"version must be {VERSION} with robot and camera; got {self.version!r}")
+            self.arms: dict[str, ArmInfo] = {V1_ARM: ArmInfo.from_robot(robot, V1_ARM, np.eye(4))}
+            self.cameras: dict[str, CameraInfo] = {camera.name: camera}
+        else:
+            self.arms, self.cameras = _by_name(arms, "arms"), _by_name(cameras, "cameras")
+        self.fps = float(fps)
+        self.frame_count = frame_count
+        self.depth_scale = None if depth_scale is None else float(depth_scale)
+        self.labels = {int(k): v for k, v in (labels or {}).items()}
+        self.objects = list(objects or [])
+        self.extra = dict(extra or {})
+        self.origin = "this episode"
         _raise_if(meta_problems(self.to_dict()))
-        _raise_if([f"extra must not repeat the field {k!r}" for k in self.extra if k in _META_KEYS])
+        keys = _V1_KEYS if self.version == VERSION else _V2_KEYS
+        _raise_if([f"extra must not repeat the field {k!r}" for k in self.extra if k in keys])
+
+    @property
+    def arm_names(self) -> list[str]:
+        return list(self.arms)
+
+    @property
+    def camera_names(self) -> list[str]:
+        return list(self.cameras)
+
+    def _refuse_several(self, arms: bool = True, cameras: bool = True) -> None:
+        for wanted, what, names in ((arms, "arms", self.arms), (cameras, "cameras", self.cameras)):
+            if wanted and len(names) != 1:
+                raise EpisodeFormatError(
+                    f"{self.origin} has {what} {', '.join(names)}: this tool reads one-arm episodes "
+                    f"({SINGLE_ARM_NOTE}); read each of several {what} by name "
+                    f"(Episode.{'arm_frames' if what == 'arms' else 'rgb'}(..., name))")
+
+    @property
+    def layout(self) -> Layout:
+        """Where each arm's columns and each camera's images are (:mod:`manisplat.episode.layout`)."""
+        if self.version == VERSION:
+            return v1_layout(next(iter(self.cameras)))
+        return v2_layout(self.arms, self.cameras)
+
+    def refuse_several(self, *, arms: bool = True, cameras: bool = True) -> None:
+        """Raise :class:`EpisodeFormatError` naming them when the episode has several arms (with
+        ``arms``) or several cameras (with ``cameras``): the one-arm view cannot read it."""
+        self._refuse_several(arms, cameras)
+
+    @property
+    def robot(self) -> ArmInfo:
+        """The one arm (version 1's ``robot``); raises :class:`EpisodeFormatError` naming the arms
+        or cameras when the episode has several."""
+        self._refuse_several()
+        return next(iter(self.arms.values()))
+
+    @property
+    def camera(self) -> CameraInfo:
+        """The one camera, in version 1 terms (relative to the one arm's base, see
+        :func:`base_frame_camera`; a version 2 episode gives a copy: change ``cameras[name]``);
+        raises :class:`EpisodeFormatError` naming the arms or cameras when there are several."""
+        self._refuse_several()
+        camera = next(iter(self.cameras.values()))
+        return camera if self.version == VERSION else base_frame_camera(camera, self.robot)
 
     @classmethod
     def from_dict(cls, raw: Any) -> EpisodeMeta:
-        """Parse a loaded ``episode.json``; raises :class:`EpisodeFormatError` listing every problem."""
+        """Parse a loaded ``episode.json`` of either version; raises :class:`EpisodeFormatError`
+        listing every problem."""
         _raise_if(meta_problems(raw))
-        return cls(format=raw["format"], version=raw["version"], complete=raw["complete"],
-                   source=raw["source"], created=raw["created"],
-                   robot=RobotInfo.from_dict(raw["robot"]), camera=CameraInfo.from_dict(raw["camera"]),
-                   fps=raw["fps"], frame_count=raw["frame_count"], depth_scale=raw.get("depth_scale"),
-                   labels={int(k): v for k, v in raw.get("labels", {}).items()},
-                   objects=raw.get("objects", []),
-                   extra={k: v for k, v in raw.items() if k not in _META_KEYS})
+        common = dict(format=raw["format"], version=raw["version"], complete=raw["complete"], source=raw["source"],
+                      created=raw["created"], fps=raw["fps"], frame_count=raw["frame_count"],
+                      depth_scale=raw.get("depth_scale"), labels={int(k): v for k, v in raw.get("labels", {}).items()},
+                      objects=raw.get("objects", []))
+        if is_v2_raw(raw):
+            arms = [ArmInfo.from_v2_dict(name, arm) for name, arm in raw["arms"].items()]
+            cameras = [CameraInfo.from_v2_dict(name, cam, list(raw["arms"])) for name, cam in raw["cameras"].items()]
+            return cls(**common, arms=arms, cameras=cameras, extra={k: v for k, v in raw.items() if k not in _V2_KEYS})
+        return cls(**common, robot=RobotInfo.from_dict(raw["robot"]), camera=CameraInfo.from_dict(raw["camera"]),
+                   extra={k: v for k, v in raw.items() if k not in _V1_KEYS})
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON object in the documented key order (unknown keys from ``extra`` last)."""
-        return {"format": self.format, "version": self.version, "complete": self.complete,
-                "source": self.source, "created": self.created, "robot": self.robot.to_dict(),
-                "camera": self.camera.to_dict(), "fps": self.fps, "frame_count": self.frame_count,
-                "depth_scale": self.depth_scale,
-                "labels": {str(k): v for k, v in sorted(self.labels.items())},
-                "objects": list(self.objects), **self.extra}
+        head = {"format": self.format, "version": self.version, "complete": self.complete, "source": self.source,
+                "created": self.created}
+        if self.version == VERSION and len(self.arms) == 1 and len(self.cameras) == 1:
+            (arm,), (camera,) = self.arms.values(), self.cameras.values()
+            head.update(robot=RobotInfo.to_dict(arm), camera=camera.to_dict())
+        else:
+            head.update(arms={n: a.to_v2_dict() for n, a in self.arms.items()},
+                        cameras={n: c.to_v2_dict() for n, c in self.cameras.items()})
+        return {**head, "fps": self.fps, "frame_count": self.frame_count, "depth_scale": self.depth_scale,
+                "labels": {str(k): v for k, v in sorted(self.labels.items())}, "objects": list(self.objects),
+                **self.extra}
 
 
 def read_meta_json(path: Path) -> dict[str, Any]:
@@ -371,9 +332,11 @@ def load_meta(path: Path) -> EpisodeMeta:
     """Read and check an ``episode.json``; errors name the file and every bad field."""
     raw = read_meta_json(path)
     try:
-        return EpisodeMeta.from_dict(raw)
+        meta = EpisodeMeta.from_dict(raw)
     except EpisodeFormatError as exc:
         raise EpisodeFormatError(f"{path}: {exc}") from None
+    meta.origin = str(Path(path).parent)
+    return meta
 
 
 def save_meta(path: Path, meta: EpisodeMeta) -> None:

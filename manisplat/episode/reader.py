@@ -1,20 +1,20 @@
-"""Read an episode: metadata and tables at once, images lazily, one frame at a time."""
+"""Read an episode of either format version: metadata and tables at once, images lazily, one frame at a time."""
 
 from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from functools import cached_property
 from pathlib import Path
 from typing import Iterator
 
 import numpy as np
 
-from manisplat.episode.format import (ACTION_COLUMNS, FRAME_COLUMNS, FRAMES_FILE, GT_FILE, JOINT_COLUMNS,
-                                      JOINTS_FILE, META_FILE, EpisodeFormatError)
+from manisplat.episode.format import (ACTION_COLUMNS, FRAMES_FILE, GT_FILE, JOINT_COLUMNS, META_FILE,
+                                      EpisodeFormatError)
 from manisplat.episode.groundtruth import read_gt
 from manisplat.episode.images import DEPTH, MASK, RGB, ImageKind, find_image, has_images, load_image, raw_to_depth
-from manisplat.episode.meta import CameraInfo, EpisodeMeta, load_meta
+from manisplat.episode.layout import CameraFiles, Layout
+from manisplat.episode.meta import ArmInfo, CameraInfo, EpisodeMeta, load_meta
 from manisplat.episode.tables import CsvScan, scan_csv
 
 log = logging.getLogger(__name__)
@@ -22,7 +22,7 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class FrameTable:
-    """``frames.csv`` as arrays over the T frames.
+    """``frames.csv`` as arrays over the T frames, as one arm sees it (:meth:`Episode.arm_frames`).
 
     Attributes:
         index: (T,) int64 frame numbers, 0..T-1.
@@ -123,19 +123,29 @@ def _columns(columns: tuple[str, ...], values: np.ndarray, required: tuple[str, 
 
 
 class Episode:
-    """An episode folder opened for reading (``docs/episode-format.md``, version 1).
+    """An episode folder opened for reading (``docs/episode-format.md``, versions 1 and 2).
 
     ``Episode.open(path)`` reads ``episode.json`` and ``frames.csv`` and checks that frame
     indices run 0..T-1; images are decoded only when asked for (``rgb(i)``, ``frame(i)``,
     iteration), so an episode never has to fit in memory. ``joints()`` and ``gt()`` load their
     files on first use. Run ``validate`` for a full check of every file.
+
+    Every episode has named arms and cameras (``arms``, ``cameras``; ``meta.version`` says which
+    version it is): ``arm_frames(name)``, ``joints(name)`` and ``rgb(i, camera)`` read any of them.
+    The one-arm view (``camera``, ``frames``, ``meta.robot``, ``rgb(i)`` without a camera,
+    ``frame(i)``, iteration) reads a version 1 episode and a version 2 one with one arm and one
+    camera; on an episode with several it raises :class:`EpisodeFormatError` naming them.
     """
 
-    def __init__(self, path: Path, meta: EpisodeMeta, frames: FrameTable) -> None:
+    def __init__(self, path: Path, meta: EpisodeMeta, columns: tuple[str, ...], values: np.ndarray) -> None:
         self.path = Path(path)
         self.meta = meta
-        self.frames = frames
-        self._joints: JointTable | None = None
+        self.layout: Layout = meta.layout
+        self._columns = columns
+        self._values = values
+        self._arm_frames: dict[str, FrameTable] = {}
+        self._joints: dict[str, JointTable] = {}
+        self._has_images: dict[str, bool] = {}
 
     @classmethod
     def open(cls, path: str | Path) -> Episode:
@@ -147,67 +157,134 @@ class Episode:
         if not meta.complete:
             log.warning("%s: incomplete episode (writer stopped or crashed); "
                         "run `manisplat-episode recover %s` to make it valid", path, path)
-        columns, values = _read_table(path / FRAMES_FILE, FRAME_COLUMNS, ("index",), not meta.complete)
+        columns, values = _read_table(path / FRAMES_FILE, meta.layout.frame_columns, ("index",), not meta.complete)
         index = values[:, 0].astype(np.int64)
         expected = np.arange(len(index))
         if not np.array_equal(index, expected):
             row = int(np.flatnonzero(index != expected)[0])
             raise EpisodeFormatError(f"{path / FRAMES_FILE}: line {row + 2}: index {index[row]}, expected {row} "
                                      "(frames must be numbered 0..T-1; run `manisplat-episode validate`)")
-        frames = FrameTable(index=index, t=values[:, 1].copy(), q=values[:, 2:8].copy(),
-                            gripper=values[:, 8].copy(), extra=_columns(columns, values, FRAME_COLUMNS))
-        return cls(path, meta, frames)
+        return cls(path, meta, columns, values)
+
+    @property
+    def arms(self) -> dict[str, ArmInfo]:
+        """Arm name -> :class:`ArmInfo`, in file order (a version 1 episode has one, ``"arm"``)."""
+        return self.meta.arms
+
+    @property
+    def cameras(self) -> dict[str, CameraInfo]:
+        """Camera name -> :class:`CameraInfo` as stored (version 2 mounts ``world`` or ``<arm>/<link>``)."""
+        return self.meta.cameras
 
     @property
     def camera(self) -> CameraInfo:
+        """The one camera, in version 1 terms (see :attr:`EpisodeMeta.camera`)."""
         return self.meta.camera
 
+    @property
+    def frames(self) -> FrameTable:
+        """The one arm's :meth:`arm_frames` (version 1's ``frames.csv`` as it reads)."""
+        return self.arm_frames(self.meta.robot.name)
+
+    def arm_frames(self, arm: str) -> FrameTable:
+        """``frames.csv`` as seen by ``arm``: its ``q`` (T, 6) rad and ``gripper`` (T,) m, and as
+        ``extra`` its own further columns without the ``<arm>.`` prefix (``a1``..``a_gripper``,
+        so that ``actions`` works) and the columns no arm owns (``seq``, ``<camera>.t``, ...)."""
+        if arm not in self._arm_frames:
+            try:
+                columns = self.layout.arm(arm)
+            except KeyError:
+                raise KeyError(f"{self.path}: no arm {arm!r}; arms: {', '.join(self.arms)}") from None
+            at = {c: k for k, c in enumerate(self._columns)}
+            values = self._values
+            state = [at[c] for c in columns.state]
+            extra: dict[str, np.ndarray] = {}
+            for k, c in enumerate(self._columns):
+                if c in ("index", "t") or c in columns.state:
+                    continue
+                if columns.owns(c):
+                    extra[c[len(columns.prefix):]] = values[:, k].copy()
+                elif not any(other.owns(c) for other in self.layout.arms) and c not in self.layout.frame_columns:
+                    extra[c] = values[:, k].copy()
+            self._arm_frames[arm] = FrameTable(index=values[:, 0].astype(np.int64), t=values[:, 1].copy(),
+                                               q=values[:, state[:6]].copy(), gripper=values[:, state[6]].copy(),
+                                               extra=extra)
+        return self._arm_frames[arm]
+
+    def camera_times(self, camera: str | None = None) -> np.ndarray:
+        """(T,) float64 seconds: ``camera``'s own frame times (its ``<camera>.t`` column) when the
+        episode has them, else ``t`` (the cameras were triggered together)."""
+        files = self._camera_files(camera)
+        if files.time_column is not None and files.time_column in self._columns:
+            return self._values[:, self._columns.index(files.time_column)].copy()
+        return self._values[:, 1].copy()
+
     def __len__(self) -> int:
-        return len(self.frames)
+        return len(self._values)
 
     def __repr__(self) -> str:
         return f"Episode({str(self.path)!r}, frames={len(self)}, complete={self.meta.complete})"
 
-    @cached_property
-    def has_depth(self) -> bool:
-        """Whether ``depth/`` holds frame images."""
-        return has_images(self.path / DEPTH.folder)
+    def _camera_files(self, camera: str | None) -> CameraFiles:
+        if camera is None:
+            self.meta.refuse_several(arms=False)
+            return self.layout.cameras[0]
+        try:
+            return self.layout.camera(camera)
+        except KeyError:
+            raise EpisodeFormatError(f"{self.path}: no camera {camera!r}; cameras: {', '.join(self.cameras)}") from None
 
-    @cached_property
+    def has_images(self, kind: str, camera: str | None = None) -> bool:
+        """Whether ``camera``'s ``kind`` folder (``"rgb"``, ``"depth"``, ``"masks"``) holds frame images."""
+        folder = self._camera_files(camera).folder(kind)
+        if folder not in self._has_images:
+            self._has_images[folder] = has_images(self.path / folder)
+        return self._has_images[folder]
+
+    @property
+    def has_depth(self) -> bool:
+        """Whether the one camera has depth images."""
+        return self.has_images(DEPTH.folder)
+
+    @property
     def has_masks(self) -> bool:
-        """Whether ``masks/`` holds frame images."""
-        return has_images(self.path / MASK.folder)
+        """Whether the one camera has mask images."""
+        return self.has_images(MASK.folder)
 
     def _check_index(self, i: int) -> int:
         if not 0 <= i < len(self):
             raise IndexError(f"{self.path}: frame {i} out of range 0..{len(self) - 1}")
         return int(i)
 
-    def _image(self, kind: ImageKind, i: int) -> np.ndarray:
-        folder = self.path / kind.folder
+    def _image(self, kind: ImageKind, i: int, camera: str | None) -> np.ndarray:
+        files = self._camera_files(camera)
+        folder = self.path / files.folder(kind)
         path = find_image(folder, self._check_index(i))
         if path is None:
             raise EpisodeFormatError(f"{folder}: no image for frame {i}")
-        return load_image(path, kind, self.camera.width, self.camera.height)
+        info = self.cameras[files.name]
+        return load_image(path, kind, info.width, info.height)
 
-    def rgb(self, i: int) -> np.ndarray:
-        """(H, W, 3) uint8 RGB image of frame ``i``."""
-        return self._image(RGB, i)
+    def rgb(self, i: int, camera: str | None = None) -> np.ndarray:
+        """(H, W, 3) uint8 RGB image of frame ``i`` from ``camera`` (default: the one camera)."""
+        return self._image(RGB, i, camera)
 
-    def depth(self, i: int) -> np.ndarray | None:
-        """(H, W) float32 depth of frame ``i`` in metres (0 = invalid), or None without depth."""
-        if not self.has_depth:
+    def depth(self, i: int, camera: str | None = None) -> np.ndarray | None:
+        """(H, W) float32 depth of frame ``i`` in metres (0 = invalid) from ``camera`` (default:
+        the one camera), or None when that camera has no depth."""
+        if not self.has_images(DEPTH.folder, camera):
             return None
         if self.meta.depth_scale is None:
-            raise EpisodeFormatError(f"{self.path / META_FILE}: depth/ is present but depth_scale is null")
-        return raw_to_depth(self._image(DEPTH, i), self.meta.depth_scale)
+            raise EpisodeFormatError(f"{self.path / META_FILE}: depth images are present but depth_scale is null")
+        return raw_to_depth(self._image(DEPTH, i, camera), self.meta.depth_scale)
 
-    def mask(self, i: int) -> np.ndarray | None:
-        """(H, W) uint8 label image of frame ``i`` (values in ``meta.labels``), or None without masks."""
-        return self._image(MASK, i) if self.has_masks else None
+    def mask(self, i: int, camera: str | None = None) -> np.ndarray | None:
+        """(H, W) uint8 label image of frame ``i`` (values in ``meta.labels``) from ``camera``
+        (default: the one camera), or None when that camera has no masks."""
+        return self._image(MASK, i, camera) if self.has_images(MASK.folder, camera) else None
 
     def frame(self, i: int) -> Frame:
-        """Frame ``i`` with its images decoded."""
+        """Frame ``i`` of the one arm and camera, with its images decoded."""
         i = self._check_index(i)
         f = self.frames
         return Frame(index=i, t=float(f.t[i]), q=f.q[i].copy(), gripper=float(f.gripper[i]),
@@ -215,17 +292,25 @@ class Episode:
                      extra={k: float(v[i]) for k, v in f.extra.items()})
 
     def __iter__(self) -> Iterator[Frame]:
-        """Frames in order, each decoded when reached."""
+        """Frames of the one arm and camera in order, each decoded when reached."""
+        self.meta.refuse_several()
         return (self.frame(i) for i in range(len(self)))
 
-    def joints(self) -> JointTable | None:
-        """The raw joint stream of ``joints.csv`` (loaded on first call), or None without one."""
-        path = self.path / JOINTS_FILE
-        if self._joints is None and path.is_file():
+    def joints(self, arm: str | None = None) -> JointTable | None:
+        """The raw joint stream of ``arm`` (default: the one arm): ``joints.csv`` in version 1,
+        ``joints_<arm>.csv`` in version 2 (loaded on first call), or None without one."""
+        name = self.meta.robot.name if arm is None else arm
+        try:
+            files = self.layout.arm(name)
+        except KeyError:
+            raise KeyError(f"{self.path}: no arm {name!r}; arms: {', '.join(self.arms)}") from None
+        path = self.path / files.joints_file
+        if name not in self._joints and path.is_file():
             columns, values = _read_table(path, JOINT_COLUMNS, (), not self.meta.complete)
-            self._joints = JointTable(t=values[:, 0].copy(), q=values[:, 1:7].copy(), gripper=values[:, 7].copy(),
-                                      extra=_columns(columns, values, JOINT_COLUMNS))
-        return self._joints
+            self._joints[name] = JointTable(t=values[:, 0].copy(), q=values[:, 1:7].copy(),
+                                            gripper=values[:, 7].copy(),
+                                            extra=_columns(columns, values, JOINT_COLUMNS))
+        return self._joints.get(name)
 
     def gt(self) -> dict[str, np.ndarray] | None:
         """The arrays of ``gt.npz`` (simulation ground truth), or None without one; raises
