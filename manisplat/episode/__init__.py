@@ -27,4 +27,5 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "recovery": ("RecoveryReport", "recover"),
     "validation": ("Problem", "ValidationReport", "validate"),
     "writer": ("EpisodeWriter",),
+    "writer_v2": ("EpisodeWriterV2",),
 })

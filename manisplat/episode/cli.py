@@ -223,16 +223,17 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="manisplat-episode",
         description="Inspect, validate, recover, import, export, synthesize and copy ManiSplat episodes\n"
-                    "(format v1, docs/episode-format.md).",
+                    "(format versions 1 and 2, docs/episode-format.md).",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("-v", "--verbose", action="count", default=0,
                         help="log more: -v info, -vv debug (default: warnings only)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("info", help="print a summary of an episode",
-                       description="Print a summary of an episode: frames, duration, declared and measured "
-                                   "fps, joint ranges (degrees), gripper range (mm), camera, files present "
-                                   "and whether it is complete.")
+                       description="Print a summary of an episode: its format version, frames, duration, "
+                                   "declared and measured fps, every arm (robot, base, joint ranges in degrees, "
+                                   "gripper range in mm), every camera (size, intrinsics, mount, files) and "
+                                   "whether it is complete.")
     p.add_argument("episode", type=Path, help="episode folder")
     p.set_defaults(func=_cmd_info)
 

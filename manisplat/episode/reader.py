@@ -167,6 +167,11 @@ class Episode:
         return cls(path, meta, columns, values)
 
     @property
+    def columns(self) -> tuple[str, ...]:
+        """The header of ``frames.csv``."""
+        return self._columns
+
+    @property
     def arms(self) -> dict[str, ArmInfo]:
         """Arm name -> :class:`ArmInfo`, in file order (a version 1 episode has one, ``"arm"``)."""
         return self.meta.arms

@@ -1,7 +1,7 @@
 """Make an episode whose writer was killed (or lost power) valid again without losing a complete frame.
 
-A frame is complete when its ``frames.csv`` row is whole and its rgb image (and its depth and
-mask, when the episode has them) decodes at the camera size. Crash artefacts are what an
+A frame is complete when its ``frames.csv`` row is whole and the rgb image of every camera (and
+its depth and mask, where that camera has them) decodes at the camera's size. Crash artefacts are what an
 interrupted :class:`~manisplat.episode.writer.EpisodeWriter` leaves behind: temporary files, a
 torn last CSV line, images whose row was never written, rows at the end whose images are
 missing or truncated. ``recover`` moves them, and the original of every file it rewrites, into
@@ -9,8 +9,9 @@ missing or truncated. ``recover`` moves them, and the original of every file it 
 the episode complete with a ``recovery`` entry in ``episode.json``. Damage that is not a crash
 artefact (a broken frame followed by good ones, or any broken frame in an episode that was
 closed as complete) is refused unless ``drop_damaged``. Every per-frame file follows the kept
-frames: ``frames.csv`` (with its action columns), the images, and the per-frame arrays of
-``gt.npz``; ``joints.csv`` is a stream of its own and only loses damaged samples.
+frames: ``frames.csv`` (with its action columns), every camera's images, and the per-frame arrays
+of ``gt.npz``; ``joints.csv`` (``joints_<arm>.csv`` per arm in version 2) is a stream of its own
+and only loses damaged samples.
 """
 
 from __future__ import annotations
@@ -26,13 +27,13 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from manisplat.episode.format import (FRAME_COLUMNS, FRAMES_FILE, GT_FILE, JOINT_COLUMNS, JOINTS_FILE, META_FILE,
-                                      RECOVERED_DIR, DamagedEpisodeError, EpisodeFormatError, image_name)
+from manisplat.episode.format import (FRAMES_FILE, GT_FILE, JOINT_COLUMNS, META_FILE, RECOVERED_DIR,
+                                      DamagedEpisodeError, EpisodeFormatError, image_name)
 from manisplat.episode.fsio import TMP_SUFFIX, atomic_write_bytes, fsync_path
 from manisplat.episode.groundtruth import is_compressed, per_frame_names, read_gt, write_gt
-from manisplat.episode.images import (DEPTH, KINDS, MASK, RGB, ImageKind, decode_image, find_image, has_images,
-                                      image_problem, list_images)
-from manisplat.episode.meta import CameraInfo, load_meta, save_meta
+from manisplat.episode.images import KINDS, RGB, ImageKind, decode_image, find_image, has_images, image_problem, list_images
+from manisplat.episode.layout import Layout
+from manisplat.episode.meta import EpisodeMeta, load_meta, save_meta
 from manisplat.episode.tables import CsvRow, CsvScan, scan_csv
 from manisplat.episode.validation import ValidationReport, validate
 
@@ -91,25 +92,48 @@ class RecoveryReport:
         return "\n".join(lines)
 
 
-def _image_faults(path: Path, index: int, kinds: list[ImageKind], camera: CameraInfo) -> list[str]:
+@dataclass(frozen=True)
+class _Folder:
+    """One image folder a frame needs an image in: ``rel`` (``rgb`` or ``rgb/cam_high``), its kind
+    and its camera's size."""
+
+    rel: str
+    kind: ImageKind
+    width: int
+    height: int
+
+
+def _frame_folders(path: Path, meta: EpisodeMeta) -> list[_Folder]:
+    """Every image folder each frame needs an image in: every camera's rgb, and its depth and
+    masks when that folder holds any image."""
+    folders = []
+    for files in meta.layout.cameras:
+        camera = meta.cameras[files.name]
+        for kind in KINDS:
+            if kind is RGB or has_images(path / files.folder(kind)):
+                folders.append(_Folder(files.folder(kind), kind, camera.width, camera.height))
+    return folders
+
+
+def _image_faults(path: Path, index: int, folders: list[_Folder]) -> list[str]:
     """Why the images of frame ``index`` are not complete (empty when they are)."""
     faults = []
-    for kind in kinds:
-        file = find_image(path / kind.folder, index)
+    for folder in folders:
+        file = find_image(path / folder.rel, index)
         if file is None:
-            faults.append(f"{kind.folder}/{image_name(index)} missing")
+            faults.append(f"{folder.rel}/{image_name(index)} missing")
             continue
         image = decode_image(file)
         if image is None:
             problem = "cannot decode (truncated or corrupt)"
         else:
-            problem = image_problem(image, kind, camera.width, camera.height)
+            problem = image_problem(image, folder.kind, folder.width, folder.height)
         if problem:
-            faults.append(f"{kind.folder}/{file.name} {problem}")
+            faults.append(f"{folder.rel}/{file.name} {problem}")
     return faults
 
 
-def _row_faults(scan: CsvScan, path: Path, kinds: list[ImageKind], camera: CameraInfo) -> list[list[str]]:
+def _row_faults(scan: CsvScan, path: Path, folders: list[_Folder]) -> list[list[str]]:
     """Per ``frames.csv`` row, why it is not a complete frame on its own (index and t order aside)."""
     faults = []
     for k, row in enumerate(scan.rows):
@@ -119,7 +143,7 @@ def _row_faults(scan: CsvScan, path: Path, kinds: list[ImageKind], camera: Camer
         own = []
         if k == len(scan.rows) - 1 and not scan.ends_with_newline:
             own.append(f"line {row.line}: torn last line (no line break)")
-        faults.append(own + _image_faults(path, int(row.values[0]), kinds, camera))
+        faults.append(own + _image_faults(path, int(row.values[0]), folders))
     return faults
 
 
@@ -162,7 +186,7 @@ def _select_frames(scan: CsvScan, faults: list[list[str]], *, drop_damaged: bool
     return kept
 
 
-def _select_joints(scan: CsvScan, drop_damaged: bool) -> list[int]:
+def _select_joints(scan: CsvScan, file: str, drop_damaged: bool) -> list[int]:
     """Positions of the ``joints.csv`` rows to keep: a torn last line is a crash artefact,
     other bad rows are damage (refused unless ``drop_damaged``)."""
     kept: list[int] = []
@@ -176,7 +200,7 @@ def _select_joints(scan: CsvScan, drop_damaged: bool) -> list[int]:
             last_t = row.values[0]
         elif not drop_damaged:
             why = row.problem or f"t={row.values[0]!r} not after {last_t!r}"
-            raise DamagedEpisodeError(f"{JOINTS_FILE}: line {row.line}: {why}; this is not a crash artefact. "
+            raise DamagedEpisodeError(f"{file}: line {row.line}: {why}; this is not a crash artefact. "
                                       "Repair it, or run `manisplat-episode recover --drop-damaged`")
     return kept
 
@@ -193,36 +217,37 @@ def _backup_dir(path: Path) -> Path:
     return candidate
 
 
-def _scan_frames(path: Path) -> tuple[CsvScan, bool]:
+def _scan_frames(path: Path, required: tuple[str, ...]) -> tuple[CsvScan, bool]:
     """``(frames.csv, needs_rewrite)``: an empty table to rewrite when the file is missing, empty
     or holds only a torn header (the writer was stopped while creating it)."""
     file = path / FRAMES_FILE
-    scan = scan_csv(file, FRAME_COLUMNS, ("index",)) if file.is_file() else None
+    scan = scan_csv(file, required, ("index",)) if file.is_file() else None
     if scan is None or (not scan.rows and (not scan.columns or not scan.ends_with_newline)):
-        return CsvScan(FRAME_COLUMNS, None, [], True), True
+        return CsvScan(required, None, [], True), True
     if scan.header_problem:
         raise DamagedEpisodeError(f"{file}: line 1: {scan.header_problem}; repair the header by hand")
     return scan, False
 
 
-def _stray_files(path: Path, keep: set[int]) -> list[str]:
-    """Files to move aside: frame images not in ``keep`` and temporary files, relative to ``path``."""
+def _stray_files(path: Path, keep: set[int], layout: Layout) -> list[str]:
+    """Files to move aside: frame images not in ``keep`` and temporary files of every camera's
+    folders, relative to ``path``."""
     stray = []
-    for kind in KINDS:
-        by_index, others = list_images(path / kind.folder)
-        stray += [f"{kind.folder}/{n}" for i, names in sorted(by_index.items()) if i not in keep for n in names]
-        stray += [f"{kind.folder}/{n}" for n in others if n.endswith(TMP_SUFFIX)]
+    for _, _, rel in layout.image_folders(KINDS):
+        by_index, others = list_images(path / rel)
+        stray += [f"{rel}/{n}" for i, names in sorted(by_index.items()) if i not in keep for n in names]
+        stray += [f"{rel}/{n}" for n in others if n.endswith(TMP_SUFFIX)]
     return stray + [p.name for p in sorted(path.glob("*" + TMP_SUFFIX))]
 
 
-def _renames(path: Path, old_indices: list[int], kinds: list[ImageKind]) -> list[tuple[str, str]]:
+def _renames(path: Path, old_indices: list[int], folders: list[_Folder]) -> list[tuple[str, str]]:
     """``(old, new)`` image paths that give kept frame ``old_indices[j]`` the index ``j``."""
     renamed = []
     for new, old in enumerate(old_indices):
         if new != old:
-            for kind in kinds:
-                file = find_image(path / kind.folder, old)
-                renamed.append((f"{kind.folder}/{file.name}", f"{kind.folder}/{image_name(new, file.suffix)}"))
+            for folder in folders:
+                file = find_image(path / folder.rel, old)
+                renamed.append((f"{folder.rel}/{file.name}", f"{folder.rel}/{image_name(new, file.suffix)}"))
     return renamed
 
 
@@ -298,46 +323,56 @@ class _Plan:
     kept_rows: list[CsvRow]
     old_indices: list[int]  # original index of each kept frame; its position is its new index
     dropped: list[int]
-    joints: CsvScan | None
-    joint_keep: list[int]
+    joints: dict[str, tuple[CsvScan, list[int]]]  # joint stream file -> (its scan, rows to keep), when rewritten
     gt: _GtCut | None
     moved: list[str]
     saved: list[str]
     renamed: list[tuple[str, str]]
 
 
-def _plan(path: Path, camera: CameraInfo, objects: Sequence[str], *, drop_damaged: bool,
-          complete: bool) -> _Plan:
-    kinds = [RGB] + [k for k in (DEPTH, MASK) if has_images(path / k.folder)]
-    frames, rewrite_frames = _scan_frames(path)
-    kept = _select_frames(frames, _row_faults(frames, path, kinds, camera), drop_damaged=drop_damaged,
+def _plan_joints(path: Path, file: str, drop_damaged: bool) -> tuple[CsvScan | None, list[int], bool]:
+    """``(scan, rows to keep, torn header)`` of one joint stream (scan None when it is absent)."""
+    joints_file = path / file
+    joints = scan_csv(joints_file, JOINT_COLUMNS) if joints_file.is_file() else None
+    torn_header = joints is not None and not joints.rows and not joints.ends_with_newline
+    if joints is not None and joints.header_problem and not torn_header:
+        raise DamagedEpisodeError(f"{joints_file}: line 1: {joints.header_problem}; repair the header by hand")
+    keep = _select_joints(joints, file, drop_damaged) if joints is not None and not torn_header else []
+    return joints, keep, torn_header
+
+
+def _plan(path: Path, meta: EpisodeMeta, *, drop_damaged: bool, complete: bool) -> _Plan:
+    layout = meta.layout
+    folders = _frame_folders(path, meta)
+    frames, rewrite_frames = _scan_frames(path, layout.frame_columns)
+    kept = _select_frames(frames, _row_faults(frames, path, folders), drop_damaged=drop_damaged,
                           complete=complete)
     kept_rows = [frames.rows[k] for k in kept]
     old_indices = [int(r.values[0]) for r in kept_rows]
     kept_set = set(kept)
     dropped = [r.line for k, r in enumerate(frames.rows) if k not in kept_set]
 
-    joints_file = path / JOINTS_FILE
-    joints = scan_csv(joints_file, JOINT_COLUMNS) if joints_file.is_file() else None
-    torn_joints_header = joints is not None and not joints.rows and not joints.ends_with_newline
-    if joints is not None and joints.header_problem and not torn_joints_header:
-        raise DamagedEpisodeError(f"{joints_file}: line 1: {joints.header_problem}; repair the header by hand")
-    joint_keep = _select_joints(joints, drop_damaged) if joints is not None else []
-    gt = _plan_gt(path, objects, complete=complete, rows_before=len(frames.rows), old_indices=old_indices,
+    joints: dict[str, tuple[CsvScan, list[int]]] = {}
+    torn_joint_headers = []
+    for arm in layout.arms:
+        scan, keep, torn = _plan_joints(path, arm.joints_file, drop_damaged)
+        if torn:
+            torn_joint_headers.append(arm.joints_file)
+        elif scan is not None and len(keep) != len(scan.rows):
+            joints[arm.joints_file] = (scan, keep)
+    gt = _plan_gt(path, meta.objects, complete=complete, rows_before=len(frames.rows), old_indices=old_indices,
                   kept_t=np.array([r.values[1] for r in kept_rows], dtype=np.float64))
 
-    moved = _stray_files(path, set(old_indices)) + ([JOINTS_FILE] if torn_joints_header else [])
-    renamed = _renames(path, old_indices, kinds)
+    moved = _stray_files(path, set(old_indices), layout) + torn_joint_headers
+    renamed = _renames(path, old_indices, folders)
     saved = [FRAMES_FILE] if rewrite_frames or dropped or renamed else []
-    if joints is not None and not torn_joints_header and len(joint_keep) != len(joints.rows):
-        saved.append(JOINTS_FILE)
+    saved += list(joints)
     if gt is not None:
         saved.append(GT_FILE)
-    return _Plan(frames, kept_rows, old_indices, dropped, None if torn_joints_header else joints, joint_keep, gt,
-                 moved, saved, renamed)
+    return _Plan(frames, kept_rows, old_indices, dropped, joints, gt, moved, saved, renamed)
 
 
-def _apply(path: Path, plan: _Plan, backup: Path, entry: dict[str, Any]) -> None:
+def _apply(path: Path, plan: _Plan, layout: Layout, backup: Path, entry: dict[str, Any]) -> None:
     """Move files aside into ``backup`` (with a copy of each rewritten file), rewrite, rename."""
     if plan.moved or plan.saved:
         backup.mkdir(parents=True)
@@ -354,12 +389,11 @@ def _apply(path: Path, plan: _Plan, backup: Path, entry: dict[str, Any]) -> None
         atomic_write_bytes(path / FRAMES_FILE, _csv_text(plan.frames.columns, lines))
     for old, new in plan.renamed:
         os.replace(path / old, path / new)
-    if JOINTS_FILE in plan.saved:
-        rows = [plan.joints.rows[k].text for k in plan.joint_keep]
-        atomic_write_bytes(path / JOINTS_FILE, _csv_text(plan.joints.columns, rows))
+    for file, (scan, keep) in plan.joints.items():
+        atomic_write_bytes(path / file, _csv_text(scan.columns, [scan.rows[k].text for k in keep]))
     if plan.gt is not None:
         write_gt(path / GT_FILE, plan.gt.arrays, compressed=plan.gt.compressed)
-    for folder in {path / k.folder for k in KINDS if (path / k.folder).is_dir()} | {path}:
+    for folder in {path / rel for _, _, rel in layout.image_folders(KINDS) if (path / rel).is_dir()} | {path}:
         fsync_path(folder)
 
 
@@ -389,7 +423,7 @@ def recover(path: str | Path, *, drop_damaged: bool = False) -> RecoveryReport:
         if report.ok:
             return RecoveryReport(path, changed=False, frames_kept=report.frame_rows)
 
-    plan = _plan(path, meta.camera, meta.objects, drop_damaged=drop_damaged, complete=meta.complete)
+    plan = _plan(path, meta, drop_damaged=drop_damaged, complete=meta.complete)
     backup = _backup_dir(path)
     has_backup = bool(plan.moved or plan.saved)
     entry = {"date": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
@@ -397,7 +431,7 @@ def recover(path: str | Path, *, drop_damaged: bool = False) -> RecoveryReport:
              "saved": plan.saved, "renamed": [list(r) for r in plan.renamed],
              "gt_cut": plan.gt.names if plan.gt is not None else [],
              "backup": str(backup.relative_to(path)) if has_backup else None}
-    _apply(path, plan, backup, entry)
+    _apply(path, plan, meta.layout, backup, entry)
 
     meta.complete = True
     meta.frame_count = len(plan.kept_rows)

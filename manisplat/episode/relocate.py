@@ -1,4 +1,4 @@
-"""Keep an episode's ``robot.description`` resolving when the episode moves: point it elsewhere
+"""Keep an episode's ``robot.description`` (every arm's, in version 2) resolving when the episode moves: point it elsewhere
 (``set_robot``), copy an episode with it rewritten (``copy_episode``), or embed the URDF and its
 meshes in the episode (``embed_urdf``), so that the episode is self-contained.
 
@@ -16,7 +16,7 @@ from pathlib import Path
 from lxml import etree
 
 from manisplat.episode.format import META_FILE
-from manisplat.episode.meta import load_meta, save_meta
+from manisplat.episode.meta import EpisodeMeta, load_meta, save_meta
 from manisplat.episode.writer import check_destination
 from manisplat.robot import description_file, load_robot
 
@@ -146,19 +146,49 @@ def set_robot(episode: str | Path, description: str | None = None, *, embed: boo
     return old, new
 
 
+def _relocate_descriptions(meta: EpisodeMeta, src: Path, staging: Path, embed: bool) -> dict[str, tuple[str, str]]:
+    """Rewrite, in ``meta``, every arm's description that points outside ``src``: absolute, or
+    with ``embed`` copied into ``staging/robot/`` (``robot/<arm>/`` when the arms use different
+    URDFs). Returns arm name -> ``(old, new)``."""
+    changes: dict[str, tuple[str, str]] = {}
+    outside: dict[Path, list[str]] = {}  # URDF outside src -> the arms that use it
+    for name, arm in meta.arms.items():
+        file = description_file(arm.description, src)
+        changes[name] = (arm.description, arm.description)
+        if file is not None and not file.resolve().is_relative_to(src.resolve()):
+            outside.setdefault(file.resolve(), []).append(name)
+    for file, names in outside.items():
+        if embed:
+            folder = ROBOT_DIR if len(outside) == 1 else f"{ROBOT_DIR}/{names[0]}"
+            if (staging / folder).exists():
+                raise FileExistsError(f"{src / folder}: exists but the robot description points elsewhere "
+                                      f"({meta.arms[names[0]].description}); embed into the copy with "
+                                      "`manisplat-episode set-robot`")
+            new = f"{folder}/{embed_urdf(file, staging / folder).name}"
+        for name in names:
+            old = meta.arms[name].description
+            if not embed:
+                new = old if Path(old).is_absolute() else str(file)
+            meta.arms[name].description = new
+            changes[name] = (old, new)
+    return changes
+
+
 def copy_episode(source: str | Path, destination: str | Path, *, embed: bool = False,
                  overwrite: bool = False) -> tuple[str, str]:
     """Copy the episode ``source`` (every file, ``.recovered/`` included) to ``destination`` so
-    that its ``robot.description`` still resolves there.
+    that the robot description of each of its arms still resolves there.
 
     A relative description pointing outside ``source`` becomes absolute; with ``embed`` the URDF
-    and its meshes are copied into ``destination/robot/`` instead. Built-in names, absolute paths
-    and files inside ``source`` are kept. The copy is made in a temporary folder beside
-    ``destination`` and renamed into place; an episode already there is replaced only with
-    ``overwrite`` (after the copy succeeded). Returns ``(old, new)`` descriptions.
+    and its meshes are copied into ``destination/robot/`` instead (``robot/<arm>/`` per URDF when
+    the arms of a version 2 episode use different ones). Built-in names, absolute paths and files
+    inside ``source`` are kept. The copy is made in a temporary folder beside ``destination`` and
+    renamed into place; an episode already there is replaced only with ``overwrite`` (after the
+    copy succeeded). Returns ``(old, new)`` descriptions (with several arms, each is
+    ``"<arm>: <description>"`` joined by ``"; "``).
 
     Raises:
-        FileNotFoundError, RobotModelError: the source's description does not resolve.
+        FileNotFoundError, RobotModelError: a description does not resolve.
         FileExistsError: ``destination`` is refused (see :func:`check_destination`).
         ValueError: ``destination`` is ``source`` or inside it.
     """
@@ -166,29 +196,22 @@ def copy_episode(source: str | Path, destination: str | Path, *, embed: bool = F
     meta = load_meta(src / META_FILE)
     if dst.resolve().is_relative_to(src.resolve()):
         raise ValueError(f"{dst} is {src} or inside it: copy the episode elsewhere")
-    old = meta.robot.description
-    file = description_file(old, src)
-    inside = file is not None and file.resolve().is_relative_to(src.resolve())
+    for arm in meta.arms.values():
+        description_file(arm.description, src)  # raises when it does not resolve
     check_destination(dst, overwrite)
     dst.parent.mkdir(parents=True, exist_ok=True)
     staging = _fresh(dst.with_name(f".{dst.name}.copy.tmp"))
     try:
         shutil.copytree(src, staging)
-        new = old
-        if file is not None and not inside:
-            if embed:
-                if (staging / ROBOT_DIR).exists():
-                    raise FileExistsError(f"{src / ROBOT_DIR}: exists but robot.description points elsewhere "
-                                          f"({old}); embed into the copy with `manisplat-episode set-robot`")
-                new = f"{ROBOT_DIR}/{embed_urdf(file, staging / ROBOT_DIR).name}"
-            elif not Path(old).is_absolute():
-                new = str(file.resolve())
-        if new != old:
-            meta.robot.description = new
+        changes = _relocate_descriptions(meta, src, staging, embed)
+        if any(old != new for old, new in changes.values()):
             save_meta(staging / META_FILE, meta)
-        load_robot(new, base_dir=staging, load_meshes=embed)
+        for arm in meta.arms.values():
+            load_robot(arm.description, base_dir=staging, load_meshes=embed)
         _replace_folder(staging, dst)
     finally:
         if staging.exists():
             shutil.rmtree(staging)
-    return old, new
+    if len(changes) == 1:
+        return next(iter(changes.values()))
+    return tuple("; ".join(f"{name}: {pair[k]}" for name, pair in changes.items()) for k in (0, 1))

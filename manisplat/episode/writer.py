@@ -97,7 +97,130 @@ def _prepare_folder(path: Path, overwrite: bool) -> None:
     path.mkdir(parents=True, exist_ok=True)
 
 
-class EpisodeWriter:
+class WriterBase:
+    """What every episode writer shares: the folder, ``episode.json`` written first with
+    ``complete: false`` and last with ``complete: true``, CSV tables appended row by row and
+    flushed, image files written through a temporary name, fsync every ``fsync_every`` rows and
+    at ``close``. Subclasses add the rows (:class:`EpisodeWriter` version 1,
+    :class:`~manisplat.episode.writer_v2.EpisodeWriterV2` version 2)."""
+
+    def __init__(self, path: str | Path, meta: EpisodeMeta, frame_columns: tuple[str, ...], *,
+                 fsync_every: int, overwrite: bool) -> None:
+        if fsync_every < 0:
+            raise ValueError(f"fsync_every must be >= 0; got {fsync_every}")
+        self.meta = meta
+        self.path = Path(path)
+        self._fsync_every = fsync_every
+        _prepare_folder(self.path, overwrite)
+        (self.path / RGB.folder).mkdir()
+        save_meta(self.path / META_FILE, self.meta)
+        self._frames = self._open_table(FRAMES_FILE, frame_columns)
+        self._tables: dict[str, IO[str]] = {}  # joint streams by file name
+        self._frame_count = 0
+        self._joint_count = 0
+        self._unsynced: list[Path] = []
+        self._rows_since_sync = 0
+        self._closed = False
+
+    def _open_table(self, name: str, columns: tuple[str, ...]) -> IO[str]:
+        f = open(self.path / name, "x", encoding="utf-8", newline="")
+        f.write(",".join(columns) + "\n")
+        f.flush()
+        os.fsync(f.fileno())
+        fsync_path(self.path)
+        return f
+
+    def __enter__(self) -> WriterBase:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self._close_files()
+            log.warning("%s: writer stopped by %s; the episode stays incomplete "
+                        "(run `manisplat-episode recover %s`)", self.path, exc_type.__name__, self.path)
+
+    @property
+    def frame_count(self) -> int:
+        """Frames written so far."""
+        return self._frame_count
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def _check_open(self, name: str) -> None:
+        if self._closed:
+            raise ValueError(f"{name}: the writer of {self.path} is closed")
+
+    def _write_bytes(self, folder: str, name: str, data: bytes) -> None:
+        """Write one image file of ``folder`` (relative to the episode, created when missing) atomically."""
+        path = self.path / folder / name
+        if not path.parent.is_dir():
+            path.parent.mkdir(parents=True)
+            fsync_path(path.parent.parent)
+            if path.parent.parent != self.path:
+                fsync_path(self.path)
+        atomic_write_bytes(path, data, fsync=False)  # synced in batches
+        self._unsynced.append(path)
+
+    def _write_frame_row(self, values: Sequence[float | int]) -> None:
+        self._frames.write(format_row(values))
+        self._frames.flush()
+        self._frame_count += 1
+        self._row_written()
+
+    def _write_joint_row(self, file: str, columns: tuple[str, ...], values: Sequence[float]) -> None:
+        """Append a row to the joint stream ``file`` (created with ``columns`` by its first row)."""
+        if file not in self._tables:
+            self._tables[file] = self._open_table(file, columns)
+        self._tables[file].write(format_row(values))
+        self._tables[file].flush()
+        self._joint_count += 1
+        self._row_written()
+
+    def _row_written(self) -> None:
+        self._rows_since_sync += 1
+        if self._fsync_every and self._rows_since_sync >= self._fsync_every:
+            self.sync()
+
+    def sync(self) -> None:
+        """Flush and fsync everything written so far (images, their folders, the CSV files)."""
+        self._check_open("sync")
+        for path in self._unsynced:
+            fsync_path(path)
+        for folder in {p.parent for p in self._unsynced}:
+            fsync_path(folder)
+        self._unsynced.clear()
+        for f in (self._frames, *self._tables.values()):
+            f.flush()
+            os.fsync(f.fileno())
+        self._rows_since_sync = 0
+
+    def _close_files(self) -> None:
+        if self._closed:
+            return
+        self.sync()
+        for f in (self._frames, *self._tables.values()):
+            f.close()
+        self._closed = True
+
+    def close(self) -> None:
+        """Sync and close the files, then mark the episode complete with its ``frame_count``."""
+        if self._closed:
+            return
+        self._close_files()
+        self.meta.complete = True
+        self.meta.frame_count = self._frame_count
+        save_meta(self.path / META_FILE, self.meta)
+        if not self._frame_count:
+            log.warning("%s: closed without a frame; an episode needs at least one, so it is not valid", self.path)
+        log.info("%s: wrote %d frames, %d joint samples", self.path, self._frame_count, self._joint_count)
+
+
+class EpisodeWriter(WriterBase):
     """Writes one episode folder (``docs/episode-format.md``); use it as a context manager.
 
     Args:
@@ -130,64 +253,19 @@ class EpisodeWriter:
                  fsync_every: int = 30, overwrite: bool = False) -> None:
         if image_format not in IMAGE_FORMATS:
             raise ValueError(f"image_format must be one of {sorted(IMAGE_FORMATS)}; got {image_format!r}")
-        if fsync_every < 0:
-            raise ValueError(f"fsync_every must be >= 0; got {fsync_every}")
         # file suffix per image folder: rgb as asked, depth and masks in their one (lossless) format
         self._suffixes = {RGB.folder: IMAGE_FORMATS[image_format], DEPTH.folder: DEPTH.suffixes[0],
                           MASK.folder: MASK.suffixes[0]}
         self._frame_columns = _check_columns("extra_frame_columns", extra_frame_columns, FRAME_COLUMNS)
         self._joint_columns = _check_columns("joint_columns", joint_columns, JOINT_COLUMNS)
-        self.meta = EpisodeMeta(complete=False, source=source, robot=robot, camera=camera, fps=fps,
-                                depth_scale=depth_scale, labels=dict(labels or {}), objects=list(objects or []),
-                                extra=dict(extra_meta or {}))
-        self.path = Path(path)
-        self._fsync_every = fsync_every
-        _prepare_folder(self.path, overwrite)
-        (self.path / RGB.folder).mkdir()
-        save_meta(self.path / META_FILE, self.meta)
-        self._frames = self._open_table(FRAMES_FILE, FRAME_COLUMNS + self._frame_columns)
-        self._joints: IO[str] | None = None
-        self._frame_count = 0
-        self._joint_count = 0
+        meta = EpisodeMeta(complete=False, source=source, robot=robot, camera=camera, fps=fps,
+                           depth_scale=depth_scale, labels=dict(labels or {}), objects=list(objects or []),
+                           extra=dict(extra_meta or {}))
+        super().__init__(path, meta, FRAME_COLUMNS + self._frame_columns, fsync_every=fsync_every,
+                         overwrite=overwrite)
         self._last_t: float | None = None
         self._last_joint_t: float | None = None
         self._layers: tuple[bool, bool] | None = None  # (depth, mask), fixed by frame 0
-        self._unsynced: list[Path] = []
-        self._rows_since_sync = 0
-        self._closed = False
-
-    def _open_table(self, name: str, columns: tuple[str, ...]) -> IO[str]:
-        f = open(self.path / name, "x", encoding="utf-8", newline="")
-        f.write(",".join(columns) + "\n")
-        f.flush()
-        os.fsync(f.fileno())
-        fsync_path(self.path)
-        return f
-
-    def __enter__(self) -> EpisodeWriter:
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        if exc_type is None:
-            self.close()
-        else:
-            self._close_files()
-            log.warning("%s: writer stopped by %s; the episode stays incomplete "
-                        "(run `manisplat-episode recover %s`)", self.path, exc_type.__name__, self.path)
-
-    @property
-    def frame_count(self) -> int:
-        """Frames written so far."""
-        return self._frame_count
-
-    @property
-    def closed(self) -> bool:
-        return self._closed
-
-    def _check_open(self, name: str) -> None:
-        if self._closed:
-            raise ValueError(f"{name}: the writer of {self.path} is closed")
 
     def _check_image(self, name: str, image: Any, channels: int, dtypes: tuple[type, ...]) -> np.ndarray:
         image = np.asarray(image)
@@ -259,21 +337,10 @@ class EpisodeWriter:
         for folder, suffix in self._suffixes.items():
             if folder in encoded:
                 self._write_bytes(folder, image_name(index, suffix), encoded[folder])
-        self._frames.write(format_row([index, t, *q, gripper, *extras]))
-        self._frames.flush()
+        self._write_frame_row([index, t, *q, gripper, *extras])
         self._layers = layers
-        self._frame_count += 1
         self._last_t = t
-        self._row_written()
         return index
-
-    def _write_bytes(self, folder: str, name: str, data: bytes) -> None:
-        path = self.path / folder / name
-        if not path.parent.is_dir():
-            path.parent.mkdir()
-            fsync_path(self.path)
-        atomic_write_bytes(path, data, fsync=False)  # synced in batches
-        self._unsynced.append(path)
 
     def add_joint_sample(self, t: float, q: Any, gripper: float, extra: Mapping[str, float] | None = None) -> None:
         """Append one arm feedback sample to ``joints.csv`` (created by the first call).
@@ -291,50 +358,5 @@ class EpisodeWriter:
         q = _joint_vector("add_joint_sample: q", q)
         gripper = _finite("add_joint_sample: gripper", gripper)
         extras = _extra_values("add_joint_sample", extra, self._joint_columns)
-        if self._joints is None:
-            self._joints = self._open_table(JOINTS_FILE, JOINT_COLUMNS + self._joint_columns)
-        self._joints.write(format_row([t, *q, gripper, *extras]))
-        self._joints.flush()
+        self._write_joint_row(JOINTS_FILE, JOINT_COLUMNS + self._joint_columns, [t, *q, gripper, *extras])
         self._last_joint_t = t
-        self._joint_count += 1
-        self._row_written()
-
-    def _row_written(self) -> None:
-        self._rows_since_sync += 1
-        if self._fsync_every and self._rows_since_sync >= self._fsync_every:
-            self.sync()
-
-    def sync(self) -> None:
-        """Flush and fsync everything written so far (images, their folders, the CSV files)."""
-        self._check_open("sync")
-        for path in self._unsynced:
-            fsync_path(path)
-        for folder in {p.parent for p in self._unsynced}:
-            fsync_path(folder)
-        self._unsynced.clear()
-        for f in (self._frames, self._joints):
-            if f is not None:
-                f.flush()
-                os.fsync(f.fileno())
-        self._rows_since_sync = 0
-
-    def _close_files(self) -> None:
-        if self._closed:
-            return
-        self.sync()
-        for f in (self._frames, self._joints):
-            if f is not None:
-                f.close()
-        self._closed = True
-
-    def close(self) -> None:
-        """Sync and close the files, then mark the episode complete with its ``frame_count``."""
-        if self._closed:
-            return
-        self._close_files()
-        self.meta.complete = True
-        self.meta.frame_count = self._frame_count
-        save_meta(self.path / META_FILE, self.meta)
-        if not self._frame_count:
-            log.warning("%s: closed without a frame; an episode needs at least one, so it is not valid", self.path)
-        log.info("%s: wrote %d frames, %d joint samples", self.path, self._frame_count, self._joint_count)

@@ -86,3 +86,56 @@ def write_by_hand(path: Path, frames: int = 5, *, arms: tuple[str, ...] = ARMS,
                 cv2.imwrite(str(folder / f"{i:06d}.png"), data)
     (path / "frames.csv").write_text("".join(lines))
     return path
+
+
+def infos(arms: tuple[str, ...] = ARMS, cameras: tuple[str, ...] = CAMERAS,
+          description: str = "builtin:agilex_piper") -> tuple[list[Any], list[Any]]:
+    """``(arms, cameras)`` as :class:`ArmInfo` and :class:`CameraInfo` lists for the writer."""
+    from manisplat.episode import ArmInfo, CameraInfo
+
+    arm_infos = [ArmInfo(name=a, description=description, T_world_base=T_WORLD_BASE.get(a, np.eye(4))) for a in arms]
+    cam_infos = [CameraInfo(name=c, **{k: v for k, v in camera_dict(c).items()}) for c in cameras]
+    return arm_infos, cam_infos
+
+
+def joint_sample(arm: str, k: int) -> dict[str, Any]:
+    """A joint sample of ``arm`` (at 4x the frame rate)."""
+    rng = np.random.default_rng([k, ARMS.index(arm) if arm in ARMS else 9])
+    return {"t": k / (4 * FPS), "q": rng.uniform(-2, 2, 6), "gripper": float(rng.uniform(0, 0.07))}
+
+
+def open_writer_v2(path: Path, *, arms: tuple[str, ...] = ARMS, cameras: tuple[str, ...] = CAMERAS,
+                   **kwargs: Any) -> Any:
+    from manisplat.episode.writer_v2 import EpisodeWriterV2
+
+    arm_infos, cam_infos = infos(arms, cameras, kwargs.pop("description", "builtin:agilex_piper"))
+    options = dict(source="simulation", depth_scale=DEPTH_SCALE, actions=True, extra_frame_columns=("seq",),
+                   camera_times=("cam_left_wrist",) if "cam_left_wrist" in cameras else (),
+                   extra_meta={"task": "handover"})
+    options.update(kwargs)
+    return EpisodeWriterV2(path, arm_infos, cam_infos, FPS, **options)
+
+
+def add_frame_v2(writer: Any, i: int, arms: tuple[str, ...] = ARMS, cameras: tuple[str, ...] = CAMERAS) -> None:
+    """Frame ``i`` of :func:`frame_values` and :func:`images`, with the joint samples before it."""
+    values = frame_values(i, arms)
+    shots = {c: images(i, c) for c in cameras}
+    writer.add_frame(values["t"], {a: [values[f"{a}.q{j}"] for j in range(1, 7)] + [values[f"{a}.gripper"]]
+                                   for a in arms},
+                     {c: s["rgb"] for c, s in shots.items()},
+                     depth={c: s["depth"] for c, s in shots.items() if "depth" in s},
+                     actions={a: [values[f"{a}.a{j}"] for j in range(1, 7)] + [values[f"{a}.a_gripper"]]
+                              for a in arms},
+                     camera_t={"cam_left_wrist": values["t"] + 0.004} if "cam_left_wrist" in cameras else None,
+                     extra={"seq": values["seq"]})
+    for arm in arms:
+        for k in range(4 * i, 4 * i + 4):
+            writer.add_joint_sample(arm, **joint_sample(arm, k))
+
+
+def write_v2(path: Path, frames: int = 6, **kwargs: Any) -> Path:
+    """A complete version 2 episode (two arms, three cameras, depth on ``cam_high``) by the writer."""
+    with open_writer_v2(path, **kwargs) as writer:
+        for i in range(frames):
+            add_frame_v2(writer, i, kwargs.get("arms", ARMS), kwargs.get("cameras", CAMERAS))
+    return path
