@@ -21,6 +21,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "format": ("ACTION_COLUMNS", "FORMAT", "FRAME_COLUMNS", "JOINT_COLUMNS", "VERSION", "VERSION_2", "VERSIONS",
                "DamagedEpisodeError", "EpisodeFormatError"),
     "importers.act_hdf5": ("import_act_hdf5",),
+    "importers.cobot_magic": ("import_cobot_magic",),
     "importers.lerobot": ("import_lerobot",),
     "meta": ("ArmInfo", "CameraInfo", "EpisodeMeta", "RobotInfo", "load_meta", "save_meta"),
     "reader": ("Episode", "Frame", "FrameTable", "JointTable", "read_episode"),

@@ -70,17 +70,44 @@ def _cmd_recover(args: argparse.Namespace) -> int:
 
 
 def _cmd_import_act(args: argparse.Namespace) -> int:
+    one_arm = [flag for flag, value in (("--K", args.K), ("--arm", args.arm), ("--camera", args.camera),
+                                        ("--dist", args.dist), ("--mount", args.mount),
+                                        ("--robot-description", args.robot_description)) if value is not None]
+    if args.calib is not None and one_arm:
+        print(f"manisplat-episode import-act: error: --calib imports every arm and camera (format version 2); "
+              f"{', '.join(one_arm)} {'belongs' if len(one_arm) == 1 else 'belong'} to a one-arm import (without --calib)",
+              file=sys.stderr)
+        return ExitCode.BAD_INPUT
+    if args.calib is not None or not one_arm:  # without --calib, the importer says what is missing and how to give it
+        return _import_cobot_magic(args)
+    if args.K is None:
+        print("manisplat-episode import-act: error: a one-arm import (--arm, --camera) needs --K fx,fy,cx,cy: these "
+              "files store no intrinsics (or import every arm and camera with --calib FILE.calib.json)",
+              file=sys.stderr)
+        return ExitCode.BAD_INPUT
     import numpy as np
 
     from manisplat.episode.importers.act_hdf5 import import_act_hdf5
 
     fx, fy, cx, cy = args.K
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    episode = import_act_hdf5(args.file, args.out, K=K, arm=args.arm, camera=args.camera, fps=args.fps,
-                              gripper_scale=args.gripper_scale, dist=args.dist, mount=args.mount, bgr=args.bgr,
-                              robot_description=args.robot_description, task=args.task,
+    episode = import_act_hdf5(args.file, args.out, K=K, arm=args.arm or "left", camera=args.camera or "cam_high",
+                              fps=args.fps or 30.0, gripper_scale=args.gripper_scale, dist=args.dist or [],
+                              mount=args.mount or "base", bgr=args.bgr,
+                              robot_description=args.robot_description or "builtin:agilex_piper", task=args.task,
                               image_format=args.image_format, overwrite=args.overwrite)
     print(f"imported {len(episode)} frames from {args.file} into {episode.path}")
+    return ExitCode.OK
+
+
+def _import_cobot_magic(args: argparse.Namespace) -> int:
+    from manisplat.episode.importers.cobot_magic import import_cobot_magic
+
+    episode = import_cobot_magic(args.file, args.out, args.calib, fps=args.fps, gripper_scale=args.gripper_scale,
+                                 bgr=args.bgr, task=args.task, image_format=args.image_format,
+                                 overwrite=args.overwrite)
+    print(f"imported {len(episode)} frames of the arms {', '.join(episode.arms)} and the cameras "
+          f"{', '.join(episode.cameras)} from {args.file} into {episode.path} (format version 2)")
     return ExitCode.OK
 
 
@@ -206,16 +233,21 @@ def _cmd_copy(args: argparse.Namespace) -> int:
     return ExitCode.OK
 
 
-def _add_import_options(p: argparse.ArgumentParser, source: str) -> None:
-    """The options every importer shares: gripper scale, the camera's distortion and mount, the robot."""
+def _add_import_options(p: argparse.ArgumentParser, source: str, *, one_arm_only: bool = False) -> None:
+    """The options every importer shares: gripper scale, the camera's distortion and mount, the robot.
+    With ``one_arm_only`` the last three default to None (a one-arm import fills in the defaults
+    the help names), so that the command can tell that they were given."""
+    note = " (one-arm import only)" if one_arm_only else ""
     p.add_argument("--gripper-scale", type=positive(float), default=1.0,
                    help=f"factor from the {source}'s gripper value to the finger gap in metres (default: %(default)s)")
-    p.add_argument("--dist", type=finite_numbers(DIST_LENGTHS), default=[], metavar="k1,k2,...",
-                   help="OpenCV distortion coefficients, 0/4/5/8/12/14 of them (default: none)")
-    p.add_argument("--mount", default="base",
-                   help="'base' or the link a wrist camera is fixed to (default: %(default)s)")
-    p.add_argument("--robot-description", default="builtin:agilex_piper",
-                   help="how to read the joint angles: a URDF path or a builtin: name (default: %(default)s)")
+    p.add_argument("--dist", type=finite_numbers(DIST_LENGTHS), default=None if one_arm_only else [],
+                   metavar="k1,k2,...", help=f"OpenCV distortion coefficients, 0/4/5/8/12/14 of them{note} "
+                                             "(default: none)")
+    p.add_argument("--mount", default=None if one_arm_only else "base",
+                   help=f"'base' or the link a wrist camera is fixed to{note} (default: base)")
+    p.add_argument("--robot-description", default=None if one_arm_only else "builtin:agilex_piper",
+                   help=f"how to read the joint angles: a URDF path or a builtin: name{note} "
+                        "(default: builtin:agilex_piper)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -265,18 +297,28 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("import-act", help="convert an ACT / ALOHA / Cobot Magic HDF5 episode",
                        description="Convert one ACT-style HDF5 episode (observations/qpos, observations/images/"
                                    "<cam>, optional images_depth and action) into an episode folder, frame by "
-                                   "frame. The file holds no intrinsics: --K is required.")
+                                   "frame. With --calib FILE.calib.json: the whole file, every arm of the 14-D "
+                                   "Cobot Magic layout (left, right) and every camera, with depth and actions, as "
+                                   "a format version 2 episode; the calibration gives per camera K, dist, mount "
+                                   "and T_mount_cam, per arm T_world_base and the robot description "
+                                   "(docs/cobot-magic.md). With --arm/--camera/--K: one arm and one camera as a "
+                                   "version 1 episode. The file holds no calibration: without either, the import "
+                                   "is refused, naming what it needs.")
     p.add_argument("file", type=Path, metavar="FILE.hdf5", help="the HDF5 episode")
     p.add_argument("--out", type=Path, required=True, help="episode folder to create (required)")
-    p.add_argument("--K", type=pinhole_intrinsics(), required=True, metavar="fx,fy,cx,cy",
-                   help="camera intrinsics in pixels (required: these files store none)")
-    p.add_argument("--arm", choices=ACT_ARMS, default="left",
-                   help="which arm of a 14-column dual-arm file, or 'single' for 7 columns (default: %(default)s)")
-    p.add_argument("--camera", default="cam_high",
-                   help="image dataset under observations/images (default: %(default)s)")
-    p.add_argument("--fps", type=positive(float), default=30.0,
-                   help="recording rate in Hz; t = index / fps (default: %(default)s)")
-    _add_import_options(p, "file")
+    p.add_argument("--calib", type=Path, metavar="FILE.calib.json",
+                   help="import every arm and camera with this calibration (format version 2; default: none)")
+    p.add_argument("--K", type=pinhole_intrinsics(), metavar="fx,fy,cx,cy",
+                   help="one-arm import: the camera's intrinsics in pixels (required there: these files store none; "
+                        "default: none, which means the whole-file import, which needs --calib)")
+    p.add_argument("--arm", choices=ACT_ARMS,
+                   help="one-arm import: which arm of a 14-column dual-arm file, or 'single' for 7 columns "
+                        "(default: left)")
+    p.add_argument("--camera", help="one-arm import: image dataset under observations/images (default: cam_high)")
+    p.add_argument("--fps", type=positive(float),
+                   help="recording rate in Hz; t = index / fps (default: the calibration's fps with --calib, "
+                        "else 30)")
+    _add_import_options(p, "file", one_arm_only=True)
     p.add_argument("--bgr", action="store_true",
                    help="the stored images are BGR (default: off, RGB as Cobot Magic stores them)")
     p.add_argument("--task", help="task description stored in episode.json (default: none)")

@@ -237,10 +237,8 @@ class EpisodeMeta:
     def _refuse_several(self, arms: bool = True, cameras: bool = True) -> None:
         for wanted, what, names in ((arms, "arms", self.arms), (cameras, "cameras", self.cameras)):
             if wanted and len(names) != 1:
-                raise EpisodeFormatError(
-                    f"{self.origin} has {what} {', '.join(names)}: this tool reads one-arm episodes "
-                    f"({SINGLE_ARM_NOTE}); read each of several {what} by name "
-                    f"(Episode.{'arm_frames' if what == 'arms' else 'rgb'}(..., name))")
+                raise EpisodeFormatError(f"{self.origin} has {what} {', '.join(names)}: this tool reads one-arm "
+                                         f"episodes ({SINGLE_ARM_NOTE})")
 
     @property
     def layout(self) -> Layout:
