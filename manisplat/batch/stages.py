@@ -104,7 +104,7 @@ def validate_stage(config: BatchConfig, episode: Path) -> StageResult:
     if not report.ok:
         raise StageError(f"{episode}: invalid episode: {report}")
     with _Claim(final) as partial:
-        frames = len(list((episode / "rgb").iterdir()))
+        frames = report.frame_rows
         partial.write_text(json.dumps({"ok": True, "frames": frames, "report": str(report)}))
     return StageResult(episode.name, "validate", "done", time.perf_counter() - start, {"frames": frames})
 

@@ -117,15 +117,13 @@ def v2_layout(arms: Iterable[str], cameras: Iterable[str]) -> Layout:
 
 
 def layout_of_raw(raw: Any) -> Layout | None:
-    """The layout a parsed ``episode.json`` declares, as far as it can be told (None when it
-    names neither version's arms and cameras usably)."""
+    """The layout a parsed ``episode.json`` declares, as far as it can be told (None when it is
+    not an object)."""
     if not isinstance(raw, dict):
         return None
-    if is_v2_raw(raw):
+    if is_v2_raw(raw):  # what of arms and cameras is usable (the rest is reported by meta_problems)
         arms, cameras = raw.get("arms"), raw.get("cameras")
-        if not (isinstance(arms, dict) and isinstance(cameras, dict) and arms and cameras):
-            return None
-        return v2_layout(list(arms), list(cameras))
+        return v2_layout(list(arms) if isinstance(arms, dict) else [], list(cameras) if isinstance(cameras, dict) else [])
     camera = raw.get("camera")
     name = camera.get("name") if isinstance(camera, dict) else None
     return v1_layout(name if isinstance(name, str) else "camera")

@@ -139,3 +139,65 @@ def test_copy_embeds_every_arms_robot(tmp_path):
     report = validate(tmp_path / "copy")
     assert report.ok and not report.warnings, str(report)
     assert main(["copy", str(path), str(tmp_path / "copy2")]) == 2  # the original now points nowhere: refused
+
+
+CHILD = """
+import sys
+sys.path.insert(0, {helpers!r})
+from v2_factory import add_frame_v2, open_writer_v2
+writer = open_writer_v2({path!r}, fsync_every=5)
+i = 0
+while True:
+    add_frame_v2(writer, i)
+    print(i, flush=True)
+    i += 1
+"""
+
+
+def test_sigkill_mid_episode_keeps_every_reported_frame_of_every_camera(tmp_path):
+    """The writer is killed (SIGKILL) after it reported 7 frames: every reported frame comes back
+    for every camera and arm."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    path = tmp_path / "ep"
+    child = subprocess.Popen([sys.executable, "-c", CHILD.format(helpers=str(Path(__file__).parent), path=str(path))],
+                             stdout=subprocess.PIPE, text=True)
+    try:
+        reported = [int(child.stdout.readline()) for _ in range(7)]
+    finally:
+        os.kill(child.pid, signal.SIGKILL)
+        child.wait()
+        child.stdout.close()
+    assert reported == list(range(7)) and not validate(path).ok
+    report = recover(path)
+    assert report.validation.ok and report.frames_kept >= 7, str(report)
+    ep = Episode.open(path)
+    for cam in CAMERAS:
+        assert all(np.array_equal(ep.rgb(i, cam), images(i, cam)["rgb"]) for i in range(report.frames_kept))
+    for arm in ARMS:
+        assert np.array_equal(ep.arm_frames(arm).gripper,
+                              [frame_values(i)[f"{arm}.gripper"] for i in range(report.frames_kept)])
+        assert len(ep.joints(arm)) >= 4 * 7
+    for rel in report.moved:  # nothing deleted
+        assert (report.backup_dir / rel).exists()
+
+
+def test_one_arm_one_camera_v2_exports_like_version_1(tmp_path):
+    """The one-arm tools read a version 2 episode with one arm and one camera: the ACT exporter
+    finds its images in rgb/<camera>/ and its joints in <arm>.q1...; a two-arm one is refused."""
+    from manisplat.episode.exporters.act_hdf5 import export_act_hdf5
+    from manisplat.episode.importers.act_hdf5 import import_act_hdf5
+
+    path = write_v2(tmp_path / "ep", 4, arms=("right",), cameras=("cam_high",), camera_times=())
+    export_act_hdf5([path], tmp_path / "act", dtype="float64")
+    back = import_act_hdf5(tmp_path / "act" / "episode_0.hdf5", tmp_path / "back", K=np.diag([30.0, 30.0, 1.0]),
+                           arm="single", camera="cam_high", fps=20.0)
+    ep = Episode.open(path)
+    assert np.array_equal(back.frames.q, ep.frames.q) and np.array_equal(back.frames.gripper, ep.frames.gripper)
+    assert all(np.array_equal(back.rgb(i), images(i, "cam_high")["rgb"]) for i in range(4))
+    with pytest.raises(ValueError, match="has arms left, right: this tool reads one-arm episodes"):
+        export_act_hdf5([write_v2(tmp_path / "two", 2)], tmp_path / "act2")

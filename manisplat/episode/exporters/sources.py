@@ -117,9 +117,10 @@ def open_sources(episodes: Sequence[str | Path], camera: str | None, layout: str
         if ep.camera.name != camera:
             raise EpisodeFormatError(f"{ep.path}: no camera {camera!r}; the episode's camera is "
                                      f"{ep.camera.name!r} (every episode of one export needs the same camera)")
-        missing = _missing_frames(ep.path / RGB_DIR, len(ep))
+        rgb = ep.path / ep.layout.cameras[0].folder(RGB_DIR)  # rgb/, or rgb/<camera>/ in version 2
+        missing = _missing_frames(rgb, len(ep))
         if missing:
-            raise EpisodeFormatError(f"{ep.path / RGB_DIR}: no image for {len(missing)} of {len(ep)} frames "
+            raise EpisodeFormatError(f"{rgb}: no image for {len(missing)} of {len(ep)} frames "
                                      f"(first: frame {missing[0]})")
     return sources
 
@@ -128,9 +129,10 @@ def check_depth(sources: Sequence[ExportSource]) -> None:
     """Raise :class:`EpisodeFormatError` unless every frame of every episode has a depth image."""
     for src in sources:
         ep = src.episode
-        missing = _missing_frames(ep.path / DEPTH_DIR, len(ep)) if ep.has_depth else list(range(len(ep)))
+        depth = ep.path / ep.layout.cameras[0].folder(DEPTH_DIR)  # depth/, or depth/<camera>/ in version 2
+        missing = _missing_frames(depth, len(ep)) if ep.has_depth else list(range(len(ep)))
         if missing:
-            raise EpisodeFormatError(f"{ep.path / DEPTH_DIR}: no depth for {len(missing)} of {len(ep)} frames "
+            raise EpisodeFormatError(f"{depth}: no depth for {len(missing)} of {len(ep)} frames "
                                      f"(first: frame {missing[0]}); export without depth (--no-depth) or drop "
                                      "this episode")
 
