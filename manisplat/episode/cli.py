@@ -212,11 +212,12 @@ def _cmd_set_robot(args: argparse.Namespace) -> int:
     from manisplat.episode.relocate import set_robot
 
     try:
-        old, new = set_robot(args.episode, args.description, embed=args.embed, overwrite=args.overwrite)
+        old, new = set_robot(args.episode, args.description, arm=args.arm, embed=args.embed, overwrite=args.overwrite)
     except ValueError as exc:  # RobotModelError included: an unknown builtin, a URDF that does not load
         print(f"error: {exc}", file=sys.stderr)
         return ExitCode.BAD_INPUT
-    print(f"{args.episode}: robot.description {old!r} -> {new!r}")
+    what = "robot.description" if args.arm is None else f"arms.{args.arm}.description"
+    print(f"{args.episode}: {what} {old!r} -> {new!r}")
     return ExitCode.OK
 
 
@@ -434,13 +435,18 @@ def build_parser() -> argparse.ArgumentParser:
                                    "checking that it loads. A URDF path is stored relative to the episode when it "
                                    "lies inside it, absolute otherwise. --embed copies the URDF and the meshes it "
                                    "references (relative and package:// paths) into EPISODE/robot/ and points "
-                                   "there, so the episode can be copied anywhere.")
+                                   "there, so the episode can be copied anywhere. In a format version 2 episode, "
+                                   "--arm names the arm (robot/<arm>/ when embedded).")
     p.add_argument("episode", type=Path, metavar="EPISODE", help="episode folder")
     p.add_argument("description", nargs="?", metavar="DESCRIPTION",
                    help="a URDF path (relative to the current folder) or builtin:agilex_piper "
                         "(default: the episode's current robot.description, e.g. to --embed it)")
+    p.add_argument("--arm", metavar="NAME",
+                   help="the arm of a format version 2 episode whose description to set (default: the one arm; "
+                        "required when the episode has several)")
     p.add_argument("--embed", action="store_true",
-                   help="copy the URDF and its meshes into EPISODE/robot/ (default: off, point at it)")
+                   help="copy the URDF and its meshes into EPISODE/robot/ (robot/<arm>/ in version 2; default: off, "
+                        "point at it)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing EPISODE/robot/ when embedding (default: off, refused)")
     p.set_defaults(func=_cmd_set_robot)

@@ -15,8 +15,8 @@ from pathlib import Path
 
 from lxml import etree
 
-from manisplat.episode.format import META_FILE
-from manisplat.episode.meta import EpisodeMeta, load_meta, save_meta
+from manisplat.episode.format import META_FILE, VERSION, EpisodeFormatError
+from manisplat.episode.meta import ArmInfo, EpisodeMeta, load_meta, save_meta
 from manisplat.episode.writer import check_destination
 from manisplat.robot import description_file, load_robot
 
@@ -98,17 +98,31 @@ def _fresh(path: Path) -> Path:
     return path
 
 
-def set_robot(episode: str | Path, description: str | None = None, *, embed: bool = False,
+def _arm(meta: EpisodeMeta, arm: str | None) -> ArmInfo:
+    """The arm ``arm`` names, or the one arm; raises :class:`EpisodeFormatError` naming the arms."""
+    if arm is None:
+        if len(meta.arms) != 1:
+            raise EpisodeFormatError(f"{meta.origin} has arms {', '.join(meta.arms)}: name one (--arm NAME)")
+        return next(iter(meta.arms.values()))
+    if arm not in meta.arms:
+        raise EpisodeFormatError(f"{meta.origin} has no arm {arm!r}; arms: {', '.join(meta.arms)}")
+    return meta.arms[arm]
+
+
+def set_robot(episode: str | Path, description: str | None = None, *, arm: str | None = None, embed: bool = False,
               overwrite: bool = False) -> tuple[str, str]:
-    """Point the episode's ``robot.description`` at another robot description, or embed it.
+    """Point the episode's ``robot.description`` (a version 2 arm's description) at another robot
+    description, or embed it.
 
     Args:
         episode: episode folder.
         description: a ``builtin:`` name or a URDF path (relative to the current folder); it is
             stored relative to the episode when it lies inside it, absolute otherwise. Default:
             the episode's current description.
-        embed: copy the URDF and its meshes into ``<episode>/robot/`` and point there.
-        overwrite: replace an existing ``<episode>/robot/`` when embedding.
+        arm: the arm of a version 2 episode (needed when it has several).
+        embed: copy the URDF and its meshes into ``<episode>/robot/`` (``robot/<arm>/`` in
+            version 2) and point there.
+        overwrite: replace an existing ``<episode>/robot/`` (``robot/<arm>/``) when embedding.
 
     The description is loaded first (with its meshes when embedded); ``episode.json`` is then
     rewritten atomically. Returns ``(old, new)`` descriptions.
@@ -116,11 +130,13 @@ def set_robot(episode: str | Path, description: str | None = None, *, embed: boo
     Raises:
         FileNotFoundError, RobotModelError: the description does not resolve or load.
         FileExistsError: ``robot/`` exists and not ``overwrite``.
-        ValueError: ``embed`` with a built-in description (nothing to embed).
+        ValueError: ``embed`` with a built-in description (nothing to embed); EpisodeFormatError:
+            no such arm, or no ``arm`` for an episode with several.
     """
     path = Path(episode)
     meta = load_meta(path / META_FILE)
-    old = meta.robot.description
+    chosen = _arm(meta, arm)
+    old = chosen.description
     base = path if description is None else Path.cwd()
     description = old if description is None else description
     file = description_file(description, base)
@@ -130,18 +146,20 @@ def set_robot(episode: str | Path, description: str | None = None, *, embed: boo
     else:
         if file is None:
             raise ValueError(f"{description} is built in: nothing to embed")
-        target = path / ROBOT_DIR
+        folder = ROBOT_DIR if meta.version == VERSION else f"{ROBOT_DIR}/{chosen.name}"
+        target = path / folder
         if target.exists() and not overwrite:
             raise FileExistsError(f"{target}: exists (an embedded robot); replace it with --overwrite")
-        staging = _fresh(path / f".{ROBOT_DIR}.tmp")
+        staging = _fresh(path / f".{folder.replace('/', '-')}.tmp")
         try:
             load_robot(str(embed_urdf(file, staging)))
+            target.parent.mkdir(exist_ok=True)
             _replace_folder(staging, target)
         finally:
             if staging.exists():
                 shutil.rmtree(staging)
-        new = f"{ROBOT_DIR}/{file.name}"
-    meta.robot.description = new
+        new = f"{folder}/{file.name}"
+    chosen.description = new
     save_meta(path / META_FILE, meta)
     return old, new
 

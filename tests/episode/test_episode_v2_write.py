@@ -122,7 +122,8 @@ def test_info_lists_arms_and_cameras(tmp_path, capsys):
     assert "own times (cam_left_wrist.t)" in out and "depth/cam_high/ 3 png" in out
 
 
-def test_copy_embeds_every_arms_robot(tmp_path):
+def write_urdf(tmp_path):
+    """A 6-joint URDF with base_link..link6 at tmp_path/robots/two.urdf."""
     urdf = tmp_path / "robots" / "two.urdf"
     urdf.parent.mkdir()
     links = "".join(f'<link name="{n}"/>' for n in ("base_link", "link1", "link2", "link3", "link4", "link5", "link6"))
@@ -130,6 +131,11 @@ def test_copy_embeds_every_arms_robot(tmp_path):
                      f'<child link="link{i}"/><axis xyz="0 0 1"/><limit lower="-3" upper="3" effort="1" velocity="1"/>'
                      f'</joint>' for i in range(1, 7))
     urdf.write_text(f'<robot name="two">{links}{joints}</robot>')
+    return urdf
+
+
+def test_copy_embeds_every_arms_robot(tmp_path):
+    write_urdf(tmp_path)
     path = write_v2(tmp_path / "ep", 3, description="../robots/two.urdf")
     assert validate(path).ok
     assert main(["copy", "--embed", str(path), str(tmp_path / "copy")]) == 0
@@ -201,3 +207,18 @@ def test_one_arm_one_camera_v2_exports_like_version_1(tmp_path):
     assert all(np.array_equal(back.rgb(i), images(i, "cam_high")["rgb"]) for i in range(4))
     with pytest.raises(ValueError, match="has arms left, right: this tool reads one-arm episodes"):
         export_act_hdf5([write_v2(tmp_path / "two", 2)], tmp_path / "act2")
+
+
+def test_set_robot_of_one_arm(tmp_path, capsys, monkeypatch):
+    write_urdf(tmp_path)
+    path = write_v2(tmp_path / "ep", 2)
+    monkeypatch.chdir(tmp_path)
+    assert main(["set-robot", str(path), "robots/two.urdf"]) == 2
+    assert "has arms left, right: name one (--arm NAME)" in capsys.readouterr().err
+    assert main(["set-robot", str(path), "robots/two.urdf", "--arm", "middle"]) == 2
+    assert main(["set-robot", str(path), "robots/two.urdf", "--arm", "right", "--embed"]) == 0
+    assert "arms.right.description 'builtin:agilex_piper' -> 'robot/right/two.urdf'" in capsys.readouterr().out
+    raw = json.loads((path / "episode.json").read_text())
+    assert [a["description"] for a in raw["arms"].values()] == ["builtin:agilex_piper", "robot/right/two.urdf"]
+    report = validate(path)
+    assert report.ok and not report.warnings, str(report)
