@@ -120,6 +120,8 @@ def _v2_problems(raw: dict[str, Any]) -> list[str]:
             arm_names = list(arms) if isinstance(arms, dict) else []
             for name, camera in cameras.items():
                 problems += camera_v2_problems(name, camera, arm_names)
+            problems += [f"{name!r} names both an arm and a camera: their columns would mix ({name}.*)"
+                         for name in cameras if name in arm_names]
     return problems
 
 

@@ -1,4 +1,5 @@
-"""Write an episode crash-safely, frame by frame.
+"""Write an episode crash-safely, frame by frame: :class:`WriterBase` (what every writer shares) and
+:class:`EpisodeWriter` (format version 1; version 2 is :mod:`manisplat.episode.writer_v2`).
 
 Order of writes: ``episode.json`` with ``complete: false`` first (atomically), then for each frame
 its image files (temporary name + rename, so an image is whole or absent), then its

@@ -85,3 +85,7 @@ def test_meta_rules(tmp_path):
     bad["arms"]["le.ft"] = bad["arms"].pop("left")
     with pytest.raises(EpisodeFormatError, match="arm name 'le.ft' must be"):
         EpisodeMeta.from_dict(bad)
+    bad = json.loads(json.dumps(raw))
+    bad["cameras"]["right"] = bad["cameras"].pop("cam_high")
+    with pytest.raises(EpisodeFormatError, match="'right' names both an arm and a camera"):
+        EpisodeMeta.from_dict(bad)
