@@ -129,7 +129,7 @@ def _write(args: argparse.Namespace, argv: list[str] | None, stages: Any, source
         "command": "python -m benchmarks policy_sim " + " ".join(argv if argv is not None else sys.argv[1:]),
         "machine": machine_info(), "source": str(source), "eval_seeds": eval_seeds,
         "ranges": {"object_m_m_deg": OBJECT_RANGE, "place_m_m_deg": PLACE_RANGE},
-        "budget": stages.budget_of(steps).__dict__, "env_options": ENV_OPTIONS, "rows": rows, "data": stages.data_report,
+        "budget": stages.budget_of(steps).__dict__, "viewport": stages.viewport.__dict__, "env_options": ENV_OPTIONS, "rows": rows, "data": stages.data_report,
         "rollouts": {k: [{"seed": r.seed, "phase": r.phase, **{f: r.result[f] for f in (
             "success", "object_start", "dist_to_mat_m", "tilt_deg", "lifted_m", "steps", "failed")}} for r in v]
             for k, v in rollouts.items()},

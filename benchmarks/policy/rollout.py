@@ -14,7 +14,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from benchmarks.policy.data import resize
 from benchmarks.policy.sim_env import SimEnv
 from benchmarks.policy.train import TrainedPolicy, image_input
 
@@ -60,7 +59,7 @@ class _Ensemble:
 @torch.no_grad()
 def _act(policy: TrainedPolicy, observations: list[dict[str, Any]]) -> np.ndarray:
     """(E,) observations -> (E, chunk, 7) float64 actions."""
-    images = torch.from_numpy(np.stack([resize(o["rgb"]) for o in observations])).permute(0, 3, 1, 2)
+    images = torch.from_numpy(np.stack([policy.viewport.view(o["rgb"]) for o in observations])).permute(0, 3, 1, 2)
     state = torch.tensor(np.array([[*o["q"], o["gripper"]] for o in observations]), dtype=torch.float32)
     out = policy.model(image_input(images), policy.normaliser.state(state))
     return policy.normaliser.unaction(out).double().numpy()
@@ -88,7 +87,7 @@ def evaluate(policy: TrainedPolicy, envs: list[SimEnv], seeds: list[int], keep_f
             chunks = _act(policy, [observations[i] for i in running])
             for i, chunk in zip(running, chunks):
                 if keep[i] and step % frame_every == 0:
-                    frames[i].append(resize(observations[i]["rgb"]))
+                    frames[i].append(policy.viewport.view(observations[i]["rgb"]))
                 active[i].send("step", ensembles[i].add(step, chunk))
             still = []
             for i in running:
@@ -100,7 +99,7 @@ def evaluate(policy: TrainedPolicy, envs: list[SimEnv], seeds: list[int], keep_f
         for i, (env, seed) in enumerate(zip(active, batch)):
             result = env.call("evaluate")
             if keep[i]:
-                frames[i].append(resize(observations[i]["rgb"]))
+                frames[i].append(policy.viewport.view(observations[i]["rgb"]))
             results.append(Rollout(seed, result, failed_phase(result, touched[i]), touched[i], frames[i]))
             if progress is not None:
                 progress(results[-1])

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from benchmarks.policy.data import episode_folders, load_demonstrations
+from benchmarks.policy.data import Viewport, episode_folders, load_demonstrations, workspace_viewport
 from benchmarks.policy.rollout import Rollout, evaluate, wilson_interval
 from benchmarks.policy.sim_env import SimEnv
 from benchmarks.policy.train import Budget, Normaliser, TrainedPolicy, train
@@ -48,6 +48,7 @@ class Stages:
         self.object_range, self.place_range, self.twin_iters = object_range, place_range, twin_iters
         self.data_report: dict[str, Any] = {}
         self.training_starts: dict[str, np.ndarray] = {}
+        self.viewport: Viewport = workspace_viewport(source, max(object_range[:2]))
 
     # ------------------------------------------------------------------ demonstrations
     def twin(self) -> Path:
@@ -184,15 +185,15 @@ class Stages:
         return row, rollouts
 
     def _policy(self, key: str, folders: list[Path], budget: Budget) -> TrainedPolicy:
-        path = self.work / "policies" / f"{key}_{budget.steps}.pt"
+        path = self.work / "policies" / f"{key}_{budget.steps}_{self.viewport.tag}.pt"
         if path.exists():
             saved = torch.load(path, weights_only=False)
             model = ChunkPolicy(chunk=budget.chunk)
             model.load_state_dict(saved["model"])
             model.eval()
             return TrainedPolicy(model, Normaliser(**saved["normaliser"]), budget, saved["seconds"], saved["loss"],
-                                 saved["frames"])
-        demos = load_demonstrations(folders)
+                                 saved["frames"], self.viewport)
+        demos = load_demonstrations(folders, self.viewport)
         _log(f"training {key}: {len(folders)} demonstrations, {len(demos)} frames, {budget.steps} steps")
         policy = train(demos, budget)
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -201,7 +202,8 @@ class Stages:
         return policy
 
     def _rollouts(self, key: str, policy: TrainedPolicy, seeds: list[int], envs: int) -> list[Rollout]:
-        path = self.work / "rollouts" / f"{key}_{policy.budget.steps}_{seeds[0]}_{len(seeds)}_{ENV_TAG}.npz"
+        path = (self.work / "rollouts" /
+                f"{key}_{policy.budget.steps}_{policy.viewport.tag}_{seeds[0]}_{len(seeds)}_{ENV_TAG}.npz")
         if path.exists():
             saved = np.load(path, allow_pickle=True)
             return list(saved["rollouts"])

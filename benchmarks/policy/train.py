@@ -9,11 +9,11 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from benchmarks.policy.data import Demonstrations
+from benchmarks.policy.data import Demonstrations, Viewport
 from benchmarks.policy.model import ChunkPolicy
 
 IMAGE_MEAN, IMAGE_STD = 0.5, 0.25
-SHIFT_PX = 6  # random-shift augmentation (DrQ; the diffusion policy's crop): +-6 px at 128 x 96
+SHIFT_PX = 6  # random-shift augmentation (DrQ; the diffusion policy's crop): +-6 px at 160 x 120
 
 
 @dataclass(frozen=True)
@@ -76,6 +76,7 @@ class TrainedPolicy:
     seconds: float
     final_loss: float
     frames: int
+    viewport: Viewport
 
 
 def train(demos: Demonstrations, budget: Budget, progress: bool = True) -> TrainedPolicy:
@@ -103,4 +104,5 @@ def train(demos: Demonstrations, budget: Budget, progress: bool = True) -> Train
         losses.append(loss.item())
     model.eval()
     tail = losses[-max(1, len(losses) // 20):]
-    return TrainedPolicy(model, norm, budget, time.perf_counter() - start, sum(tail) / len(tail), len(demos))
+    return TrainedPolicy(model, norm, budget, time.perf_counter() - start, sum(tail) / len(tail), len(demos),
+                         demos.viewport)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from benchmarks.policy.data import Demonstrations
+from benchmarks.policy.data import Demonstrations, Viewport
 from benchmarks.policy.rollout import _Ensemble, failed_phase, wilson_interval
 from benchmarks.policy.train import Budget, image_input, random_shift, train
 
@@ -15,7 +15,9 @@ from benchmarks.policy.train import Budget, image_input, random_shift, train
 def _demos(images: torch.Tensor, actions: torch.Tensor, lengths: list[int]) -> Demonstrations:
     ends = torch.tensor(np.cumsum(lengths))
     episode = torch.repeat_interleave(torch.arange(len(lengths)), torch.tensor(lengths))
-    return Demonstrations(images, torch.zeros(len(actions), 7), actions, episode, ends, [f"e{i}" for i in lengths])
+    h, w = images.shape[-2:]
+    return Demonstrations(images, torch.zeros(len(actions), 7), actions, episode, ends, [f"e{i}" for i in lengths],
+                          Viewport(0, 0, h, w, (w, h)))
 
 
 def test_chunks_stop_at_their_own_episodes_end():
@@ -75,3 +77,23 @@ def test_the_policy_learns_where_a_bright_spot_is():
         out = policy.normaliser.unaction(policy.model(image_input(images), policy.normaliser.state(demos.state)))
     error = (out[:, 0, :2] - xy).abs().mean()
     assert error < 0.08, error  # the mean of the targets would be off by 0.25
+
+
+def test_the_workspace_viewport_holds_the_object_where_it_starts_and_ends(tmp_path):
+    from manisplat.episode import Episode
+    from manisplat.episode.synthetic import write_sample_episode
+
+    from benchmarks.policy.data import workspace_viewport
+
+    episode = write_sample_episode(tmp_path / "sample", frames=8, width=160, height=120)
+    view = workspace_viewport(episode, 0.05, size=(64, 48))
+    assert view.width * 48 == view.height * 64 and view.width >= 64
+    assert 0 <= view.left and view.left + view.width <= 160 and 0 <= view.top and view.top + view.height <= 120
+    ep = Episode.open(episode)
+    box = [int(k) for k, name in ep.meta.labels.items() if name == "object/box"]
+    for i in (0, len(ep) - 1):
+        rows, cols = np.nonzero(np.isin(ep.mask(i), box))
+        assert view.top <= rows.min() and rows.max() < view.top + view.height
+        assert view.left <= cols.min() and cols.max() < view.left + view.width
+    assert view.width < 160, "the whole image: no closer look at the workspace"
+    assert view.view(ep.rgb(0)).shape == (48, 64, 3)
