@@ -19,16 +19,16 @@ import numpy as np
 from manisplat.episode.format import JOINT_COLUMNS, VERSION_2, image_name
 from manisplat.episode.images import DEPTH, MASK, RGB, ImageKind, depth_to_raw, encode_image
 from manisplat.episode.meta import ArmInfo, CameraInfo, EpisodeMeta
-from manisplat.episode.writer import IMAGE_FORMATS, WriterBase, _check_columns, _extra_values, _finite
+from manisplat.episode.writer import (IMAGE_FORMATS, WriterBase, _check_columns, _extra_values, _finite,
+                                      _joint_vector)
 
 
 def _state(name: str, value: Any) -> np.ndarray:
+    """(7,) float64: six joint angles (rad) and the gripper (m), each checked as the v1 writer checks them."""
     v = np.asarray(value, dtype=np.float64)
     if v.shape != (7,):
         raise ValueError(f"{name} must hold 6 joint angles (rad) and the gripper (m); got shape {v.shape}")
-    if not np.isfinite(v).all():
-        raise ValueError(f"{name} must be finite; got {v.tolist()}")
-    return v
+    return np.append(_joint_vector(name, v[:6]), _finite(f"{name} gripper", v[6]))
 
 
 def _exactly(name: str, given: Iterable[str], expected: Iterable[str]) -> None:

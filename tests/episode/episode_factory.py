@@ -77,6 +77,21 @@ def mark_incomplete(path: Path) -> None:
     (path / "episode.json").write_text(json.dumps({**meta, "complete": False}))
 
 
+def jpeg_rows(images: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], np.ndarray]:
+    """ALOHA-style compressed images: camera -> (T, H, W, 3) uint8 to camera -> (T, L) uint8 JPEG
+    bytes zero-padded to the longest, camera -> the (T, H, W, 3) images those bytes decode to, and
+    the (cameras, T) byte counts (``compress_len``), cameras in ``images``' order."""
+    encoded = {c: [cv2.imencode(".jpg", im)[1] for im in frames] for c, frames in images.items()}
+    width = max(len(b) for rows in encoded.values() for b in rows)
+    rows, decoded = {}, {}
+    for c, jpegs in encoded.items():
+        rows[c] = np.zeros((len(jpegs), width), np.uint8)
+        for i, b in enumerate(jpegs):
+            rows[c][i, :len(b)] = b
+        decoded[c] = np.stack([cv2.imdecode(b, cv2.IMREAD_COLOR) for b in jpegs])
+    return rows, decoded, np.array([[len(b) for b in jpegs] for jpegs in encoded.values()])
+
+
 def write_act(path: Path, *, arms: int = 2, compress: bool = False, depth: bool = True,
               cameras: tuple[str, ...] = ("cam_high", "cam_left_wrist")) -> dict[str, Any]:
     """An ACT / Cobot Magic HDF5 file of ``ACT_FRAMES`` 32x24 frames; returns what it holds
@@ -95,15 +110,10 @@ def write_act(path: Path, *, arms: int = 2, compress: bool = False, depth: bool 
         f["action"] = data["action"]
         images = obs.create_group("images")
         if compress:  # ALOHA style: JPEG bytes padded to the longest, plus compress_len
-            encoded = {c: [cv2.imencode(".jpg", im)[1] for im in data["images"][c]] for c in cameras}
-            padded = max(len(b) for c in cameras for b in encoded[c])
+            rows, data["images"], lengths = jpeg_rows(data["images"])
             for c in cameras:
-                buf = np.zeros((T, padded), np.uint8)
-                for i, b in enumerate(encoded[c]):
-                    buf[i, :len(b)] = b
-                images[c] = buf
-                data["images"][c] = np.stack([cv2.imdecode(b, cv2.IMREAD_COLOR) for b in encoded[c]])
-            f["compress_len"] = np.array([[len(b) for b in encoded[c]] for c in cameras])
+                images[c] = rows[c]
+            f["compress_len"] = lengths
         else:
             for c in cameras:
                 images.create_dataset(c, data=data["images"][c], chunks=(1, H, W, 3))

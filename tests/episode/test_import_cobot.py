@@ -5,7 +5,6 @@ from __future__ import annotations
 import copy
 import json
 
-import cv2
 import h5py
 import numpy as np
 import pytest
@@ -13,6 +12,8 @@ import pytest
 from manisplat.episode import Episode, EpisodeFormatError, validate
 from manisplat.episode.cli import main
 from manisplat.episode.importers.cobot_magic import import_cobot_magic
+
+from episode_factory import jpeg_rows
 
 T, W, H = 5, 32, 24
 CAMERAS = ("cam_high", "cam_left_wrist", "cam_right_wrist")
@@ -54,15 +55,10 @@ def write_cobot(path, *, compress: bool, dtype: str = "float64") -> dict:
         f["observations/qvel"] = np.zeros((T, 14))
         f["action"] = data["action"]
         if compress:
-            jpegs = {c: [cv2.imencode(".jpg", im)[1] for im in data["images"][c]] for c in CAMERAS}
-            width = max(len(b) for c in CAMERAS for b in jpegs[c])
+            rows, data["images"], lengths = jpeg_rows(data["images"])
             for c in CAMERAS:
-                rows = np.zeros((T, width), np.uint8)
-                for i, b in enumerate(jpegs[c]):
-                    rows[i, :len(b)] = b
-                f[f"observations/images/{c}"] = rows
-                data["images"][c] = np.stack([cv2.imdecode(b, cv2.IMREAD_COLOR) for b in jpegs[c]])
-            f["compress_len"] = np.array([[len(b) for b in jpegs[c]] for c in CAMERAS], np.float32)
+                f[f"observations/images/{c}"] = rows[c]
+            f["compress_len"] = lengths.astype(np.float32)
         else:
             for c in CAMERAS:
                 f[f"observations/images/{c}"] = data["images"][c]
