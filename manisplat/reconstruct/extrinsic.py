@@ -349,17 +349,13 @@ def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 
         timing = f"; camera/joint time offset {1e3 * offset:+.1f} +- {1e3 * sig_time:.1f} ms ({verdict})"
     else:
         timing = ""
-    if not result.applied and rms_after < rms_before:  # refused above, with a warning saying why
+    if result.applied or rms_after < rms_before:  # a correction, applied or refused above with a warning
         log.info("camera extrinsic: correction %.3f +- %.3f deg, %.2f +- %.2f mm from %d robot depth points in %d "
-                 "frames (residual RMS %.2f -> %.2f mm); NOT applied%s", rot, sig_rot, trans, sig_trans, total,
-                 len(chosen), result.rms_before_mm, result.rms_after_mm, timing)
-    elif not result.applied:
+                 "frames (residual RMS %.2f -> %.2f mm)%s%s", rot, sig_rot, trans, sig_trans, total, len(chosen),
+                 result.rms_before_mm, result.rms_after_mm, "" if result.applied else "; NOT applied", timing)
+    else:
         log.info("camera extrinsic: kept: %s; %d robot depth points in %d frames%s", result.reason, total,
                  len(chosen), timing)
-    else:
-        log.info("camera extrinsic: correction %.3f +- %.3f deg, %.2f +- %.2f mm from %d robot depth points in %d "
-                 "frames (residual RMS %.2f -> %.2f mm)%s", rot, sig_rot, trans, sig_trans, total, len(chosen),
-                 result.rms_before_mm, result.rms_after_mm, timing)
     return result
 
 
