@@ -35,6 +35,7 @@ from benchmarks.bench_reconstruct_device import measure
 
 STEPS = ("tests", "iteration", "cpu", "long", "hires")
 VARIANTS = {"eager": "off", "compiled": "on"}
+PROGRESS_EVERY = 2500  # iterations between the long runs' partial records
 CUDA_TESTS = ["tests/reconstruct/test_device.py", "tests/splat/test_gsplat_backend.py", "-k", "cuda or gsplat"]
 
 
@@ -88,6 +89,7 @@ def step_tests(run: Run, args) -> None:
     t0 = time.perf_counter()
     proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *CUDA_TESTS],
                           capture_output=True, text=True)
+    (run.out / "tests_log.txt").write_text(proc.stdout + proc.stderr)  # the failures' reasons
     tail = proc.stdout.strip().splitlines()[-15:]
     run.record("tests", {"returncode": proc.returncode, "summary": tail, "s": round(time.perf_counter() - t0, 1)})
 
@@ -139,6 +141,10 @@ def _long_run(run: Run, name: str, episode: Path, iters: int, setting: str) -> N
     def track(rec, seconds: float) -> None:
         if rec.step % rec.config.eval_every == 0:
             curve.append((rec.step, round(seconds, 2), round(rec.held_out_psnr, 3)))
+        if rec.step % PROGRESS_EVERY == 0:  # a run stopped at the call's limit keeps its curve so far
+            gaussians = sum(len(n.gaussians) for n in rec.graph.nodes())
+            run.record(f"{name}/progress", {"iteration": rec.step, "s": round(seconds, 1), "gaussians": gaussians,
+                                            "psnr_curve": curve})
 
     result = _train(run, name, episode, device="cuda", iters=iters, compile=setting, steady_iters=0,
                     profile_iters=0, sync_iters=0, threads=None, callback=track)
@@ -231,7 +237,7 @@ def main(argv: list[str] | None = None) -> int:
             run.record(step, {"skipped": f"the budget of {args.budget_s:.0f} s was spent"})
             continue
         globals()[f"step_{step}"](run, args)
-    save_compile_cache(args.out)
+        save_compile_cache(args.out)  # after every step: a call stopped at its limit keeps it
     return 0
 
 

@@ -17,8 +17,9 @@ for d in drivers recorder calib; do ln -sfn "../$d" "manisplat/$d"; done
 export PYTHONPATH="$PWD:/tmp/site" PYTHONUNBUFFERED=1
 echo "installed in $(( $(date +%s) - t0 )) s"
 export TORCH_CUDA_ARCH_LIST="${TORCH_CUDA_ARCH_LIST:-9.0}" MAX_JOBS="${MAX_JOBS:-$(nproc)}"
-if [ -f "$DATA/gsplat_csrc.so" ]; then
-  python3 -m benchmarks.build_gsplat "$DATA/gsplat_csrc.so" --install
+# a module built earlier for another torch fails its import check: then it is built anew
+if [ -f "$DATA/gsplat_csrc.so" ] && python3 -m benchmarks.build_gsplat "$DATA/gsplat_csrc.so" --install; then
+  :
 else
   python3 -m benchmarks.build_gsplat "$OUT/gsplat_csrc.so"
 fi

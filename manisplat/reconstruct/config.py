@@ -72,20 +72,27 @@ class TrainConfig:
     seed: int = 0
 
 
-GPU_ITERS = 30_000  # the paper's budget (3DGS's too), trained on a GPU
+#: iterations of a CUDA run by default: where the held-out PSNR levels off. On an H100,
+#: sim_pick_place_small (320x240, 120 frames) reached 38.4 dB about 10 000 iterations (averaged
+#: over 9 000-11 000) against 38.6 over 12 500-15 000 and 37.0 about 3 000; the paper's 30 000
+#: would spend two thirds of the time on the last few tenths of a dB
+#: (benchmarks/results_device/gpu_long/long_pp_30000.json)
+GPU_ITERS = 10_000
 
 
 def default_iters(device: str) -> int:
-    """Iterations when none are asked for: ``TrainConfig.iters`` (3000) on the CPU, the paper's
-    30 000 on CUDA (``device`` as :func:`resolve_device` returns it)."""
+    """Iterations when none are asked for: ``TrainConfig.iters`` (3000, about 1.5 dB short of the
+    plateau, for the CPU's time) on the CPU, :data:`GPU_ITERS` on CUDA (``device`` as
+    :func:`resolve_device` returns it)."""
     return GPU_ITERS if device.startswith("cuda") else TrainConfig.iters
 
 
 COMPILE_CHOICES = ("auto", "on", "off")
-#: "auto" compiles a CUDA run of at least this many iterations: on an H100, compiling took 114 s
-#: and saved 9.6 ms an iteration (22.6 -> 13.0 ms on sim_pick_place_small), so it pays after
-#: about 11 900 (benchmarks/results_device/gpu_compile/pp_600.json)
-COMPILE_MIN_ITERS = 12_000
+#: "auto" compiles a CUDA run of at least this many iterations: on an H100 compiling saved 9.6 ms
+#: an iteration (22.6 -> 13.0 ms on sim_pick_place_small, gpu_compile/pp_600.json) and took about
+#: 240 s over a whole run (the first graphs, then again when the shadows start and at each new SH
+#: band: gpu_long/long_pp_30000.json), so it pays after about 25 000
+COMPILE_MIN_ITERS = 25_000
 
 
 def resolve_compile(name: str, device_type: str, iters: int) -> str | None:

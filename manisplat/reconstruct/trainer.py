@@ -431,16 +431,19 @@ class Reconstruction:
             torch.cuda.set_rng_state(state["cuda_rng"].cpu(), dev)
 
     def host_syncs(self, iters: int) -> collections.Counter:
-        """Train ``iters`` more iterations on CUDA and count the host-device synchronisations they
-        make, by source site ("file:line"), from ``torch.cuda.set_sync_debug_mode("warn")``."""
+        """Run ``iters`` more training iterations on CUDA and count the host-device synchronisations
+        they make, by source site ("file:line"), from ``torch.cuda.set_sync_debug_mode("warn")``:
+        the iterations alone, not :meth:`train`'s loss reads, evaluations and closing exposure fit."""
         if self.device.type != "cuda":
             raise ValueError(f"host_syncs counts CUDA synchronisations; this reconstruction is on {self.device}")
         self.config.iters = self.step + iters
+        states = self.plan.distinct_train_states or self.plan.train_frames
         torch.cuda.set_sync_debug_mode("warn")
         try:
-            with warnings.catch_warnings(record=True) as caught:
+            with warnings.catch_warnings(record=True) as caught, compilation(self.compiled):
                 warnings.simplefilter("always")
-                self.train(progress=False)
+                for _ in range(iters):
+                    self._iteration(states)
         finally:
             torch.cuda.set_sync_debug_mode("default")
         return collections.Counter(f"{w.filename}:{w.lineno}" for w in caught

@@ -101,9 +101,9 @@ def test_cuda_without_gsplat_names_the_install(monkeypatch):
 
 
 def test_the_iterations_default_to_the_devices_budget(pick, tmp_path, caplog):
-    """3000 on the CPU, the paper's 30 000 on CUDA, unless --iters says otherwise."""
+    """3000 on the CPU, 10 000 on CUDA (where the held-out PSNR levels off), unless --iters says otherwise."""
     assert default_iters("cpu") == TrainConfig.iters == 3000
-    assert default_iters("cuda") == default_iters("cuda:1") == 30_000
+    assert default_iters("cuda") == default_iters("cuda:1") == 10_000
     assert build_parser().parse_args([str(pick), "--out", "x"]).iters is None  # decided once the device is known
     caplog.set_level("INFO", logger="manisplat")
     assert main([str(pick), "--out", str(tmp_path / "a"), "--iters", "2", "--device", "cpu"]) == 0
@@ -221,8 +221,6 @@ def test_a_cuda_iteration_does_not_synchronise_outside_gsplat(pick):
     itself synchronises, and a new frame can still compile a variant: README, Device.)"""
     rec, _ = _reconstruction(pick, iters=12, device="cuda", refine_start=10 ** 6, shadow_start=2, compile="off")
     rec.train(progress=False)  # warm up: shadows started, kernels loaded, the loss read once
-    rec._read_loss = lambda: float("nan")  # the reads every log_every / eval_every iterations
-    rec.quick_psnr = lambda: float("nan")
     sites = rec.host_syncs(20 - rec.step)
     ours = sorted(s for s in sites if "gsplat" not in s)
     assert not ours, f"host-device synchronisations in the iteration: {ours}"
