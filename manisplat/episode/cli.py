@@ -10,6 +10,7 @@ import argparse
 import logging
 import sys
 from pathlib import Path
+from typing import Any
 
 from manisplat.cli_args import (add_version, bounded, finite_numbers, non_negative, pinhole_intrinsics,
                                 positive)
@@ -140,7 +141,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
         if args.format == "lerobot":
             return _export_lerobot(args)
         return _export_act(args)
-    except ExportDestinationError as exc:  # a usage error, like the other commands' --out checks
+    except (ExportDestinationError, ValueError) as exc:  # usage errors: --out, --camera, --image-key
         print(f"manisplat-episode export: error: {exc}", file=sys.stderr)
         return ExitCode.BAD_INPUT
 
@@ -158,8 +159,9 @@ def _export_lerobot(args: argparse.Namespace) -> int:
         print(f"\ninterrupted: nothing was written to {args.out} (the partial dataset beside it was removed)",
               file=sys.stderr)
         return ExitCode.INTERRUPTED
-    print(f"exported {result.episodes} episodes ({result.frames} frames, {result.augmented} augmented) as a "
-          f"LeRobot v3.0 dataset at {result.path} ({result.data_files} data and {result.video_files} video files); "
+    print(f"exported {result.episodes} episodes ({result.frames} frames, {result.augmented} augmented; cameras "
+          f"{', '.join(result.cameras)}) as a LeRobot v3.0 dataset at {result.path} ({result.data_files} data and "
+          f"{result.video_files} video files); "
           f"provenance in {result.path}/meta/augmentation.json")
     return ExitCode.OK
 
@@ -168,7 +170,7 @@ def _export_act(args: argparse.Namespace) -> int:
     from manisplat.episode.exporters.act_hdf5 import DEFAULT_JPEG_QUALITY, export_act_hdf5
 
     try:
-        entries = export_act_hdf5(args.episodes, args.out, camera=args.camera, image_key=args.image_key,
+        entries = export_act_hdf5(args.episodes, args.out, camera=args.camera, image_key=_image_keys(args.image_key),
                                   compress=args.compress,
                                   jpeg_quality=DEFAULT_JPEG_QUALITY if args.jpeg_quality is None else args.jpeg_quality,
                                   dtype="float64" if args.float64 else "float32", fps=args.fps,
@@ -184,19 +186,66 @@ def _export_act(args: argparse.Namespace) -> int:
     return ExitCode.OK
 
 
+def _image_keys(given: list[str] | None) -> str | dict[str, str] | None:
+    """``--image-key`` values: one plain KEY, or CAMERA=KEY pairs."""
+    if not given or (len(given) == 1 and "=" not in given[0]):
+        return given[0] if given else None
+    if not all("=" in g for g in given):
+        raise ValueError(f"--image-key: give one KEY, or CAMERA=KEY for each camera to rename; got {given}")
+    return dict(g.split("=", 1) for g in given)
+
+
 def _cmd_import_lerobot(args: argparse.Namespace) -> int:
+    if args.calib is not None:
+        return _import_lerobot_arms(args)
+    missing = [o for o, v in (("--camera", args.camera), ("--K", args.K)) if v is None]
+    if missing:
+        print(f"manisplat-episode import-lerobot: error: a one-arm import needs {' and '.join(missing)} (a LeRobot "
+              "dataset stores no intrinsics); or import every arm and camera with --calib FILE.calib.json --units "
+              "JOINT,GRIPPER", file=sys.stderr)
+        return ExitCode.BAD_INPUT
     import numpy as np
 
     from manisplat.episode.importers.lerobot import import_lerobot
 
     fx, fy, cx, cy = args.K
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    episode = import_lerobot(args.dataset, args.out, episode=args.episode, camera=args.camera, K=K, arm=args.arm,
-                             gripper_scale=args.gripper_scale, dist=args.dist, mount=args.mount,
-                             robot_description=args.robot_description, image_format=args.image_format,
-                             overwrite=args.overwrite)
+    episode = import_lerobot(args.dataset, args.out, episode=args.episode, camera=args.camera, K=K,
+                             arm=args.arm or "single",
+                             units=args.units, gripper_scale=args.gripper_scale, dist=args.dist or [],
+                             mount=args.mount or "base",
+                             robot_description=args.robot_description or "builtin:agilex_piper",
+                             image_format=args.image_format, overwrite=args.overwrite)
     print(f"imported episode {args.episode} ({len(episode)} frames) of {args.dataset} into {episode.path}")
     return ExitCode.OK
+
+
+def _import_lerobot_arms(args: argparse.Namespace) -> int:
+    one_arm = [o for o, v in (("--camera", args.camera), ("--K", args.K), ("--arm", args.arm), ("--dist", args.dist),
+                              ("--mount", args.mount), ("--robot-description", args.robot_description))
+               if v is not None]
+    if one_arm:
+        print(f"manisplat-episode import-lerobot: error: --calib imports every arm and camera (format version 2); "
+              f"{', '.join(one_arm)} belong to a one-arm import (without --calib)", file=sys.stderr)
+        return ExitCode.BAD_INPUT
+    from manisplat.episode.importers.lerobot_arms import import_lerobot_arms
+
+    episode = import_lerobot_arms(args.dataset, args.out, args.calib, episode=args.episode, units=args.units,
+                                  gripper_scale=args.gripper_scale, image_format=args.image_format,
+                                  overwrite=args.overwrite)
+    print(f"imported episode {args.episode} ({len(episode)} frames) of {args.dataset}: arms "
+          f"{', '.join(episode.arms)}, cameras {', '.join(episode.cameras)} into {episode.path} (format version 2)")
+    return ExitCode.OK
+
+
+def _units(text: str) -> Any:
+    """argparse type of ``--units``."""
+    from manisplat.episode.importers.units import parse_units
+
+    try:
+        return parse_units(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _cmd_sample(args: argparse.Namespace) -> int:
@@ -332,18 +381,22 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("export", help="write episodes as a LeRobot v3.0 dataset or ACT / Cobot Magic HDF5 files",
                        description="Write EPISODES, in the order given, as one dataset a policy learner reads, "
                                    "streaming one frame at a time. Everything is checked before anything is "
-                                   "written: every episode complete, one camera and image size, every image "
-                                   "present. State and action are 7-D [q1..q6 rad, gripper m]; the action is the "
-                                   "episode's a1..a6,a_gripper, or without them the next frame's state. "
+                                   "written: every episode complete, the same arms and cameras, one image size "
+                                   "per camera, every image present. State and action are 7-D per arm [q1..q6 rad, "
+                                   "gripper m], arm after arm in the episode's order (a Cobot Magic import: left, "
+                                   "right, 14-D); the action is each arm's a1..a6,a_gripper, or without them the "
+                                   "next frame's state. Every camera is exported (or those --camera names). "
                                    "--format lerobot: a LeRobot v3.0 dataset in OUT (meta/info.json, stats.json, "
                                    "tasks.parquet, episodes/, data/*.parquet, videos/observation.images.<camera>/"
-                                   "*.mp4, depth as a uint16 mm column depth.<camera>), written beside OUT and "
+                                   "*.mp4 per camera, depth as a uint16 mm column depth.<camera>), written beside OUT and "
                                    "renamed into place when complete; read it with LeRobotDataset(repo_id, "
                                    "root=OUT, video_backend='pyav') and back with import-lerobot. "
-                                   "--format act-hdf5: OUT/episode_0.hdf5, ... (ACT / ALOHA layout, one arm: "
-                                   "/observations/qpos and qvel (T, 7), /observations/images/<camera>, /action "
-                                   "(T, 7), attributes sim, compress, fps), written beside OUT and moved into it when complete; "
-                                   "read back with `import-act FILE --arm single --camera NAME`. Both write "
+                                   "--format act-hdf5: OUT/episode_0.hdf5, ... (ACT / ALOHA / Cobot Magic layout: "
+                                   "/observations/qpos and qvel (T, 7 per arm), /observations/images/<camera> per "
+                                   "camera, /action (T, 7 per arm), attributes sim, compress, fps), written beside "
+                                   "OUT and moved into it when complete; read back with `import-act FILE --arm "
+                                   "single --camera NAME` (one arm) or `import-act FILE --calib FILE.calib.json` "
+                                   "(two). Both write "
                                    "augmentation.json (LeRobot: meta/augmentation.json) naming each episode's "
                                    "source and, for augmented ones, their parent. Exit status: 0 done, 2 bad "
                                    "arguments or input (a non-empty --out without --overwrite included), "
@@ -352,7 +405,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--format", choices=EXPORT_FORMATS, required=True, help="output layout (required)")
     p.add_argument("--out", type=Path, required=True,
                    help="output folder (required): created; must be new or empty unless --overwrite")
-    p.add_argument("--camera", help="the camera every episode must have (default: the first episode's camera)")
+    p.add_argument("--camera", action="append", metavar="NAME",
+                   help="a camera to export, which every episode must have; repeat for several (default: every "
+                        "camera of the first episode)")
     p.add_argument("--float64", action="store_true",
                    help="store state/qpos, qvel and action as float64, so joints round-trip bit-exact (default: "
                         "off, float32 as LeRobot, ACT and Cobot Magic expect: ACT's training code fails on float64)")
@@ -374,9 +429,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--crf", type=bounded(0, 63, kind=int),
                    help="video quality, lower is better and larger (default: 30, as LeRobot)")
     g = p.add_argument_group("act-hdf5 only")
-    g.add_argument("--image-key", type=_dataset_name, metavar="KEY",
-                   help="dataset name under /observations/images, e.g. cam_high to match an ACT task config "
-                        "(default: the camera name)")
+    g.add_argument("--image-key", type=_dataset_name, action="append", metavar="[CAMERA=]KEY",
+                   help="dataset name under /observations/images, e.g. cam_high to match an ACT task config: KEY "
+                        "when one camera is exported, else CAMERA=KEY, repeated (default: the camera names)")
     g.add_argument("--compress", action="store_true",
                    help="store JPEG bytes padded to the longest frame plus /compress_len, attribute "
                         "compress=True, as ALOHA's recorder does (default: off, raw (T, H, W, 3) uint8 RGB)")
@@ -392,18 +447,35 @@ def build_parser() -> argparse.ArgumentParser:
                                    "matched to rows by timestamp (LeRobot's 1e-4 s tolerance); depth.<camera> "
                                    "(uint16 mm) when present; t = frame_index / fps. Joints are read as stored, so "
                                    "an export comes back bit-exact. The dataset holds no intrinsics: --K is "
-                                   "required. Exit status: 0 done, 2 bad arguments or input.")
+                                   "required. With --calib FILE.calib.json --units JOINT,GRIPPER: every arm "
+                                   "(the calibration's state columns, default left 0-6, right 7-13 of a 14-D "
+                                   "state) and every observation.images.<camera> as a format version 2 episode; "
+                                   "the units are required there, because PiPER plugins store degrees/mm, "
+                                   "radians/metres or normalised values under the same names "
+                                   "(docs/cobot-magic.md). Exit status: 0 done, 2 bad arguments or input.")
     p.add_argument("dataset", type=Path, metavar="DATASET_DIR", help="the LeRobot dataset folder")
     p.add_argument("--episode", type=non_negative(int), required=True, metavar="I",
                    help="episode_index to import (required)")
-    p.add_argument("--camera", required=True, metavar="KEY",
-                   help="video feature, e.g. observation.images.cam_high, or just its camera name (required)")
-    p.add_argument("--K", type=pinhole_intrinsics(), required=True, metavar="fx,fy,cx,cy",
-                   help="camera intrinsics in pixels (required: LeRobot datasets store none)")
     p.add_argument("--out", type=Path, required=True, help="episode folder to create (required)")
-    p.add_argument("--arm", choices=ACT_ARMS, default="single",
-                   help="'single' for 7-D state, or which arm of a 14-D dual-arm state (default: %(default)s)")
-    _add_import_options(p, "dataset")
+    p.add_argument("--calib", type=Path, metavar="FILE.calib.json",
+                   help="import every arm and every observation.images.<camera> as a format version 2 episode, "
+                        "with this Cobot Magic calibration (per camera K, mount, T_mount_cam; per arm "
+                        "T_world_base, robot description, state columns; docs/cobot-magic.md); needs --units "
+                        "(default: none, a one-arm import)")
+    p.add_argument("--units", type=_units, metavar="JOINT,GRIPPER",
+                   help="units of the stored joints and gripper: rad,m (ManiSplat's export), deg,mm, deg,m or "
+                        "rad,mm; values normalised to +-100 are refused (required with --calib; default without "
+                        "it: rad,m)")
+    p.add_argument("--camera", metavar="KEY",
+                   help="one-arm import: video feature, e.g. observation.images.cam_high, or just its camera name "
+                        "(required there; default: none)")
+    p.add_argument("--K", type=pinhole_intrinsics(), metavar="fx,fy,cx,cy",
+                   help="one-arm import: camera intrinsics in pixels (required there: LeRobot datasets store none; "
+                        "default: none)")
+    p.add_argument("--arm", choices=ACT_ARMS,
+                   help="one-arm import: 'single' for 7-D state, or which arm of a 14-D dual-arm state "
+                        "(default: single)")
+    _add_import_options(p, "dataset", one_arm_only=True)
     p.add_argument("--image-format", choices=("png", "jpg"), default="png",
                    help="rgb file format (default: %(default)s)")
     p.add_argument("--overwrite", action="store_true",

@@ -213,9 +213,9 @@ def test_files_reach_out_only_when_all_are_written(sample, tmp_path, monkeypatch
     out, seen = tmp_path / "out", []
     rgb = Episode.rgb
 
-    def spy(self, i):
+    def spy(self, i, camera=None):
         seen.append(out.exists())
-        return rgb(self, i)
+        return rgb(self, i, camera)
 
     monkeypatch.setattr(Episode, "rgb", spy)
     export_act_hdf5([sample, sample], out)

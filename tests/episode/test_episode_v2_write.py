@@ -193,8 +193,8 @@ def test_sigkill_mid_episode_keeps_every_reported_frame_of_every_camera(tmp_path
 
 
 def test_one_arm_one_camera_v2_exports_like_version_1(tmp_path):
-    """The one-arm tools read a version 2 episode with one arm and one camera: the ACT exporter
-    finds its images in rgb/<camera>/ and its joints in <arm>.q1...; a two-arm one is refused."""
+    """A version 2 episode with one arm and one camera exports as version 1 does: the ACT exporter
+    finds its images in rgb/<camera>/ and its joints in <arm>.q1... (two arms: test_export_arms.py)."""
     from manisplat.episode.exporters.act_hdf5 import export_act_hdf5
     from manisplat.episode.importers.act_hdf5 import import_act_hdf5
 
@@ -205,8 +205,6 @@ def test_one_arm_one_camera_v2_exports_like_version_1(tmp_path):
     ep = Episode.open(path)
     assert np.array_equal(back.frames.q, ep.frames.q) and np.array_equal(back.frames.gripper, ep.frames.gripper)
     assert all(np.array_equal(back.rgb(i), images(i, "cam_high")["rgb"]) for i in range(4))
-    with pytest.raises(ValueError, match="has arms left, right: this tool reads one-arm episodes"):
-        export_act_hdf5([write_v2(tmp_path / "two", 2)], tmp_path / "act2")
 
 
 def test_set_robot_of_one_arm(tmp_path, capsys, monkeypatch):

@@ -9,14 +9,17 @@ Layout written (``shared/reference/augmentation.md`` section 5.1; checked agains
     meta/episodes/chunk-000/file-000.parquet   one row per episode: length, tasks, data and video file
                                          indices, dataset_from/to_index, from/to_timestamp, stats/<feature>/<stat>
     meta/augmentation.json               ManiSplat's provenance side file (LeRobot ignores it)
-    data/chunk-CCC/file-FFF.parquet      one row per frame: observation.state, action (7 x float32
-                                         [q1..q6 rad, gripper m]), [depth.<camera> (H, W) uint16 mm],
+    data/chunk-CCC/file-FFF.parquet      one row per frame: observation.state, action (7 x float32 per arm,
+                                         each arm's [q1..q6 rad, gripper m] in the episode's arm order, named
+                                         q1..gripper in version 1, left.q1..left.gripper, right.q1.. in
+                                         version 2), [depth.<camera> (H, W) uint16 mm per camera with depth],
                                          timestamp (float32, frame_index / fps), frame_index, episode_index,
                                          index, task_index (int64)
-    videos/observation.images.<camera>/chunk-CCC/file-FFF.mp4   the RGB frames, yuv420p, one per data row
+    videos/observation.images.<camera>/chunk-CCC/file-FFF.mp4   per camera (cam_high, cam_left_wrist, ...
+                                         for a Cobot Magic episode), the RGB frames, yuv420p, one per data row
 
 Many episodes share a file; a new file starts when the next episode would push the current one past
-LeRobot's limits (100 MB of data, 200 MB of video; 1000 files per chunk). Each video file is one
+LeRobot's limits (100 MB of data, 200 MB of video per camera; 1000 files per chunk). Each video file is one
 continuous stream with frame ``n`` at ``pts = n / fps`` exactly, so an episode's
 ``from_timestamp`` is its first frame's position in the file and every query timestamp
 ``from_timestamp + frame_index / fps`` hits a frame exactly (LeRobot's tolerance is 1e-4 s).
@@ -48,11 +51,14 @@ from tqdm import tqdm
 from manisplat.episode.exporters.lerobot_files import CHUNKS_SIZE, DATA_PATH, VIDEO_PATH, DataSeries, VideoSeries
 from manisplat.episode.exporters.lerobot_stats import (DepthStats, ImageStats, aggregate_stats, as_lists,
                                                        stats_sample_indices, vector_stats)
-from manisplat.episode.exporters.sources import (ExportDestinationError, ExportSource, check_depth, export_frames,
-                                                 open_sources, state_and_action)
+from manisplat.episode.exporters.sources import (ExportDestinationError, ExportSource, check_depth, depth_cameras,
+                                                 export_cameras, export_frames, open_sources, state_and_action,
+                                                 state_names)
 from manisplat.episode.exporters.staging import replace_folder, staging_folder
 from manisplat.episode.format import EpisodeFormatError
 from manisplat.episode.fsio import atomic_write_bytes, fsync_path
+from manisplat.episode.meta import CameraInfo
+from manisplat.episode.reader import Episode
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +69,6 @@ VIDEO_FILE_SIZE_MB = 200
 EPISODES_PATH = "meta/episodes/chunk-000/file-000.parquet"
 PROVENANCE_PATH = "meta/augmentation.json"
 PROVENANCE_FORMAT = "manisplat-lerobot-export"
-JOINT_NAMES = ["q1", "q2", "q3", "q4", "q5", "q6", "gripper"]
 VIDEO_CODECS = ("libsvtav1", "h264", "hevc")
 """Encoders LeRobot's own writer offers in software; libsvtav1 (AV1) is its default."""
 DEFAULT_CRF = 30
@@ -92,6 +97,7 @@ class LeRobotExportResult:
         path: the dataset folder.
         episodes: number of episodes.
         frames: number of frames (data rows, video frames per camera).
+        cameras: the cameras exported, in order.
         augmented: how many of the episodes are augmented.
         data_files, video_files: files written per kind.
     """
@@ -102,23 +108,29 @@ class LeRobotExportResult:
     augmented: int
     data_files: int
     video_files: int
+    cameras: tuple[str, ...] = ()
 
 
 # ----------------------------------------------------------------------------------------------- layout
 
 
-def _features(camera: str, width: int, height: int, codec: str, fps: int, depth: bool, dtype: str) -> dict:
-    """``info.json`` ``features``, in LeRobot's order (user features first, then the defaults)."""
+def _features(cameras: Sequence[CameraInfo], depth: Sequence[str], names: list[str], codec: str, fps: int,
+              dtype: str) -> dict:
+    """``info.json`` ``features``, in LeRobot's order (user features first, then the defaults): state
+    and action named ``names``, a video per camera, a depth column per camera in ``depth``."""
     codec_name = av.codec.Codec(codec, "w").canonical_name  # "av1", "h264", "hevc"
-    vector = {"dtype": dtype, "shape": [7], "names": list(JOINT_NAMES)}
+    vector = {"dtype": dtype, "shape": [len(names)], "names": list(names)}
     features: dict[str, Any] = {"observation.state": dict(vector), "action": dict(vector)}
-    features[image_key(camera)] = {
-        "dtype": "video", "shape": [height, width, 3], "names": ["height", "width", "channels"],
-        "info": {"video.height": height, "video.width": width, "video.codec": codec_name,
-                 "video.pix_fmt": "yuv420p", "video.is_depth_map": False, "video.fps": fps,
-                 "video.channels": 3, "has_audio": False}}
-    if depth:
-        features[depth_key(camera)] = {"dtype": "uint16", "shape": [height, width], "names": ["height", "width"]}
+    for cam in cameras:
+        features[image_key(cam.name)] = {
+            "dtype": "video", "shape": [cam.height, cam.width, 3], "names": ["height", "width", "channels"],
+            "info": {"video.height": cam.height, "video.width": cam.width, "video.codec": codec_name,
+                     "video.pix_fmt": "yuv420p", "video.is_depth_map": False, "video.fps": fps,
+                     "video.channels": 3, "has_audio": False}}
+    for cam in cameras:
+        if cam.name in depth:
+            features[depth_key(cam.name)] = {"dtype": "uint16", "shape": [cam.height, cam.width],
+                                             "names": ["height", "width"]}
     for name, kind in (("timestamp", "float32"), ("frame_index", "int64"), ("episode_index", "int64"),
                        ("index", "int64"), ("task_index", "int64")):
         features[name] = {"dtype": kind, "shape": [1], "names": None}
@@ -206,7 +218,7 @@ class _Writers:
     """Everything open while a dataset is written."""
 
     data: DataSeries
-    video: VideoSeries
+    videos: dict[str, VideoSeries]
     episode_rows: list[dict[str, Any]] = field(default_factory=list)
     episode_stats: list[dict[str, dict[str, np.ndarray]]] = field(default_factory=list)
     provenance: list[dict[str, Any]] = field(default_factory=list)
@@ -215,12 +227,22 @@ class _Writers:
 
     def close(self) -> None:
         self.data.close()
-        self.video.close()
+        for video in self.videos.values():
+            video.close()
+
+
+def _depth_mm(ep: Episode, i: int, camera: str) -> np.ndarray:
+    """(H, W) uint16 millimetres of frame ``i`` of ``camera`` (0 = no depth)."""
+    mm = np.round(np.nan_to_num(ep.depth(i, camera), nan=0.0, posinf=0.0) * DEPTH_MM_PER_M)
+    if mm.max(initial=0) > np.iinfo(np.uint16).max:
+        raise EpisodeFormatError(f"{ep.path}: camera {camera} frame {i}: depth beyond 65.535 m does not fit uint16 mm")
+    return mm.astype(np.uint16)
 
 
 def _write_episode(w: _Writers, src: ExportSource, frames: np.ndarray, number: int, task: str, fps: int,
-                   camera: str, depth: bool, dtype: str, bar: tqdm) -> None:
-    """Stream frames ``frames`` of one episode into the data and video files; record its row and stats."""
+                   depth: Sequence[str], dtype: str, bar: tqdm) -> None:
+    """Stream frames ``frames`` of one episode into the data file and each camera's video file (depth
+    columns for the cameras in ``depth``); record its row and stats."""
     ep = src.episode
     length = len(frames)
     state, action, recorded = state_and_action(ep, frames)
@@ -228,54 +250,53 @@ def _write_episode(w: _Writers, src: ExportSource, frames: np.ndarray, number: i
     state, action = state.astype(dtype), action.astype(dtype)
     task_index = w.tasks.setdefault(task, len(w.tasks))
     data_chunk, data_file = w.data.begin_episode(length)
-    video_chunk, video_file, from_ts = w.video.begin_episode(length)
+    video_rows = {camera: video.begin_episode(length) for camera, video in w.videos.items()}
     first_index = w.frames
     timestamps = (np.arange(length) / fps).astype(np.float32)
     columns = {"timestamp": timestamps, "frame_index": np.arange(length), "episode_index": np.full(length, number),
                "index": first_index + np.arange(length), "task_index": np.full(length, task_index)}
     sampled = set(stats_sample_indices(length).tolist())
-    image_stats, depth_stats = ImageStats(), DepthStats()
-    depth_batch: list[np.ndarray] = []
+    image_stats = {camera: ImageStats() for camera in w.videos}
+    depth_stats = {camera: DepthStats() for camera in depth}
+    depth_batch: dict[str, list[np.ndarray]] = {camera: [] for camera in depth}
     start = 0
     for k, i in enumerate(frames):
-        rgb = ep.rgb(int(i))
-        w.video.write(rgb)
-        if k in sampled:
-            image_stats.add(rgb)
-        if depth:
-            metres = ep.depth(int(i))
-            mm = np.round(np.nan_to_num(metres, nan=0.0, posinf=0.0) * DEPTH_MM_PER_M)
-            if mm.max(initial=0) > np.iinfo(np.uint16).max:
-                raise EpisodeFormatError(f"{ep.path}: frame {i}: depth beyond 65.535 m does not fit uint16 mm")
-            mm = mm.astype(np.uint16)
-            depth_batch.append(mm)
+        for camera, video in w.videos.items():
+            rgb = ep.rgb(int(i), camera)
+            video.write(rgb)
             if k in sampled:
-                depth_stats.add(mm)
+                image_stats[camera].add(rgb)
+        for camera in depth:
+            mm = _depth_mm(ep, int(i), camera)
+            depth_batch[camera].append(mm)
+            if k in sampled:
+                depth_stats[camera].add(mm)
         if k + 1 - start == ROWS_PER_BATCH or k + 1 == length:
             rows = slice(start, k + 1)
             arrays = {"observation.state": _fixed_column(state[rows], dtype),
                       "action": _fixed_column(action[rows], dtype)}
-            if depth:
-                arrays[depth_key(camera)] = _depth_column(depth_batch)
-                depth_batch = []
+            for camera in depth:
+                arrays[depth_key(camera)] = _depth_column(depth_batch[camera])
+                depth_batch[camera] = []
             arrays.update({name: pa.array(values[rows]) for name, values in columns.items()})
             w.data.write(pa.Table.from_arrays([arrays[f.name] for f in w.data.schema],
                                               schema=w.data.schema))
             start = k + 1
         bar.update(1)
     stats = {"observation.state": vector_stats(state), "action": vector_stats(action),
-             image_key(camera): image_stats.result()}
-    if depth:
-        stats[depth_key(camera)] = depth_stats.result()
+             **{image_key(camera): s.result() for camera, s in image_stats.items()},
+             **{depth_key(camera): s.result() for camera, s in depth_stats.items()}}
     stats.update({name: vector_stats(values) for name, values in columns.items()})
     w.episode_stats.append(stats)
-    key = image_key(camera)
     row: dict[str, Any] = {
         "episode_index": number, "tasks": [task], "length": length,
         "data/chunk_index": data_chunk, "data/file_index": data_file,
-        "dataset_from_index": first_index, "dataset_to_index": first_index + length,
-        f"videos/{key}/chunk_index": video_chunk, f"videos/{key}/file_index": video_file,
-        f"videos/{key}/from_timestamp": from_ts, f"videos/{key}/to_timestamp": w.video.end_timestamp()}
+        "dataset_from_index": first_index, "dataset_to_index": first_index + length}
+    for camera, (video_chunk, video_file, from_ts) in video_rows.items():
+        key = image_key(camera)
+        row.update({f"videos/{key}/chunk_index": video_chunk, f"videos/{key}/file_index": video_file,
+                    f"videos/{key}/from_timestamp": from_ts,
+                    f"videos/{key}/to_timestamp": w.videos[camera].end_timestamp()})
     for feature, values in stats.items():
         for name, value in values.items():
             row[f"stats/{feature}/{name}"] = value.tolist()
@@ -323,17 +344,18 @@ def _fsync_tree(root: Path) -> None:
 
 
 def export_lerobot(episodes: Sequence[str | Path], out_dir: str | Path, *, task: str | None = None,
-                   fps: int | None = None, camera: str | None = None, depth: bool | None = None,
+                   fps: int | None = None, camera: str | Sequence[str] | None = None, depth: bool | None = None,
                    codec: str = "libsvtav1", crf: int = DEFAULT_CRF, gop: int = DEFAULT_GOP, dtype: str = "float32",
                    overwrite: bool = False, progress: bool = False, data_file_size_mb: float = DATA_FILE_SIZE_MB,
                    video_file_size_mb: float = VIDEO_FILE_SIZE_MB) -> LeRobotExportResult:
     """Write ``episodes`` as one LeRobot v3.0 dataset at ``out_dir``, episode ``n`` being the n-th given.
 
-    Everything is checked before anything is written (complete episodes, one camera and image
-    size, every image present, a task and a whole-number fps). Frames stream one at a time into the
-    video encoder and in batches of ``ROWS_PER_BATCH`` rows into the parquet files, so memory does
-    not grow with the number of episodes. ``observation.state`` is the recorded q1..q6 and gripper
-    gap; ``action`` the episode's commanded a1..a6, a_gripper, or without them the next frame's state.
+    Everything is checked before anything is written (complete episodes, the same arms and cameras,
+    one image size per camera, every image present, a task and a whole-number fps). Frames stream
+    one at a time into each camera's video encoder and in batches of ``ROWS_PER_BATCH`` rows into
+    the parquet files, so memory does not grow with the number of episodes. ``observation.state``
+    is each arm's recorded q1..q6 and gripper gap, arm after arm in the episode's order; ``action``
+    each arm's commanded a1..a6, a_gripper, or without them the next frame's state.
 
     Args:
         episodes: episode folders.
@@ -341,8 +363,10 @@ def export_lerobot(episodes: Sequence[str | Path], out_dir: str | Path, *, task:
         task: task description for every episode (default: each episode.json's ``task``).
         fps: dataset rate in Hz (default: the episodes' rate, which must then be one whole number);
             episodes recorded faster are resampled to the frame nearest each ``1/fps`` step.
-        camera: the camera every episode must have (default: the first episode's).
-        depth: export depth as ``depth.<camera>`` (default: when any episode has depth; then all must).
+        camera: the camera or cameras to export, one ``observation.images.<camera>`` video each,
+            which every episode must have (default: every camera of the first episode).
+        depth: export depth as ``depth.<camera>`` for each camera with depth images in any episode
+            (then every episode must have them); default: when there are any; False: none.
         codec: ``libsvtav1`` (LeRobot's default), ``h264`` or ``hevc``.
         crf: encoder quality (lower is better and larger; LeRobot uses 30).
         gop: keyframe interval in frames (LeRobot uses 2).
@@ -362,29 +386,32 @@ def export_lerobot(episodes: Sequence[str | Path], out_dir: str | Path, *, task:
         raise ValueError(f"crf must be in 0..63 and gop >= 1; got crf={crf}, gop={gop}")
     out_dir = Path(out_dir)
     check_destination(out_dir, overwrite)
-    sources = open_sources(episodes, camera, "LeRobot", same_fps=False)
-    if depth is None:
-        depth = any(s.episode.has_depth for s in sources)
-    if depth:
-        check_depth(sources)
+    sources = open_sources(episodes, "LeRobot", same_fps=False)
+    cameras = export_cameras(sources, camera, "LeRobot")
+    names = [c.name for c in cameras]
+    with_depth = depth_cameras(sources, names) if depth is None or depth else []
+    if depth and not with_depth:
+        raise EpisodeFormatError(f"depth asked for, but no episode has depth images from {', '.join(names)}")
+    check_depth(sources, with_depth)
     rate = _episode_fps(sources, fps)
     tasks = [_task_of(s, task) for s in sources]
-    cam = sources[0].episode.camera
-    if cam.width % 2 or cam.height % 2:
-        raise EpisodeFormatError(f"{cam.width}x{cam.height} images: yuv420p video needs an even width and height")
+    for cam in cameras:
+        if cam.width % 2 or cam.height % 2:
+            raise EpisodeFormatError(f"camera {cam.name}: {cam.width}x{cam.height} images: yuv420p video needs an "
+                                     "even width and height")
     frames = [export_frames(src.episode, rate) for src in sources]  # raises now, before anything is written
-    features = _features(cam.name, cam.width, cam.height, codec, rate, depth, dtype)
+    features = _features(cameras, with_depth, state_names(sources[0].episode), codec, rate, dtype)
     staging = staging_folder(out_dir)
     writers = _Writers(DataSeries(staging, _schema(features), data_file_size_mb * 1024 ** 2),
-                       VideoSeries(staging, image_key(cam.name), codec, rate, cam.width, cam.height, crf, gop,
-                                    video_file_size_mb * 1024 ** 2))
-    settings = {"fps": rate, "camera": cam.name, "codec": codec, "crf": crf, "gop": gop, "depth": depth,
-                "dtype": dtype}
+                       {cam.name: VideoSeries(staging, image_key(cam.name), codec, rate, cam.width, cam.height, crf,
+                                              gop, video_file_size_mb * 1024 ** 2) for cam in cameras})
+    settings = {"fps": rate, "cameras": names, "codec": codec, "crf": crf, "gop": gop, "depth": bool(with_depth),
+                "depth_cameras": with_depth, "dtype": dtype}
     try:
         total = sum(len(f) for f in frames)
         with tqdm(total=total, desc="export lerobot", unit="frame", disable=not progress) as bar:
             for number, (src, chosen, text) in enumerate(zip(sources, frames, tasks)):
-                _write_episode(writers, src, chosen, number, text, rate, cam.name, depth, dtype, bar)
+                _write_episode(writers, src, chosen, number, text, rate, with_depth, dtype, bar)
         writers.close()
         _write_metadata(staging, writers, features, rate, settings)
         _fsync_tree(staging)
@@ -397,4 +424,4 @@ def export_lerobot(episodes: Sequence[str | Path], out_dir: str | Path, *, task:
     log.info("exported %d episodes (%d frames, %d augmented) as a LeRobot dataset at %s", len(sources),
              writers.frames, augmented, out_dir)
     return LeRobotExportResult(out_dir, len(sources), writers.frames, augmented, writers.data.files,
-                               writers.video.files)
+                               sum(video.files for video in writers.videos.values()), tuple(names))

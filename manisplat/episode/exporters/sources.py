@@ -1,17 +1,19 @@
 """What every exporter checks before it writes: the episodes open, are complete, and can share one
-dataset (one camera, one fps, one image size, every image present); and where each came from."""
+dataset (the same arms, the same cameras at one image size each, one fps, every image present);
+where each came from; and their state and action as one vector over every arm."""
 
 from __future__ import annotations
 
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from manisplat.episode.format import DEPTH_DIR, RGB_DIR, EpisodeFormatError
 from manisplat.episode.images import find_image
+from manisplat.episode.meta import CameraInfo
 from manisplat.episode.reader import Episode
 
 PROVENANCE_FILE = "augmentation.json"
@@ -76,19 +78,22 @@ def _missing_frames(folder: Path, count: int) -> list[int]:
     return [i for i in range(count) if find_image(folder, i) is None]
 
 
-def open_sources(episodes: Sequence[str | Path], camera: str | None, layout: str, *,
-                 same_fps: bool = True) -> list[ExportSource]:
-    """Open every episode and check that they can share one export; raises before anything is written.
+def _listing(sources: Sequence[ExportSource], value: Callable[[Episode], str]) -> str:
+    return ", ".join(f"{s.episode.path.name} {value(s.episode)}" for s in sources)
+
+
+def open_sources(episodes: Sequence[str | Path], layout: str, *, same_fps: bool = True) -> list[ExportSource]:
+    """Open every episode and check that they can share one export: complete, not empty, the same
+    arms in the same order (so that state and action columns mean one thing), one fps (with
+    ``same_fps``); raises before anything is written.
 
     Args:
         episodes: episode folders.
-        camera: the camera every episode must have (None: the first episode's).
         layout: the export's name, for messages ("ACT", "LeRobot").
         same_fps: require one fps for all (False when the exporter checks rates itself).
 
     Raises:
-        EpisodeFormatError: an episode is incomplete, empty, has another camera, fps or image size, or
-            lacks an image.
+        EpisodeFormatError: an episode is incomplete or empty, or the episodes differ in arms or fps.
     """
     if not episodes:
         raise ValueError("no episodes to export")
@@ -101,40 +106,68 @@ def open_sources(episodes: Sequence[str | Path], camera: str | None, layout: str
         if len(ep) == 0:
             raise EpisodeFormatError(f"{ep.path}: no frames")
         sources.append(ExportSource(ep, *_parent_of(ep)))
-    fps = {src.episode.meta.fps for src in sources}
-    if same_fps and len(fps) > 1:
-        listing = ", ".join(f"{s.episode.path.name} {s.episode.meta.fps:g}" for s in sources)
+    if len({tuple(s.episode.arms) for s in sources}) > 1:
+        raise EpisodeFormatError(f"episodes with different arms cannot share one {layout} export (the state and "
+                                 f"action columns must mean the same joints): "
+                                 f"{_listing(sources, lambda ep: ', '.join(ep.arms))}")
+    if same_fps and len({src.episode.meta.fps for src in sources}) > 1:
         raise EpisodeFormatError(f"episodes of different fps cannot share one {layout} export (one control "
-                                 f"rate per dataset): {listing}")
-    sizes = {(s.episode.camera.width, s.episode.camera.height) for s in sources}
-    if len(sizes) > 1:
-        listing = ", ".join(f"{s.episode.path.name} {s.episode.camera.width}x{s.episode.camera.height}"
-                            for s in sources)
-        raise EpisodeFormatError(f"episodes of different image sizes cannot share one {layout} export: {listing}")
-    camera = sources[0].episode.camera.name if camera is None else camera
-    for src in sources:
-        ep = src.episode
-        if ep.camera.name != camera:
-            raise EpisodeFormatError(f"{ep.path}: no camera {camera!r}; the episode's camera is "
-                                     f"{ep.camera.name!r} (every episode of one export needs the same camera)")
-        rgb = ep.path / ep.layout.cameras[0].folder(RGB_DIR)  # rgb/, or rgb/<camera>/ in version 2
-        missing = _missing_frames(rgb, len(ep))
-        if missing:
-            raise EpisodeFormatError(f"{rgb}: no image for {len(missing)} of {len(ep)} frames "
-                                     f"(first: frame {missing[0]})")
+                                 f"rate per dataset): {_listing(sources, lambda ep: f'{ep.meta.fps:g}')}")
     return sources
 
 
-def check_depth(sources: Sequence[ExportSource]) -> None:
-    """Raise :class:`EpisodeFormatError` unless every frame of every episode has a depth image."""
-    for src in sources:
-        ep = src.episode
-        depth = ep.path / ep.layout.cameras[0].folder(DEPTH_DIR)  # depth/, or depth/<camera>/ in version 2
-        missing = _missing_frames(depth, len(ep)) if ep.has_depth else list(range(len(ep)))
-        if missing:
-            raise EpisodeFormatError(f"{depth}: no depth for {len(missing)} of {len(ep)} frames "
-                                     f"(first: frame {missing[0]}); export without depth (--no-depth) or drop "
-                                     "this episode")
+def export_cameras(sources: Sequence[ExportSource], cameras: str | Sequence[str] | None,
+                   layout: str) -> list[CameraInfo]:
+    """The cameras to export, as the first episode describes them: ``cameras`` (one name or several),
+    or every camera of the first episode; each episode must have each of them at one image size,
+    with an image for every frame.
+
+    Raises:
+        EpisodeFormatError: an episode lacks one of the cameras, has it at another size, or lacks an image.
+    """
+    names = list(sources[0].episode.cameras) if cameras is None else (
+        [cameras] if isinstance(cameras, str) else list(cameras))
+    if not names or len(set(names)) != len(names):
+        raise ValueError(f"cameras must be distinct names; got {names}")
+    for k, name in enumerate(names):
+        def size(ep: Episode) -> str:  # of the camera of that name, else at that place (a size differs first)
+            cam = ep.cameras.get(name) or list(ep.cameras.values())[min(k, len(ep.cameras) - 1)]
+            return f"{cam.width}x{cam.height}"
+        if len({size(s.episode) for s in sources}) > 1:
+            raise EpisodeFormatError(f"episodes of different image sizes cannot share one {layout} export "
+                                     f"(camera {name}): {_listing(sources, size)}")
+        for src in sources:
+            ep = src.episode
+            if name not in ep.cameras:
+                have = ", ".join(repr(c) for c in ep.cameras)
+                raise EpisodeFormatError(f"{ep.path}: no camera {name!r}; the episode's camera"
+                                         f"{'s are' if len(ep.cameras) > 1 else ' is'} {have} (every episode of "
+                                         "one export needs the same cameras)")
+            rgb = ep.path / ep.layout.camera(name).folder(RGB_DIR)  # rgb/, or rgb/<camera>/ in version 2
+            missing = _missing_frames(rgb, len(ep))
+            if missing:
+                raise EpisodeFormatError(f"{rgb}: no image for {len(missing)} of {len(ep)} frames "
+                                         f"(first: frame {missing[0]})")
+    return [sources[0].episode.cameras[name] for name in names]
+
+
+def depth_cameras(sources: Sequence[ExportSource], cameras: Sequence[str]) -> list[str]:
+    """Those of ``cameras`` that have depth images in any of the episodes."""
+    return [c for c in cameras if any(s.episode.has_images(DEPTH_DIR, c) for s in sources)]
+
+
+def check_depth(sources: Sequence[ExportSource], cameras: Sequence[str]) -> None:
+    """Raise :class:`EpisodeFormatError` unless every frame of every episode has a depth image from
+    each of ``cameras``."""
+    for camera in cameras:
+        for src in sources:
+            ep = src.episode
+            depth = ep.path / ep.layout.camera(camera).folder(DEPTH_DIR)  # depth/, or depth/<camera>/
+            missing = _missing_frames(depth, len(ep)) if ep.has_images(DEPTH_DIR, camera) else list(range(len(ep)))
+            if missing:
+                raise EpisodeFormatError(f"{depth}: no depth for {len(missing)} of {len(ep)} frames "
+                                         f"(first: frame {missing[0]}); export without depth (--no-depth) or drop "
+                                         "this episode")
 
 
 def resample_indices(t: np.ndarray, fps: float) -> np.ndarray:
@@ -175,17 +208,29 @@ def export_frames(episode: Episode, fps: float) -> np.ndarray:
         raise EpisodeFormatError(f"{episode.path}: recorded at {episode.meta.fps:g} fps, below the export's {fps:g} "
                                  "fps (frames would repeat); pass a lower --fps")
     try:
-        return resample_indices(episode.frames.t, fps)
+        return resample_indices(frame_times(episode), fps)
     except ValueError as exc:
         raise EpisodeFormatError(f"{episode.path}: {exc}") from exc
 
 
+def frame_times(episode: Episode) -> np.ndarray:
+    """(T,) float64 seconds: ``frames.csv`` ``t``, which every arm's table shares."""
+    return episode.arm_frames(next(iter(episode.arms))).t
+
+
+def state_names(episode: Episode) -> list[str]:
+    """Names of the state and action columns: every arm's ``frames.csv`` state columns in the
+    episode's arm order (version 1: ``q1..q6, gripper``; version 2: ``left.q1..left.gripper, right.q1..``)."""
+    return [c for arm in episode.layout.arms for c in arm.state]
+
+
 def state_and_action(episode: Episode, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
-    """(state [K, 7], action [K, 7], recorded) at ``frames``: state ``[q1..q6 rad, gripper m]``; action
-    the episode's ``a1..a6, a_gripper`` (``recorded`` True) or, without them, the next exported
-    frame's state (the last one repeated)."""
-    state = np.concatenate([episode.frames.q, episode.frames.gripper[:, None]], axis=1)[frames]
-    actions = episode.frames.actions
-    if actions is not None:
-        return state, actions[frames], True
+    """(state [K, 7 A], action [K, 7 A], recorded) at ``frames`` for the episode's A arms in order:
+    each arm's ``[q1..q6 rad, gripper m]``; action each arm's ``a1..a6, a_gripper`` (``recorded``
+    True when every arm has them) or else the next exported frame's state (the last one repeated)."""
+    tables = [episode.arm_frames(arm) for arm in episode.arms]
+    state = np.concatenate([np.column_stack([f.q, f.gripper]) for f in tables], axis=1)[frames]
+    actions = [f.actions for f in tables]
+    if all(a is not None for a in actions):
+        return state, np.concatenate(actions, axis=1)[frames], True
     return state, np.concatenate([state[1:], state[-1:]], axis=0), False

@@ -23,6 +23,7 @@ import pyarrow.parquet as pq
 from manisplat.episode.exporters.lerobot import depth_key, image_key
 from manisplat.episode.format import ACTION_COLUMNS, EpisodeFormatError
 from manisplat.episode.importers.act_hdf5 import ARM_COLUMNS
+from manisplat.episode.importers.units import Units, unit_problems
 from manisplat.episode.meta import CameraInfo, RobotInfo
 from manisplat.episode.reader import Episode
 from manisplat.episode.writer import EpisodeWriter
@@ -129,7 +130,8 @@ def _depth_frames(path: Path, key: str, episode: int, count: int) -> Iterator[np
 
 
 def import_lerobot(dataset_dir: str | Path, out_dir: str | Path, *, episode: int, camera: str, K: Any = None,
-                   arm: str = "single", gripper_scale: float = 1.0, dist: Any = (), mount: str = "base",
+                   arm: str = "single", units: Units | None = None, gripper_scale: float = 1.0, dist: Any = (),
+                   mount: str = "base",
                    robot_description: str = "builtin:agilex_piper", image_format: str = "png",
                    overwrite: bool = False) -> Episode:
     """Convert episode ``episode`` of a LeRobot v3.0 dataset into an episode folder.
@@ -147,6 +149,8 @@ def import_lerobot(dataset_dir: str | Path, out_dir: str | Path, *, episode: int
         camera: the video feature (``observation.images.cam_high``) or its camera name (``cam_high``).
         K: (3, 3) intrinsics in pixels, required: LeRobot datasets store none; or a :class:`CameraInfo`.
         arm: ``"single"`` for 7-D state/action, ``"left"``/``"right"`` for a 14-D dual-arm layout.
+        units: the stored joint and gripper units (default: radians and metres, as ManiSplat exports);
+            values that cannot be in them are refused.
         gripper_scale: factor from the dataset's gripper value to the finger-pad gap in metres.
         dist, mount: distortion coefficients and mount (when K is an array).
         robot_description: ``episode.json`` ``robot.description``.
@@ -188,8 +192,13 @@ def import_lerobot(dataset_dir: str | Path, out_dir: str | Path, *, episode: int
     if table.num_rows != length or not np.array_equal(frame_index, np.arange(length)):
         raise EpisodeFormatError(f"{data_path}: episode {episode} has {table.num_rows} rows with frame_index "
                                  f"not 0..{length - 1} in order (meta/episodes says length {length})")
-    scale = np.array([1.0] * 6 + [gripper_scale])
-    state = np.asarray(table.column("observation.state").to_pylist(), dtype=np.float64)[:, columns] * scale
+    scale = (Units("rad", "m") if units is None else units).scale() * np.array([1.0] * 6 + [gripper_scale])
+    state = np.asarray(table.column("observation.state").to_pylist(), dtype=np.float64)[:, columns]
+    problems = [] if units is None else unit_problems(state, units, f"arm {arm}")
+    if problems:
+        raise EpisodeFormatError(f"{root}: observation.state is not in the declared units {units}: "
+                                 + "; ".join(problems))
+    state = state * scale
     action = (np.asarray(table.column("action").to_pylist(), dtype=np.float64)[:, columns] * scale
               if has_action else None)
     height, width = info["features"][key]["shape"][:2]
