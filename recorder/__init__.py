@@ -6,8 +6,11 @@
 
 Modules, one job each: :mod:`.clock` (one monotonic timeline, measured wall offset),
 :mod:`.sync` (joint state at frame times), :mod:`.actions` (leader-arm commands),
-:mod:`.canlog` (the raw CAN log), :mod:`.writer` (the writer thread), :mod:`.session` (an
-episode), :mod:`.recovery`, :mod:`.replaycam` and :mod:`.simrig` (replayed camera, simulated
+:mod:`.canlog` (the raw CAN log), :mod:`.armfeed` (one arm's samples, sync and CAN log),
+:mod:`.camfeed` (one camera read on its own thread, its drops), :mod:`.writer` (the writer
+thread), :mod:`.session` (an episode of one arm and camera), :mod:`.rig` (an episode of named
+arms and cameras, version 2) and :mod:`.rigcli` (its options and devices), :mod:`.recovery`,
+:mod:`.replaycam` and :mod:`.simrig` (replayed camera, simulated
 arm), :mod:`.cli` (``manisplat-record``). The names below load on first use (PEP 562), so
 ``manisplat-record --help`` imports none of them.
 """
@@ -19,9 +22,11 @@ from manisplat._lazy import lazy_exports
 _EXPORTS = {
     "clock": ("ClockMap", "ManualClock", "ScaledClock", "SystemClock", "measure_offset"),
     "recovery": ("recover_all", "recover_episode"),
+    "rig": ("ArmStats", "RigArm", "RigCamera", "RigRecorder", "RigStats"),
     "session": ("EpisodeResult", "EpisodeStats", "Recorder", "RecorderConfig"),
     "sync": ("FLAG_ACTION_STALE", "FLAG_BEFORE", "FLAG_GAP", "FLAG_HELD", "JointHistory", "latest_at_arrival",
              "nearest_sample", "sync_joints"),
+    "camfeed": ("CameraStats",),
     "writer": ("StorageError",),
 }
 

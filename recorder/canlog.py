@@ -27,6 +27,14 @@ from manisplat.episode.fsio import fsync_path
 log = logging.getLogger(__name__)
 
 CAN_LOG_NAME = "can.asc"
+
+
+def can_log_name(arm: str | None = None) -> str:
+    """The CAN log of an episode: ``can.asc`` for the one arm of a version 1 episode,
+    ``can_<arm>.asc`` for a named arm."""
+    return CAN_LOG_NAME if arm is None else f"can_{arm}.asc"
+
+
 MAX_QUEUED = 3_040 * 60  # one minute of a PiPER's feedback; more means the disk cannot keep up
 PREROLL = 3_040 * 2  # frames kept between episodes, so a log starts exactly at its episode's start
 

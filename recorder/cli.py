@@ -1,4 +1,5 @@
-"""``manisplat-record``: record episodes from a PiPER on CAN and an OAK (or replayed) camera.
+"""``manisplat-record``: record episodes from a PiPER on CAN and an OAK (or replayed) camera, or
+from named arms and cameras into one version 2 episode (:mod:`.rigcli`, :mod:`.rig`).
 
 See ``manisplat-record --help``; the pieces are :mod:`.session` (one episode), :mod:`.clock`,
 :mod:`.sync`, :mod:`.writer`, :mod:`.canlog`, :mod:`.actions`, :mod:`.recovery`, and for
@@ -27,6 +28,7 @@ if TYPE_CHECKING:
     from manisplat.drivers.base import Camera
     from manisplat.drivers.piper import PiperArm
     from manisplat.recorder.clock import Clock
+    from manisplat.recorder.rig import RigRecorder
     from manisplat.recorder.session import EpisodeResult, Recorder, Status
 
 log = logging.getLogger("manisplat.recorder")
@@ -52,6 +54,14 @@ What is written (one folder per episode, --out/episode_NNNN, format v1 of docs/e
   An episode that ends before its first frame is written is removed (it holds no frame), and so
   is an --out folder this run created and left empty.
 
+Named arms and cameras (--arm NAME=CHANNEL, --camera NAME=SPEC; format v2, docs/record.md):
+  one episode with every arm and camera; the first camera's frames are the episode's frames, each
+  other camera gives its image nearest in time (within --max-skew-ms; its time in <camera>.t)
+  frames.csv     index,t,<arm>.q1..<arm>.gripper per arm,<camera>.t,<camera>.seq,<arm>.sync_gap,
+                 <arm>.sync_flags[,<arm>.a1..<arm>.a_gripper]
+  joints_<arm>.csv, can_<arm>.asc, rgb/<camera>/, depth/<camera>/; every camera needs a mount
+  (--mount or --calib); episode.json stats count drops per camera and per arm
+
 """ + exit_status_help({
     ExitCode.OK: "every episode was recorded completely and validates",
     ExitCode.FAILED: "an episode ended with an error (disk full, write error, camera failure, no frame\n"
@@ -72,12 +82,13 @@ def _size(text: str) -> tuple[int, int]:
 
 
 def _camera(text: str) -> str:
-    if text != "oak" and not text.startswith("replay:"):
-        raise argparse.ArgumentTypeError(f"expected 'oak' or 'replay:PATH'; got {text!r}")
-    if text.startswith("replay:") and not text[len("replay:"):]:
-        raise argparse.ArgumentTypeError("replay: needs a path, e.g. replay:episodes/episode_0000")
-    if text.startswith("replay:") and not Path(text[len("replay:"):]).exists():
-        raise argparse.ArgumentTypeError(f"{text[len('replay:'):]} does not exist")
+    """``SPEC`` or ``NAME=SPEC``, SPEC one of ``oak``, ``oak:<device id>``, ``replay:PATH`` (existing)."""
+    spec = text.partition("=")[2] if "=" in text else text
+    if spec != "oak" and not spec.startswith(("oak:", "replay:")) or spec in ("oak:", "replay:"):
+        raise argparse.ArgumentTypeError(f"expected 'oak', 'oak:<device id>' or 'replay:PATH' (optionally NAME= "
+                                         f"before it); got {text!r}")
+    if spec.startswith("replay:") and not Path(spec[len("replay:"):]).exists():
+        raise argparse.ArgumentTypeError(f"{spec[len('replay:'):]} does not exist")
     return text
 
 
@@ -88,8 +99,12 @@ def build_parser() -> argparse.ArgumentParser:
         description="Record episodes (camera frames with the PiPER's joint state at each frame, the raw joint "
                     "stream, the raw CAN stream) from a PiPER on CAN and an OAK camera, without ROS.")
     arm = p.add_argument_group("arm")
-    arm.add_argument("--can", default="can0", metavar="CHANNEL",
+    arm.add_argument("--can", default=None, metavar="CHANNEL",
                      help="CAN channel of the arm: can0 (socketcan), /dev/ttyACM0 (slcan), ... (default can0)")
+    arm.add_argument("--arm", action="append", default=None, metavar="NAME=CHANNEL",
+                     help="record several named arms into one version 2 episode (repeat: --arm left=can_left --arm "
+                          "right=can_right); every --camera is then named too. With --sim: --arm NAME (each arm "
+                          "simulated on its own virtual bus). Default: the one arm on --can (version 1)")
     arm.add_argument("--interface", default="socketcan", metavar="NAME",
                      help="python-can interface: socketcan, slcan, gs_usb, pcan, kvaser, virtual, ... "
                           "(default socketcan; the bus runs at 1 Mbit/s, the PiPER's rate)")
@@ -100,10 +115,22 @@ def build_parser() -> argparse.ArgumentParser:
                      help="--sim: the arm waves (default wave), follows a simulated leader arm that sends "
                           "0x155-0x157 (teleop: actions are recorded), or stands still (still)")
     cam = p.add_argument_group("camera")
-    cam.add_argument("--camera", type=_camera, default="oak", metavar="{oak,replay:PATH}",
-                     help="oak: the first OAK found (depthai); replay:PATH: replay an episode folder or a depthai "
-                          "recording (.mkv/.avi/.mp4 with its .mcap and calibration.json or K.json) live "
-                          "(default oak)")
+    cam.add_argument("--camera", type=_camera, action="append", default=None, metavar="[NAME=]SPEC",
+                     help="oak: the first OAK found (depthai); oak:ID: the OAK with that device id or IP; "
+                          "replay:PATH: replay an episode folder or a depthai recording (.mkv/.avi/.mp4 with its "
+                          ".mcap and calibration.json or K.json) live (default oak). With --arm, repeat it with "
+                          "names: --camera cam_high=oak:ID --camera cam_left_wrist=oak:ID2 ...; the first camera's "
+                          "frames are the episode's frames")
+    cam.add_argument("--mount", action="append", default=None, metavar="CAMERA=MOUNT",
+                     help="with --arm: where a camera is fixed: world, or ARM/LINK for a wrist camera "
+                          "(cam_left_wrist=left/link6); every camera needs one, here or from --calib")
+    cam.add_argument("--calib", type=Path, default=None, metavar="FILE.calib.json",
+                     help="with --arm: a Cobot Magic calibration file (docs/cobot-magic.md): per camera K, dist, "
+                          "mount, T_mount_cam, latency_s; per arm T_world_base and its robot description "
+                          "(default: none; mounts from --mount, K from the cameras)")
+    cam.add_argument("--max-skew-ms", type=positive(float), default=None, metavar="MS",
+                     help="with several cameras: the most another camera's image may be from the first camera's "
+                          "frame time; a frame without one is not written (counted) (default: half a frame period)")
     cam.add_argument("--loop", action="store_true",
                      help="replay camera: repeat the recording without end (default: stop the episode at its end)")
     cam.add_argument("--fps", type=positive(float), default=None,
@@ -121,7 +148,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="record no depth, dropping a replayed recording's depth (the default for an OAK)")
     cam.add_argument("--latency-ms", type=bounded(-MAX_LATENCY_MS, MAX_LATENCY_MS), default=0.0, metavar="MS",
                      help=f"camera latency from calibration, ms, within +-{MAX_LATENCY_MS:g}: a frame's true time "
-                          "is its stamp minus this (default 0; depthai stamps are already mid-exposure times)")
+                          "is its stamp minus this (default 0; depthai stamps are already mid-exposure times; with "
+                          "--calib a camera's latency_s there wins)")
     out = p.add_argument_group("episodes")
     out.add_argument("--out", type=Path, default=Path("episodes"), metavar="DIR",
                      help="folder for the episodes (episode_0000, episode_0001, ...; default ./episodes). "
@@ -188,33 +216,37 @@ def open_devices(args: argparse.Namespace, clock: Clock, stop: threading.Event) 
             dev.arm = PiperArm(dev.rig.open_bus(), read_only=True, own_bus=True)
             dev.info["arm"] = f"simulated PiPER ({args.sim_motion}) on a virtual bus"
         else:
-            dev.arm = PiperArm.open(args.can, args.interface, read_only=True)
-            dev.info["arm"] = f"PiPER on {args.interface} {args.can}"
-        dev.camera = open_camera(args, clock, stop, dev)
+            can = args.can or "can0"
+            dev.arm = PiperArm.open(can, args.interface, read_only=True)
+            dev.info["arm"] = f"PiPER on {args.interface} {can}"
+        spec = args.camera[0] if args.camera else "oak"
+        dev.camera, dev.depth, dev.nominal_fps, dev.info["camera"] = open_camera(args, spec, clock, stop)
     except BaseException:
         dev.close()
         raise
     return dev
 
 
-def open_camera(args: argparse.Namespace, clock: Clock, stop: threading.Event, dev: Devices) -> Camera:
-    """Open the camera ``--camera`` names and decide whether its depth is recorded (``dev.depth``):
-    an OAK streams depth only with --depth; a replay's depth is recorded when it has any, unless
-    --no-depth. A replay that is not a recording, or lacks the depth or size asked for, is a
-    ReplayInputError."""
-    if args.camera == "oak":
+def open_camera(args: argparse.Namespace, spec: str, clock: Clock, stop: threading.Event
+                ) -> tuple[Camera, bool, float | None, str]:
+    """Open the camera ``spec`` names (``oak``, ``oak:<id>``, ``replay:PATH``) with the options'
+    size, rate, depth and loop; returns it, whether its depth is recorded, its nominal rate and
+    a description. An OAK streams depth only with --depth; a replay's depth is recorded when it
+    has any, unless --no-depth. A replay that is not a recording, or lacks the depth or size
+    asked for, is a ReplayInputError."""
+    if spec == "oak" or spec.startswith("oak:"):
         from manisplat.drivers.oak import OakCamera, OakConfig
 
         width, height = args.size or (640, 400)
         fps = args.fps or 30.0
-        dev.depth = bool(args.depth)
-        camera = OakCamera(OakConfig(width=width, height=height, fps=fps, depth=dev.depth))
-        dev.nominal_fps = fps
-        dev.info["camera"] = f"OAK {width}x{height} @ {fps:g} fps{' + depth' if dev.depth else ''}"
-        return camera
+        depth = bool(args.depth)
+        device = spec[len("oak:"):] or None
+        camera = OakCamera(OakConfig(width=width, height=height, fps=fps, depth=depth, device=device))
+        return camera, depth, fps, (f"OAK{f' {device}' if device else ''} {width}x{height} @ {fps:g} fps"
+                                    f"{' + depth' if depth else ''}")
     from manisplat.recorder.replaycam import ReplayCamera, ReplayInputError, open_replay_source
 
-    path = Path(args.camera[len("replay:"):])
+    path = Path(spec[len("replay:"):])
     camera = ReplayCamera(open_replay_source(path), clock, loop=args.loop, fps=args.fps, stop=stop)
     if args.size is not None and args.size != (camera.width, camera.height):
         camera.close()
@@ -223,12 +255,10 @@ def open_camera(args: argparse.Namespace, clock: Clock, stop: threading.Event, d
     if args.depth and not camera.has_depth:
         camera.close()
         raise ReplayInputError(f"--depth: the replayed recording {path} has no depth; leave --depth out")
-    dev.depth = camera.has_depth if args.depth is None else args.depth
-    dev.nominal_fps = args.fps or _source_fps(path)
-    dropped = " (its depth dropped: --no-depth)" if camera.has_depth and not dev.depth else ""
-    dev.info["camera"] = (f"replay of {path}{' (looped)' if args.loop else ''}{' + depth' if dev.depth else ''}"
-                          f"{dropped}")
-    return camera
+    depth = camera.has_depth if args.depth is None else args.depth
+    dropped = " (its depth dropped: --no-depth)" if camera.has_depth and not depth else ""
+    return camera, depth, args.fps or _source_fps(path), (f"replay of {path}{' (looped)' if args.loop else ''}"
+                                                          f"{' + depth' if depth else ''}{dropped}")
 
 
 def _source_fps(path: Path) -> float | None:
@@ -377,6 +407,17 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     _setup_logging(args.verbose)
+    args.arm, args.camera, args.mount = args.arm or [], args.camera or [], args.mount or []
+    args.rig = bool(args.arm) or any("=" in c for c in args.camera)
+    if args.rig and args.recover is None:
+        _check_rig(parser, args)
+    elif args.recover is None:
+        for flag, given in (("--mount", args.mount), ("--calib", args.calib), ("--max-skew-ms", args.max_skew_ms)):
+            if given:
+                parser.error(f"{flag} is for several named arms and cameras (--arm NAME=CHANNEL)")
+        if len(args.camera) > 1:
+            parser.error("several cameras record into one episode with named arms and cameras: --arm NAME=CHANNEL "
+                         "... --camera NAME=SPEC ...")
     if args.recover is not None:
         if not args.recover.exists():
             parser.error(f"--recover: {args.recover} does not exist")
@@ -391,13 +432,52 @@ def main(argv: list[str] | None = None) -> int:
         _remove_if_empty(created)
 
 
+def _check_rig(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Refuse rig options that do not fit together (usage error, exit 2), before any device opens."""
+    from manisplat.episode.format import EpisodeFormatError
+    from manisplat.recorder.rigcli import RigUsageError, check_rig
+
+    try:
+        check_rig(args)
+    except (RigUsageError, EpisodeFormatError) as exc:
+        parser.error(str(exc))
+
+
+def _open(args: argparse.Namespace, clock: Clock, camera_stop: threading.Event) -> tuple[Any, Any]:
+    """The devices and the recorder the options name (one arm and camera, or a rig of named ones),
+    waited for the arms' first joint samples (DriverError otherwise, the devices closed)."""
+    from manisplat.drivers.base import DriverError
+    from manisplat.recorder.session import Recorder, RecorderConfig
+
+    if args.rig:
+        from manisplat.recorder.rigcli import make_recorder, open_rig
+
+        devices = open_rig(args, clock, camera_stop)
+    else:
+        devices = open_devices(args, clock, camera_stop)
+    try:
+        if args.rig:
+            recorder = make_recorder(args, devices, clock)
+            recorder.wait_for_arms()
+        else:
+            config = RecorderConfig(fps=args.fps, latency_s=args.latency_ms / 1e3, max_gap_s=args.max_gap_ms / 1e3,
+                                    image_format=args.image_format, depth=devices.depth, task=args.task,
+                                    actions=args.actions)
+            recorder = Recorder(devices.arm, devices.camera, clock, config, source_info=devices.info,
+                                nominal_fps=devices.nominal_fps)
+            recorder.wait_for_arm()
+    except DriverError:
+        devices.close()
+        raise
+    return devices, recorder
+
+
 def _session(args: argparse.Namespace) -> int:
     """Recover what a crash left in --out, open the devices, record the episodes, print the summary."""
     from manisplat.drivers.base import DriverError
     from manisplat.recorder.clock import SystemClock
     from manisplat.recorder.recovery import recover_all
     from manisplat.recorder.replaycam import ReplayInputError
-    from manisplat.recorder.session import Recorder, RecorderConfig
 
     if any(r.error for r in recover_all(args.out)):
         print(f"an incomplete episode in {args.out} could not be recovered (see above); fix it or move it away",
@@ -418,22 +498,11 @@ def _session(args: argparse.Namespace) -> int:
     camera_stop = threading.Event()
     try:
         try:
-            devices = open_devices(args, clock, camera_stop)
+            devices, recorder = _open(args, clock, camera_stop)
         except ReplayInputError as exc:
             print(f"manisplat-record: {exc}", file=sys.stderr)
             return ExitCode.BAD_INPUT
         except (DriverError, OSError) as exc:
-            print(f"manisplat-record: {exc}", file=sys.stderr)
-            return ExitCode.DEVICE
-        config = RecorderConfig(fps=args.fps, latency_s=args.latency_ms / 1e3, max_gap_s=args.max_gap_ms / 1e3,
-                                image_format=args.image_format, depth=devices.depth, task=args.task,
-                                actions=args.actions)
-        try:
-            recorder = Recorder(devices.arm, devices.camera, clock, config, source_info=devices.info,
-                                nominal_fps=devices.nominal_fps)
-            recorder.wait_for_arm()
-        except DriverError as exc:
-            devices.close()
             print(f"manisplat-record: {exc}", file=sys.stderr)
             return ExitCode.DEVICE
         try:
@@ -445,11 +514,15 @@ def _session(args: argparse.Namespace) -> int:
         for s, handler in previous.items():
             signal.signal(s, handler)
     print(summary(results))
+    if args.rig and results:
+        from manisplat.recorder.rigcli import rig_summary
+
+        print(rig_summary(results))
     return ExitCode.OK if results and all(r.valid and not r.error for r in results) else \
         (ExitCode.OK if not results else ExitCode.FAILED)
 
 
-def _record(args: argparse.Namespace, recorder: Recorder, start: str, stop: threading.Event,
+def _record(args: argparse.Namespace, recorder: Recorder | RigRecorder, start: str, stop: threading.Event,
             episode_stop: threading.Event) -> list[EpisodeResult]:
     keys = Keys(sys.stdin).start() if start == "key" or args.duration is None else None
     results: list[EpisodeResult] = []

@@ -2,7 +2,8 @@
 
 ``manisplat-record --recover DIR`` and every start of ``manisplat-record`` (on its ``--out``
 folder) run :func:`recover_all`: for each episode with ``complete: false`` the CAN log is cut
-back to its last whole line (:func:`~.canlog.repair_can_log`), then
+back to its last whole line (every arm's: ``can.asc`` or ``can_<arm>.asc``;
+:func:`~.canlog.repair_can_log`), then
 :func:`manisplat.episode.recover` keeps every frame whose image and ``frames.csv`` row were both
 written, moves crash artefacts aside into ``<episode>/.recovered/`` (nothing is deleted) and
 marks the episode complete.
@@ -18,7 +19,7 @@ from pathlib import Path
 
 from manisplat.episode import EpisodeFormatError, RecoveryReport, recover
 from manisplat.episode.format import META_FILE, RECOVERED_DIR
-from manisplat.recorder.canlog import CAN_LOG_NAME, repair_can_log
+from manisplat.recorder.canlog import repair_can_log
 
 log = logging.getLogger(__name__)
 
@@ -35,7 +36,7 @@ class Recovered:
     def __str__(self) -> str:
         if self.error:
             return f"{self.path}: NOT recovered: {self.error}"
-        cut = f"; cut a torn {CAN_LOG_NAME} line ({self.can_bytes_cut} bytes)" if self.can_bytes_cut else ""
+        cut = f"; cut torn CAN log lines ({self.can_bytes_cut} bytes)" if self.can_bytes_cut else ""
         return f"{self.report}{cut}"
 
 
@@ -62,7 +63,8 @@ def recover_episode(path: str | Path) -> Recovered:
     path = Path(path)
     stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
     try:
-        cut = repair_can_log(path / CAN_LOG_NAME, path / RECOVERED_DIR / f"{stamp}-can")
+        cut = sum(repair_can_log(log_file, path / RECOVERED_DIR / f"{stamp}-can")
+                  for log_file in sorted(path.glob("can*.asc")))
         report = recover(path)
     except (EpisodeFormatError, OSError) as exc:
         return Recovered(path, error=str(exc))

@@ -32,25 +32,26 @@ import threading
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
-from manisplat.drivers.base import Camera, CameraFrame, DriverError, JointState
+from manisplat.drivers.base import Camera, CameraFrame, DriverError
 from manisplat.drivers.piper import PiperArm
 from manisplat.episode import ACTION_COLUMNS, CameraInfo, EpisodeWriter, RobotInfo, validate
-from manisplat.recorder.actions import LeaderCommands
-from manisplat.recorder.canlog import CAN_LOG_NAME, CanLogSink
+from manisplat.recorder.armfeed import ArmFeed
+from manisplat.recorder.canlog import CAN_LOG_NAME
 from manisplat.recorder.clock import Clock, ClockMap, RealDeadline
-from manisplat.recorder.gripper import GripperStream
-from manisplat.recorder.sync import FLAG_NAMES, JointHistory
+from manisplat.recorder.sync import FLAG_NAMES
 from manisplat.recorder.writer import EpisodeSink, FrameItem, StorageError, describe_write_error
+
+if TYPE_CHECKING:
+    from manisplat.recorder.rig import RigStats
 
 log = logging.getLogger(__name__)
 
 DEPTH_SCALE = 0.001  # metres per depth unit: millimetres, the OAK's own unit
 SYNC_COLUMNS = ("seq", "sync_gap", "sync_flags")
-WALL_STAMP_TOLERANCE_S = 5.0  # CAN stamps further than this from the wall clock are not wall-clock stamps
 
 
 @dataclass
@@ -73,6 +74,8 @@ class RecorderConfig:
         queue_frames: frames the writer queue holds.
         fsync_every: fsync the episode's files every this many rows.
         camera_poll_s: the loop waits at most this long for a camera frame, s.
+        max_skew_s: several cameras (:mod:`.rig`): the most another camera's image may be from
+            the reference camera's frame time, s (None: half a frame period).
         stall_after_s: a camera silent for longer counts as stalled, s.
     """
 
@@ -89,6 +92,7 @@ class RecorderConfig:
     fsync_every: int = 200
     camera_poll_s: float = 0.05
     stall_after_s: float = 0.5
+    max_skew_s: float | None = None
 
     def __post_init__(self) -> None:
         if self.actions not in ("auto", "on", "off"):
@@ -98,6 +102,8 @@ class RecorderConfig:
         for name in ("max_gap_s", "max_wait_s", "camera_poll_s", "stall_after_s", "max_action_age_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.max_skew_s is not None and not self.max_skew_s > 0:
+            raise ValueError(f"max_skew_s must be > 0, got {self.max_skew_s}")
         if self.fps is not None and not self.fps > 0:
             raise ValueError(f"fps must be > 0, got {self.fps}")
         if not math.isfinite(self.latency_s) or abs(self.latency_s) > 1.0:
@@ -142,14 +148,14 @@ class EpisodeResult:
 
     Attributes:
         path: the episode folder.
-        stats: :class:`EpisodeStats`.
+        stats: :class:`EpisodeStats` (:class:`~.rig.RigStats` for named arms and cameras).
         error: why the episode could not be completed (None when complete).
         valid: whether ``validate`` (quick) found no error (False when incomplete).
         removed: the folder was removed because no frame had been written (``error`` says so).
     """
 
     path: Path
-    stats: EpisodeStats
+    stats: EpisodeStats | RigStats
     error: str | None = None
     valid: bool = False
     removed: bool = False
@@ -177,22 +183,6 @@ class Status:
     arm: str
 
 
-class _Active:
-    """The episode being recorded, as the reader thread sees it."""
-
-    def __init__(self, t0: float, sink: EpisodeSink) -> None:
-        self.t0 = t0
-        self.sink = sink
-        self.last_joint_t = -math.inf
-        self.joint_samples = 0
-
-    def add_joint(self, t: float, q: np.ndarray, gripper: float) -> None:
-        if t > self.last_joint_t:
-            self.last_joint_t = t
-            self.joint_samples += 1
-            self.sink.put_joint(t - self.t0, q, gripper)
-
-
 class Recorder:
     """Records episodes from ``arm`` and ``camera``; see the module docstring.
 
@@ -217,89 +207,21 @@ class Recorder:
         self.source_info = dict(source_info or {})
         self.nominal_fps = nominal_fps
         self.clock_map = ClockMap(clock)
-        self.history = JointHistory()
-        self.can_stamps = "wall"  # or "host" when the interface's stamps are not on the wall clock
-        self.leader = LeaderCommands(self._can_to_mono, self.config.max_action_age_s)
-        self.gripper = GripperStream(self._can_to_mono)
-        self.can_log = CanLogSink()
-        self._active: _Active | None = None
-        self._lock = threading.Lock()
-        self.rejected_samples = 0
-        arm.add_joint_listener(self._on_joint)
-        arm.add_listener(self.leader)
-        arm.add_listener(self.gripper)
-        arm.add_listener(self.can_log)
-
-    # -- the reader thread's side --------------------------------------------------------------
-
-    def _can_to_mono(self, t: float) -> float:
-        """A CAN frame's stamp on the monotonic timeline (wall-clock stamps; see wait_for_arm)."""
-        if self.can_stamps == "host":
-            return self.clock.monotonic()
-        return self.clock_map.to_mono(t)
-
-    def _on_joint(self, state: JointState) -> None:
-        if self.can_stamps == "host":
-            t = state.t_host
-        else:
-            t = self.clock_map.to_mono(state.t)
-        if not math.isfinite(state.gripper):  # before the first gripper frame: not a full state
-            self.rejected_samples += 1
-            return
-        with self._lock:
-            if not self.history.append(t, np.append(state.q, state.gripper)):
-                self.rejected_samples += 1
-                return
-            active = self._active
-            if active is not None and t >= active.t0:
-                active.add_joint(t, state.q, state.gripper)
-
-    def _activate(self, active: _Active | None) -> None:
-        """Make ``active`` the episode joint samples go to, first giving it those already
-        received at or after its start (the set-up takes a few ms)."""
-        with self._lock:
-            self._active = active
-            if active is not None:
-                times, values = self.history.since(active.t0)
-                for t, v in zip(times, values):
-                    active.add_joint(float(t), v[:6], float(v[6]))
-
-    # -- set-up -------------------------------------------------------------------------------
+        self.feed = ArmFeed(arm, clock, self.clock_map, self.config.max_action_age_s)
 
     def wait_for_arm(self, timeout: float = 3.0) -> None:
-        """Wait for complete joint samples (with the gripper) and check the CAN stamps' clock.
-
-        Raises DriverError when none comes within ``timeout`` (real) s. CAN stamps more than
-        5 s away from the wall clock (an interface with its own time base) are replaced by the
-        host arrival times, with a warning; ``episode.json`` says which was used.
-        """
-        try:
-            state = self.arm.wait_for_joint_state(timeout=timeout)
-            while not math.isfinite(state.gripper):
-                state = self.arm.wait_for_joint_state(state.seq, timeout=timeout)
-        except TimeoutError as exc:
-            raise DriverError(f"no PiPER joint feedback within {timeout} s ({self.arm.health().detail or exc}); "
-                              "check power, wiring, the bitrate (1 Mbit/s) and that the arm is not a silent "
-                              "leader") from None
-        skew = state.t - self.clock.wall()
-        if abs(skew) > WALL_STAMP_TOLERANCE_S and self.can_stamps == "wall":
-            with self._lock:
-                self.can_stamps = "host"
-                for history in (self.history, self.gripper.history, self.leader.joints, self.leader.gripper):
-                    history.clear()  # mapped from the wrong clock
-            log.warning("the CAN interface's timestamps are %.1f s away from the wall clock (not SocketCAN-style "
-                        "wall stamps); using the host arrival time of each joint sample instead", skew)
-        while self.history.last_t is None or self.gripper.history.last_t is None:
-            latest = self.arm.joint_state()
-            self.arm.wait_for_joint_state(latest.seq if latest else -1, timeout=timeout)
+        """Wait for complete joint samples of the arm (:meth:`.armfeed.ArmFeed.wait`; DriverError
+        when none comes within ``timeout`` s), warning when its CAN stamps are not wall-clock."""
+        warning = self.feed.wait(timeout)
+        if warning:
+            log.warning("%s", warning)
 
     def _episode_meta(self, t0: float, t0_wall: float, with_actions: bool) -> dict[str, Any]:
         c = self.config
         meta: dict[str, Any] = {
             "recording": {"tool": "manisplat-record", **self.source_info},
             "clock": {**self.clock_map.describe(since=t0), "t0_monotonic": t0, "t0_wall": t0_wall,
-                      "can_timestamps": ("bus stamps (wall clock), mapped with the measured offset"
-                                         if self.can_stamps == "wall" else "host arrival time (monotonic)"),
+                      "can_timestamps": self.feed.describe_stamps(),
                       "camera_timestamps": "camera stamps (host monotonic clock, mid-exposure where known)",
                       "camera_latency_s": c.latency_s},
             "sync": {"method": "linear interpolation between the joint samples around each frame time "
@@ -331,15 +253,16 @@ class Recorder:
         """
         c = self.config
         stop = stop if stop is not None else threading.Event()
-        if self.history.last_t is None:
+        feed = self.feed
+        if feed.history.last_t is None:
             raise DriverError("no joint sample yet: call wait_for_arm() first")
-        with_actions = c.actions == "on" or (c.actions == "auto" and self.leader.seen)
+        with_actions = c.actions == "on" or (c.actions == "auto" and feed.leader.seen)
         columns = SYNC_COLUMNS + (ACTION_COLUMNS if with_actions else ())
         self.clock_map.remeasure()
         t0 = self.clock.monotonic()
         t0_wall = t0 + self.clock_map.offset
         cam = CameraInfo(name=self.camera_name, width=self.camera.width, height=self.camera.height, K=self.camera.K,
-                         dist=_opencv_dist(self.camera.dist), mount="base", T_mount_cam=None)
+                         dist=opencv_dist(self.camera.dist), mount="base", T_mount_cam=None)
         fps = c.fps or self.nominal_fps or 30.0
         created = not path.exists()
         writer: EpisodeWriter | None = None
@@ -348,51 +271,38 @@ class Recorder:
                                    depth_scale=DEPTH_SCALE if c.depth else None, image_format=c.image_format,
                                    extra_frame_columns=columns,
                                    extra_meta=self._episode_meta(t0, t0_wall, with_actions), fsync_every=c.fsync_every)
-            self.can_log.open(path / CAN_LOG_NAME, t0_wall)
+            feed.can_log.open(path / CAN_LOG_NAME, t0_wall)
         except OSError as exc:
             if writer is not None:
                 writer.__exit__(type(exc), exc, exc.__traceback__)
             error = f"{path}: cannot start the episode: {describe_write_error(exc)}"
             log.error("%s", error)
             result = EpisodeResult(path, EpisodeStats(stop_reason="write error"), error)
-            return _remove_empty(result) if created else result
-        sink = EpisodeSink(writer, self.can_log, queue_frames=c.queue_frames)
-        active = _Active(t0, sink)
-        self._activate(active)
+            return remove_empty(result) if created else result
+        sink = EpisodeSink(writer, [feed.can_log], queue_frames=c.queue_frames)
+        feed.activate(t0, sink)
         stats = EpisodeStats()
-        loop = _EpisodeLoop(self, active, stats, with_actions)
+        loop = _EpisodeLoop(self, t0, sink, stats, with_actions)
         log.info("%s: recording (%s)", path, f"{duration} s" if duration else "until stopped")
         try:
             stats.stop_reason = loop.run(duration, stop, on_status, status_every_s)
         finally:
             loop.flush_pending()
-            self._activate(None)
-            self.can_log.seal()
+            stats.joint_samples = feed.deactivate()
+            feed.can_log.seal()
         stats.frames = loop.queued  # all of them are on disk once finish() succeeds
-        stats.joint_samples = active.joint_samples
         stats.duration_s = self.clock.monotonic() - t0
         stats.dropped_queue = sink.frames_dropped
-        stats.can_frames_dropped = self.can_log.dropped
-        stats.can_frames_logged = self.can_log.received - self.can_log.dropped
+        stats.can_frames_dropped = feed.can_log.dropped
+        stats.can_frames_logged = feed.can_log.received - feed.can_log.dropped
         extra = {"stats": {k: v for k, v in asdict(stats).items()},
                  "clock": {**writer.meta.extra["clock"], **self.clock_map.describe(since=t0)}}
         if with_actions:
             extra["actions"] = {**writer.meta.extra["actions"],
                                 "gripper_from_state_frames": stats.gripper_action_from_state}
-        error = loop.camera_error
-        try:
-            sink.finish(extra)
-        except StorageError as exc:
-            error = str(exc)
-        stats.frames = sink.frames_written
-        result = EpisodeResult(path, stats, error)
-        if not stats.frames and created:
-            return _remove_empty(result)
-        if sink.complete:
-            report = validate(path, decode_images=False)
-            result.valid = report.ok
-            if not report.ok:
-                result.error = (result.error + "; " if result.error else "") + f"validation failed:\n{report}"
+        result = close_episode(path, sink, stats, extra, loop.camera_error, created)
+        if result.removed:
+            return result
         log.info("%s: %d frames, %d joint samples, %d lost, %d flagged, stop: %s%s", path, stats.frames,
                  stats.joint_samples, stats.frames_lost, stats.flagged, stats.stop_reason,
                  f"; ERROR: {result.error}" if result.error else "")
@@ -402,9 +312,10 @@ class Recorder:
 class _EpisodeLoop:
     """The camera loop of one episode (kept apart from :class:`Recorder` for readability)."""
 
-    def __init__(self, rec: Recorder, active: _Active, stats: EpisodeStats, with_actions: bool) -> None:
+    def __init__(self, rec: Recorder, t0: float, sink: EpisodeSink, stats: EpisodeStats, with_actions: bool) -> None:
         self.rec = rec
-        self.active = active
+        self.t0 = t0
+        self.sink = sink
         self.stats = stats
         self.with_actions = with_actions
         self.pending: collections.deque[tuple[float, CameraFrame]] = collections.deque()
@@ -425,9 +336,9 @@ class _EpisodeLoop:
             now = clock.monotonic()
             if stop.is_set():
                 return "stopped"
-            if duration is not None and now - self.active.t0 >= duration:
+            if duration is not None and now - self.t0 >= duration:
                 return "duration"
-            if self.active.sink.failed.is_set():
+            if self.sink.failed.is_set():
                 return "write error"
             try:
                 frame = rec.camera.read(timeout=c.camera_poll_s)
@@ -462,7 +373,7 @@ class _EpisodeLoop:
         if rec.config.depth and frame.depth is None:
             raise DriverError("--depth was asked for but the camera gives frames without depth")
         t = frame.t - rec.config.latency_s
-        if t < self.active.t0:
+        if t < self.t0:
             stats.stale += 1
             return
         stats.dropped_camera += frame.dropped if self.last_frame_t > -math.inf else 0
@@ -481,20 +392,14 @@ class _EpisodeLoop:
         rec, c = self.rec, self.rec.config
         while self.pending:
             t, frame = self.pending[0]
-            joints_last, gripper_last = rec.history.last_t, rec.gripper.history.last_t
-            known = joints_last is not None and gripper_last is not None and min(joints_last, gripper_last) >= t
             waited = rec.clock.monotonic() - t
-            if not (force or known or waited >= c.max_wait_s):
+            if not (force or rec.feed.known_at(t) or waited >= c.max_wait_s):
                 return
             self.pending.popleft()
-            values, gap, flags = rec.history.sync(t, c.max_gap_s)
-            gripper, gripper_gap, gripper_flags = rec.gripper.history.sync(t, c.max_gap_s)
-            values[6] = gripper[0]  # the gripper from its own stream (.gripper)
-            flags |= gripper_flags
-            gap = max(gap, gripper_gap)
+            values, gap, flags = rec.feed.sync(t, c.max_gap_s)
             extra = {"seq": float(frame.seq), "sync_gap": gap}
             if self.with_actions:
-                action, from_state, aflags = rec.leader.action_at(t, values)
+                action, from_state, aflags = rec.feed.leader.action_at(t, values)
                 flags |= aflags
                 self.stats.gripper_action_from_state += int(from_state)
                 extra.update(zip(ACTION_COLUMNS, action.tolist()))
@@ -506,9 +411,9 @@ class _EpisodeLoop:
                         self.stats.flag_counts[name] = self.stats.flag_counts.get(name, 0) + 1
             self.stats.max_sync_gap_s = max(self.stats.max_sync_gap_s, gap)
             self.last_gap = gap
-            item = FrameItem(t - self.active.t0, values[:6], float(values[6]), frame.rgb,
+            item = FrameItem(t - self.t0, values[:6], float(values[6]), frame.rgb,
                              frame.depth if c.depth else None, extra)
-            if self.active.sink.put_frame(item):
+            if self.sink.put_frame(item):
                 self.queued += 1
                 self.recent.append(rec.clock.monotonic())
 
@@ -518,7 +423,7 @@ class _EpisodeLoop:
         rec = self.rec
         deadline = rec.clock.monotonic() + rec.config.max_wait_s
         real_deadline = time.monotonic() + rec.config.max_wait_s + 1.0
-        while self.pending and not self.active.sink.failed.is_set():
+        while self.pending and not self.sink.failed.is_set():
             self.resolve(force=False)
             if not self.pending or rec.clock.monotonic() >= deadline or time.monotonic() >= real_deadline:
                 break
@@ -533,14 +438,35 @@ class _EpisodeLoop:
         frames_now = rec.arm.stats().frames
         can_fps = (frames_now - frames_before) / max(now - t_before, 1e-9)
         self._can_frames = (frames_now, now)
-        sink = self.active.sink
-        return Status(elapsed_s=now - self.active.t0, fps=float(len(self.recent)), can_fps=can_fps,
+        sink = self.sink
+        return Status(elapsed_s=now - self.t0, fps=float(len(self.recent)), can_fps=can_fps,
                       frames=sink.frames_written, lost=self.stats.dropped_camera + sink.frames_dropped,
                       sync_gap_ms=self.last_gap * 1e3, flagged=self.stats.flagged, queue=sink.queued_frames,
                       camera_silent_s=now - self.last_frame_host, arm=rec.arm.health().state)
 
 
-def _remove_empty(result: EpisodeResult) -> EpisodeResult:
+def close_episode(path: Path, sink: EpisodeSink, stats: Any, extra: dict[str, Any], error: str | None,
+                  created: bool) -> EpisodeResult:
+    """Finish the episode ``sink`` writes (``extra`` into ``episode.json``, ``complete: true``
+    last), then validate it; an episode without a frame in a folder this run ``created`` is removed.
+    ``stats`` gets the frames written; ``error``: why the episode ended early, or None."""
+    try:
+        sink.finish(extra)
+    except StorageError as exc:
+        error = str(exc)
+    stats.frames = sink.frames_written
+    result = EpisodeResult(path, stats, error)
+    if not stats.frames and created:
+        return remove_empty(result)
+    if sink.complete:
+        report = validate(path, decode_images=False)
+        result.valid = report.ok
+        if not report.ok:
+            result.error = (result.error + "; " if result.error else "") + f"validation failed:\n{report}"
+    return result
+
+
+def remove_empty(result: EpisodeResult) -> EpisodeResult:
     """Remove the folder of an episode in which no frame was written (the joint samples and CAN
     frames before a first frame are no episode), saying so in ``result.error``; a folder that
     cannot be removed stays."""
@@ -556,7 +482,7 @@ def _remove_empty(result: EpisodeResult) -> EpisodeResult:
     return result
 
 
-def _opencv_dist(dist: np.ndarray) -> np.ndarray:
+def opencv_dist(dist: np.ndarray) -> np.ndarray:
     """Distortion coefficients in a length OpenCV (and the episode format) accepts."""
     d = np.asarray(dist, dtype=np.float64).reshape(-1)
     for n in (0, 4, 5, 8, 12, 14):

@@ -1,7 +1,8 @@
 """The writer thread of one episode: frames arrive through a bounded queue, joint samples and
-CAN frames through their own unbounded buffers, and one thread writes them all with
-:class:`~manisplat.episode.EpisodeWriter` (images then row, each flushed as it goes) and the
-episode's :class:`~.canlog.CanLogSink`.
+CAN frames through their own unbounded buffers, and one thread writes them all with the
+episode's writer (:class:`~manisplat.episode.EpisodeWriter` for one arm and camera,
+:class:`~manisplat.episode.writer_v2.EpisodeWriterV2` for named arms and cameras; images then
+row, each flushed as it goes) and the episode's :class:`~.canlog.CanLogSink` (one per arm).
 
 A frame that finds the queue full is dropped and counted (the recording loop never blocks on
 the disk). The first write error (a full disk, a file size limit, an I/O error) stops the
@@ -19,12 +20,15 @@ import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Sequence, Union
 
 import numpy as np
 
 from manisplat.episode import EpisodeWriter
+from manisplat.episode.writer_v2 import EpisodeWriterV2
 from manisplat.recorder.canlog import CanLogSink
+
+Writer = Union[EpisodeWriter, EpisodeWriterV2]
 
 log = logging.getLogger(__name__)
 
@@ -63,16 +67,57 @@ class FrameItem:
     depth: np.ndarray | None = None
     extra: dict[str, float] = field(default_factory=dict)
 
+    def encode(self, writer: EpisodeWriter) -> Any:
+        """The frame's images encoded (any thread; no file is touched)."""
+        return writer.encode_frame(self.rgb, self.depth)
+
+    def write(self, writer: EpisodeWriter, encoded: Any) -> None:
+        """Write the frame (images, then its row); ``encoded`` from :meth:`encode` or None."""
+        writer.add_frame(self.t, self.q, self.gripper, self.rgb, depth=self.depth, extra=self.extra, encoded=encoded)
+
+
+@dataclass
+class RigFrameItem:
+    """One synced frame of named arms and cameras for an :class:`EpisodeWriterV2`.
+
+    Attributes:
+        t: seconds since the episode's start (the reference camera's frame time).
+        arms: arm name -> (7,) q1..q6 rad, gripper m.
+        rgb: camera name -> (H, W, 3) uint8; depth: camera name -> (H, W) float32 m.
+        actions: arm name -> (7,) a1..a6 rad, a_gripper m, or None without actions.
+        camera_t: camera name -> its own frame time, s since the start (cameras other than the reference).
+        extra: values of the episode's extra ``frames.csv`` columns.
+    """
+
+    t: float
+    arms: dict[str, np.ndarray]
+    rgb: dict[str, np.ndarray]
+    depth: dict[str, np.ndarray]
+    actions: dict[str, np.ndarray] | None
+    camera_t: dict[str, float]
+    extra: dict[str, float]
+
+    def encode(self, writer: EpisodeWriterV2) -> Any:
+        """Every camera's images encoded (any thread; no file is touched)."""
+        return writer.encode_frame(self.rgb, self.depth)
+
+    def write(self, writer: EpisodeWriterV2, encoded: Any) -> None:
+        """Write the frame (every camera's images, then its row); ``encoded`` from :meth:`encode` or None."""
+        writer.add_frame(self.t, self.arms, self.rgb, depth=self.depth, actions=self.actions, camera_t=self.camera_t,
+                         extra=self.extra, encoded=encoded)
+
 
 _STOP = object()
 
 
 class EpisodeSink:
-    """Owns an :class:`EpisodeWriter` (and optionally a :class:`CanLogSink`) on a thread.
+    """Owns an episode writer (and the episode's :class:`CanLogSink` s) on a thread.
 
     Args:
-        writer: the episode writer (``episode.json`` already written, ``complete: false``).
-        can_log: the episode's CAN log sink, opened by the caller, or None.
+        writer: the episode writer (``episode.json`` already written, ``complete: false``):
+            :class:`FrameItem` s go to an :class:`EpisodeWriter`, :class:`RigFrameItem` s to an
+            :class:`EpisodeWriterV2`.
+        can_logs: the episode's CAN log sinks (one per arm), opened by the caller.
         queue_frames: frames the queue holds before new ones are dropped.
         flush_s: the CAN log is flushed at least this often, s.
         encode_threads: threads encoding images (PNG/JPEG) ahead of the writer, in parallel
@@ -80,7 +125,7 @@ class EpisodeSink:
             PNG on 2 cores: 18 frames/s with 0, 42 with 2 (``benchmarks record_write``).
     """
 
-    def __init__(self, writer: EpisodeWriter, can_log: CanLogSink | None = None, *, queue_frames: int = 64,
+    def __init__(self, writer: Writer, can_logs: Sequence[CanLogSink] = (), *, queue_frames: int = 64,
                  flush_s: float = 0.1, encode_threads: int = 2) -> None:
         if queue_frames < 1:
             raise ValueError(f"queue_frames must be >= 1, got {queue_frames}")
@@ -89,10 +134,10 @@ class EpisodeSink:
         self._encoders = (ThreadPoolExecutor(encode_threads, thread_name_prefix=f"encode-{writer.path.name}")
                           if encode_threads else None)
         self.writer = writer
-        self.can_log = can_log
+        self.can_logs = tuple(can_logs)
         self.flush_s = float(flush_s)
         self._frames: queue.Queue[Any] = queue.Queue(maxsize=queue_frames)
-        self._joints: collections.deque[tuple[float, np.ndarray, float]] = collections.deque()
+        self._joints: collections.deque[tuple[str | None, float, np.ndarray, float]] = collections.deque()
         self._final_extra: dict[str, Any] = {}
         self.error: BaseException | None = None
         self.failed = threading.Event()
@@ -107,7 +152,7 @@ class EpisodeSink:
 
     # -- producer side ------------------------------------------------------------------------
 
-    def put_frame(self, item: FrameItem) -> bool:
+    def put_frame(self, item: FrameItem | RigFrameItem) -> bool:
         """Queue a frame (its images start encoding now); False when it was dropped (queue
         full) or the sink has failed."""
         if self.failed.is_set():
@@ -115,8 +160,7 @@ class EpisodeSink:
         if self._frames.full():  # checked first: a dropped frame costs no encoding
             return self._dropped()
         try:
-            encoding = None if self._encoders is None else self._encoders.submit(self.writer.encode_frame,
-                                                                                   item.rgb, item.depth)
+            encoding = None if self._encoders is None else self._encoders.submit(item.encode, self.writer)
         except RuntimeError:  # the writer thread ended (failed or finished) just now
             return False
         try:
@@ -135,10 +179,11 @@ class EpisodeSink:
                         self.writer.path, self._frames.maxsize)
         return False
 
-    def put_joint(self, t: float, q: np.ndarray, gripper: float) -> None:
-        """Queue a joints.csv row (any thread; never dropped)."""
+    def put_joint(self, t: float, q: np.ndarray, gripper: float, arm: str | None = None) -> None:
+        """Queue a joint-stream row (any thread; never dropped): ``joints.csv``, or with ``arm``
+        ``joints_<arm>.csv``; ``t`` s since the start, ``q`` (6,) rad, ``gripper`` m."""
         if not self.failed.is_set():
-            self._joints.append((t, q, gripper))
+            self._joints.append((arm, t, q, gripper))
 
     @property
     def queued_frames(self) -> int:
@@ -152,8 +197,8 @@ class EpisodeSink:
             self._doing = "closing the episode"
             self.writer.meta.extra.update(self._final_extra)
             self.writer.close()
-            if self.can_log is not None:
-                self.can_log.close()
+            for can_log in self.can_logs:
+                can_log.close()
             self.complete = True
         except BaseException as exc:  # the first write error ends the episode (module docstring)
             self.error = exc
@@ -164,8 +209,8 @@ class EpisodeSink:
                 self.writer.__exit__(type(exc), exc, exc.__traceback__)  # close, leave complete: false
             except OSError as again:
                 log.error("%s: closing the files failed too: %s", self.writer.path, again)
-            if self.can_log is not None:
-                self.can_log.abandon()
+            for can_log in self.can_logs:
+                can_log.abandon()
         finally:
             if self._encoders is not None:
                 self._encoders.shutdown(wait=False, cancel_futures=True)
@@ -180,15 +225,15 @@ class EpisodeSink:
             if item is not None and item is not _STOP:
                 frame, encoding = item
                 self._doing = f"frame {self.frames_written} (its images and frames.csv row)"
-                self.writer.add_frame(frame.t, frame.q, frame.gripper, frame.rgb, depth=frame.depth, extra=frame.extra,
-                                      encoded=None if encoding is None else encoding.result())
+                frame.write(self.writer, None if encoding is None else encoding.result())
                 self.frames_written += 1
             self._doing = "joints.csv"
             self._write_joints()
             now = time.monotonic()
-            if self.can_log is not None and (item is None or item is _STOP or now - last_flush >= self.flush_s):
-                self._doing = f"the CAN log {self.can_log.path.name if self.can_log.path else ''}"
-                self.can_log.drain(flush=True)
+            if self.can_logs and (item is None or item is _STOP or now - last_flush >= self.flush_s):
+                for can_log in self.can_logs:
+                    self._doing = f"the CAN log {can_log.path.name if can_log.path else ''}"
+                    can_log.drain(flush=True)
                 last_flush = now
             if item is _STOP:
                 return
@@ -196,10 +241,13 @@ class EpisodeSink:
     def _write_joints(self) -> None:
         while True:
             try:
-                t, q, gripper = self._joints.popleft()
+                arm, t, q, gripper = self._joints.popleft()
             except IndexError:
                 return
-            self.writer.add_joint_sample(t, q, gripper)
+            if arm is None:
+                self.writer.add_joint_sample(t, q, gripper)
+            else:
+                self.writer.add_joint_sample(arm, t, q, gripper)
             self.joints_written += 1
 
     # -- ending -------------------------------------------------------------------------------

@@ -22,14 +22,16 @@ W, H, FPS = 64, 48, 30.0
 K = np.array([[50.0, 0.0, 31.5], [0.0, 50.0, 23.5], [0.0, 0.0, 1.0]])
 
 
-def source_frame(i: int) -> np.ndarray:
-    """The rgb image of source frame ``i`` (deterministic noise)."""
-    return np.random.default_rng(i).integers(0, 256, (H, W, 3), dtype=np.uint8)
+def source_frame(i: int, camera: int = 0) -> np.ndarray:
+    """The rgb image of source frame ``i`` of source ``camera`` (deterministic noise)."""
+    return np.random.default_rng(i if camera == 0 else (camera, i)).integers(0, 256, (H, W, 3), dtype=np.uint8)
 
 
-def write_source(path: Path, frames: int = 60, *, missing: range | None = None, depth: bool = False) -> Path:
+def write_source(path: Path, frames: int = 60, *, missing: range | None = None, depth: bool = False,
+                 camera: int = 0) -> Path:
     """A camera recording as an episode folder: ``frames`` frames at 30 fps with a ``seq``
-    column; frames in ``missing`` are left out (a camera stall: their time and seq are skipped)."""
+    column, the images of source ``camera``; frames in ``missing`` are left out (a camera stall:
+    their time and seq are skipped)."""
     missing = missing or range(0)
     with EpisodeWriter(path, CameraInfo("src", W, H, K), RobotInfo(), FPS, extra_frame_columns=("seq",),
                        depth_scale=0.001 if depth else None) as writer:
@@ -37,7 +39,7 @@ def write_source(path: Path, frames: int = 60, *, missing: range | None = None, 
             if i in missing:
                 continue
             d = np.full((H, W), 1.0 + i * 1e-3, np.float32) if depth else None
-            writer.add_frame(i / FPS, np.zeros(6), 0.0, source_frame(i), depth=d, extra={"seq": float(i)})
+            writer.add_frame(i / FPS, np.zeros(6), 0.0, source_frame(i, camera), depth=d, extra={"seq": float(i)})
     return path
 
 

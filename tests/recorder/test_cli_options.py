@@ -27,7 +27,8 @@ MAINS: dict[str, Callable[[list[str]], int]] = {"manisplat-record": record_cli.m
 BAD_VALUES = [
     ("manisplat-record", [], "--fps", ["0", "-30", "nan", "inf", "x"]),
     ("manisplat-record", [], "--size", ["640", "0x400", "640x-1", "axb"]),
-    ("manisplat-record", [], "--camera", ["usb", "replay:"]),
+    ("manisplat-record", [], "--camera", ["usb", "replay:", "cam=usb", "cam=replay:", "cam=oak:"]),
+    ("manisplat-record", [], "--max-skew-ms", ["0", "-5", "nan", "inf"]),
     ("manisplat-record", [], "--latency-ms", ["nan", "inf", "-inf", "1500", "-1001", "x"]),
     ("manisplat-record", [], "--episodes", ["0", "-1", "1.5", "nan"]),
     ("manisplat-record", [], "--duration", ["0", "-1", "nan", "inf"]),

@@ -78,9 +78,9 @@ def test_teleoperation_actions_are_the_leader_commands(tmp_path: Path, source: P
     rig = lockstep_rig(source, motion="teleop")
     try:
         deadline = time.monotonic() + 5.0  # the first command may still be on its way to the listener
-        while not rig.recorder.leader.seen and time.monotonic() < deadline:
+        while not rig.recorder.feed.leader.seen and time.monotonic() < deadline:
             time.sleep(0.001)
-        assert rig.recorder.leader.seen
+        assert rig.recorder.feed.leader.seen
         result = rig.recorder.record_episode(tmp_path / "ep", duration=2.0)
     finally:
         rig.close()
@@ -182,7 +182,7 @@ def test_can_stamps_off_the_wall_clock_fall_back_to_host_arrival_times(tmp_path:
         camera.close()
         rig.stop()
         arm.close()
-    assert recorder.can_stamps == "host" and result.valid
+    assert recorder.feed.can_stamps == "host" and result.valid
     ep = Episode.open(tmp_path / "ep")
     assert ep.meta.extra["clock"]["can_timestamps"] == "host arrival time (monotonic)"
     assert len(ep) >= 20 and len(ep.joints()) >= 150

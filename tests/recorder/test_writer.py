@@ -30,7 +30,7 @@ def test_frames_and_joints_are_written_and_the_episode_completes_last(tmp_path: 
     can_log.open(tmp_path / "ep2" / "can.asc", 100.0)
     for k in range(7):
         can_log.on_message_received(can.Message(arbitration_id=0x2A5, data=bytes(8), timestamp=100.0 + k * 0.01))
-    sink = EpisodeSink(w, can_log, queue_frames=4, encode_threads=encode_threads)
+    sink = EpisodeSink(w, [can_log], queue_frames=4, encode_threads=encode_threads)
     rng = np.random.default_rng(0)
     images = [rng.integers(0, 256, (48, 64, 3), dtype=np.uint8) for _ in range(9)]
     for i, rgb in enumerate(images):

@@ -1,0 +1,153 @@
+"""manisplat-record with two named arms and three cameras (a Cobot Magic): two simulated PiPERs on
+their own virtual buses and three replayed cameras, into one version 2 episode: killed with
+SIGKILL and recovered with every written frame of every camera, drops counted per camera and
+per arm, options that do not describe a rig refused."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from manisplat.episode import Episode, validate
+from manisplat.recorder.cli import main
+from tests.recorder.helpers import K, source_frame, write_source
+
+RECORD = [sys.executable, "-m", "manisplat.recorder.cli"]
+EPISODE = [sys.executable, "-m", "manisplat.episode.cli"]
+CAMERAS = {"cam_high": ("world", 0), "cam_left_wrist": ("left/link6", 1), "cam_right_wrist": ("right/link6", 2)}
+"""Camera -> (mount, source number: each camera replays its own images)."""
+ARMS = ("left", "right")
+
+
+@pytest.fixture(scope="module")
+def sources(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """Each camera's own 2 s recording (60 frames, 64x48, 30 fps)."""
+    folder = tmp_path_factory.mktemp("rig_sources")
+    return {name: write_source(folder / name, camera=k) for name, (_, k) in CAMERAS.items()}
+
+
+@pytest.fixture(scope="module")
+def calib(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A calibration file in the format of docs/cobot-magic.md: the cameras' K and mounts, the arms' bases."""
+    T = np.eye(4)
+    arms = {name: {"T_world_base": T.tolist(), "description": "builtin:agilex_piper"} for name in ARMS}
+    arms["right"]["T_world_base"][1][3] = -0.6
+    cameras = {name: {"K": K.tolist(), "mount": mount, "T_mount_cam": T.tolist(), "width": 64, "height": 48,
+                      "latency_s": 0.0} for name, (mount, _) in CAMERAS.items()}
+    path = tmp_path_factory.mktemp("rig_calib") / "rig.calib.json"
+    path.write_text(json.dumps({"fps": 30, "arms": arms, "cameras": cameras}))
+    return path
+
+
+def rig_args(sources: dict[str, Path], calib: Path, out: Path, *extra: str) -> list[str]:
+    cameras = [a for name, path in sources.items() for a in ("--camera", f"{name}=replay:{path}")]
+    return ["--sim", "--arm", "left", "--arm", "right", *cameras, "--calib", str(calib), "--out", str(out),
+            "--start", "now", *extra]
+
+
+def whole_rows(frames_csv: Path) -> list[str]:
+    """The rows of ``frames.csv`` ended by a line break (each one a frame the writer reported
+    written: its images of every camera are written before its row)."""
+    return frames_csv.read_text().split("\n")[1:-1] if frames_csv.is_file() else []
+
+
+def wait_for_whole_rows(frames_csv: Path, rows: int, proc: subprocess.Popen, timeout: float = 120.0) -> None:
+    deadline = time.monotonic() + timeout
+    while len(whole_rows(frames_csv)) < rows:
+        if proc.poll() is not None:
+            raise AssertionError(f"the recorder exited early ({proc.returncode}): {proc.communicate()}")
+        if time.monotonic() > deadline:
+            raise AssertionError(f"{frames_csv} did not reach {rows} rows in {timeout} s")
+        time.sleep(0.05)
+
+
+def test_two_arms_three_cameras_killed_with_sigkill_are_recovered_with_every_written_frame(
+        tmp_path: Path, sources: dict[str, Path], calib: Path) -> None:
+    out = tmp_path / "out"
+    proc = subprocess.Popen(RECORD + rig_args(sources, calib, out, "--loop", "--duration", "300"),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    episode = out / "episode_0000"
+    try:
+        wait_for_whole_rows(episode / "frames.csv", 40, proc)  # past the first fsync (30 rows)
+    finally:
+        proc.kill()
+        proc.communicate(timeout=60)
+    assert proc.returncode == -9
+    written = whole_rows(episode / "frames.csv")
+    assert len(written) >= 40 and not Episode.open(episode).meta.complete
+
+    done = subprocess.run(EPISODE + ["recover", str(episode)], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stdout + done.stderr
+    report = validate(episode)
+    assert report.ok, report
+    ep = Episode.open(episode)
+    assert ep.meta.version == 2 and ep.meta.complete
+    assert list(ep.arms) == list(ARMS) and list(ep.cameras) == list(CAMERAS)
+    assert whole_rows(episode / "frames.csv")[:len(written)] == written  # every written row, unchanged
+    assert len(ep) == len(written)
+    seq = {name: ep.arm_frames("left").extra[f"{name}.seq"].astype(int) for name in CAMERAS}
+    for i in range(len(ep)):
+        for name, (_, k) in CAMERAS.items():  # every camera's image of every frame, its own
+            np.testing.assert_array_equal(ep.rgb(i, name), source_frame(seq[name][i] % 60, k))
+    assert ep.cameras["cam_left_wrist"].mount == "left/link6" and ep.cameras["cam_high"].mount == "world"
+    assert ep.arms["right"].T_world_base[1, 3] == -0.6
+    for arm in ARMS:
+        assert len(ep.joints(arm)) > 0 and (episode / f"can_{arm}.asc").stat().st_size > 0
+    t = ep.arm_frames("left").t
+    for name in ("cam_left_wrist", "cam_right_wrist"):  # each image within half a frame period of its frame
+        assert np.abs(ep.camera_times(name) - t).max() <= 0.5 / 30 + 1e-9
+
+
+def test_drops_are_counted_per_camera_and_per_arm(tmp_path: Path, sources: dict[str, Path], calib: Path,
+                                                  capsys: pytest.CaptureFixture) -> None:
+    gappy = dict(sources)  # the left wrist camera loses frames 20-24 (a stall: their seq and time skipped)
+    gappy["cam_left_wrist"] = write_source(tmp_path / "gappy", missing=range(20, 25), camera=1)
+    out = tmp_path / "out"
+    assert main(rig_args(gappy, calib, out, "--duration", "30")) == 0  # ends with the 2 s recordings
+    captured = capsys.readouterr().out
+    ep = Episode.open(out / "episode_0000")
+    stats = ep.meta.extra["stats"]
+    cams, arms = stats["cameras"], stats["arms"]
+    assert cams["cam_left_wrist"]["dropped_camera"] == 5
+    assert cams["cam_left_wrist"]["unmatched"] == 5 and stats["skipped"] == 5
+    assert cams["cam_high"]["dropped_camera"] == cams["cam_right_wrist"]["dropped_camera"] == 0
+    assert cams["cam_high"]["unmatched"] == cams["cam_right_wrist"]["unmatched"] == 0
+    assert all(c["frames"] == len(ep) for c in cams.values()) and len(ep) + 5 <= 60
+    seq = ep.arm_frames("left").extra["cam_left_wrist.seq"]
+    assert not np.isin(seq, np.arange(20, 25)).any()
+    for arm in ARMS:
+        assert arms[arm]["joint_samples"] == len(ep.joints(arm)) > 0
+        assert arms[arm]["can_frames_logged"] > 0 and arms[arm]["can_frames_dropped"] == 0
+    assert "camera cam_left_wrist: " in captured and "dropped by the camera 5, unmatched 5" in captured
+    assert "arm right: " in captured
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--sim", "--arm", "left", "--camera", "cam=replay:{src}"], "camera cam has no mount"),
+    (["--sim", "--arm", "left=can0", "--camera", "cam=replay:{src}", "--mount", "cam=world"], "without a channel"),
+    (["--arm", "left", "--camera", "cam=replay:{src}", "--mount", "cam=world"], "give the arm's CAN channel"),
+    (["--sim", "--arm", "left", "--camera", "replay:{src}"], "every camera needs a name"),
+    (["--sim", "--arm", "left", "--camera", "left=replay:{src}", "--mount", "left=world"], "names an arm and a camera"),
+    (["--sim", "--arm", "left", "--camera", "cam=replay:{src}", "--mount", "other=world"], "no --camera other"),
+    (["--sim", "--arm", "left", "--camera", "a=oak", "--camera", "b=oak", "--mount", "a=world", "--mount", "b=world"],
+     "name each OAK's device id"),
+    (["--sim", "--arm", "left", "--camera", "cam=replay:{src}", "--mount", "cam=right/link6"],
+     "names the arm 'right', which is not in arms"),
+    (["--sim", "--arm", "left", "--camera", "cam high=replay:{src}", "--mount", "cam high=world"], "camera name"),
+    (["--sim", "--camera", "replay:{src}", "--mount", "cam=world"], "--mount is for several named arms"),
+    (["--sim", "--camera", "replay:{src}", "--camera", "replay:{src}"], "several cameras record into one episode"),
+])
+def test_options_that_do_not_describe_a_rig_are_refused_naming_the_problem(
+        argv: list[str], message: str, tmp_path: Path, sources: dict[str, Path], capsys: pytest.CaptureFixture) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main([a.replace("{src}", str(sources["cam_high"])) for a in argv] + ["--out", str(tmp_path / "o")])
+    assert exc.value.code == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
