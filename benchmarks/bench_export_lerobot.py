@@ -98,7 +98,7 @@ def run(ctx: BenchContext) -> list[dict[str, Any]]:
                                 "--json", str(tmp / "check.json")], json_path=tmp / "check.json")
             rows.append({"case": f"LeRobotDataset loads our export: {name}", **{
                 k: result[k] for k in ("ok", "lerobot_len", "lerobot_num_episodes", "dataloader_frames",
-                                       "state_max_abs_diff_vs_float32_frames_csv", "image_psnr_db_min",
+                                       "state_max_abs_diff_vs_float32", "image_psnr_db_min",
                                        "image_psnr_db_mean", "action_chunk_shape")}})
         rows.append(_act_round_trip(sets["sample 320x240"], tmp))
         for name, episodes in sets.items():  # throughput, same episodes, same run
