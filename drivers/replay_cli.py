@@ -16,20 +16,21 @@ import signal
 import sys
 import threading
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable
 
-from manisplat.cli_args import add_version, bounded, finite_numbers, positive
+from manisplat.cli_args import add_version, bounded, finite, finite_numbers, positive
 from manisplat.exit_codes import ExitCode, exit_status_help
 
 if TYPE_CHECKING:
     import numpy as np
 
-    from manisplat.drivers.piper.streamer import ReplayReport
+    from manisplat.drivers.piper.tracking import ReplayReport
 
 log = logging.getLogger("manisplat.replay")
 
 MAX_CONVENTION_MM = 3.0  # a joint map that moves the TCP more than this is refused
 SIM_START_OFFSET_DEG = 3.0
+DEFAULT_ARM_CLEARANCE_MM = 10.0  # several arms: the least distance allowed between two arms' links
 
 EPILOG = """\
 Before anything moves, the whole trajectory is checked: joint and gripper limits, velocity (against
@@ -45,15 +46,24 @@ in MOVE J. The stream stops on a tracking error above --max-tracking-error-deg, 
 (on its measured position; on the last target when the feedback is lost). Reset (0x150 B0=2) and
 disable (0x471 07 01) are never sent: both drop the arm.
 
---sim replays on a simulated PiPER on a private virtual bus, which starts 3 deg away from the
-episode's start on every joint (so the approach runs) unless --sim-start says where.
+An episode with several arms (format version 2) needs every arm's channel (--arm NAME=CHANNEL);
+each arm gets every check above, and before anything moves the arms are checked against each
+other: each arm's links (the convex hulls of its description's geometry, placed by its forward
+kinematics and its T_world_base; the fingers at the recorded opening) must stay
+--min-arm-clearance-mm apart from every other arm's over every frame, and over the move of all
+arms to their starts. A refusal names the frame, the two links and their distance. The arms are
+then moved and streamed in lock-step from one clock; a stop on one arm stops them all.
+
+--sim replays on simulated PiPERs, one per arm, each on its own private virtual bus, starting 3 deg
+away from the episode's start on every joint (so the approach runs) unless --sim-start says where.
 
 """ + exit_status_help({
     ExitCode.OK: "replayed to the end (or --dry-run: every check passed)",
     ExitCode.FAILED: "stopped during the replay (tracking error, lost feedback, an error); the arm is holding",
     ExitCode.BAD_INPUT: "bad arguments, or an episode that cannot be read (a missing file, NaN in K: named)",
     ExitCode.DEVICE: "the arm cannot be reached or sends no feedback",
-    ExitCode.REFUSED: "refused before anything moved (a check failed, or the convention cannot be mapped)",
+    ExitCode.REFUSED: "refused before anything moved (a check failed, e.g. two arms too close, or the "
+                      "convention cannot be mapped)",
     ExitCode.INTERRUPTED: "interrupted by Ctrl-C / SIGTERM; the arm is holding",
 })
 
@@ -65,14 +75,18 @@ def build_parser() -> argparse.ArgumentParser:
         description="Play an episode's joint and gripper targets back on a PiPER over CAN, checked first, "
                     "stopped safely.")
     p.add_argument("episode", type=Path, help="the episode folder (docs/episode-format.md)")
-    p.add_argument("--can", default="can0", metavar="CHANNEL", help="CAN channel of the arm (default can0)")
+    p.add_argument("--can", default=None, metavar="CHANNEL",
+                   help="CAN channel of the arm of a one-arm episode (default can0)")
+    p.add_argument("--arm", type=_named("--arm", "CHANNEL"), action="append", default=[], metavar="NAME=CHANNEL",
+                   help="CAN channel of the episode's arm NAME; repeat for every arm of a several-arm episode "
+                        "(--arm left=can_left --arm right=can_right)")
     p.add_argument("--interface", default="socketcan", metavar="NAME",
                    help="python-can interface: socketcan, slcan, gs_usb, pcan, virtual, ... (default socketcan)")
     p.add_argument("--sim", action="store_true",
                    help="replay on a simulated PiPER (no hardware; default: the arm on --can)")
-    p.add_argument("--sim-start", type=finite_numbers((6,)), default=None, metavar="J1,..,J6",
-                   help="--sim: the simulated arm's initial joints, 6 angles in degrees (arm convention; default "
-                        "3 deg from the episode's start on every joint)")
+    p.add_argument("--sim-start", type=_sim_start, action="append", default=[], metavar="[NAME=]J1,..,J6",
+                   help="--sim: a simulated arm's initial joints, 6 angles in degrees (arm convention; default "
+                        "3 deg from the episode's start on every joint); NAME= says which arm (needed with several)")
     p.add_argument("--speed", type=positive(), default=1.0,
                    help="time scale: 0.5 replays at half speed, 2 at twice (default 1)")
     p.add_argument("--dry-run", action="store_true",
@@ -89,6 +103,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="refuse when the start is further than this from the arm's state (default 30)")
     p.add_argument("--max-step-deg", type=positive(), default=10.0, metavar="DEG",
                    help="refuse a jump larger than this between two frames (default 10)")
+    p.add_argument("--min-arm-clearance-mm", type=finite(), default=DEFAULT_ARM_CLEARANCE_MM, metavar="MM",
+                   help="several arms: refuse when links of two arms come closer than this (convex hulls of the "
+                        f"links; default {DEFAULT_ARM_CLEARANCE_MM:g})")
     p.add_argument("--feedback-timeout-ms", type=positive(), default=100.0, metavar="MS",
                    help="stop when no joint feedback arrives for this long (default 100)")
     p.add_argument("-v", "--verbose", action="count", default=0,
@@ -130,6 +147,64 @@ class SimArm:
         self.sim_bus.shutdown()
 
 
+class UsageError(ValueError):
+    """Arguments that do not fit the episode (exit 2)."""
+
+
+def _named(option: str, value_name: str) -> Callable[[str], tuple[str, str]]:
+    """An argparse type: ``NAME=VALUE`` -> (name, value)."""
+    def parse(text: str) -> tuple[str, str]:
+        name, sep, value = text.partition("=")
+        if not (sep and name and value):
+            raise argparse.ArgumentTypeError(f"{option} {text!r}: expected NAME={value_name}")
+        return name, value
+    return parse
+
+
+def _sim_start(text: str) -> tuple[str | None, list[float]]:
+    """``[NAME=]J1,..,J6`` -> (name or None, 6 angles in degrees)."""
+    name, sep, angles = text.rpartition("=")
+    return (name if sep else None), finite_numbers((6,))(angles)
+
+
+def _channels(args: argparse.Namespace, arms: list[str]) -> dict[str, str]:
+    """Each arm's CAN channel from ``--arm NAME=CHANNEL`` (or ``--can`` for a one-arm episode)."""
+    if args.arm and args.can is not None:
+        raise UsageError("give --can (one arm) or --arm NAME=CHANNEL (each arm), not both")
+    if not args.arm:
+        if len(arms) > 1:
+            raise UsageError(f"the episode has the arms {', '.join(arms)}: give each one's CAN channel with "
+                             + " ".join(f"--arm {a}=CHANNEL" for a in arms) + " (or replay them on simulated arms "
+                             "with --sim)")
+        return {arms[0]: args.can if args.can is not None else "can0"}
+    channels = dict(args.arm)
+    if len(channels) < len(args.arm):
+        raise UsageError("--arm names an arm twice")
+    unknown = [a for a in channels if a not in arms]
+    missing = [a for a in arms if a not in channels]
+    if unknown or missing:
+        raise UsageError(f"--arm must name every arm of the episode ({', '.join(arms)}) once"
+                         + (f"; unknown: {', '.join(unknown)}" if unknown else "")
+                         + (f"; missing: {', '.join(missing)}" if missing else "")
+                         + ". To replay one arm of several, import that arm alone (manisplat-episode import-act "
+                           "--arm NAME)")
+    return channels
+
+
+def _sim_starts(args: argparse.Namespace, arms: list[str]) -> dict[str, list[float]]:
+    """The ``--sim-start`` angles (deg) per arm; an unnamed one is the one arm's."""
+    starts: dict[str, list[float]] = {}
+    for name, angles in args.sim_start:
+        if name is None and len(arms) > 1:
+            raise UsageError(f"--sim-start: name the arm ({', '.join(arms)}): --sim-start NAME=J1,..,J6")
+        name = arms[0] if name is None else name
+        if name not in arms or name in starts:
+            raise UsageError(f"--sim-start {name}=...: " + ("given twice" if name in starts else
+                                                            f"no such arm; the episode's: {', '.join(arms)}"))
+        starts[name] = angles
+    return starts
+
+
 def _describe_checks(figures: dict[str, float], speed: float, source: str, convention: str, tcp_mm: float) -> str:
     lines = [f"convention: {convention} -> piper_sdk (TCP agrees within {tcp_mm:.2f} mm)",
              f"targets: {source}, {int(figures['frames'])} frames, {figures['duration_s']:.2f} s at speed {speed:g}",
@@ -137,6 +212,22 @@ def _describe_checks(figures: dict[str, float], speed: float, source: str, conve
     if "peak_acceleration_of_limit" in figures:
         lines[-1] += f", peak acceleration {figures['peak_acceleration_of_limit'] * 100:.0f} % of the limit"
     return "\n".join(lines)
+
+
+def _by_arm(texts: dict[str, str]) -> str:
+    """One arm's text as it is; several arms' each under ``arm NAME:``, indented."""
+    if len(texts) == 1:
+        return next(iter(texts.values()))
+    return "\n".join(f"arm {name}:\n" + "\n".join("  " + line for line in text.split("\n"))
+                     for name, text in texts.items())
+
+
+def _refused(problems: dict[str, list[str]]) -> int:
+    """Print every arm's problems (named when there are several) as the refusal; REFUSED."""
+    several = len(problems) > 1
+    lines = [f"  - {name + ': ' if several and name else ''}{p}" for name, ps in problems.items() for p in ps]
+    print("manisplat-replay: refused, nothing was sent:\n" + "\n".join(lines), file=sys.stderr)
+    return ExitCode.REFUSED
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -148,39 +239,61 @@ def main(argv: list[str] | None = None) -> int:
 
     from manisplat.drivers.base import DriverError
     from manisplat.drivers.piper.arm import PiperArm
-    from manisplat.drivers.piper.convention import ConventionError, convention_for, tcp_discrepancy_mm
-    from manisplat.drivers.piper.streamer import StreamConfig, replay
-    from manisplat.drivers.piper.trajectory import (ReplayLimits, check_trajectory, trajectory_figures,
-                                                    trajectory_from_episode)
+    from manisplat.drivers.piper.convention import ConventionError
+    from manisplat.drivers.piper.replay_plan import (approach_clearance, arm_clearance, clearance_problem,
+                                                     describe_closest, plan_arms, trajectory_clearance)
+    from manisplat.drivers.piper.streamer import StreamConfig, replay_arms
+    from manisplat.drivers.piper.trajectory import ReplayLimits, check_trajectory, trajectory_figures
     from manisplat.episode import Episode, EpisodeFormatError
     from manisplat.robot import builtin_piper
 
     try:
         episode = Episode.open(args.episode)
-        description = episode.meta.robot.description
-        convention = convention_for(description, episode.path)
-        traj = trajectory_from_episode(episode, convention, args.speed, args.source)
-        tcp_mm = tcp_discrepancy_mm(convention, description, episode.path,
-                                    episode.frames.actions[:, :6] if traj.source == "actions" else episode.frames.q)
+        names = list(episode.arms)
+        if args.sim and args.arm:
+            raise UsageError("--sim replays on simulated arms: --arm NAME=CHANNEL names real ones")
+        channels = {} if args.sim else _channels(args, names)
+        sim_starts = _sim_starts(args, names)
+        plans = plan_arms(episode, args.speed, args.source)
+    except UsageError as exc:
+        print(f"manisplat-replay: {exc}", file=sys.stderr)
+        return ExitCode.BAD_INPUT
     except (EpisodeFormatError, FileNotFoundError) as exc:
         print(f"manisplat-replay: {exc}", file=sys.stderr)
         return ExitCode.BAD_INPUT
     except (ConventionError, ValueError) as exc:
         print(f"manisplat-replay: refused: {exc}", file=sys.stderr)
         return ExitCode.REFUSED
-    if tcp_mm > MAX_CONVENTION_MM:
-        print(f"manisplat-replay: refused: mapping {description} to the arm's convention moves the TCP by "
-              f"{tcp_mm:.1f} mm (> {MAX_CONVENTION_MM} mm)", file=sys.stderr)
-        return ExitCode.REFUSED
+    several = len(plans) > 1
+    for name, plan in plans.items():
+        if plan.tcp_mm > MAX_CONVENTION_MM:
+            print(f"manisplat-replay: refused: {'arm ' + name + ': ' if several else ''}mapping {plan.description} "
+                  f"to the arm's convention moves the TCP by {plan.tcp_mm:.1f} mm (> {MAX_CONVENTION_MM} mm)",
+                  file=sys.stderr)
+            return ExitCode.REFUSED
 
     robot = builtin_piper(with_geometry=False)
     limits = ReplayLimits(arm_speed_pct=args.arm_speed_pct, max_step_deg=args.max_step_deg,
                           max_start_distance_deg=args.max_start_distance_deg)
-    offline = check_trajectory(traj, robot, limits)
-    if offline:
-        print("manisplat-replay: refused, nothing was sent:\n" + "\n".join(f"  - {p}" for p in offline),
-              file=sys.stderr)
-        return ExitCode.REFUSED
+    offline = {name: check_trajectory(p.traj, robot, limits) for name, p in plans.items()}
+    if any(offline.values()):
+        return _refused(offline)
+    clearance = None
+    if several:
+        try:
+            clearance = arm_clearance(episode)
+        except ValueError as exc:
+            print(f"manisplat-replay: refused, nothing was sent: {exc}", file=sys.stderr)
+            return ExitCode.REFUSED
+        closest = trajectory_clearance(clearance, plans)
+        t = episode.arm_frames(names[0]).t
+
+        def frame(i: int) -> str:
+            return f"frame {i} (t {t[i] - t[0]:.2f} s)"
+
+        problem = clearance_problem(closest, args.min_arm_clearance_mm, frame)
+        if problem:
+            return _refused({"": [problem]})
 
     stop = threading.Event()
 
@@ -188,49 +301,68 @@ def main(argv: list[str] | None = None) -> int:
         stop.set()
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    sim: SimArm | None = None
-    arm: PiperArm | None = None
+    sims: dict[str, SimArm] = {}
+    arms: dict[str, PiperArm] = {}
+    reports: dict[str, ReplayReport] = {}
     try:
         try:
-            if args.sim:
-                start = np.radians(args.sim_start) if args.sim_start is not None else np.clip(
-                    traj.q[0] + math.radians(SIM_START_OFFSET_DEG), robot.lower, robot.upper)
-                sim = SimArm(start, float(traj.gripper[0]))
-                arm = sim.arm
-            else:
-                arm = PiperArm.open(args.can, args.interface, read_only=args.dry_run)
-            current = arm.wait_for_joint_state(timeout=2.0).q
+            for name, plan in plans.items():
+                if args.sim:
+                    traj = plan.traj
+                    start = np.radians(sim_starts[name]) if name in sim_starts else np.clip(
+                        traj.q[0] + math.radians(SIM_START_OFFSET_DEG), robot.lower, robot.upper)
+                    sims[name] = SimArm(start, float(traj.gripper[0]))
+                    arms[name] = sims[name].arm
+                else:
+                    arms[name] = PiperArm.open(channels[name], args.interface, read_only=args.dry_run)
+            current = {}
+            for name, arm in arms.items():
+                current[name] = arm.wait_for_joint_state(timeout=2.0).q
         except (DriverError, TimeoutError, OSError) as exc:
-            print(f"manisplat-replay: cannot read the arm's state: {exc}", file=sys.stderr)
-            return ExitCode.DEVICE
-        problems = check_trajectory(traj, robot, limits, current_q=current)
-        print(_describe_checks(trajectory_figures(traj, robot, limits), args.speed, traj.source, convention.name,
-                               tcp_mm))
-        if problems:
-            print("manisplat-replay: refused, nothing was sent:\n" + "\n".join(f"  - {p}" for p in problems),
+            print(f"manisplat-replay: cannot read the arm's state{' (arm ' + name + ')' if several else ''}: {exc}",
                   file=sys.stderr)
-            return ExitCode.REFUSED
-        print(f"start is {np.degrees(np.abs(traj.q[0] - current)).max():.1f} deg from the arm's state: all checks pass")
+            return ExitCode.DEVICE
+        problems = {name: check_trajectory(p.traj, robot, limits, current_q=current[name]) for name, p in plans.items()}
+        print(_by_arm({name: _describe_checks(trajectory_figures(p.traj, robot, limits), args.speed, p.traj.source,
+                                              p.convention.name, p.tcp_mm) for name, p in plans.items()}))
+        if clearance is not None:
+            moving, times = approach_clearance(clearance, plans, current, robot, StreamConfig().approach_fraction)
+            problem = clearance_problem(moving, args.min_arm_clearance_mm,
+                                        lambda i: f"{times[i]:.2f} s into the move to the start")
+            if problem:
+                problems[""] = [problem]
+            print(f"arms' closest approach: {describe_closest(closest)} at {frame(closest.frame)}; "
+                  f"{describe_closest(moving)} while moving to the start")
+        if any(problems.values()):
+            return _refused(problems)
+        distance = max(np.degrees(np.abs(p.traj.q[0] - current[n])).max() for n, p in plans.items())
+        print(f"starts are at most {distance:.1f} deg from the arms' states: all checks pass" if several
+              else f"start is {distance:.1f} deg from the arm's state: all checks pass")
         if args.dry_run:
             print("dry run: nothing was sent")
             return ExitCode.OK
         config = StreamConfig(arm_speed_pct=args.arm_speed_pct, max_tracking_error_deg=args.max_tracking_error_deg,
                               feedback_timeout_s=args.feedback_timeout_ms / 1e3)
         progress = _Progress() if sys.stderr.isatty() else None
-        report: ReplayReport = replay(arm, traj, config, stop, on_progress=progress)
+        reports = replay_arms({name: (arms[name], p.traj) for name, p in plans.items()}, config, stop,
+                              on_progress=progress)
         if progress is not None:
             progress.end()
-        print(report)
+        print(_by_arm({name: str(r) for name, r in reports.items()}))
     finally:
-        if sim is not None:
-            sim.close()
-            print(f"simulated bus: {sim.audit.resets} resets (0x150 B0=2), {sim.audit.disables} disables "
-                  f"(0x471 01), {sim.audit.estops} e-stops, {sim.audit.joint_targets} joint targets")
-        elif arm is not None:
-            arm.close()
+        for name, arm in arms.items():
+            if name in sims:
+                sim = sims[name]
+                sim.close()
+                print(f"simulated bus{' of ' + name if several else ''}: {sim.audit.resets} resets (0x150 B0=2), "
+                      f"{sim.audit.disables} disables (0x471 01), {sim.audit.estops} e-stops, "
+                      f"{sim.audit.joint_targets} joint targets")
+            else:
+                arm.close()
         for s, handler in previous.items():
             signal.signal(s, handler)
-    return {"completed": ExitCode.OK, "interrupted": ExitCode.INTERRUPTED}.get(report.outcome, ExitCode.FAILED)
+    outcome = next(iter(reports.values())).outcome
+    return {"completed": ExitCode.OK, "interrupted": ExitCode.INTERRUPTED}.get(outcome, ExitCode.FAILED)
 
 
 class _Progress:

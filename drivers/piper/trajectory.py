@@ -68,17 +68,19 @@ class ReplayLimits:
 
 
 def trajectory_from_episode(episode: Episode, convention: JointConvention, speed: float = 1.0,
-                            source: str = "auto") -> Trajectory:
-    """The episode's targets (see the module docstring); ``source`` ``"auto"``, ``"actions"`` or
-    ``"joints"``. ValueError for a bad speed, a missing action column or fewer than 2 frames."""
+                            source: str = "auto", arm: str | None = None) -> Trajectory:
+    """The targets of the episode's ``arm`` (None: its one arm; see the module docstring);
+    ``source`` ``"auto"``, ``"actions"`` or ``"joints"``. ValueError for a bad speed, a missing
+    action column or fewer than 2 frames."""
     if not (math.isfinite(speed) and speed > 0):
         raise ValueError(f"speed must be > 0, got {speed}")
-    frames = episode.frames
+    frames = episode.frames if arm is None else episode.arm_frames(arm)
     if len(frames) < 2:
         raise ValueError(f"{episode.path}: {len(frames)} frame(s); a replay needs at least 2")
     actions = frames.actions
     if source == "actions" and actions is None:
-        raise ValueError(f"{episode.path}: frames.csv has no action columns (a1..a6, a_gripper)")
+        names = episode.layout.arm(arm if arm is not None else episode.meta.robot.name).actions
+        raise ValueError(f"{episode.path}: frames.csv has no action columns ({names[0]}..{names[5]}, {names[6]})")
     if source not in ("auto", "actions", "joints"):
         raise ValueError(f"source must be auto, actions or joints; got {source!r}")
     use_actions = actions is not None and source != "joints"
@@ -170,9 +172,16 @@ def trajectory_figures(traj: Trajectory, robot: RobotModel, limits: ReplayLimits
 
 
 def sample(traj: Trajectory, t: float) -> tuple[np.ndarray, float]:
-    """Targets at ``t`` s (linear between frames, held at the ends): (6,) rad and gripper m."""
+    """Targets at ``t`` s (linear between frames, held at the ends): (6,) rad and gripper m.
+
+    Each value is clipped into the range of the values it is interpolated from: np.interp can
+    overshoot them by a rounding step, which would put a target at a limit just beyond it."""
+    k = int(np.clip(np.searchsorted(traj.t, t, side="right") - 1, 0, len(traj.t) - 1))
+    near = slice(k, k + 2)
     q = np.array([np.interp(t, traj.t, traj.q[:, j]) for j in range(6)])
-    return q, float(np.interp(t, traj.t, traj.gripper))
+    q = np.clip(q, traj.q[near].min(axis=0), traj.q[near].max(axis=0))
+    g = float(np.interp(t, traj.t, traj.gripper))
+    return q, min(max(g, float(traj.gripper[near].min())), float(traj.gripper[near].max()))
 
 
 def approach(q_from: np.ndarray, q_to: np.ndarray, robot: RobotModel, fraction: float = 0.1,

@@ -38,10 +38,10 @@ from dataclasses import dataclass
 import coal
 import numpy as np
 import pinocchio as pin
-import trimesh
 from scipy.spatial import cKDTree
 
 from manisplat.augment.kinematics import PinRobot
+from manisplat.robot.hulls import convex, link_hulls
 
 
 @dataclass(frozen=True)
@@ -60,33 +60,6 @@ class CollisionSettings:
     background_min_height: float = 0.015
     swept_margin: float = 0.02
     workspace_radius: float = 1.2
-
-
-def _convex(points: np.ndarray) -> coal.ConvexBase:
-    v = coal.StdVec_Vec3s()
-    for p in np.asarray(points, np.float64):
-        v.append(p)
-    return coal.Convex.convexHull(v, False, None)
-
-
-def _link_hulls(robot, description: str | None) -> dict[str, trimesh.Trimesh]:
-    visuals = robot.visuals
-    if not any(visuals.values()) and description:
-        from manisplat.robot import load_robot
-        visuals = load_robot(description, load_meshes=True).visuals
-    hulls = {}
-    for link, vis in visuals.items():
-        meshes = [v.mesh for v in vis if v.mesh is not None and len(v.mesh.vertices)]
-        if not meshes:
-            continue
-        hull = trimesh.util.concatenate(meshes).convex_hull
-        if len(hull.vertices) > 200:  # keep GJK cheap: a hull of a subsample of its own vertices
-            idx = np.random.default_rng(0).choice(len(hull.vertices), 200, replace=False)
-            hull = trimesh.PointCloud(hull.vertices[idx]).convex_hull
-        hulls[link] = hull
-    if not hulls:
-        raise ValueError(f"{robot.name}: no link geometry for collision checking")
-    return hulls
 
 
 def _object_box(means: np.ndarray, margin: float) -> tuple[np.ndarray, np.ndarray]:
@@ -117,11 +90,11 @@ class SceneCollision:
         robot = twin.robot
         self.gm = pin.GeometryModel()
         self.link_geom: dict[str, int] = {}
-        hulls = _link_hulls(robot, getattr(twin, "robot_description", None))
+        hulls = link_hulls(robot, getattr(twin, "robot_description", None))
         self.link_points = {}
         for link, hull in hulls.items():
             jid, place = kin.link_joint[link]
-            go = pin.GeometryObject(f"link:{link}", jid, place, _convex(hull.vertices))
+            go = pin.GeometryObject(f"link:{link}", jid, place, convex(hull.vertices))
             self.link_geom[link] = self.gm.addGeometryObject(go)
             self.link_points[link] = np.asarray(hull.sample(150, seed=0) if hasattr(hull, "sample") else hull.vertices)
         # object boxes

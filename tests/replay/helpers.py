@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from manisplat.episode import ACTION_COLUMNS, CameraInfo, EpisodeWriter, RobotInfo
+from manisplat.episode import ACTION_COLUMNS, ArmInfo, CameraInfo, EpisodeWriter, EpisodeWriterV2, RobotInfo
 
 # joint1..joint6 (xyz, rpy, axis, lower, upper) of AgileX piper_description (ros-noetic-no-aloha @4f22c61)
 OLD_URDF = [((0, 0, 0.123), (0, 0, -1.5708), (0, 0, 1), -2.618, 2.618),
@@ -53,6 +53,27 @@ def write_episode(path: Path, t: np.ndarray, q: np.ndarray, gripper: np.ndarray,
         for i in range(len(t)):
             extra = dict(zip(ACTION_COLUMNS, actions[i])) if actions is not None else None
             writer.add_frame(t[i], q[i], gripper[i], np.zeros((6, 8, 3), np.uint8), extra=extra)
+    return path
+
+
+def base_at(y: float) -> np.ndarray:
+    """``T_world_base`` (4, 4) of an arm standing at ``y`` m on the world's y axis (a Cobot Magic's arms: +-0.3)."""
+    T = np.eye(4)
+    T[1, 3] = y
+    return T
+
+
+def write_arms_episode(path: Path, t: np.ndarray, q: dict[str, np.ndarray], gripper: dict[str, np.ndarray],
+                       bases: dict[str, np.ndarray], *, description: str = "builtin:agilex_piper") -> Path:
+    """A version 2 episode of these named arms (joints (T, 6) rad, gripper (T,) m, bases (4, 4)) at
+    times ``t`` (s), one 8x6 camera on the world; the joints are the actions as well."""
+    K = np.array([[8.0, 0, 3.5], [0, 8.0, 2.5], [0, 0, 1]])
+    arms = [ArmInfo(name=n, description=description, T_world_base=bases[n]) for n in q]
+    camera = CameraInfo("cam_high", 8, 6, K, mount="world", T_mount_cam=np.eye(4))
+    with EpisodeWriterV2(path, arms, [camera], 10.0, source="simulation", actions=True) as writer:
+        for i in range(len(t)):
+            state = {n: np.r_[q[n][i], gripper[n][i]] for n in q}
+            writer.add_frame(t[i], state, {"cam_high": np.zeros((6, 8, 3), np.uint8)}, actions=state)
     return path
 
 
