@@ -6,11 +6,13 @@ per arm, options that do not describe a rig refused."""
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+import can
 import numpy as np
 import pytest
 
@@ -81,6 +83,8 @@ def test_two_arms_three_cameras_killed_with_sigkill_are_recovered_with_every_wri
     assert proc.returncode == -9
     written = whole_rows(episode / "frames.csv")
     assert len(written) >= 40 and not Episode.open(episode).meta.complete
+    copy = tmp_path / "copy"
+    shutil.copytree(episode, copy)
 
     done = subprocess.run(EPISODE + ["recover", str(episode)], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stdout + done.stderr
@@ -102,6 +106,13 @@ def test_two_arms_three_cameras_killed_with_sigkill_are_recovered_with_every_wri
     t = ep.arm_frames("left").t
     for name in ("cam_left_wrist", "cam_right_wrist"):  # each image within half a frame period of its frame
         assert np.abs(ep.camera_times(name) - t).max() <= 0.5 / 30 + 1e-9
+
+    # manisplat-record --recover (and every start) does the same and cuts every arm's torn CAN log line
+    assert main(["--recover", str(copy)]) == 0
+    assert whole_rows(copy / "frames.csv") == whole_rows(episode / "frames.csv")
+    for arm in ARMS:
+        assert (copy / f"can_{arm}.asc").read_bytes().endswith(b"\n")
+        assert len(list(can.LogReader(copy / f"can_{arm}.asc"))) > 0
 
 
 def test_drops_are_counted_per_camera_and_per_arm(tmp_path: Path, sources: dict[str, Path], calib: Path,
