@@ -135,9 +135,20 @@ class _ArmRun:
             self.arm.gripper(gripper, self.c.gripper_effort_nm)
         self._ticks += 1
 
+    def target(self, s: float) -> tuple[np.ndarray, float]:
+        """The trajectory's targets at time ``s``: (6,) rad and the gripper, m, inside the arm's limits.
+
+        :func:`~.trajectory.check_trajectory` lets a value 1e-9 beyond a limit pass (rounding in
+        the data: a gripper of 0.07000000000000006 m) and the arm refuses any excess, so the
+        targets are clipped into the limits, moving them by at most that much."""
+        q, g = sample(self.traj, s)
+        robot = self.arm.robot
+        lo, hi = robot.gripper.width_range if robot.gripper else (0.0, 0.07)
+        return np.clip(q, robot.lower, robot.upper), min(max(g, lo), hi)
+
     def stream_to(self, s: float, dt: float | None) -> None:
         """Command the trajectory's targets at time ``s`` and record them."""
-        q, g = sample(self.traj, s)
+        q, g = self.target(s)
         self.send(q, g, dt)
         self.sent_t.append(self.last_send)
         self.sent_q.append(self.last_target)
@@ -218,7 +229,7 @@ class _Run:
         """Every arm from ``q_now`` to its start at once, then settle them all."""
         ramps = {}
         for name, a in self.arms.items():
-            q0, g0 = sample(a.traj, 0.0)
+            q0, g0 = a.target(0.0)
             # an arm resting at a joint limit may read one wire step (0.001 deg) beyond it, and a
             # target there is refused: the ramp starts from the nearest point inside the limits
             start = np.clip(q_now[name], a.arm.robot.lower, a.arm.robot.upper)
@@ -241,7 +252,7 @@ class _Run:
             if s >= longest:
                 break
             deadline = self.wait_tick(deadline)
-        self.settle({name: sample(a.traj, 0.0) for name, a in self.arms.items()})
+        self.settle({name: a.target(0.0) for name, a in self.arms.items()})
 
     def settle(self, targets: dict[str, tuple[np.ndarray, float]]) -> dict[str, np.ndarray]:
         """Keep commanding each arm's ``(q, gripper)`` until every joint of every arm is within
@@ -284,7 +295,7 @@ class _Run:
             if s >= end:
                 break
             deadline = self.wait_tick(deadline)
-        errors = self.settle({name: sample(a.traj, a.traj.t[-1]) for name, a in self.arms.items()})
+        errors = self.settle({name: a.target(float(a.traj.t[-1])) for name, a in self.arms.items()})
         for name, a in self.arms.items():
             a.report.final_error_deg = errors[name]
 

@@ -172,16 +172,9 @@ def trajectory_figures(traj: Trajectory, robot: RobotModel, limits: ReplayLimits
 
 
 def sample(traj: Trajectory, t: float) -> tuple[np.ndarray, float]:
-    """Targets at ``t`` s (linear between frames, held at the ends): (6,) rad and gripper m.
-
-    Each value is clipped into the range of the values it is interpolated from: np.interp can
-    overshoot them by a rounding step, which would put a target at a limit just beyond it."""
-    k = int(np.clip(np.searchsorted(traj.t, t, side="right") - 1, 0, len(traj.t) - 1))
-    near = slice(k, k + 2)
+    """Targets at ``t`` s (linear between frames, held at the ends): (6,) rad and gripper m."""
     q = np.array([np.interp(t, traj.t, traj.q[:, j]) for j in range(6)])
-    q = np.clip(q, traj.q[near].min(axis=0), traj.q[near].max(axis=0))
-    g = float(np.interp(t, traj.t, traj.gripper))
-    return q, min(max(g, float(traj.gripper[near].min())), float(traj.gripper[near].max()))
+    return q, float(np.interp(t, traj.t, traj.gripper))
 
 
 def approach(q_from: np.ndarray, q_to: np.ndarray, robot: RobotModel, fraction: float = 0.1,

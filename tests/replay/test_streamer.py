@@ -141,3 +141,13 @@ def test_the_grippers_moves_and_grasps_are_not_reported_as_tracking_error() -> N
     assert "within 0.50 mm" in str(gripper) and "held something at 40.0 mm" in str(gripper)
     free = GripperTracking.of(sent_t, sent_g, fb_t, np.where(fb_t < 1.0, 0.07, np.clip(0.07 - 0.2 * (fb_t - 1.0), 0, 1)))
     assert free.held_mm is None and free.settled_max_mm < 1e-9
+
+
+def test_targets_a_rounding_step_beyond_a_limit_are_streamed_inside_it(sim: SimArm) -> None:
+    """The checks let 1e-9 beyond a limit pass (data like a gripper of 0.07000000000000006 m);
+    the arm refuses any excess, so the streamer keeps the targets inside the limits."""
+    traj = motion()
+    at_limit = Trajectory(traj.t, traj.q, np.full(len(traj.t), 0.07000000000000006), "joints", 1.0)
+    report = replay(sim.arm, at_limit, StreamConfig(**RELAXED))
+    assert report.outcome == "completed", report
+    assert sim.sim.state()["gripper_target"] == pytest.approx(0.07, abs=1e-5)
