@@ -22,8 +22,9 @@ log = logging.getLogger("manisplat.view")
 
 EPILOG = """\
 PATH is one of:
-  an episode (episode.json): the robot at the recorded joints (its meshes), the depth as points in
-    the base frame, the camera frustum with the frame's image, the TCP path;
+  an episode (episode.json, format version 1 or 2): every arm at its base and recorded joints (its
+    meshes), every camera's frustum with the frame's image (a wrist camera moving with its link), the
+    depth as points, the TCP paths; all in the episode's world frame (version 1: the arm's base);
   a reconstruction (manisplat-reconstruct --out, twin.json): the twin's Gaussians (background,
     links moved by forward kinematics, objects at their trained poses), the robot's meshes as a
     second layer, and the twin rendered by our rasterizer beside the recorded image (the source
@@ -34,10 +35,10 @@ PATH is one of:
 The page has a timeline (play, frame, speed) and layer switches. The server binds to 127.0.0.1
 unless --host says otherwise (0.0.0.0 exposes it to your network) and runs until Ctrl-C.
 
---video OUT.mp4 writes the demonstrations instead (H.264, no browser): an episode's images, a
-reconstruction's [recorded | twin] side by side under a header naming them and the frame, an
-augmentation folder's demonstrations one after another; --orbit DEG turns the camera about the
-scene over the video.
+--video OUT.mp4 writes the demonstrations instead (H.264, no browser): an episode's images (its
+cameras side by side under their names when it has several), a reconstruction's [recorded | twin]
+side by side under a header naming them and the frame, an augmentation folder's demonstrations one
+after another; --orbit DEG turns the camera about the scene over the video.
 
 """ + exit_status_help({
     ExitCode.OK: "done (or the server stopped with Ctrl-C)",
@@ -118,7 +119,9 @@ def _serve(content, args: argparse.Namespace) -> int:
     with contextlib.redirect_stdout(io.StringIO()):  # viser prints its own banner; we print one line
         server = viser.ViserServer(host=args.host, port=args.port, verbose=False)
     viewer = Viewer(content, server)
-    shown = {"episode": "episode", "reconstruction": "twin", "augmentation": f"{len(content.demos)} demonstrations"}
+    shown = {"episode": "episode" if len(content.arms) == len(content.cameras) == 1 else
+             f"episode: arms {', '.join(content.arms)}; cameras {', '.join(content.cameras)}",
+             "reconstruction": "twin", "augmentation": f"{len(content.demos)} demonstrations"}
     print(f"manisplat-view: {args.path} ({shown[content.kind]}) at http://{args.host}:{server.get_port()} "
           "(Ctrl-C stops)", flush=True)
     stop = threading.Event()

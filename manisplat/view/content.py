@@ -1,6 +1,11 @@
-"""What ``manisplat-view PATH`` shows: the folder read into demonstrations (joints, object poses,
-images) and, where there is one, the twin. PATH is an episode, a reconstruction (``twin.json``) or
-an augmentation output (``augment_report.json`` beside ``episode_*`` folders)."""
+"""What ``manisplat-view PATH`` shows: the folder read into named arms, named cameras and
+demonstrations (every arm's joints, object poses, images) and, where there is one, the twin. PATH
+is an episode (format version 1 or 2), a reconstruction (``twin.json``) or an augmentation output
+(``augment_report.json`` beside ``episode_*`` folders).
+
+Everything is placed in one world frame: a version 2 episode's own (each arm at its
+``T_world_base``); for a version 1 episode and a twin, the one arm's base frame (named
+:data:`~manisplat.episode.format.V1_ARM`, ``T_world_base`` the identity)."""
 
 from __future__ import annotations
 
@@ -13,16 +18,23 @@ from typing import Any
 import numpy as np
 
 from manisplat.augment.writer import OBJECT_POSES_FILE
-from manisplat.episode.format import EpisodeFormatError
+from manisplat.episode.format import V1_ARM, VERSION, WORLD_MOUNT, EpisodeFormatError
 from manisplat.episode.reader import Episode
-from manisplat.robot import RobotModel, load_robot
+from manisplat.robot import RobotModel, RobotModelError, load_robot
 
 log = logging.getLogger(__name__)
 
 
-
 class ViewInputError(ValueError):
     """PATH is not something the viewer shows, or a part it needs is missing (named)."""
+
+
+@dataclass(frozen=True)
+class ArmTrack:
+    """One arm over a demonstration: ``q`` [T, 6] rad and ``gripper`` [T] m (finger-pad gap)."""
+
+    q: np.ndarray
+    gripper: np.ndarray
 
 
 @dataclass
@@ -31,7 +43,8 @@ class Demo:
 
     Attributes:
         name: shown in the list ("demo_episode", "episode_0003").
-        t: [T] s; q: [T, dof] rad; gripper: [T] m.
+        t: [T] s.
+        arms: arm name -> its :class:`ArmTrack` (one arm, :data:`V1_ARM`, for version 1 and twins).
         object_poses: name -> [T, 4, 4] float64 ``T_base_obj`` (empty when unknown).
         episode: the episode folder, for its images and depth (None for a twin without its episode).
         validation: the augmentation's validation record (augmented demonstrations only).
@@ -39,8 +52,7 @@ class Demo:
 
     name: str
     t: np.ndarray
-    q: np.ndarray
-    gripper: np.ndarray
+    arms: dict[str, ArmTrack]
     object_poses: dict[str, np.ndarray] = field(default_factory=dict)
     episode: Episode | None = None
     validation: dict[str, Any] | None = None
@@ -54,6 +66,54 @@ class Demo:
         t = self.t
         return (len(t) - 1) / (t[-1] - t[0]) if len(t) > 1 and t[-1] > t[0] else 10.0
 
+    def _one_arm(self) -> ArmTrack:
+        if len(self.arms) != 1:
+            raise ValueError(f"{self.name} has arms {', '.join(self.arms)}; a twin is made of one arm")
+        return next(iter(self.arms.values()))
+
+    @property
+    def q(self) -> np.ndarray:
+        """[T, 6] rad: the joints of the one arm (a twin's demonstration); ValueError with several."""
+        return self._one_arm().q
+
+    @property
+    def gripper(self) -> np.ndarray:
+        """[T] m: the gripper of the one arm (a twin's demonstration); ValueError with several."""
+        return self._one_arm().gripper
+
+
+@dataclass(frozen=True)
+class ViewArm:
+    """An arm as shown: its robot model (with visual meshes) and ``T_world_base`` [4, 4] float64 (m)."""
+
+    name: str
+    robot: RobotModel
+    T_world_base: np.ndarray
+
+
+@dataclass(frozen=True)
+class ViewCamera:
+    """A camera as shown.
+
+    Attributes:
+        name: the camera's name (its images' label).
+        K: [3, 3] intrinsics (px); width, height: image size (px).
+        mount: ``"world"`` or ``"<arm>/<link>"`` (a wrist camera riding on that arm's link).
+        T_mount_cam: [4, 4] float64 camera-to-mount (m): ``T_world_cam`` for ``"world"``.
+    """
+
+    name: str
+    K: np.ndarray
+    width: int
+    height: int
+    mount: str
+    T_mount_cam: np.ndarray
+
+    @property
+    def arm_link(self) -> tuple[str, str] | None:
+        """(arm, link) the camera rides on, or None for a camera fixed in the world."""
+        return None if self.mount == WORLD_MOUNT else tuple(self.mount.split("/", 1))  # type: ignore[return-value]
+
 
 @dataclass
 class ViewContent:
@@ -61,24 +121,26 @@ class ViewContent:
 
     Attributes:
         kind: "episode", "reconstruction" or "augmentation".
-        robot: the robot model with its visual meshes.
+        arms: arm name -> :class:`ViewArm` (one for version 1 and twins).
+        cameras: camera name -> :class:`ViewCamera` (one for version 1 and twins).
         demos: the demonstrations (one except for an augmentation folder: the source first).
-        K: [3, 3] intrinsics (px); width, height: image size.
-        T_mount_cam: [4, 4] camera-to-mount; mount: "base" or the link a wrist camera rides on.
         twin: the reconstructed twin (None for an episode alone).
         notes: what is missing and therefore not shown, said to the user.
     """
 
     kind: str
-    robot: RobotModel
+    arms: dict[str, ViewArm]
+    cameras: dict[str, ViewCamera]
     demos: list[Demo]
-    K: np.ndarray
-    width: int
-    height: int
-    T_mount_cam: np.ndarray
-    mount: str = "base"
     twin: Any = None
     notes: list[str] = field(default_factory=list)
+
+    @property
+    def robot(self) -> RobotModel:
+        """The robot model of the one arm (a twin's, or a one-arm episode's); ValueError with several."""
+        if len(self.arms) != 1:
+            raise ValueError(f"arms {', '.join(self.arms)}: no one robot")
+        return next(iter(self.arms.values())).robot
 
     def object_poses_at(self, demo: Demo, i: int) -> dict[str, np.ndarray]:
         """Each of the twin's objects at frame ``i`` of ``demo``: [4, 4] ``T_base_obj`` from the
@@ -88,39 +150,99 @@ class ViewContent:
         return {name: demo.object_poses[name][i] if name in demo.object_poses else track[0]
                 for name, track in self.twin.object_poses.items()}
 
-    def tcp_path(self, demo: Demo) -> np.ndarray:
-        """[T, 3] the TCP position of every frame of ``demo`` (m, base frame)."""
+    def link_poses(self, arm: str, demo: Demo, i: int | slice | np.ndarray) -> np.ndarray:
+        """[..., L, 4, 4] ``T_base_link`` of ``arm``'s links (order ``robot.link_names``) at frame(s) ``i``."""
         import torch
 
-        return self.robot.tcp_pose(torch.as_tensor(demo.q, dtype=torch.float64)).numpy()[:, :3, 3]
+        track = demo.arms[arm]
+        return self.arms[arm].robot.forward_kinematics(torch.as_tensor(track.q[i], dtype=torch.float64),
+                                                       torch.as_tensor(track.gripper[i], dtype=torch.float64)).numpy()
 
-    def camera_pose(self, q: np.ndarray, gripper: float) -> np.ndarray:
-        """[4, 4] ``T_base_cam`` at joints ``q`` (a wrist camera moves with its link)."""
-        if self.mount == "base":
-            return self.T_mount_cam
+    def tcp_paths(self, demo: Demo) -> dict[str, np.ndarray]:
+        """Arm name -> [T, 3] its TCP position at every frame of ``demo`` (m, world frame)."""
         import torch
 
-        link = self.robot.link_pose(torch.as_tensor(q, dtype=torch.float64), self.mount,
-                                    torch.as_tensor(float(gripper), dtype=torch.float64)).numpy()
-        return link @ self.T_mount_cam
+        paths = {}
+        for name, arm in self.arms.items():
+            tcp = arm.robot.tcp_pose(torch.as_tensor(demo.arms[name].q, dtype=torch.float64)).numpy()[:, :3, 3]
+            paths[name] = tcp @ arm.T_world_base[:3, :3].T + arm.T_world_base[:3, 3]
+        return paths
+
+    def camera_pose(self, camera: str, demo: Demo, i: int) -> np.ndarray:
+        """[4, 4] ``T_world_cam`` of ``camera`` at frame ``i`` of ``demo``: ``T_mount_cam`` for a camera
+        in the world, ``T_world_base @ FK(q_arm[i])[link] @ T_mount_cam`` for one on an arm's link."""
+        cam = self.cameras[camera]
+        if cam.arm_link is None:
+            return cam.T_mount_cam
+        arm_name, link = cam.arm_link
+        arm = self.arms[arm_name]
+        T_base_link = self.link_poses(arm_name, demo, i)[arm.robot.link_index(link)]
+        return arm.T_world_base @ T_base_link @ cam.T_mount_cam
 
 
 def _episode_demo(ep: Episode, name: str | None = None) -> Demo:
-    return Demo(name=name or ep.path.name, t=ep.frames.t, q=ep.frames.q, gripper=ep.frames.gripper, episode=ep)
+    arms = {arm: ArmTrack(f.q, f.gripper) for arm, f in ((a, ep.arm_frames(a)) for a in ep.arms)}
+    return Demo(name=name or ep.path.name, t=ep.arm_frames(next(iter(ep.arms))).t, arms=arms, episode=ep)
+
+
+def _episode_arms(ep: Episode) -> dict[str, ViewArm]:
+    """Each arm of ``ep`` with its robot (one model per description) and base; raises naming the
+    arms whose base is not calibrated."""
+    uncalibrated = [name for name, info in ep.arms.items() if info.T_world_base is None]
+    if uncalibrated:
+        raise ViewInputError(f"{ep.path}: arm {', '.join(uncalibrated)} has no T_world_base (base not calibrated); "
+                             "run manisplat-calibrate and `manisplat-calibrate apply`, so every arm stands in one world")
+    robots: dict[str, RobotModel] = {}
+    for info in ep.arms.values():
+        if info.description not in robots:
+            robots[info.description] = load_robot(info.description, ep.path)
+    return {name: ViewArm(name, robots[info.description], np.asarray(info.T_world_base, np.float64))
+            for name, info in ep.arms.items()}
+
+
+def _world_mount(mount: str, version: int) -> str:
+    """A camera's mount in version 2 terms (version 1's ``base`` is the world, a link is on the one arm)."""
+    if version != VERSION:
+        return mount
+    return WORLD_MOUNT if mount == "base" else f"{V1_ARM}/{mount}"
+
+
+def _episode_cameras(ep: Episode, arms: dict[str, ViewArm]) -> dict[str, ViewCamera]:
+    """Each camera of ``ep``; raises naming the cameras without ``T_mount_cam`` and a mount on a
+    link the arm's robot does not have."""
+    uncalibrated = [name for name, info in ep.cameras.items() if info.T_mount_cam is None]
+    if uncalibrated:
+        raise ViewInputError(f"{ep.path}: camera {', '.join(uncalibrated)} has no T_mount_cam (uncalibrated); run "
+                             "manisplat-calibrate and `manisplat-calibrate apply`, so the robot and depth can be "
+                             "placed in one frame")
+    cameras = {}
+    for name, info in ep.cameras.items():
+        mount = _world_mount(info.mount, ep.meta.version)
+        if mount != WORLD_MOUNT:
+            arm, link = mount.split("/", 1)
+            try:
+                arms[arm].robot.link_index(link)
+            except RobotModelError as exc:
+                raise ViewInputError(f"{ep.path}: camera {name} rides on {info.mount!r}: {exc}") from None
+        cameras[name] = ViewCamera(name, np.asarray(info.K, np.float64), info.width, info.height, mount,
+                                   np.asarray(info.T_mount_cam, np.float64))
+    return cameras
 
 
 def _load_episode(path: Path) -> ViewContent:
     ep = Episode.open(path)
-    cam = ep.camera
-    notes = []
-    if cam.T_mount_cam is None:
-        raise ViewInputError(f"{path}: the camera has no T_mount_cam (uncalibrated); run manisplat-calibrate and "
-                             "`manisplat-calibrate apply`, so the robot and depth can be placed in one frame")
-    if not ep.has_depth:
-        notes.append("the episode has no depth: no point cloud")
-    robot = load_robot(ep.meta.robot.description, ep.path)
-    return ViewContent("episode", robot, [_episode_demo(ep)], np.asarray(cam.K), cam.width, cam.height,
-                       np.asarray(cam.T_mount_cam), cam.mount, notes=notes)
+    arms = _episode_arms(ep)
+    cameras = _episode_cameras(ep, arms)
+    has_depth = any(ep.has_images("depth", name) for name in cameras)
+    notes = [] if has_depth else ["the episode has no depth: no point cloud"]
+    return ViewContent("episode", arms, cameras, [_episode_demo(ep)], notes=notes)
+
+
+def _twin_parts(twin: Any) -> tuple[dict[str, ViewArm], dict[str, ViewCamera]]:
+    """The twin's one arm (its base is the world) and its one camera."""
+    arm = ViewArm(V1_ARM, load_robot(twin.robot_description), np.eye(4))
+    camera = ViewCamera(twin.camera_name, twin.K, twin.width, twin.height, WORLD_MOUNT, twin.T_base_cam)
+    return {V1_ARM: arm}, {camera.name: camera}
 
 
 def _find_episode(name: str, near: list[Path]) -> Path | None:
@@ -146,22 +268,23 @@ def _load_twin(path: Path, episode: Path | None) -> tuple[Any, Demo, list[str]]:
         if len(ep) != twin.n_frames:
             raise ViewInputError(f"{found}: {len(ep)} frames, but the twin was made from {twin.n_frames}; pass the "
                                  "episode it was reconstructed from with --episode")
+        if twin.camera_name not in ep.cameras:
+            raise ViewInputError(f"{found}: cameras {', '.join(ep.cameras)}, but the twin was made from camera "
+                                 f"{twin.camera_name!r}; pass the episode it was reconstructed from with --episode")
     else:
         notes.append(f"the source episode {twin.episode!r} was not found beside {path} or here: no recorded images "
                      "(pass --episode EP to show them)")
-    demo = Demo(name=twin.episode, t=twin.t, q=twin.q, gripper=twin.gripper, object_poses=twin.object_poses,
-                episode=ep)
+    demo = Demo(name=twin.episode, t=twin.t, arms={V1_ARM: ArmTrack(twin.q, twin.gripper)},
+                object_poses=twin.object_poses, episode=ep)
     return twin, demo, notes
 
 
 def _load_reconstruction(path: Path, episode: Path | None) -> ViewContent:
     twin, demo, notes = _load_twin(path, episode)
-    robot = load_robot(twin.robot_description)
-    return ViewContent("reconstruction", robot, [demo], twin.K, twin.width, twin.height, twin.T_base_cam, "base",
-                       twin=twin, notes=notes)
+    return ViewContent("reconstruction", *_twin_parts(twin), [demo], twin=twin, notes=notes)
 
 
-def _augmented_demo(folder: Path, sample: dict[str, Any], notes: list[str]) -> Demo:
+def _augmented_demo(folder: Path, notes: list[str]) -> Demo:
     ep = Episode.open(folder)
     demo = _episode_demo(ep)
     record_path = folder / "augmentation.json"
@@ -195,12 +318,10 @@ def _load_augmentation(path: Path, twin_path: Path | None, episode: Path | None)
     for sample in report.get("samples", []):
         folder = path / str(sample.get("episode", ""))
         if sample.get("valid") and (folder / "episode.json").is_file():
-            demos.append(_augmented_demo(folder, sample, notes))
+            demos.append(_augmented_demo(folder, notes))
     if len(demos) == 1:
         notes.append(f"{path}: no augmented demonstration written")
-    robot = load_robot(twin.robot_description)
-    return ViewContent("augmentation", robot, demos, twin.K, twin.width, twin.height, twin.T_base_cam, "base",
-                       twin=twin, notes=notes)
+    return ViewContent("augmentation", *_twin_parts(twin), demos, twin=twin, notes=notes)
 
 
 def load_content(path: str | Path, *, twin: str | Path | None = None, episode: str | Path | None = None) -> ViewContent:

@@ -1,6 +1,7 @@
 """``manisplat-view PATH --video OUT.mp4``: the demonstrations replayed as an H.264 video (PyAV), no
 browser needed. With a twin: its render from the episode's camera (or an orbit around the scene)
-beside the recorded image where there is one; for an episode alone: its recorded images."""
+beside the recorded image where there is one; for an episode alone: its recorded images (every
+camera's side by side under their names when it has several)."""
 
 from __future__ import annotations
 
@@ -12,11 +13,12 @@ from pathlib import Path
 from typing import Iterator
 
 import av
+import cv2
 import numpy as np
 from tqdm import tqdm
 
 from manisplat.render.sheets import labelled_sheet
-from manisplat.view.content import ViewContent
+from manisplat.view.content import Demo, ViewContent
 
 log = logging.getLogger(__name__)
 SIDE_BY_SIDE = ("recorded", "twin")
@@ -47,27 +49,39 @@ def orbit_pose(T_base_cam: np.ndarray, target: np.ndarray, angle: float) -> np.n
     return back @ turn @ to_target @ T_base_cam
 
 
+def camera_sheet(demo: Demo, i: int, cameras: list[str]) -> np.ndarray:
+    """[H', W', 3] uint8: frame ``i`` of every camera of ``demo``'s episode side by side, each scaled
+    to the first one's height and padded white to the widest, under a header naming them and the frame."""
+    images = [demo.episode.rgb(i, name) for name in cameras]
+    height = images[0].shape[0]
+    scaled = [image if image.shape[0] == height else
+              cv2.resize(image, (round(image.shape[1] * height / image.shape[0]), height), interpolation=cv2.INTER_AREA)
+              for image in images]
+    width = max(image.shape[1] for image in scaled)
+    panels = [np.pad(image, ((0, 0), (0, width - image.shape[1]), (0, 0)), constant_values=255) for image in scaled]
+    return labelled_sheet(np.concatenate(panels, axis=1), tuple(cameras), f"frame {i}  t = {demo.t[i]:.2f} s")
+
+
 def _frames(content: ViewContent, orbit_deg: float) -> Iterator[np.ndarray]:
-    """Each video frame: an episode's recorded image; a reconstruction's [recorded | twin] under a
-    header naming the halves and the frame (the twin
+    """Each video frame: an episode's recorded image (its cameras' side by side when it has several);
+    a reconstruction's [recorded | twin] under a header naming the halves and the frame (the twin
     alone without its episode); an augmentation folder's twin view of every demonstration (augmented
     episodes hold the twin's renders already); with an orbit, the twin from the turning camera."""
-    twin = content.twin
+    twin, cameras = content.twin, list(content.cameras)
     total = sum(len(d) for d in content.demos)
     shown = 0
     for demo in content.demos:
-        target = content.tcp_path(demo).mean(axis=0) if orbit_deg else None
+        target = np.concatenate(list(content.tcp_paths(demo).values())).mean(axis=0) if orbit_deg else None
         for i in range(len(demo)):
-            q, gripper = demo.q[i], float(demo.gripper[i])
             if twin is None:
-                image = demo.episode.rgb(i)
+                image = demo.episode.rgb(i, cameras[0]) if len(cameras) == 1 else camera_sheet(demo, i, cameras)
             elif orbit_deg:
-                T = orbit_pose(content.camera_pose(q, gripper), target, np.deg2rad(orbit_deg) * shown / max(1, total - 1))
-                image = twin.render(q, gripper, content.object_poses_at(demo, i), T_base_cam=T).rgb
+                T = orbit_pose(twin.T_base_cam, target, np.deg2rad(orbit_deg) * shown / max(1, total - 1))
+                image = twin.render(demo.q[i], float(demo.gripper[i]), content.object_poses_at(demo, i), T_base_cam=T).rgb
             elif demo.episode is not None and demo.episode.meta.source == "augmentation":  # twin renders already
                 image = demo.episode.rgb(i)
             else:
-                image = twin.render(q, gripper, content.object_poses_at(demo, i)).rgb
+                image = twin.render(demo.q[i], float(demo.gripper[i]), content.object_poses_at(demo, i)).rgb
                 if content.kind == "reconstruction" and demo.episode is not None:
                     image = labelled_sheet(np.concatenate([demo.episode.rgb(i), image], axis=1), SIDE_BY_SIDE,
                                            f"frame {i}  t = {demo.t[i]:.2f} s")

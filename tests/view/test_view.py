@@ -113,7 +113,7 @@ def test_the_viewer_moves_the_links_to_their_fk_poses(folders, server):
             links = content.robot.forward_kinematics(torch.as_tensor(demo.q[frame]),
                                                      torch.as_tensor(demo.gripper[frame])).numpy()
             for k, name in enumerate(content.robot.link_names):
-                handle = viewer._link_frames[name]
+                handle = viewer._link_frames["arm"][name]
                 assert np.allclose(handle.position, links[k, :3, 3], atol=1e-6), name
                 R = quat_to_matrix(torch.as_tensor(np.array(handle.wxyz), dtype=torch.float64)).numpy()
                 assert np.allclose(R, links[k, :3, :3], atol=1e-6), name
