@@ -8,7 +8,7 @@ inputs (shapes change only at densification steps) marked :func:`compilable`: in
 ``with compilation("default"):`` they run through ``torch.compile`` (Inductor: fused Triton
 kernels on CUDA, vectorised C++ on the CPU, their backward compiled too); outside it they run
 eagerly, the same code. Each is compiled for any number of Gaussians on its first call, and again
-when a Python setting it reads changes (the active SH band); compiled code is cached on disk by
+when a Python setting it reads changes (the shadows' start); compiled code is cached on disk by
 PyTorch (``TORCHINDUCTOR_CACHE_DIR``), so a later process on the same machine starts faster.
 """
 

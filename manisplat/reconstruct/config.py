@@ -91,7 +91,8 @@ COMPILE_CHOICES = ("auto", "on", "off")
 #: "auto" compiles a CUDA run of at least this many iterations: on an H100 compiling saved 9.6 ms
 #: an iteration (22.6 -> 13.0 ms on sim_pick_place_small, gpu_compile/pp_600.json) and took about
 #: 240 s over a whole run (the first graphs, then again when the shadows start and at each new SH
-#: band: gpu_long/long_pp_30000.json), so it pays after about 25 000
+#: band: gpu_long/long_pp_30000.json), so it pays after about 25 000 (the SH bands no longer
+#: compile since: about 90 s less, to be measured before this moves)
 COMPILE_MIN_ITERS = 25_000
 
 

@@ -269,6 +269,10 @@ class Reconstruction:
         """One optimizer step over everything (the object poses: the twists ``frame`` used), then
         densification (gsplat's order: a node that grows or is pruned still takes this
         iteration's update)."""
+        for node in self.graph.nodes():  # before its first band, shN is weighed 0 and takes no step:
+            g = node.gaussians           # its Adam moments start with its first band's gradient
+            if g.active_degree == 0 and "shN" in g.params:
+                g.params["shN"].grad = None
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         self.pose_optimizer.step(frame)

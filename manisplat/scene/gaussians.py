@@ -45,6 +45,7 @@ class GaussianSet:
         self.strategy_state: dict | None = None
         self.sh_degree = 0 if "shN" not in self.params else int(round((self.params["shN"].shape[1] + 1) ** 0.5)) - 1
         self.active_degree = 0  # bands in use (raised during training up to sh_degree)
+        self._band_weights: tuple[tuple, torch.Tensor] | None = None  # band_weights()'s, for its key
 
     @classmethod
     def from_points(
@@ -118,7 +119,20 @@ class GaussianSet:
 
         ``camera_center`` [3], in this node's frame, enables the view-dependent bands.
         """
-        return activate(self.params, camera_center, self.active_degree)
+        return activate(self.params, camera_center, self.band_weights())
+
+    def band_weights(self) -> torch.Tensor | None:
+        """[K-1] float32 weights of the view-dependent coefficients ``shN`` on their device: 1 for
+        the bands up to ``active_degree``, 0 above; None without ``shN``."""
+        shN = self.params.get("shN")
+        if shN is None:
+            return None
+        in_use = (self.active_degree + 1) ** 2 - 1
+        key = (in_use, shN.shape[1], shN.device)
+        if self._band_weights is None or self._band_weights[0] != key:
+            weights = (torch.arange(shN.shape[1], device=shN.device) < in_use).float()
+            self._band_weights = (key, weights)
+        return self._band_weights[1]
 
     def step(self) -> None:
         """One optimizer step for every parameter, then clear the gradients."""

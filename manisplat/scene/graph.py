@@ -153,10 +153,10 @@ class SceneGraph:
         counts = tuple(len(n.gaussians) for n in dynamic)
         background = 0 if self.background is None else len(self.background)
         index, groups = self._node_index(background, counts, [n.group for n in dynamic], device)
-        background_params, background_degree = (None, 0) if self.background is None else \
-            (self.background.params, self.background.active_degree)
+        background_params, background_bands = (None, None) if self.background is None else \
+            (self.background.params, self.background.band_weights())
         bg, moving = place_scene(background_params, [n.gaussians.params for n in dynamic], torch.stack(poses).float(),
-                                 index, camera_center, degree, background_degree)
+                                 index, camera_center, dynamic[0].gaussians.band_weights(), background_bands)
         shadow = None
         if self.shadows is not None and bg is not None:
             shadow = self.shadows.shadow_inputs(moving[:4])

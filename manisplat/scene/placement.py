@@ -18,35 +18,43 @@ Activated = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.
 
 
 def _colors(means: torch.Tensor, sh0: torch.Tensor, shN: torch.Tensor | None, viewer: torch.Tensor | None,
-            degree: int) -> torch.Tensor:
-    """[N, 3] colours of SH coefficients seen from ``viewer`` ([3] or [N, 3], the node's frame)."""
-    if degree > 0 and viewer is not None:
-        coeffs = torch.cat([sh0[:, None], shN[:, : (degree + 1) ** 2 - 1]], dim=1)
+            bands: torch.Tensor | None) -> torch.Tensor:
+    """[N, 3] colours of SH coefficients seen from ``viewer`` ([3] or [N, 3], the node's frame).
+
+    ``bands`` [K-1] weighs ``shN``'s coefficients: 1 where their band is in use, 0 where it is not
+    yet. A tensor rather than a degree, so that a new band changes values, not the code compiled
+    for them (a weight of 0 adds exact zeros: the colour of the bands in use). None, or no
+    ``viewer``: the base colour alone."""
+    if bands is not None and shN is not None and viewer is not None:
+        degree = int(round((shN.shape[1] + 1) ** 0.5)) - 1
+        coeffs = torch.cat([sh0[:, None], shN * bands[:, None]], dim=1)
         return (spherical_harmonics(degree, means - viewer, coeffs) + 0.5).clamp_min(0.0)
     return (0.5 + C0 * sh0).clamp_min(0.0)
 
 
-def activate(params: dict[str, torch.Tensor], camera_center: torch.Tensor | None, degree: int) -> Activated:
+def activate(params: dict[str, torch.Tensor], camera_center: torch.Tensor | None = None,
+             bands: torch.Tensor | None = None) -> Activated:
     """(means [N, 3], quats [N, 4], scales [N, 3], opacities [N], colours [N, 3]) of raw parameters
-    (:class:`~manisplat.scene.gaussians.GaussianSet`'s), the first ``degree`` SH bands seen from
-    ``camera_center`` [3] in the same frame (None: the base colour only)."""
-    colors = _colors(params["means"], params["sh0"], params.get("shN"), camera_center, degree)
+    (:class:`~manisplat.scene.gaussians.GaussianSet`'s), the SH bands that ``bands`` weighs
+    (:meth:`~manisplat.scene.gaussians.GaussianSet.band_weights`) seen from ``camera_center`` [3]
+    in the same frame (None: the base colour only)."""
+    colors = _colors(params["means"], params["sh0"], params.get("shN"), camera_center, bands)
     return params["means"], params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]), colors
 
 
 @compilable
 def place_scene(background: dict[str, torch.Tensor] | None, moving: list[dict[str, torch.Tensor]], poses: torch.Tensor,
-                index: torch.Tensor, camera_center: torch.Tensor | None, degree: int,
-                background_degree: int) -> tuple[Activated | None, Activated]:
-    """(the background activated in place with its ``background_degree`` SH bands, or None; the
-    moving nodes placed by :func:`place_nodes` with ``degree``): the scene's Gaussians at one
+                index: torch.Tensor, camera_center: torch.Tensor | None, bands: torch.Tensor | None,
+                background_bands: torch.Tensor | None) -> tuple[Activated | None, Activated]:
+    """(the background activated in place with the SH bands ``background_bands`` weighs, or None;
+    the moving nodes placed by :func:`place_nodes` with ``bands``): the scene's Gaussians at one
     state, before any shading, in one function (one compiled graph)."""
-    placed = place_nodes(moving, poses, index, camera_center, degree)
-    return (None if background is None else activate(background, camera_center, background_degree)), placed
+    placed = place_nodes(moving, poses, index, camera_center, bands)
+    return (None if background is None else activate(background, camera_center, background_bands)), placed
 
 
 def place_nodes(params: list[dict[str, torch.Tensor]], poses: torch.Tensor, index: torch.Tensor,
-                camera_center: torch.Tensor | None, degree: int) -> Activated:
+                camera_center: torch.Tensor | None, bands: torch.Tensor | None) -> Activated:
     """Nodes' Gaussians activated and moved to their poses, as one union in node order.
 
     Args:
@@ -54,7 +62,7 @@ def place_nodes(params: list[dict[str, torch.Tensor]], poses: torch.Tensor, inde
         poses: [K, 4, 4] float32 ``T_base_node`` of the K nodes.
         index: [M] int64, the node of each Gaussian of the union (M = the nodes' sizes summed).
         camera_center: [3] base frame, for the view-dependent bands (None: base colour only).
-        degree: SH bands in use.
+        bands: [K-1] weights of the view-dependent SH coefficients (1 in use, 0 not yet), or None.
     Returns (means, quats, scales, opacities, colours) [M, ...] in the base frame.
     """
     raw = {k: torch.cat([p[k] for p in params]) for k in params[0]}
@@ -64,7 +72,7 @@ def place_nodes(params: list[dict[str, torch.Tensor]], poses: torch.Tensor, inde
     viewer = None
     if camera_center is not None:
         viewer = torch.einsum("kj,kji->ki", camera_center.float()[None] - t, R)[index]  # camera in each node's frame
-    colors = _colors(local, raw["sh0"], raw.get("shN"), viewer, degree)
+    colors = _colors(local, raw["sh0"], raw.get("shN"), viewer, bands)
     means = torch.einsum("nij,nj->ni", R[index], local) + t[index]
     quats = quat_multiply(rotations[index], raw["quats"])
     return means, quats, torch.exp(raw["scales"]), torch.sigmoid(raw["opacities"]), colors

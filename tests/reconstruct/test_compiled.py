@@ -37,8 +37,13 @@ def _placement_inputs(sizes: tuple[int, ...], seed: int = 0):
     return background, moving, _poses(len(moving), g), index, torch.tensor([0.3, -0.2, 1.5])
 
 
+def _bands(degree: int) -> torch.Tensor:
+    """The weights of the 8 view-dependent coefficients (SH degree 2) with bands up to ``degree`` in use."""
+    return (torch.arange(8) < (degree + 1) ** 2 - 1).float()
+
+
 def _placed(inputs, degree: int) -> list[torch.Tensor]:
-    background, moving = place_scene(*inputs, degree, degree)
+    background, moving = place_scene(*inputs, _bands(degree), _bands(degree))
     return [*background, *moving]
 
 
@@ -67,6 +72,28 @@ def test_compiled_placement_equals_eager_and_serves_any_number_of_gaussians():
     for r, outputs in zip(resized, reused):  # the reused code places the new sizes right
         for a, b in zip(outputs, _placed(r, 2)):
             torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+
+
+def test_a_new_sh_band_changes_values_not_the_compiled_code():
+    """The bands in use are weights, not a degree: raising the degree (every ``sh_every``
+    iterations) reuses the compiled placement, and each degree's colours are those of its bands
+    alone (the higher coefficients add exact zeros)."""
+    from manisplat.splat.sh import spherical_harmonics
+
+    inputs = _placement_inputs((20, 30, 10))
+    with compilation("trace"):
+        _placed(inputs, 0)
+        compiled_graphs = counters["stats"]["unique_graphs"]
+        by_degree = {degree: _placed(inputs, degree) for degree in (0, 1, 2)}
+    assert counters["stats"]["unique_graphs"] == compiled_graphs
+    background, centre = inputs[0], inputs[4]
+    sh0, shN, means = background["sh0"], background["shN"], background["means"]
+    assert torch.equal(by_degree[0][4], (0.5 + 0.28209479177387814 * sh0).clamp_min(0.0))
+    for degree in (1, 2):
+        coeffs = torch.cat([sh0[:, None], shN[:, : (degree + 1) ** 2 - 1]], dim=1)
+        expected = (spherical_harmonics(degree, means - centre, coeffs) + 0.5).clamp_min(0.0)
+        torch.testing.assert_close(by_degree[degree][4], expected, rtol=0, atol=1e-7)
+    assert not torch.equal(by_degree[1][4], by_degree[2][4])
 
 
 def _loss_inputs(seed: int = 0):

@@ -152,6 +152,21 @@ def test_one_optimizer_updates_every_node(pick):
     assert rec.pose_optimizer.trajectories["box"] is rec.trajectories["box"]  # poses: their own optimizer
 
 
+def test_the_view_dependent_colours_take_no_step_before_their_first_band(pick):
+    """Before ``sh_every`` the bands above the base colour are weighed 0 (a tensor, for the
+    compiled code's sake) and must not step: their Adam moments start with the first band."""
+    rec, _ = _reconstruction(pick, iters=4, device="cpu", sh_every=5)
+    before = {n.name: n.gaussians.params["shN"].detach().clone() for n in rec.graph.nodes()}
+    rec.train(progress=False)
+    for node in rec.graph.nodes():
+        shN = node.gaussians.params["shN"]
+        assert torch.equal(before[node.name], shN), node.name
+        assert not rec.optimizer.state.get(shN), f"{node.name}: Adam stepped shN before its first band"
+    rec.config.iters = 8
+    rec.train(progress=False)  # bands 1 on: they learn
+    assert any(not torch.equal(before[n.name], n.gaussians.params["shN"]) for n in rec.graph.nodes())
+
+
 def test_a_checkpoint_continues_exactly(pick, tmp_path):
     """Saved, read back on the host (map_location), loaded into a fresh reconstruction: the same
     parameters and moments, and the next iterations give the same parameters as an unbroken run."""
