@@ -203,3 +203,16 @@ def test_episodes_with_other_arms_cannot_share_an_export(tmp_path, capsys):
                                                  "one_arm arm"):
         export_act_hdf5([ep_path, one_arm], tmp_path / "act")
     assert not (tmp_path / "act").exists()
+
+
+def test_one_arm_import_lerobot_converts_declared_units(tmp_path):
+    """--units applies to a one-arm import too (default there: radians and metres, as stored)."""
+    src = write_episode(tmp_path / "one_arm", frames=5)
+    assert main(["export", str(src), "--format", "lerobot", "--out", str(tmp_path / "ds"), "--codec", "h264",
+                 "--task", "reach", "--no-depth"]) == 0
+    command = ["import-lerobot", str(tmp_path / "ds"), "--episode", "0", "--camera", "test", "--K", "30,30,15.5,11.5"]
+    assert main([*command, "--out", str(tmp_path / "si")]) == 0
+    assert main([*command, "--units", "deg,mm", "--out", str(tmp_path / "deg")]) == 0
+    si, deg = Episode.open(tmp_path / "si").frames, Episode.open(tmp_path / "deg").frames
+    assert np.array_equal(si.q, Episode.open(src).frames.q.astype(np.float32))
+    assert np.array_equal(deg.q, si.q * (np.pi / 180)) and np.array_equal(deg.gripper, si.gripper * 0.001)
