@@ -202,24 +202,27 @@ class Stages:
         return policy
 
     def _rollouts(self, key: str, policy: TrainedPolicy, seeds: list[int], envs: int) -> list[Rollout]:
-        path = (self.work / "rollouts" /
-                f"{key}_{policy.budget.steps}_{policy.viewport.tag}_{seeds[0]}_{len(seeds)}_{ENV_TAG}.npz")
-        if path.exists():
-            saved = np.load(path, allow_pickle=True)
-            return list(saved["rollouts"])
-        _log(f"evaluating {key} on {len(seeds)} start poses")
-        torch.set_num_threads(1)  # the environments render on the other cores
-        pool: list[SimEnv] = []
-        try:
-            pool += [SimEnv(self.simenv, self.tools, self.source, **ENV_OPTIONS) for _ in range(envs)]
-            rollouts = evaluate(policy, pool, seeds, keep_frames=2, progress=_print_rollout)
-        finally:
-            for env in pool:
-                env.close()
-            torch.set_num_threads(max(1, os.cpu_count() or 1))
-        path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez(path, rollouts=np.array(rollouts, dtype=object))
-        return rollouts
+        """The policy's rollouts from ``seeds``: those of earlier runs of the same policy and
+        environment taken from the work folder (by seed), the rest run and saved as one more file."""
+        stem = f"{key}_{policy.budget.steps}_{policy.viewport.tag}"
+        done = _cached_rollouts(self.work / "rollouts", stem, set(seeds))
+        missing = [seed for seed in seeds if seed not in done]
+        if missing:
+            _log(f"evaluating {key} on {len(missing)} start poses ({len(done)} from earlier runs)")
+            torch.set_num_threads(1)  # the environments render on the other cores
+            pool: list[SimEnv] = []
+            try:
+                pool += [SimEnv(self.simenv, self.tools, self.source, **ENV_OPTIONS) for _ in range(envs)]
+                rollouts = evaluate(policy, pool, missing, keep_frames=2, progress=_print_rollout)
+            finally:
+                for env in pool:
+                    env.close()
+                torch.set_num_threads(max(1, os.cpu_count() or 1))
+            path = self.work / "rollouts" / f"{stem}_{missing[0]}_{len(missing)}_{ENV_TAG}.npz"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            np.savez(path, rollouts=np.array(rollouts, dtype=object))
+            done.update((r.seed, r) for r in rollouts)
+        return [done[seed] for seed in seeds]
 
     # ------------------------------------------------------------------ the simulator venv
     @staticmethod
@@ -234,6 +237,20 @@ class Stages:
     def _sim(self, script: str, *args: str) -> None:
         if self._sim_process(script, *args).wait() != 0:
             raise RuntimeError(f"{script} failed")
+
+
+def _cached_rollouts(folder: Path, stem: str, seeds: set[int]) -> dict[int, Rollout]:
+    """seed -> rollout of the files ``{stem}_{first seed}_{count}_{ENV_TAG}.npz`` in ``folder``
+    (one policy, one environment), for ``seeds``."""
+    found: dict[int, Rollout] = {}
+    for path in sorted(folder.glob(f"{stem}_*_*_{ENV_TAG}.npz")):
+        first, _, count = path.name[len(stem) + 1: -len(f"_{ENV_TAG}.npz")].partition("_")
+        if not (first.isdigit() and count.isdigit()):  # another policy whose key begins with this one's
+            continue
+        for rollout in np.load(path, allow_pickle=True)["rollouts"]:
+            if rollout.seed in seeds:
+                found[rollout.seed] = rollout
+    return found
 
 
 def _start_xy(folder: Path, source: Path) -> tuple[float, float]:

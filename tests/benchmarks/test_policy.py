@@ -97,3 +97,22 @@ def test_the_workspace_viewport_holds_the_object_where_it_starts_and_ends(tmp_pa
         assert view.left <= cols.min() and cols.max() < view.left + view.width
     assert view.width < 160, "the whole image: no closer look at the workspace"
     assert view.view(ep.rgb(0)).shape == (48, 64, 3)
+
+
+def test_rollouts_of_earlier_runs_are_found_by_seed_for_their_own_policy_only(tmp_path):
+    """A longer evaluation reuses the rollouts an earlier, shorter one saved, seed by seed, and
+    never those of another policy whose name begins the same way."""
+    from benchmarks.policy.rollout import Rollout
+    from benchmarks.policy.stages import ENV_TAG, _cached_rollouts
+
+    def save(name: str, seeds: range) -> None:
+        runs = [Rollout(seed, {"success": True}, "success", True) for seed in seeds]
+        np.savez(tmp_path / f"{name}_{seeds[0]}_{len(seeds)}_{ENV_TAG}.npz", rollouts=np.array(runs, dtype=object))
+
+    save("B50_3000_v1", range(1000, 1030))
+    save("B50_3000_v1", range(1030, 1040))
+    save("B50_3000_v1_other", range(1040, 1050))  # another viewport
+    found = _cached_rollouts(tmp_path, "B50_3000_v1", set(range(1000, 1050)))
+    assert sorted(found) == list(range(1000, 1040))
+    assert all(found[seed].seed == seed for seed in found)
+    assert sorted(_cached_rollouts(tmp_path, "B50_3000_v1", {1005, 1031, 1045})) == [1005, 1031]
