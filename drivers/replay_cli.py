@@ -18,7 +18,7 @@ import threading
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
-from manisplat.cli_args import add_version, bounded, finite, finite_numbers, positive
+from manisplat.cli_args import add_version, bounded, finite_numbers, non_negative, positive
 from manisplat.exit_codes import ExitCode, exit_status_help
 
 if TYPE_CHECKING:
@@ -77,14 +77,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("episode", type=Path, help="the episode folder (docs/episode-format.md)")
     p.add_argument("--can", default=None, metavar="CHANNEL",
                    help="CAN channel of the arm of a one-arm episode (default can0)")
-    p.add_argument("--arm", type=_named("--arm", "CHANNEL"), action="append", default=[], metavar="NAME=CHANNEL",
+    p.add_argument("--arm", type=_named("--arm", "CHANNEL"), action="append", metavar="NAME=CHANNEL",
                    help="CAN channel of the episode's arm NAME; repeat for every arm of a several-arm episode "
                         "(--arm left=can_left --arm right=can_right)")
     p.add_argument("--interface", default="socketcan", metavar="NAME",
                    help="python-can interface: socketcan, slcan, gs_usb, pcan, virtual, ... (default socketcan)")
     p.add_argument("--sim", action="store_true",
                    help="replay on a simulated PiPER (no hardware; default: the arm on --can)")
-    p.add_argument("--sim-start", type=_sim_start, action="append", default=[], metavar="[NAME=]J1,..,J6",
+    p.add_argument("--sim-start", type=_sim_start, action="append", metavar="[NAME=]J1,..,J6",
                    help="--sim: a simulated arm's initial joints, 6 angles in degrees (arm convention; default "
                         "3 deg from the episode's start on every joint); NAME= says which arm (needed with several)")
     p.add_argument("--speed", type=positive(), default=1.0,
@@ -103,7 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="refuse when the start is further than this from the arm's state (default 30)")
     p.add_argument("--max-step-deg", type=positive(), default=10.0, metavar="DEG",
                    help="refuse a jump larger than this between two frames (default 10)")
-    p.add_argument("--min-arm-clearance-mm", type=finite(), default=DEFAULT_ARM_CLEARANCE_MM, metavar="MM",
+    p.add_argument("--min-arm-clearance-mm", type=non_negative(), default=DEFAULT_ARM_CLEARANCE_MM, metavar="MM",
                    help="several arms: refuse when links of two arms come closer than this (convex hulls of the "
                         f"links; default {DEFAULT_ARM_CLEARANCE_MM:g})")
     p.add_argument("--feedback-timeout-ms", type=positive(), default=100.0, metavar="MS",
@@ -194,7 +194,7 @@ def _channels(args: argparse.Namespace, arms: list[str]) -> dict[str, str]:
 def _sim_starts(args: argparse.Namespace, arms: list[str]) -> dict[str, list[float]]:
     """The ``--sim-start`` angles (deg) per arm; an unnamed one is the one arm's."""
     starts: dict[str, list[float]] = {}
-    for name, angles in args.sim_start:
+    for name, angles in args.sim_start or []:
         if name is None and len(arms) > 1:
             raise UsageError(f"--sim-start: name the arm ({', '.join(arms)}): --sim-start NAME=J1,..,J6")
         name = arms[0] if name is None else name

@@ -40,6 +40,8 @@ BAD_VALUES = [
     ("manisplat-replay", ["ep"], "--max-start-distance-deg", ["0", "nan", "inf"]),
     ("manisplat-replay", ["ep"], "--max-step-deg", ["0", "-3", "nan"]),
     ("manisplat-replay", ["ep"], "--feedback-timeout-ms", ["0", "nan", "inf"]),
+    ("manisplat-replay", ["ep"], "--arm", ["left", "=can0", "left="]),
+    ("manisplat-replay", ["ep"], "--min-arm-clearance-mm", ["-1", "nan", "inf"]),
     ("manisplat-calibrate", ["board"], "--squares-x", ["0", "1", "2.5", "nan"]),
     ("manisplat-calibrate", ["board"], "--squares-y", ["1", "-4"]),
     ("manisplat-calibrate", ["board"], "--square-mm", ["0", "-30", "nan", "inf"]),
