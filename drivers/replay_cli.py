@@ -1,10 +1,12 @@
 """``manisplat-replay``: play an episode back on a PiPER (or a simulated one), safely.
 
-The pieces: :mod:`.piper.convention` (the episode's joint convention -> the arm's),
-:mod:`.piper.trajectory` (targets and every check before anything moves), :mod:`.piper.streamer`
-(the approach, the stream, the stops, the hold). Nothing beyond the standard library and
-:mod:`manisplat.cli_args` is imported before the arguments are parsed, so ``--help`` and usage
-errors answer at once.
+Every arm of the episode is replayed (one, or several named ones of a version 2 episode). The
+pieces: :mod:`.piper.convention` (the episode's joint convention -> the arm's),
+:mod:`.piper.trajectory` (targets and every check of one arm before anything moves),
+:mod:`.piper.replay_plan` and :mod:`.piper.clearance` (each arm's plan; the arms against each
+other), :mod:`.piper.streamer` (the approach, the lock-step stream, the stops, the hold).
+Nothing beyond the standard library and :mod:`manisplat.cli_args` is imported before the
+arguments are parsed, so ``--help`` and usage errors answer at once.
 """
 
 from __future__ import annotations
