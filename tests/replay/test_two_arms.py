@@ -189,3 +189,19 @@ def test_an_arm_without_link_geometry_is_refused_by_name(tmp_path: Path, capsys:
     ep = write_arms_episode(tmp_path / "ep", t, q, g, BASES, description="../piper_new.urdf")
     assert main([str(ep), "--sim", "--dry-run"]) == 4
     assert "arm left: " in capsys.readouterr().err
+
+
+def test_three_arms_are_checked_pair_by_pair(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """Nothing is special about two: a third arm between them is checked against both."""
+    t, q, g = swing_in(40.0, duration=3.0)  # left and right keep 45 mm apart; an arm between them does not
+    q["middle"], g["middle"] = np.tile(READY, (len(t), 1)), g["left"]
+    ep = write_arms_episode(tmp_path / "ep", t, q, g, {**BASES, "middle": base_at(0.0)})
+    assert main([str(ep), "--sim", "--dry-run"]) == 4
+    closest = capsys.readouterr().err.split("closest at")[1]
+    assert "/link" in closest and "middle/link" in closest and "overlap by" in closest, closest
+    far = write_arms_episode(tmp_path / "far", t, q, g, {"left": base_at(0.9), "middle": base_at(0.0),
+                                                          "right": base_at(-0.9)})
+    assert main([str(far), "--sim", "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert all(f"arm {name}:" in out for name in ("left", "middle", "right")) and "all checks pass" in out
+    assert out.count(NO_TARGETS) == 3
