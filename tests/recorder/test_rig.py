@@ -16,8 +16,16 @@ import can
 import numpy as np
 import pytest
 
+from manisplat.drivers.piper import PiperArm
+from manisplat.drivers.replay import EpisodeCamera
 from manisplat.episode import Episode, validate
+from manisplat.episode.infos import ArmInfo, CameraInfo
 from manisplat.recorder.cli import main
+from manisplat.recorder.clock import ManualClock
+from manisplat.recorder.replaycam import ReplayCamera
+from manisplat.recorder.rig import RigArm, RigCamera, RigRecorder
+from manisplat.recorder.session import RecorderConfig
+from manisplat.recorder.simrig import SimRig
 from tests.recorder.helpers import K, source_frame, write_source
 
 RECORD = [sys.executable, "-m", "manisplat.recorder.cli"]
@@ -25,6 +33,7 @@ EPISODE = [sys.executable, "-m", "manisplat.episode.cli"]
 CAMERAS = {"cam_high": ("world", 0), "cam_left_wrist": ("left/link6", 1), "cam_right_wrist": ("right/link6", 2)}
 """Camera -> (mount, source number: each camera replays its own images)."""
 ARMS = ("left", "right")
+MAX_SYNC_ERROR_DEG = 0.05  # as for one arm (test_session)
 
 
 @pytest.fixture(scope="module")
@@ -113,6 +122,61 @@ def test_two_arms_three_cameras_killed_with_sigkill_are_recovered_with_every_wri
     for arm in ARMS:
         assert (copy / f"can_{arm}.asc").read_bytes().endswith(b"\n")
         assert len(list(can.LogReader(copy / f"can_{arm}.asc"))) > 0
+
+
+def _keep_pace(me: SimRig, other: SimRig) -> None:
+    """Lock-step: ``me`` waits until ``other`` has run as many cycles (real-time bound 30 s)."""
+    deadline = time.monotonic() + 30.0
+    while other.cycles < me.cycles and not (other.error or other._thread is None):
+        if time.monotonic() > deadline:
+            raise TimeoutError("the other simulated arm stopped cycling")
+        time.sleep(0.0002)
+
+
+def test_two_arms_are_synced_to_their_true_state_and_each_camera_keeps_its_own_time(
+        tmp_path: Path, sources: dict[str, Path]) -> None:
+    """Lock-step on a ManualClock (independent of the machine's speed): two simulated arms that
+    keep pace with each other, three replayed cameras stamped 0, 10 and 20 ms late."""
+    clock = ManualClock()
+    late = {"cam_high": 0.0, "cam_left_wrist": 0.010, "cam_right_wrist": 0.020}
+    sims = {name: SimRig(clock, motion="wave") for name in ARMS}
+    arms = {name: PiperArm(sim.open_bus(), read_only=True, own_bus=True) for name, sim in sims.items()}
+    cams = {name: ReplayCamera(lambda p=sources[name]: EpisodeCamera(p), clock, loop=True, stamp_latency_s=late[name])
+            for name in CAMERAS}
+    for name, sim in sims.items():
+        sim.add_consumer(lambda n, arm=arms[name]: arm.wait_for_frames(n, timeout=30.0))
+        sim.add_consumer(lambda _n, me=sim, other=sims["right" if name == "left" else "left"]: _keep_pace(me, other))
+        sim.follow(lambda: min(cam.consumed_until for cam in cams.values()))
+    recorder = RigRecorder([RigArm(name, arm, ArmInfo(name=name)) for name, arm in arms.items()],
+                           [RigCamera(name, cam, CameraInfo(name, 64, 48, K, mount=CAMERAS[name][0]),
+                                      latency_s=late[name]) for name, cam in cams.items()],
+                           clock, RecorderConfig(queue_frames=10_000), nominal_fps=30.0)
+    try:
+        for sim in sims.values():
+            sim.start()
+        recorder.wait_for_arms(timeout=30.0)
+        result = recorder.record_episode(tmp_path / "ep", duration=2.0)
+    finally:
+        for cam in cams.values():
+            cam.close()
+        for name in ARMS:
+            sims[name].stop()
+            arms[name].close()
+    assert result.valid and result.error is None
+    ep = Episode.open(tmp_path / "ep")
+    t0 = ep.meta.extra["clock"]["t0_monotonic"]
+    assert len(ep) >= 55 and result.stats.frames_lost == 0 and result.stats.flagged == 0
+    for name in ARMS:
+        frames = ep.arm_frames(name)
+        truth = sims[name].truth(frames.t + t0)  # the reference camera's true exposure times
+        assert np.degrees(np.abs(frames.q - truth[:, :6])).max() < MAX_SYNC_ERROR_DEG
+        assert np.abs(frames.gripper - truth[:, 6]).max() < 1e-4
+        assert not frames.extra["sync_flags"].any()
+    for name in ("cam_left_wrist", "cam_right_wrist"):  # its own time is its true exposure (latency corrected)
+        exposure = dict(cams[name].exposures)
+        seq = ep.arm_frames("left").extra[f"{name}.seq"].astype(int)
+        np.testing.assert_allclose(ep.camera_times(name) + t0, [exposure[k] for k in seq], atol=1e-9)
+        assert result.stats.cameras[name].unmatched == 0
 
 
 def test_drops_are_counted_per_camera_and_per_arm(tmp_path: Path, sources: dict[str, Path], calib: Path,
