@@ -44,11 +44,6 @@ class CameraStats:
     longest_gap_s: float = 0.0
     max_skew_s: float = 0.0
 
-    @property
-    def lost(self) -> int:
-        """Frames lost before the recorder could use them (the camera's own drops)."""
-        return self.dropped_camera
-
 
 class CameraFeed:
     """Reads one camera on a thread during an episode; see the module docstring.

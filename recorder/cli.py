@@ -97,7 +97,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="manisplat-record", formatter_class=argparse.RawDescriptionHelpFormatter, epilog=EPILOG,
         description="Record episodes (camera frames with the PiPER's joint state at each frame, the raw joint "
-                    "stream, the raw CAN stream) from a PiPER on CAN and an OAK camera, without ROS.")
+                    "stream, the raw CAN stream) from a PiPER on CAN and an OAK camera, or from several named arms and cameras (a Cobot "
+                    "Magic: --arm, --camera NAME=...) into one episode, without ROS.")
     arm = p.add_argument_group("arm")
     arm.add_argument("--can", default=None, metavar="CHANNEL",
                      help="CAN channel of the arm: can0 (socketcan), /dev/ttyACM0 (slcan), ... (default can0)")
