@@ -14,6 +14,7 @@ import argparse
 import logging
 import threading
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from manisplat.episode.infos import ArmInfo, CameraInfo, mount_problem, name_problems
@@ -155,8 +156,14 @@ def check_rig(args: argparse.Namespace) -> None:
         raise RigUsageError(f"{clash[0]!r} names an arm and a camera; give them distinct names")
     problems = [p for name in arms for p in name_problems(name, "arm")]
     problems += [p for name in cameras for p in name_problems(name, "camera")]
-    places, _ = _placements(args, cameras, arms)
+    places, arm_infos = _placements(args, cameras, arms)
     problems += [p for name, place in places.items() if (p := mount_problem(place.mount, arms, f"camera {name}"))]
+    if not problems:  # a wrist camera's link must be a link of its arm's robot description
+        from manisplat.episode.validation import check_mount_links
+
+        problems = [p.message for p in check_mount_links(
+            Path.cwd(), {name: info.to_v2_dict() for name, info in arm_infos.items()},
+            {name: {"mount": place.mount} for name, place in places.items()})]
     if problems:
         raise RigUsageError("; ".join(problems))
 

@@ -146,7 +146,7 @@ def _check_meta(path: Path) -> tuple[list[Problem], _Facts]:
         field_name = f"arms.{name}.description" if v2 else "robot.description"
         problems += _check_robot_description(path, arm.get("description"), field_name)
     if v2:
-        problems += _check_mount_links(path, arms, cameras)
+        problems += check_mount_links(path, arms, cameras)
     return problems, facts
 
 
@@ -180,8 +180,9 @@ def _link_names(path: Path, description: str) -> list[str] | None:
     return [link.get("name") for link in root.iter("link")]
 
 
-def _check_mount_links(path: Path, arms: dict[str, Any], cameras: dict[str, Any]) -> list[Problem]:
-    """An error for each version 2 camera mounted on a link its arm's robot description does not have."""
+def check_mount_links(path: Path, arms: dict[str, Any], cameras: dict[str, Any]) -> list[Problem]:
+    """An error for each version 2 camera mounted on a link its arm's robot description does not have
+    (``arms``, ``cameras``: the ``episode.json`` objects; URDF paths relative to ``path``)."""
     problems, links = [], {}
     for name, camera in cameras.items():
         mount = camera.get("mount") if isinstance(camera, dict) else None

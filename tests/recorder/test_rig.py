@@ -215,6 +215,7 @@ def test_drops_are_counted_per_camera_and_per_arm(tmp_path: Path, sources: dict[
     (["--sim", "--arm", "left", "--camera", "cam=replay:{src}", "--mount", "cam=right/link6"],
      "names the arm 'right', which is not in arms"),
     (["--sim", "--arm", "left", "--camera", "cam high=replay:{src}", "--mount", "cam high=world"], "camera name"),
+    (["--sim", "--arm", "left", "--camera", "cam=replay:{src}", "--mount", "cam=left/link9"], "has no link 'link9'"),
     (["--sim", "--camera", "replay:{src}", "--mount", "cam=world"], "--mount is for several named arms"),
     (["--sim", "--camera", "replay:{src}", "--camera", "replay:{src}"], "several cameras record into one episode"),
 ])
