@@ -116,6 +116,13 @@ def open_sources(episodes: Sequence[str | Path], layout: str, *, same_fps: bool 
     return sources
 
 
+def _image_size(ep: Episode, camera: str, place: int) -> str:
+    """``WxH`` of the episode's camera of that name, else of its camera at that place (so that a
+    size that differs is reported before a name that differs, as for one-camera episodes)."""
+    cam = ep.cameras.get(camera) or list(ep.cameras.values())[min(place, len(ep.cameras) - 1)]
+    return f"{cam.width}x{cam.height}"
+
+
 def export_cameras(sources: Sequence[ExportSource], cameras: str | Sequence[str] | None,
                    layout: str) -> list[CameraInfo]:
     """The cameras to export, as the first episode describes them: ``cameras`` (one name or several),
@@ -130,12 +137,11 @@ def export_cameras(sources: Sequence[ExportSource], cameras: str | Sequence[str]
     if not names or len(set(names)) != len(names):
         raise ValueError(f"cameras must be distinct names; got {names}")
     for k, name in enumerate(names):
-        def size(ep: Episode) -> str:  # of the camera of that name, else at that place (a size differs first)
-            cam = ep.cameras.get(name) or list(ep.cameras.values())[min(k, len(ep.cameras) - 1)]
-            return f"{cam.width}x{cam.height}"
-        if len({size(s.episode) for s in sources}) > 1:
+        sizes = [_image_size(s.episode, name, k) for s in sources]
+        if len(set(sizes)) > 1:
+            listing = ", ".join(f"{s.episode.path.name} {size}" for s, size in zip(sources, sizes))
             raise EpisodeFormatError(f"episodes of different image sizes cannot share one {layout} export "
-                                     f"(camera {name}): {_listing(sources, size)}")
+                                     f"(camera {name}): {listing}")
         for src in sources:
             ep = src.episode
             if name not in ep.cameras:
