@@ -155,7 +155,9 @@ def test_a_stop_on_one_arm_stops_both_holding() -> None:
     trajs = {name: Trajectory(t, q, g, "joints", 1.0) for name in ("left", "right")}
     sims = {name: SimArm(q[0] + math.radians(2.0), 0.05) for name in trajs}
     result: dict = {}
-    config = StreamConfig(feedback_timeout_s=0.2, max_tracking_error_deg=20.0)
+    # 0.5 s: the silent arm is noticed well before the end; the other's feedback, starved on a
+    # loaded machine, must not be the one that goes stale first
+    config = StreamConfig(feedback_timeout_s=0.5, max_tracking_error_deg=20.0)
     thread = threading.Thread(target=lambda: result.setdefault(
         "r", replay_arms({name: (sims[name].arm, tr) for name, tr in trajs.items()}, config)))
     try:
@@ -170,7 +172,7 @@ def test_a_stop_on_one_arm_stops_both_holding() -> None:
     for report in reports.values():
         assert report.outcome == "feedback_lost" and report.detail.startswith("right: no joint feedback"), report
         assert report.streamed_s < 3.0 - 0.5
-    assert "holding its measured position" in reports["left"].left
+    assert reports["left"].left.startswith("holding") and "no fresh feedback" not in reports["left"].left
     assert "last target sent (no fresh feedback" in reports["right"].left
     assert all(sim.audit.resets == sim.audit.disables == sim.audit.estops == 0 for sim in sims.values())
 
