@@ -15,7 +15,7 @@ import pytest
 from episode_factory import write_episode
 from test_import_cobot import CAMERAS, T, write_calib, write_cobot
 
-from manisplat.episode import Episode, EpisodeFormatError
+from manisplat.episode import Episode, EpisodeFormatError, validate
 from manisplat.episode.cli import main
 from manisplat.episode.exporters.act_hdf5 import export_act_hdf5
 
@@ -125,6 +125,8 @@ def test_import_lerobot_reads_every_arm_and_camera_back(tmp_path, capsys):
     assert "arms left, right, cameras cam_high, cam_left_wrist, cam_right_wrist" in capsys.readouterr().out
     first, again = Episode.open(ep_path), Episode.open(back)
     assert again.meta.version == 2 and list(again.cameras) == list(CAMERAS)
+    report = validate(back)
+    assert report.ok and not report.warnings, str(report)
     assert np.array_equal(_joints(again), _joints(first))  # float32 stored, widened exactly both ways
     for arm in ("left", "right"):
         assert np.array_equal(again.arm_frames(arm).actions, first.arm_frames(arm).actions)
