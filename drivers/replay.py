@@ -24,7 +24,7 @@ import can
 import numpy as np
 
 from manisplat.drivers.base import ArmHealth, CameraFrame, DriverError, JointState, SequenceTracker
-from manisplat.episode import Episode
+from manisplat.episode import Episode, EpisodeFormatError
 
 log = logging.getLogger(__name__)
 
@@ -207,21 +207,29 @@ class EpisodeArm:
 
 
 class EpisodeCamera:
-    """An episode's frames (docs/episode-format.md) as a :class:`~manisplat.drivers.base.Camera`: RGB, depth
-    when present, the episode's ``t`` (its monotonic clock, mid-exposure where the recorder knew
-    it), ``seq`` from the ``seq`` column when present (else the frame index) and drops from its
-    gaps. ``realtime`` paces frames at their recorded spacing; otherwise as fast as read."""
+    """One camera of an episode (docs/episode-format.md) as a :class:`~manisplat.drivers.base.Camera`:
+    RGB, depth when present, the camera's frame times (its ``<camera>.t`` column, else ``t``: the
+    episode's monotonic clock, mid-exposure where the recorder knew it), ``seq`` from the
+    ``<camera>.seq`` or ``seq`` column when present (else the frame index) and drops from its
+    gaps. ``camera`` names it (None: the episode's one camera; several are refused naming them).
+    ``realtime`` paces frames at their recorded spacing; otherwise as fast as read."""
 
-    def __init__(self, episode: Episode | str | Path, *, realtime: bool = False) -> None:
+    def __init__(self, episode: Episode | str | Path, *, camera: str | None = None, realtime: bool = False) -> None:
         self.episode = episode if isinstance(episode, Episode) else Episode.open(episode)
-        cam = self.episode.camera
+        cam = self.episode.camera if camera is None else self.episode.cameras.get(camera)
+        if cam is None:
+            raise EpisodeFormatError(f"{self.episode.path}: no camera {camera!r}; cameras: "
+                                     f"{', '.join(self.episode.cameras)}")
+        self.camera = camera
         self.width, self.height, self.K, self.dist = cam.width, cam.height, cam.K.copy(), cam.dist.copy()
         self.realtime = realtime
         self.tracker = SequenceTracker()
         self._index = 0
         self._start: float | None = None
-        seq = self.episode.frames.extra.get("seq")
-        self._seq = seq.astype(np.int64) if seq is not None else self.episode.frames.index
+        self._t = self.episode.camera_times(camera)
+        columns = self.episode.arm_frames(next(iter(self.episode.arms))).extra  # the columns no arm owns
+        seq = columns.get(f"{camera}.seq", columns.get("seq"))
+        self._seq = seq.astype(np.int64) if seq is not None else np.arange(len(self.episode), dtype=np.int64)
 
     def __len__(self) -> int:
         return len(self.episode)
@@ -230,7 +238,7 @@ class EpisodeCamera:
         i = self._index
         if i >= len(self.episode):
             return None
-        t = self.episode.frames.t
+        t = self._t
         if self.realtime:
             if self._start is None:
                 self._start = time.monotonic()
@@ -239,10 +247,10 @@ class EpisodeCamera:
                 time.sleep(timeout)
                 raise TimeoutError(f"frame {i} is due in more than {timeout} s")
             time.sleep(max(0.0, delay))
-        frame = self.episode.frame(i)
+        rgb, depth = self.episode.rgb(i, self.camera), self.episode.depth(i, self.camera)
         self._index += 1
         seq = int(self._seq[i])
-        return CameraFrame(seq=seq, t=frame.t, rgb=frame.rgb, depth=frame.depth, exposure_s=None,
+        return CameraFrame(seq=seq, t=float(t[i]), rgb=rgb, depth=depth, exposure_s=None,
                            dropped=self.tracker.update(seq), t_host=time.monotonic())
 
     def close(self) -> None:

@@ -121,7 +121,8 @@ def build_parser() -> argparse.ArgumentParser:
                           "replay:PATH: replay an episode folder or a depthai recording (.mkv/.avi/.mp4 with its "
                           ".mcap and calibration.json or K.json) live (default oak). With --arm, repeat it with "
                           "names: --camera cam_high=oak:ID --camera cam_left_wrist=oak:ID2 ...; the first camera's "
-                          "frames are the episode's frames")
+                          "frames are the episode's frames; a replayed episode with several cameras replays the "
+                          "camera of the same name")
     cam.add_argument("--mount", action="append", default=None, metavar="CAMERA=MOUNT",
                      help="with --arm: where a camera is fixed: world, or ARM/LINK for a wrist camera "
                           "(cam_left_wrist=left/link6); every camera needs one, here or from --calib")
@@ -228,11 +229,11 @@ def open_devices(args: argparse.Namespace, clock: Clock, stop: threading.Event) 
     return dev
 
 
-def open_camera(args: argparse.Namespace, spec: str, clock: Clock, stop: threading.Event
+def open_camera(args: argparse.Namespace, spec: str, clock: Clock, stop: threading.Event, name: str | None = None
                 ) -> tuple[Camera, bool, float | None, str]:
-    """Open the camera ``spec`` names (``oak``, ``oak:<id>``, ``replay:PATH``) with the options'
-    size, rate, depth and loop; returns it, whether its depth is recorded, its nominal rate and
-    a description. An OAK streams depth only with --depth; a replay's depth is recorded when it
+    """Open the camera ``spec`` names (``oak``, ``oak:<id>``, ``replay:PATH``; a replayed episode
+    with several cameras replays the one called ``name``) with the options' size, rate, depth and
+    loop; returns it, whether its depth is recorded, its nominal rate and a description. An OAK streams depth only with --depth; a replay's depth is recorded when it
     has any, unless --no-depth. A replay that is not a recording, or lacks the depth or size
     asked for, is a ReplayInputError."""
     if spec == "oak" or spec.startswith("oak:"):
@@ -248,7 +249,7 @@ def open_camera(args: argparse.Namespace, spec: str, clock: Clock, stop: threadi
     from manisplat.recorder.replaycam import ReplayCamera, ReplayInputError, open_replay_source
 
     path = Path(spec[len("replay:"):])
-    camera = ReplayCamera(open_replay_source(path), clock, loop=args.loop, fps=args.fps, stop=stop)
+    camera = ReplayCamera(open_replay_source(path, name), clock, loop=args.loop, fps=args.fps, stop=stop)
     if args.size is not None and args.size != (camera.width, camera.height):
         camera.close()
         raise ReplayInputError(f"--size {args.size[0]}x{args.size[1]} does not match the replayed recording "

@@ -200,18 +200,28 @@ class ReplayInputError(DriverError):
     not fit it: bad input (exit 2), not a device that cannot be reached."""
 
 
-def open_replay_source(path: str | Path) -> Callable[[], Camera]:
+def open_replay_source(path: str | Path, camera: str | None = None) -> Callable[[], Camera]:
     """A factory of the source camera a ``--camera replay:PATH`` names: an episode folder
-    (:class:`~manisplat.drivers.replay.EpisodeCamera`) or a depthai recording ``.mkv``/``.avi``/
-    ``.mp4`` with its ``.mcap`` beside it and a ``calibration.json`` (depthai format) or
-    ``K.json`` (``{"K": 3x3, "dist": [...]}``) in the same folder."""
+    (:class:`~manisplat.drivers.replay.EpisodeCamera`: its one camera, or of an episode with
+    several the one named ``camera``) or a depthai recording ``.mkv``/``.avi``/``.mp4`` with its
+    ``.mcap`` beside it and a ``calibration.json`` (depthai format) or ``K.json``
+    (``{"K": 3x3, "dist": [...]}``) in the same folder."""
     from manisplat.drivers.replay import EpisodeCamera
+    from manisplat.episode import Episode, EpisodeFormatError
 
     path = Path(path)
     if path.is_dir():
         if not (path / "episode.json").is_file():
             raise ReplayInputError(f"replay camera: {path} is a folder without episode.json (not an episode)")
-        return lambda: EpisodeCamera(path)
+        try:
+            names = list(Episode.open(path).cameras)
+        except EpisodeFormatError as exc:
+            raise ReplayInputError(f"replay camera: {exc}") from None
+        pick = camera if camera in names else names[0] if len(names) == 1 else None
+        if pick is None:
+            raise ReplayInputError(f"replay camera: {path} has the cameras {', '.join(names)}; a recorded camera "
+                                   f"named like one of them replays it (--camera {names[0]}=replay:{path})")
+        return lambda: EpisodeCamera(path, camera=pick)
     if path.suffix in (".mkv", ".avi", ".mp4"):
         import json
 

@@ -202,7 +202,7 @@ def _open_camera(args: argparse.Namespace, name: str, spec: str, place: _Placeme
                  stop: threading.Event, dev: RigDevices) -> RigCamera:
     from manisplat.recorder.cli import open_camera
 
-    camera, depth, nominal_fps, info = open_camera(args, spec, clock, stop)
+    camera, depth, nominal_fps, info = open_camera(args, spec, clock, stop, name)
     dev.info[f"camera {name}"] = info
     if dev.nominal_fps is None:
         dev.nominal_fps = nominal_fps

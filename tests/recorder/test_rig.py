@@ -20,6 +20,7 @@ from manisplat.drivers.piper import PiperArm
 from manisplat.drivers.replay import EpisodeCamera
 from manisplat.episode import Episode, validate
 from manisplat.episode.infos import ArmInfo, CameraInfo
+from manisplat.episode.writer_v2 import EpisodeWriterV2
 from manisplat.recorder.cli import main
 from manisplat.recorder.clock import ManualClock
 from manisplat.recorder.replaycam import ReplayCamera
@@ -227,3 +228,26 @@ def test_options_that_do_not_describe_a_rig_are_refused_naming_the_problem(
     assert message in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
 
+
+
+def test_each_camera_replays_its_own_camera_of_a_recorded_two_arm_episode(tmp_path: Path, calib: Path,
+                                                                          capsys: pytest.CaptureFixture) -> None:
+    source = tmp_path / "cobot"
+    cameras = [CameraInfo(name, 64, 48, K, mount=mount) for name, (mount, _) in CAMERAS.items()]
+    with EpisodeWriterV2(source, [ArmInfo(name=a) for a in ARMS], cameras, 30.0) as writer:
+        for i in range(45):
+            writer.add_frame(i / 30, {a: np.zeros(7) for a in ARMS},
+                             {name: source_frame(i, k) for name, (_, k) in CAMERAS.items()})
+    out = tmp_path / "out"
+    assert main(rig_args({name: source for name in CAMERAS}, calib, out, "--duration", "30")) == 0
+    ep = Episode.open(out / "episode_0000")
+    assert len(ep) >= 40
+    for name, (_, k) in CAMERAS.items():
+        seq = ep.arm_frames("left").extra[f"{name}.seq"].astype(int)
+        for i in range(len(ep)):
+            np.testing.assert_array_equal(ep.rgb(i, name), source_frame(seq[i], k))
+    capsys.readouterr()
+    argv = ["--sim", "--arm", "left", "--camera", f"cam=replay:{source}", "--mount", "cam=world",
+            "--out", str(tmp_path / "o"), "--start", "now", "--duration", "1"]
+    assert main(argv) == 2
+    assert "has the cameras cam_high, cam_left_wrist, cam_right_wrist" in capsys.readouterr().err
