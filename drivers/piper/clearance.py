@@ -94,6 +94,7 @@ class ArmClearance:
         self.gd = pin.GeometryData(self.gm)
 
     def _place(self, name: str, q: np.ndarray, gripper: float) -> None:
+        """Put arm ``name``'s link geometry at joints ``q`` (6,) rad, fingers opened to ``gripper`` m."""
         kin = self._kin[name]
         pin.forwardKinematics(kin.model, kin.data, kin.full_q(q, gripper))
         base = self._base[name]

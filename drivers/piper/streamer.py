@@ -195,6 +195,7 @@ class _ArmRun:
         return self.arm.wait_for_joint_state(state.seq, timeout=1.0).q
 
     def tracking(self) -> Tracking | None:
+        """How this arm followed what was streamed to it (None when too little was)."""
         return tracking_of(np.asarray(self.sent_t), np.asarray(self.sent_q), np.asarray(self.sent_g),
                            np.asarray(self.fb_t), np.asarray(self.fb_q), np.asarray(self.fb_g))
 
