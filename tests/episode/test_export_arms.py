@@ -66,6 +66,47 @@ def test_act_export_has_14_columns_a_key_per_camera_and_reimports_bit_exact(tmp_
         assert all(np.array_equal(again.rgb(i, cam), data["images"][cam][i]) for i in range(T))
 
 
+def test_act_export_writes_the_calibration_that_reads_it_back(tmp_path, capsys):
+    """Each file of a version 2 export has its ``episode_<N>.calib.json``: import-act --calib with
+    it alone gives back the arms, the cameras (renamed keys included) and the joints."""
+    ep_path, _, data = _imported(tmp_path)
+    out = tmp_path / "act"
+    assert main(["export", str(ep_path), str(ep_path), "--format", "act-hdf5", "--out", str(out), "--float64",
+                 "--image-key", f"{CAMERAS[0]}=top"]) == 0
+    assert (out / "episode_1.calib.json").is_file()
+    capsys.readouterr()
+    back = tmp_path / "back"
+    assert main(["import-act", str(out / "episode_0.hdf5"), "--calib", str(out / "episode_0.calib.json"),
+                 "--out", str(back)]) == 0
+    first, again = Episode.open(ep_path), Episode.open(back)
+    assert np.array_equal(_joints(again), data["qpos"]) and again.meta.fps == first.meta.fps
+    assert list(again.arms) == list(first.arms)
+    for name, arm in first.arms.items():
+        assert np.array_equal(again.arms[name].T_world_base, arm.T_world_base)
+        assert again.arms[name].description == arm.description  # builtin:agilex_piper
+    renamed = {CAMERAS[0]: "top", **{c: c for c in CAMERAS[1:]}}
+    assert sorted(again.cameras) == sorted(renamed.values())
+    for camera, key in renamed.items():
+        a, b = first.cameras[camera], again.cameras[key]
+        assert (a.width, a.height, a.mount) == (b.width, b.height, b.mount)
+        assert np.array_equal(a.K, b.K) and np.array_equal(a.T_mount_cam, b.T_mount_cam)
+    assert main(["export", str(ep_path), "--format", "act-hdf5", "--out", str(out), "--overwrite",
+                 "--camera", CAMERAS[1]]) == 0  # an earlier export's sidecars go with its files
+    assert sorted(p.name for p in out.iterdir()) == ["augmentation.json", "episode_0.calib.json", "episode_0.hdf5"]
+    assert list(json.loads((out / "episode_0.calib.json").read_text())["cameras"]) == [CAMERAS[1]]
+
+
+def test_the_calibration_names_a_urdf_by_its_absolute_path(tmp_path):
+    """An episode names its URDF relative to its folder; the sidecar, beside the export, by its
+    absolute path (import-act resolves a relative one against the sidecar's folder)."""
+    from manisplat.episode.exporters.act_calibration import _description
+
+    ep_path, _, _ = _imported(tmp_path)
+    ep = Episode.open(ep_path)
+    assert _description(ep, "builtin:agilex_piper") == {"description": "builtin:agilex_piper"}
+    assert _description(ep, "robot/piper.urdf") == {"urdf": str((ep_path / "robot" / "piper.urdf").resolve())}
+
+
 def test_compressed_act_export_pads_every_camera_to_one_length(tmp_path):
     ep_path, calib, _ = _imported(tmp_path)
     ep = Episode.open(ep_path)

@@ -17,7 +17,8 @@ episode's order (a Cobot Magic import: left, right, so 14 columns as Cobot Magic
                                 when every arm has them, else "next_qpos" (qpos of frame i+1, the last row repeats)
 
 ``import-act --arm single`` reads one-arm files back, ``import-act --calib FILE.calib.json`` two-arm
-ones (``docs/cobot-magic.md``). ``augmentation.json`` beside them records where
+ones (``docs/cobot-magic.md``): a version 2 episode's file gets its ``episode_<N>.calib.json`` beside
+it (:mod:`~manisplat.episode.exporters.act_calibration`). ``augmentation.json`` beside them records where
 every file came from. The export is written into a hidden folder beside ``OUT`` and moved there only
 when complete: a failed export leaves nothing in ``OUT``.
 """
@@ -39,6 +40,7 @@ import h5py
 import numpy as np
 from tqdm import tqdm
 
+from manisplat.episode.exporters.act_calibration import act_calibration, calibration_path
 from manisplat.episode.exporters.sources import (PROVENANCE_FILE, ExportDestinationError, ExportSource,
                                                  export_cameras, export_frames, frame_times, open_sources, state_and_action,
                                                  state_names)
@@ -54,7 +56,7 @@ DEFAULT_JPEG_QUALITY = 90
 """JPEG quality with ``compress``. ALOHA's ``record_episodes.py`` uses 50, which on the 64x48 sample
 episode gives 27.6 dB PSNR (90: 33.8 dB, 1.6x the bytes); pass 50 to match its file sizes."""
 DTYPES = ("float32", "float64")
-_OUTPUT_RE = re.compile(r"^episode_\d+\.hdf5(\.tmp)?$")
+_OUTPUT_RE = re.compile(r"^episode_\d+(\.hdf5|\.calib\.json)(\.tmp)?$")
 
 
 def check_destination(out_dir: str | Path, overwrite: bool) -> None:
@@ -65,7 +67,8 @@ def check_destination(out_dir: str | Path, overwrite: bool) -> None:
 
 
 def _clear_previous(out_dir: Path) -> None:
-    """Remove what an earlier export wrote (``episode_<N>.hdf5``, their ``.tmp``, the side file)."""
+    """Remove what an earlier export wrote (``episode_<N>.hdf5``, their calibration sidecars,
+    their ``.tmp``, the side file)."""
     removed = 0
     for path in out_dir.iterdir():
         if path.is_file() and (_OUTPUT_RE.match(path.name) or path.name in (PROVENANCE_FILE,
@@ -118,6 +121,9 @@ def _write_file(src: ExportSource, frames: np.ndarray, fps: float, path: Path, k
                     on_frame()
     with open(path, "rb+") as fh:
         os.fsync(fh.fileno())
+    if ep.meta.version != 1:  # a version 2 episode's calibration, for import-act --calib
+        sidecar = json.dumps(act_calibration(ep, keys, fps), indent=1) + "\n"
+        atomic_write_bytes(calibration_path(path), sidecar.encode())
     return {"file": path.name, **src.provenance(), "frames": len(frames),
             "recorded_frames": [int(frames[0]), int(frames[-1])], "action": action_source}
 
