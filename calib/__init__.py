@@ -11,7 +11,9 @@ Modules (one job each): :mod:`.board` (board file, printables), :mod:`.camera` (
 convention, PnP), :mod:`.handeye` (closed forms, motion diversity), :mod:`.refine` (joint
 reprojection least squares), :mod:`.solve` (views -> result), :mod:`.episode_solve` (episode ->
 result), :mod:`.intrinsics`, :mod:`.latency`, :mod:`.capture`, :mod:`.report`, :mod:`.result`
-(calibration.json, apply), :mod:`.synth` (synthetic scenes and episodes), :mod:`.cli`. The names
+(calibration.json, apply), :mod:`.rig` (two arms and several cameras from one episode),
+:mod:`.rig_file` (rig.json, apply to version 2), :mod:`.synth` and :mod:`.synth_rig` (synthetic
+scenes and episodes), :mod:`.cli`. The names
 below load on first use (PEP 562): OpenCV, torch and scipy only when a name that needs them is
 used, so ``manisplat-calibrate --help`` answers at once.
 """
@@ -31,6 +33,8 @@ _EXPORTS = {
     "latency": ("LatencyEstimate", "estimate_latency"),
     "render": ("render_board",),
     "result": ("apply_calibration", "build_calibration", "load_calibration", "save_calibration"),
+    "rig": ("RigSolve", "solve_rig"),
+    "rig_file": ("apply_rig", "build_rig", "load_rig", "save_rig"),
     "solve": ("HandEyeResult", "solve_hand_eye"),
 }
 

@@ -22,9 +22,9 @@ if TYPE_CHECKING:
 
 
 DESCRIPTION = ("Calibrate a camera against a PiPER: print a ChArUco board, get the intrinsics, capture still "
-               "poses, solve camera-to-base (eye-to-hand) or camera-to-flange (eye-in-hand), estimate the "
-               "camera latency, and write the result into episodes. `manisplat-calibrate COMMAND --help` "
-               "explains each command.")
+               "poses, solve camera-to-base (eye-to-hand) or camera-to-flange (eye-in-hand), or a two-arm rig's "
+               "cameras and arm bases (solve-rig), estimate the camera latency, and write the result into "
+               "episodes. `manisplat-calibrate COMMAND --help` explains each command.")
 EPILOG = exit_status_help({
     ExitCode.OK: "success",
     ExitCode.FAILED: "the calibration failed for another reason (inconsistent data, divergence)",
@@ -175,8 +175,42 @@ def cmd_latency(a: argparse.Namespace) -> int:
     return ExitCode.OK
 
 
+def cmd_solve_rig(a: argparse.Namespace) -> int:
+    from manisplat.calib.board import load_board
+    from manisplat.calib.rig import solve_rig
+    from manisplat.calib.rig_file import build_rig, save_rig
+    spec = load_board(a.board)
+    solved = solve_rig(a.episode, spec, world=a.world, corner_offset=a.corner_offset, use_opencv=not a.no_opencv,
+                       max_joint_speed=None if a.allow_moving else a.max_joint_speed)
+    rig = build_rig(solved, spec.to_dict())
+    save_rig(a.out, rig)
+    print(f"{a.episode}: world = {rig['world_frame']}")
+    for name, cam in rig["cameras"].items():
+        r = cam["residuals"]
+        print(f"  camera {name} on {cam['mount']}: {r['views_used']} views, reprojection RMS {r['rms_px']:.3f} px "
+              f"({cam['method']})")
+    for arm, entry in rig["arms"].items():
+        u = entry["uncertainty"]
+        print(f"  arm {arm}: base at {[round(x, 4) for x in (row[3] for row in entry['T_world_base'][:3])]} m "
+              f"(through {entry['from_camera']}; 1-sigma {u['other_rot_std_deg']:.4f} deg, "
+              f"{u['other_trans_std_mm']:.3f} mm)")
+    print(f"wrote {a.out}")
+    return ExitCode.OK
+
+
 def cmd_apply(a: argparse.Namespace) -> int:
+    from manisplat.calib.errors import read_json
     from manisplat.calib.result import apply_calibration, load_calibration
+    from manisplat.calib.rig_file import apply_rig, check_rig, is_rig
+    raw = read_json(Path(a.calibration), "calibration file")
+    if is_rig(raw):
+        rig = check_rig(a.calibration, raw)
+        for ep in a.episodes:
+            notes = apply_rig(rig, ep, source=str(Path(a.calibration).resolve()))
+            print(f"{ep}: cameras and arm bases calibrated (world: {rig['world_frame']})")
+            for note in notes:
+                print(f"  note: {note}")
+        return ExitCode.OK
     cal = load_calibration(a.calibration)
     for ep in a.episodes:
         apply_calibration(cal, ep, source=str(Path(a.calibration).resolve()))
@@ -302,11 +336,39 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--json", type=Path, help="also write the estimate here (default: print only)")
     t.set_defaults(fn=cmd_latency)
 
-    ap = command("apply", "write calibration.json into episodes (atomically, keeps the rest)")
-    ap.add_argument("calibration", type=Path, help="calibration.json (as `solve` writes it)")
+    r = command("solve-rig", "every camera and arm base of a two-arm rig from one episode with a still board",
+                description="Calibrate a version 2 rig (Cobot Magic: arms left and right, a head camera fixed "
+                            "in the world, a camera on each link6) from one episode in which a ChArUco board "
+                            "lies still on the table and each arm shows it to its wrist camera from still "
+                            "poses: eye-in-hand for each wrist camera (its T_link_cam and the board in its "
+                            "arm's base), one PnP over all views for each world camera, and every base and "
+                            "world camera placed in one world. The episode's K, dist and mounts are used.")
+    r.add_argument("episode", type=Path, help="the version 2 calibration episode (mounts declared, K known)")
+    _board_args(r)
+    r.add_argument("--out", required=True, type=Path, help="rig.json to write (required)")
+    r.add_argument("--world", default="bases",
+                   help="the world frame: bases (the midpoint of the arm bases, their mean z up and x forward, "
+                        "as Cobot Magic's calibration), an arm's name (its base) or a world camera's name "
+                        "(default bases)")
+    r.add_argument("--corner-offset", type=finite(), metavar="PX",
+                   help="px subtracted from OpenCV's ChArUco corners (default: measured for the installed OpenCV)")
+    r.add_argument("--no-opencv", action="store_true",
+                   help="start only from our own closed form (default: also try OpenCV's closed forms)")
+    r.add_argument("--max-joint-speed", type=positive(), default=0.02,
+                   help="skip a wrist camera's frames taken while its arm moves faster than this, rad/s, from "
+                        "joints_<arm>.csv (default 0.02)")
+    r.add_argument("--allow-moving", action="store_true",
+                   help="use every frame, moving or not (default: skip moving frames)")
+    r.set_defaults(fn=cmd_solve_rig)
+
+    ap = command("apply", "write calibration.json or rig.json into episodes (atomically, keeps the rest)")
+    ap.add_argument("calibration", type=Path,
+                    help="calibration.json (as `solve` writes it; version 1 episodes) or rig.json (as `solve-rig` "
+                         "writes it; version 2 episodes)")
     ap.add_argument("episodes", type=Path, nargs="+",
                     help="episode folders whose episode.json gets the camera K, dist, mount, T_mount_cam and "
-                         "latency_s (the image size must match)")
+                         "latency_s (the image size must match); with rig.json every camera's and every arm's "
+                         "T_world_base")
     ap.set_defaults(fn=cmd_apply)
     return add_version(p)
 

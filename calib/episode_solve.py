@@ -55,9 +55,11 @@ MAX_JOINT_SPEED = 0.02
 the image and the joint reading would not describe the same pose."""
 
 
-def moving_frames(ep: Episode, max_speed: float = MAX_JOINT_SPEED, window_s: float = 0.1) -> dict[int, str]:
-    """Frame index -> reason, for frames where ``joints.csv`` shows the arm moving."""
-    joints = ep.joints()
+def moving_frames(ep: Episode, max_speed: float = MAX_JOINT_SPEED, window_s: float = 0.1,
+                  arm: str | None = None) -> dict[int, str]:
+    """Frame index -> reason, for frames where the joint stream of ``arm`` (default: the one arm)
+    shows it moving."""
+    joints = ep.joints(arm)
     if joints is None or len(joints) < 2:
         return {}
     dt = np.diff(joints.t)
@@ -65,19 +67,19 @@ def moving_frames(ep: Episode, max_speed: float = MAX_JOINT_SPEED, window_s: flo
     speed = np.zeros(len(joints.t))
     speed[1:][ok] = np.abs(np.diff(joints.q, axis=0)[ok] / dt[ok, None]).max(axis=1)
     out = {}
-    for i, t in enumerate(ep.frames.t):
+    for i, t in enumerate(ep.frames.t if arm is None else ep.arm_frames(arm).t):
         near = (joints.t >= t - window_s) & (joints.t <= t + window_s)
         if near.any() and speed[near].max() > max_speed:
             out[i] = f"arm moving ({speed[near].max():.3f} rad/s > {max_speed} rad/s)"
     return out
 
 
-def detect_episode(ep: Episode, detector: BoardDetector, camera: CameraModel,
-                   frames: list[int] | None = None) -> tuple[list[BoardView], dict[int, str]]:
-    """Usable views and the reasons for every refused frame."""
+def detect_episode(ep: Episode, detector: BoardDetector, camera: CameraModel, frames: list[int] | None = None,
+                   *, name: str | None = None) -> tuple[list[BoardView], dict[int, str]]:
+    """Usable views of the camera ``name`` (default: the one camera) and the reasons for every refused frame."""
     views, rejected = [], {}
     for i in (range(len(ep)) if frames is None else frames):
-        det = detector.detect(ep.rgb(i))
+        det = detector.detect(ep.rgb(i, name))
         view, why = detector.view(i, det, camera)
         if view is None:
             rejected[i] = why

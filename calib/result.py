@@ -106,6 +106,10 @@ def apply_calibration(cal: dict[str, Any], episode: str | Path, *, source: str =
     path = Path(episode) / "episode.json"
     raw = read_meta_json(path)
     cam = raw.get("camera")
+    if isinstance(raw.get("cameras"), dict):
+        raise InputError(f"{path}: version 2 (cameras {', '.join(raw['cameras'])}): a calibration.json calibrates "
+                         "one camera of a one-arm episode; calibrate the rig with `manisplat-calibrate solve-rig` "
+                         "and apply its rig.json")
     if not isinstance(cam, dict):
         raise InputError(f"{path}: has no camera object")
     if (cam.get("width"), cam.get("height")) != (cal["width"], cal["height"]):
