@@ -10,8 +10,9 @@ Per episode (:meth:`Recorder.record_episode`):
 2. Every joint sample the arm completes (reader thread) is mapped onto the monotonic timeline
    (:class:`~.clock.ClockMap`), kept for sync (:class:`~.sync.JointHistory`) and queued for
    ``joints.csv``; every CAN frame goes to the CAN log; leader commands to :mod:`.actions`.
-3. The loop reads camera frames. A frame's time is its stamp minus the camera latency
-   (``latency_s``); it waits until a joint sample and a gripper frame after it have arrived (or
+3. The camera is read on its own thread (:class:`~.camfeed.CameraFeed`, which counts its
+   drops, stale and out-of-order frames and stalls). A frame's time is its stamp minus the
+   camera latency (``latency_s``); it waits until a joint sample and a gripper frame after it have arrived (or
    ``max_wait_s`` has passed), then gets the joints interpolated from the joint samples and the
    gripper from the gripper's own frames (:mod:`.sync`, :mod:`.gripper`), the action, its flags,
    and goes to the writer queue (bounded: a full queue drops and counts the frame).
@@ -36,10 +37,11 @@ from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
-from manisplat.drivers.base import Camera, CameraFrame, DriverError
+from manisplat.drivers.base import Camera, DriverError
 from manisplat.drivers.piper import PiperArm
 from manisplat.episode import ACTION_COLUMNS, CameraInfo, EpisodeWriter, RobotInfo, validate
 from manisplat.recorder.armfeed import ArmFeed
+from manisplat.recorder.camfeed import CameraFeed
 from manisplat.recorder.canlog import CAN_LOG_NAME
 from manisplat.recorder.clock import Clock, ClockMap, RealDeadline
 from manisplat.recorder.sync import FLAG_NAMES
@@ -208,6 +210,9 @@ class Recorder:
         self.nominal_fps = nominal_fps
         self.clock_map = ClockMap(clock)
         self.feed = ArmFeed(arm, clock, self.clock_map, self.config.max_action_age_s)
+        c = self.config
+        self.camera_feed = CameraFeed(camera_name, camera, clock, latency_s=c.latency_s, depth=c.depth,
+                                      poll_s=c.camera_poll_s, stall_after_s=c.stall_after_s)
 
     def wait_for_arm(self, timeout: float = 3.0) -> None:
         """Wait for complete joint samples of the arm (:meth:`.armfeed.ArmFeed.wait`; DriverError
@@ -281,6 +286,7 @@ class Recorder:
             return remove_empty(result) if created else result
         sink = EpisodeSink(writer, [feed.can_log], queue_frames=c.queue_frames)
         feed.activate(t0, sink)
+        self.camera_feed.start(t0)
         stats = EpisodeStats()
         loop = _EpisodeLoop(self, t0, sink, stats, with_actions)
         log.info("%s: recording (%s)", path, f"{duration} s" if duration else "until stopped")
@@ -288,8 +294,13 @@ class Recorder:
             stats.stop_reason = loop.run(duration, stop, on_status, status_every_s)
         finally:
             loop.flush_pending()
+            self.camera_feed.stop()
+            loop.resolve(force=True)
             stats.joint_samples = feed.deactivate()
             feed.can_log.seal()
+        camera = self.camera_feed.stats
+        stats.dropped_camera, stats.stale, stats.out_of_order = camera.dropped_camera, camera.stale, camera.out_of_order
+        stats.camera_stalls, stats.longest_camera_gap_s = camera.stalls, camera.longest_gap_s
         stats.frames = loop.queued  # all of them are on disk once finish() succeeds
         stats.duration_s = self.clock.monotonic() - t0
         stats.dropped_queue = sink.frames_dropped
@@ -310,7 +321,8 @@ class Recorder:
 
 
 class _EpisodeLoop:
-    """The camera loop of one episode (kept apart from :class:`Recorder` for readability)."""
+    """The frame loop of one episode (kept apart from :class:`Recorder` for readability): the
+    camera is read on its own thread (:class:`~.camfeed.CameraFeed`, which counts its drops)."""
 
     def __init__(self, rec: Recorder, t0: float, sink: EpisodeSink, stats: EpisodeStats, with_actions: bool) -> None:
         self.rec = rec
@@ -318,19 +330,16 @@ class _EpisodeLoop:
         self.sink = sink
         self.stats = stats
         self.with_actions = with_actions
-        self.pending: collections.deque[tuple[float, CameraFrame]] = collections.deque()
-        self.last_frame_t = -math.inf
-        self.last_frame_host = rec.clock.monotonic()
+        self.camera = rec.camera_feed
         self.camera_error: str | None = None
         self.queued = 0
         self.last_gap = 0.0
         self.recent: collections.deque[float] = collections.deque()
         self._can_frames = (rec.arm.stats().frames, rec.clock.monotonic())
-        self._stalled = False
 
     def run(self, duration: float | None, stop: threading.Event, on_status: Callable[[Status], None] | None,
             status_every_s: float) -> str:
-        rec, c, clock = self.rec, self.rec.config, self.rec.clock
+        clock = self.rec.clock
         next_status = clock.monotonic() + status_every_s
         while True:
             now = clock.monotonic()
@@ -340,62 +349,27 @@ class _EpisodeLoop:
                 return "duration"
             if self.sink.failed.is_set():
                 return "write error"
-            try:
-                frame = rec.camera.read(timeout=c.camera_poll_s)
-                if frame is None:
-                    return "camera ended"
-                self._accept(frame)
-            except TimeoutError:
-                pass
-            except DriverError as exc:
-                self.camera_error = f"camera failed: {exc}"
-                log.error("%s", self.camera_error)
+            if self.camera.error is not None:
+                self.camera_error = self.camera.error
                 return "camera error"
+            if self.camera.ended:
+                return "camera ended"
             self.resolve(force=False)
-            rec.clock_map.maybe_remeasure()
-            now = clock.monotonic()
-            silent = now - self.last_frame_host
-            if silent > c.stall_after_s and not self._stalled:
-                self._stalled = True
-                self.stats.camera_stalls += 1
-                log.warning("the camera has sent no frame for %.2f s", silent)
+            self.rec.clock_map.maybe_remeasure()
             if on_status is not None and now >= next_status:
                 next_status = now + status_every_s
                 on_status(self.status(now))
-
-    def _accept(self, frame: CameraFrame) -> None:
-        rec, stats = self.rec, self.stats
-        now = rec.clock.monotonic()
-        if self._stalled:
-            self._stalled = False
-            log.info("the camera sends frames again after %.2f s", now - self.last_frame_host)
-        self.last_frame_host = now
-        if rec.config.depth and frame.depth is None:
-            raise DriverError("--depth was asked for but the camera gives frames without depth")
-        t = frame.t - rec.config.latency_s
-        if t < self.t0:
-            stats.stale += 1
-            return
-        stats.dropped_camera += frame.dropped if self.last_frame_t > -math.inf else 0
-        if t <= self.last_frame_t:
-            stats.out_of_order += 1
-            log.warning("camera frame %d at t=%.6f is not after the previous one (%.6f); dropped", frame.seq, t,
-                        self.last_frame_t)
-            return
-        if self.last_frame_t > -math.inf:
-            stats.longest_camera_gap_s = max(stats.longest_camera_gap_s, t - self.last_frame_t)
-        self.last_frame_t = t
-        self.pending.append((t, frame))
+            clock.sleep_until(clock.monotonic() + 0.005, RealDeadline(0.01, stop))
 
     def resolve(self, force: bool) -> None:
-        """Sync and queue the pending frames whose joint state is known (or waited long enough)."""
+        """Sync and queue the frames read whose joint state is known (or waited long enough)."""
         rec, c = self.rec, self.rec.config
-        while self.pending:
-            t, frame = self.pending[0]
+        while (head := self.camera.oldest()) is not None:
+            t, frame = head
             waited = rec.clock.monotonic() - t
             if not (force or rec.feed.known_at(t) or waited >= c.max_wait_s):
                 return
-            self.pending.popleft()
+            self.camera.pop_oldest()
             values, gap, flags = rec.feed.sync(t, c.max_gap_s)
             extra = {"seq": float(frame.seq), "sync_gap": gap}
             if self.with_actions:
@@ -418,17 +392,16 @@ class _EpisodeLoop:
                 self.recent.append(rec.clock.monotonic())
 
     def flush_pending(self) -> None:
-        """At the end: give pending frames up to ``max_wait_s`` (on the clock, at most that + 1 s
-        of real time) for a joint sample after them, then write them all."""
+        """At the end: give the frames read up to ``max_wait_s`` (on the clock, at most that + 1 s
+        of real time) for a joint sample after them; :meth:`resolve` with force writes the rest."""
         rec = self.rec
         deadline = rec.clock.monotonic() + rec.config.max_wait_s
         real_deadline = time.monotonic() + rec.config.max_wait_s + 1.0
-        while self.pending and not self.sink.failed.is_set():
+        while self.camera.oldest() is not None and not self.sink.failed.is_set():
             self.resolve(force=False)
-            if not self.pending or rec.clock.monotonic() >= deadline or time.monotonic() >= real_deadline:
+            if self.camera.oldest() is None or rec.clock.monotonic() >= deadline or time.monotonic() >= real_deadline:
                 break
             rec.clock.sleep_until(min(deadline, rec.clock.monotonic() + 0.005), RealDeadline(0.01))
-        self.resolve(force=True)
 
     def status(self, now: float) -> Status:
         rec = self.rec
@@ -440,9 +413,9 @@ class _EpisodeLoop:
         self._can_frames = (frames_now, now)
         sink = self.sink
         return Status(elapsed_s=now - self.t0, fps=float(len(self.recent)), can_fps=can_fps,
-                      frames=sink.frames_written, lost=self.stats.dropped_camera + sink.frames_dropped,
+                      frames=sink.frames_written, lost=self.camera.stats.dropped_camera + sink.frames_dropped,
                       sync_gap_ms=self.last_gap * 1e3, flagged=self.stats.flagged, queue=sink.queued_frames,
-                      camera_silent_s=now - self.last_frame_host, arm=rec.arm.health().state)
+                      camera_silent_s=self.camera.silent_s(), arm=rec.arm.health().state)
 
 
 def close_episode(path: Path, sink: EpisodeSink, stats: Any, extra: dict[str, Any], error: str | None,
