@@ -104,6 +104,11 @@ class CameraFeed:
         """The camera ended or failed: no further frame will come."""
         return self.ended or self.error is not None
 
+    def caught_up(self, t: float) -> bool:
+        """Whether every frame exposed before ``t`` (monotonic s) has been read: one at or after
+        ``t`` has come, or the camera is done."""
+        return self.done or self._last_t >= t
+
     def silent_s(self) -> float:
         """Seconds since the last frame (or the start)."""
         return self.clock.monotonic() - self.last_frame_host

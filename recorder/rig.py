@@ -405,15 +405,19 @@ class _RigLoop:
             self.recent.append(rec.clock.monotonic())
 
     def flush_pending(self) -> None:
-        """At the end: give pending frames up to ``max_wait_s`` (on the clock, at most that + 1 s
-        of real time) for their partner images and arm states; :meth:`resolve` with force then
-        writes what is left."""
+        """At the end: give every camera up to ``max_wait_s`` (on the clock, at most that + 1 s of
+        real time) to deliver its frames exposed before now (a camera thread may lag, or another
+        camera's recording ended first) and the pending frames their partner images and arm
+        states; :meth:`resolve` with force then writes what is left."""
         rec = self.rec
-        deadline = rec.clock.monotonic() + rec.config.max_wait_s
+        t_stop = rec.clock.monotonic()
+        deadline = t_stop + rec.config.max_wait_s
         real_deadline = time.monotonic() + rec.config.max_wait_s + 1.0
-        while self.reference.oldest() is not None and not self.sink.failed.is_set():
+        while not self.sink.failed.is_set():
             self.resolve(force=False)
-            if self.reference.oldest() is None or rec.clock.monotonic() >= deadline or time.monotonic() >= real_deadline:
+            caught_up = all(cam.caught_up(t_stop) for cam in rec.camera_feeds.values())
+            if ((caught_up and self.reference.oldest() is None) or rec.clock.monotonic() >= deadline
+                    or time.monotonic() >= real_deadline):
                 break
             rec.clock.sleep_until(min(deadline, rec.clock.monotonic() + 0.005), RealDeadline(0.01))
 

@@ -191,16 +191,19 @@ def test_drops_are_counted_per_camera_and_per_arm(tmp_path: Path, sources: dict[
     stats = ep.meta.extra["stats"]
     cams, arms = stats["cameras"], stats["arms"]
     assert cams["cam_left_wrist"]["dropped_camera"] == 5
-    assert cams["cam_left_wrist"]["unmatched"] == 5 and stats["skipped"] == 5
     assert cams["cam_high"]["dropped_camera"] == cams["cam_right_wrist"]["dropped_camera"] == 0
-    assert cams["cam_high"]["unmatched"] == cams["cam_right_wrist"]["unmatched"] == 0
-    assert all(c["frames"] == len(ep) for c in cams.values()) and len(ep) + 5 <= 60
+    # the 5 head frames around the lost ones had no partner (more if a camera thread started
+    # over half a frame late on a loaded machine: the first frame then has none either)
+    assert cams["cam_left_wrist"]["unmatched"] >= 5 and stats["skipped"] >= 5
+    assert stats["skipped"] <= cams["cam_left_wrist"]["unmatched"] + cams["cam_right_wrist"]["unmatched"]
+    assert len(ep) + stats["skipped"] + stats["dropped_queue"] == 60  # every head frame written or counted
+    assert all(c["frames"] == len(ep) for c in cams.values())
     seq = ep.arm_frames("left").extra["cam_left_wrist.seq"]
     assert not np.isin(seq, np.arange(20, 25)).any()
     for arm in ARMS:
         assert arms[arm]["joint_samples"] == len(ep.joints(arm)) > 0
         assert arms[arm]["can_frames_logged"] > 0 and arms[arm]["can_frames_dropped"] == 0
-    assert "camera cam_left_wrist: " in captured and "dropped by the camera 5, unmatched 5" in captured
+    assert "camera cam_left_wrist: " in captured and "dropped by the camera 5, unmatched " in captured
     assert "arm right: " in captured
 
 
