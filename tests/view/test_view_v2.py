@@ -188,3 +188,20 @@ def test_what_cannot_be_placed_is_named(cobot, tmp_path, damage, named, capsys):
         load_content(broken)
     assert main([str(broken), "--video", str(tmp_path / "v.mp4"), "-q"]) == 2
     assert named in capsys.readouterr().err
+
+
+def test_a_version_1_wrist_camera_rides_on_its_link(tmp_path):
+    from manisplat.episode.synthetic import write_sample_episode
+
+    episode = write_sample_episode(tmp_path / "v1", frames=8, width=32, height=24)
+    meta = json.loads((episode / "episode.json").read_text())
+    meta["camera"].update(mount="link6", T_mount_cam=T_WRIST.tolist())
+    (episode / "episode.json").write_text(json.dumps(meta))
+    content = load_content(episode)
+    assert list(content.arms) == ["arm"] and np.array_equal(content.arms["arm"].T_world_base, np.eye(4))
+    (name, camera), = content.cameras.items()
+    assert camera.mount == "arm/link6"
+    demo, robot = content.demos[0], content.robot
+    for i in (0, 7):
+        link6 = robot.link_pose(torch.as_tensor(demo.q[i]), "link6", torch.as_tensor(demo.gripper[i])).numpy()
+        assert np.allclose(content.camera_pose(name, demo, i), link6 @ T_WRIST, atol=1e-9)
