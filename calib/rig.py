@@ -27,7 +27,7 @@ from manisplat.calib.errors import InputError, NotEnoughDataError
 from manisplat.calib.poses import inv_T, make_T, pose_difference, project_rotation
 from manisplat.calib.solve import HandEyeResult, solve_hand_eye
 from manisplat.episode import Episode
-from manisplat.episode.format import WORLD_MOUNT
+from manisplat.episode.format import VERSION_2, WORLD_MOUNT
 from manisplat.robot import load_robot
 
 log = logging.getLogger(__name__)
@@ -181,11 +181,15 @@ def solve_rig(path: str | Path, spec: BoardSpec, *, world: str = BASES_WORLD, co
             ``joints_<arm>.csv``) are skipped; None keeps all.
 
     Raises:
+        InputError: a version 1 episode.
         NotEnoughDataError: an arm carries no camera (its base cannot be placed), or a camera
             has too few usable views (listing why each frame was refused).
         DegenerateMotionError: an arm's poses do not determine its wrist camera.
     """
     ep = Episode.open(path)
+    if ep.meta.version != VERSION_2:
+        raise InputError(f"{path}: version {ep.meta.version} (one arm, one camera): calibrate it with "
+                         "`manisplat-calibrate solve`; solve-rig reads version 2 episodes")
     without = [arm for arm in ep.arms if not any(c.mount.split("/", 1)[0] == arm for c in ep.cameras.values())]
     if without:
         raise NotEnoughDataError(f"{path}: arm {', '.join(without)} carries no camera: with a still board its base "

@@ -105,6 +105,8 @@ def test_apply_refuses_what_it_cannot_write(rig_episode, calib_episode, tmp_path
     capsys.readouterr()
     assert main(["apply", str(tmp_path / "rig.json"), str(v1)]) == ExitCode.BAD_INPUT
     assert "version 1 (one camera)" in capsys.readouterr().err
+    assert main(["solve-rig", str(v1), "--board", str(board), "--out", str(tmp_path / "v1.json")]) == ExitCode.BAD_INPUT
+    assert "version 1 (one arm, one camera): calibrate it with `manisplat-calibrate solve`" in capsys.readouterr().err
     calibration = {"format": "manisplat-calibration", "K": [[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]],
                    "dist": [], "width": 640, "height": 480, "mount": "base", "T_mount_cam": np.eye(4).tolist()}
     (tmp_path / "calibration.json").write_text(json.dumps(calibration))
