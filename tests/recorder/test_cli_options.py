@@ -62,6 +62,10 @@ BAD_VALUES = [
     ("manisplat-calibrate", ["solve", "ep", "--board", "b.json", "--out", "c.json"], "--max-joint-speed",
      ["0", "nan"]),
     ("manisplat-calibrate", ["solve", "ep", "--board", "b.json", "--out", "c.json"], "--max-offset", ["0", "inf"]),
+    ("manisplat-calibrate", ["solve-rig", "ep", "--board", "b.json", "--out", "r.json"], "--corner-offset",
+     ["nan", "inf", "x"]),
+    ("manisplat-calibrate", ["solve-rig", "ep", "--board", "b.json", "--out", "r.json"], "--max-joint-speed",
+     ["0", "nan"]),
     ("manisplat-calibrate", ["latency", "ep"], "--max-offset", ["0", "-0.1", "nan"]),
     ("manisplat-calibrate", ["latency", "ep"], "--max-span", ["0", "nan", "inf"]),
 ]
