@@ -37,7 +37,7 @@ from manisplat.episode.infos import ArmInfo, CameraInfo
 from manisplat.recorder.clock import SystemClock
 from manisplat.recorder.replaycam import ReplayCamera
 from manisplat.recorder.rig import RigArm, RigCamera, RigRecorder
-from manisplat.recorder.session import RecorderConfig
+from manisplat.recorder.config import RecorderConfig
 from manisplat.recorder.simrig import SimRig
 
 THREADED = False

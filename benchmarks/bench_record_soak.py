@@ -35,8 +35,9 @@ from manisplat.drivers.piper import PiperArm
 from manisplat.drivers.replay import EpisodeCamera
 from manisplat.episode import CameraInfo, Episode, EpisodeWriter, RobotInfo, validate
 from manisplat.recorder.clock import ScaledClock
+from manisplat.recorder.config import RecorderConfig
 from manisplat.recorder.replaycam import ReplayCamera
-from manisplat.recorder.session import Recorder, RecorderConfig
+from manisplat.recorder.session import Recorder
 from manisplat.recorder.simrig import SimRig
 
 THREADED = False

@@ -1,7 +1,7 @@
 """``manisplat-record``: record episodes from a PiPER on CAN and an OAK (or replayed) camera, or
 from named arms and cameras into one version 2 episode (:mod:`.rigcli`, :mod:`.rig`).
 
-See ``manisplat-record --help``; the pieces are :mod:`.session` (one episode), :mod:`.clock`,
+See ``manisplat-record --help``; the pieces are :mod:`.rig` and :mod:`.session` (one episode), :mod:`.clock`,
 :mod:`.sync`, :mod:`.writer`, :mod:`.canlog`, :mod:`.actions`, :mod:`.recovery`, and for
 ``--sim`` / ``--camera replay:`` :mod:`.simrig` and :mod:`.replaycam`. Nothing beyond the
 standard library and :mod:`manisplat.cli_args` is imported before the arguments are parsed, so
@@ -29,7 +29,8 @@ if TYPE_CHECKING:
     from manisplat.drivers.piper import PiperArm
     from manisplat.recorder.clock import Clock
     from manisplat.recorder.rig import RigRecorder
-    from manisplat.recorder.session import EpisodeResult, Recorder, Status
+    from manisplat.recorder.result import EpisodeResult, Status
+    from manisplat.recorder.session import Recorder
 
 log = logging.getLogger("manisplat.recorder")
 
@@ -449,7 +450,8 @@ def _open(args: argparse.Namespace, clock: Clock, camera_stop: threading.Event) 
     """The devices and the recorder the options name (one arm and camera, or a rig of named ones),
     waited for the arms' first joint samples (DriverError otherwise, the devices closed)."""
     from manisplat.drivers.base import DriverError
-    from manisplat.recorder.session import Recorder, RecorderConfig
+    from manisplat.recorder.config import RecorderConfig
+    from manisplat.recorder.session import Recorder
 
     if args.rig:
         from manisplat.recorder.rigcli import make_recorder, open_rig

@@ -19,9 +19,11 @@ from typing import Any
 
 from manisplat.episode.infos import ArmInfo, CameraInfo, mount_problem, name_problems
 from manisplat.recorder.clock import Clock
+from manisplat.recorder.config import RecorderConfig
+from manisplat.recorder.layout import opencv_dist
 from manisplat.recorder.replaycam import ReplayInputError
+from manisplat.recorder.result import EpisodeResult
 from manisplat.recorder.rig import RigArm, RigCamera, RigRecorder
-from manisplat.recorder.session import EpisodeResult, RecorderConfig, opencv_dist
 
 log = logging.getLogger("manisplat.recorder")
 
