@@ -39,6 +39,17 @@ def _board_args(p: argparse.ArgumentParser) -> None:
                    help="board.json (as `manisplat-calibrate board` writes it; required)")
 
 
+def _solve_args(p: argparse.ArgumentParser, moving_help: str) -> None:
+    """The options ``solve`` and ``solve-rig`` share: corner offset, closed forms, still frames."""
+    p.add_argument("--corner-offset", type=finite(), metavar="PX",
+                   help="px subtracted from OpenCV's ChArUco corners (default: measured for the installed OpenCV)")
+    p.add_argument("--no-opencv", action="store_true",
+                   help="start only from our own closed form (default: also try OpenCV's closed forms)")
+    p.add_argument("--max-joint-speed", type=positive(), default=0.02, help=f"{moving_help} (default 0.02)")
+    p.add_argument("--allow-moving", action="store_true",
+                   help="use every frame, moving or not (default: skip moving frames)")
+
+
 def cmd_board(a: argparse.Namespace) -> int:
     from manisplat.calib.board import BoardSpec, write_printables
     spec = BoardSpec(dictionary=a.dictionary, squares_x=a.squares_x, squares_y=a.squares_y,
@@ -303,15 +314,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="base (eye-to-hand) or the camera's link, e.g. link6 (eye-in-hand) (default base)")
     s.add_argument("--link", default="link6", help="link holding the board for eye-to-hand (default link6)")
     s.add_argument("--intrinsics", type=Path, help="intrinsics JSON (default: the episode's K and dist)")
-    s.add_argument("--corner-offset", type=finite(), metavar="PX",
-                   help="px subtracted from OpenCV's ChArUco corners (default: measured for the installed OpenCV)")
-    s.add_argument("--no-opencv", action="store_true",
-                   help="start only from our own closed form (default: also try OpenCV's closed forms)")
-    s.add_argument("--max-joint-speed", type=positive(), default=0.02,
-                   help="skip frames taken while a joint moves faster than this, rad/s, from joints.csv "
-                        "(default 0.02)")
-    s.add_argument("--allow-moving", action="store_true",
-                   help="use every frame, moving or not (default: skip moving frames)")
+    _solve_args(s, "skip frames taken while a joint moves faster than this, rad/s, from joints.csv")
     s.add_argument("--latency-from", type=Path,
                    help="also estimate the camera latency from this (moving) episode (default: no latency)")
     s.add_argument("--max-offset", type=positive(), default=0.25,
@@ -350,15 +353,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the world frame: bases (the midpoint of the arm bases, their mean z up and x forward, "
                         "as Cobot Magic's calibration), an arm's name (its base) or a world camera's name "
                         "(default bases)")
-    r.add_argument("--corner-offset", type=finite(), metavar="PX",
-                   help="px subtracted from OpenCV's ChArUco corners (default: measured for the installed OpenCV)")
-    r.add_argument("--no-opencv", action="store_true",
-                   help="start only from our own closed form (default: also try OpenCV's closed forms)")
-    r.add_argument("--max-joint-speed", type=positive(), default=0.02,
-                   help="skip a wrist camera's frames taken while its arm moves faster than this, rad/s, from "
-                        "joints_<arm>.csv (default 0.02)")
-    r.add_argument("--allow-moving", action="store_true",
-                   help="use every frame, moving or not (default: skip moving frames)")
+    _solve_args(r, "skip a wrist camera's frames taken while its arm moves faster than this, rad/s, from "
+                   "joints_<arm>.csv")
     r.set_defaults(fn=cmd_solve_rig)
 
     ap = command("apply", "write calibration.json or rig.json into episodes (atomically, keeps the rest)")
