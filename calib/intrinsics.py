@@ -8,7 +8,6 @@ coverage is below ``min_coverage`` (default 0.6) is refused unless the caller al
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 

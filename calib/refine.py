@@ -100,7 +100,6 @@ def refine(mount: str, A: np.ndarray, obj: list[np.ndarray], img: list[np.ndarra
         DegenerateMotionError: the final Jacobian is rank deficient (unobservable direction).
         CalibrationError: divergence or too few inliers.
     """
-    n = len(A)
     res1 = _fit(mount, A, P0, Q0, obj, img, camera, "soft_l1", f_scale_px, max_nfev)
     P1, Q1 = _apply(res1.x, P0, Q0)
     r1 = reprojection_residuals(mount, A, P1, Q1, obj, img, camera)
