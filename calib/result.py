@@ -119,9 +119,15 @@ def apply_calibration(cal: dict[str, Any], episode: str | Path, *, source: str =
     if cal.get("latency_s") is not None:
         cam["latency_s"] = cal["latency_s"]
     cam["calibration"] = {"date": cal.get("date"), "file": source}
+    write_calibrated_meta(path, raw)
+    return cam
+
+
+def write_calibrated_meta(path: Path, raw: dict[str, Any]) -> None:
+    """Write the calibrated ``episode.json`` ``raw`` to ``path`` atomically, once it parses as a
+    valid episode (else :class:`CalibrationError`, and the file stays as it was)."""
     try:
         EpisodeMeta.from_dict(raw)
     except ValueError as exc:
         raise CalibrationError(f"{path}: the calibrated episode.json would be invalid: {exc}") from None
     atomic_write_bytes(path, (json.dumps(raw, indent=1) + "\n").encode("utf-8"))
-    return cam

@@ -21,11 +21,11 @@ import numpy as np
 from manisplat.calib.camera import CameraModel
 from manisplat.calib.errors import CalibrationError, InputError, read_json
 from manisplat.calib.poses import is_rigid
-from manisplat.calib.result import _finite_tree
+from manisplat.calib.result import _finite_tree, write_calibrated_meta
 from manisplat.calib.rig import BASES_WORLD, RigSolve
 from manisplat.episode.fsio import atomic_write_bytes
 from manisplat.episode.format import WORLD_MOUNT
-from manisplat.episode.meta import EpisodeMeta, read_meta_json, utc_now
+from manisplat.episode.meta import read_meta_json, utc_now
 
 RIG_FORMAT = "manisplat-rig-calibration"
 VERSION = 1
@@ -140,9 +140,5 @@ def apply_rig(rig: dict[str, Any], episode: str | Path, *, source: str = "") -> 
     for name, cal in rig["arms"].items():
         if name in arms:
             arms[name].update(T_world_base=cal["T_world_base"], calibration=stamp)
-    try:
-        EpisodeMeta.from_dict(raw)
-    except ValueError as exc:
-        raise CalibrationError(f"{path}: the calibrated episode.json would be invalid: {exc}") from None
-    atomic_write_bytes(path, (json.dumps(raw, indent=1) + "\n").encode("utf-8"))
+    write_calibrated_meta(path, raw)
     return notes

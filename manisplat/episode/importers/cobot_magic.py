@@ -154,6 +154,17 @@ def load_calibration(path: str | Path) -> CobotCalibration:
     return CobotCalibration(path, arms, columns, cameras, sizes, units, None if fps is None else float(fps))
 
 
+def check_cameras(cal: CobotCalibration, cameras: list[str], holder: str) -> None:
+    """Refuse a calibration that lacks one of ``cameras`` (those ``holder``, e.g. "the file X",
+    has), naming them; warn about its cameras the recording does not have."""
+    uncalibrated = [c for c in cameras if c not in cal.cameras]
+    if uncalibrated:
+        raise EpisodeFormatError(f"{cal.path}: no camera {', '.join(uncalibrated)} ({holder} has "
+                                 f"{', '.join(cameras)}; the calibration has {', '.join(cal.cameras)})")
+    for extra in (c for c in cal.cameras if c not in cameras):
+        log.warning("%s: camera %s is not in %s; ignored", cal.path, extra, holder)
+
+
 def _arm_names(width: int) -> str:
     return "left, right" if width == 14 else f"{width} columns"
 
@@ -199,12 +210,7 @@ def import_cobot_magic(h5_path: str | Path, out_dir: str | Path, calib: str | Pa
                 f"<arm>/<link>) and T_mount_cam, and per arm T_world_base and its robot description; "
                 + HOW_TO_CALIBRATE)
         cal = calib if isinstance(calib, CobotCalibration) else load_calibration(calib)
-        uncalibrated = [n for n in names if n not in cal.cameras]
-        if uncalibrated:
-            raise EpisodeFormatError(f"{cal.path}: no camera {', '.join(uncalibrated)} (the file {h5_path.name} has "
-                                     f"{', '.join(names)}; the calibration has {', '.join(cal.cameras)})")
-        for extra_camera in (n for n in cal.cameras if n not in names):
-            log.warning("%s: camera %s is not in %s; ignored", cal.path, extra_camera, h5_path)
+        check_cameras(cal, names, f"the file {h5_path.name}")
         rate = fps if fps is not None else cal.fps
         if rate is None:
             raise EpisodeFormatError(f"{h5_path}: no frame rate: give --fps, or 'fps' in {cal.path}")

@@ -24,7 +24,7 @@ import pyarrow.parquet as pq
 
 from manisplat.episode.exporters.lerobot import depth_key, image_key
 from manisplat.episode.format import EpisodeFormatError
-from manisplat.episode.importers.cobot_magic import CobotCalibration, load_calibration
+from manisplat.episode.importers.cobot_magic import CobotCalibration, check_cameras, load_calibration
 from manisplat.episode.importers.lerobot import (DEPTH_SCALE_MM, SOURCE, _depth_frames, _episode_row, _load_info,
                                                  _video_frames)
 from manisplat.episode.importers.units import Units, describe_ranges, require_units, unit_problems
@@ -43,12 +43,7 @@ def _video_cameras(root: Path, info: dict, cal: CobotCalibration) -> list[str]:
         images = [k for k, f in info["features"].items() if f.get("dtype") == "image"]
         hint = f"; image-type cameras ({', '.join(images)}) are not supported" if images else ""
         raise EpisodeFormatError(f"{root}: no observation.images.<camera> video features{hint}")
-    uncalibrated = [c for c in videos if c not in cal.cameras]
-    if uncalibrated:
-        raise EpisodeFormatError(f"{cal.path}: no camera {', '.join(uncalibrated)} (the dataset {root.name} has "
-                                 f"{', '.join(videos)}; the calibration has {', '.join(cal.cameras)})")
-    for extra in (c for c in cal.cameras if c not in videos):
-        log.warning("%s: camera %s is not in %s; ignored", cal.path, extra, root)
+    check_cameras(cal, videos, f"the dataset {root.name}")
     return videos
 
 
