@@ -203,7 +203,7 @@ class Reconstruction:
         check stands in for them.
         """
         c = self.config
-        states = self.plan.distinct_train_states or self.plan.train_frames
+        states = self._train_states()
         resolve_backend(c.backend, self.device)  # a first build of the C++ rasterizer logs before the bar
         bar = tqdm(total=c.iters, initial=self.step, desc="reconstructing", unit="it", disable=not progress)
         mean_loss = math.nan  # over about the last 50 frames
@@ -223,6 +223,10 @@ class Reconstruction:
         bar.close()
         if self.exposure is not None and self.step >= c.iters:
             self.refit_exposure()
+
+    def _train_states(self) -> list[int]:
+        """The frames an iteration draws from: one per distinct state, else every training frame."""
+        return self.plan.distinct_train_states or self.plan.train_frames
 
     def _iteration(self, states: list[int]) -> None:
         """One training iteration on a frame drawn from ``states`` (the light is searched first,
@@ -441,7 +445,7 @@ class Reconstruction:
         if self.device.type != "cuda":
             raise ValueError(f"host_syncs counts CUDA synchronisations; this reconstruction is on {self.device}")
         self.config.iters = self.step + iters
-        states = self.plan.distinct_train_states or self.plan.train_frames
+        states = self._train_states()
         torch.cuda.set_sync_debug_mode("warn")
         try:
             with warnings.catch_warnings(record=True) as caught, compilation(self.compiled):

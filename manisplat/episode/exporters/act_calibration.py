@@ -8,10 +8,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from manisplat.episode.importers.cobot_magic import CALIBRATION_CAMERA_KEYS
 from manisplat.episode.reader import Episode
 
 CALIBRATION_SUFFIX = ".calib.json"
-_CAMERA_KEYS = ("width", "height", "K", "dist", "mount", "T_mount_cam", "latency_s")
 
 
 def _description(ep: Episode, description: str) -> dict[str, str]:
@@ -29,7 +29,7 @@ def act_calibration(ep: Episode, keys: dict[str, str], fps: float) -> dict[str, 
     cameras = {}
     for camera, key in keys.items():
         raw = ep.cameras[camera].to_v2_dict()
-        cameras[key] = {k: raw[k] for k in _CAMERA_KEYS if k in raw}
+        cameras[key] = {k: raw[k] for k in CALIBRATION_CAMERA_KEYS if k in raw}
     arms = {}
     for k, (name, arm) in enumerate(ep.arms.items()):
         raw = arm.to_v2_dict()

@@ -41,6 +41,10 @@ HOW_TO_CALIBRATE = ("give them with --calib FILE.calib.json (per camera K, dist,
                     "camera as a version 1 episode with --arm left|right --camera NAME --K fx,fy,cx,cy")
 
 
+#: what a calibration file gives of a camera (besides ``depth``), as an episode stores it
+CALIBRATION_CAMERA_KEYS = ("width", "height", "K", "dist", "mount", "T_mount_cam", "latency_s")
+
+
 @dataclass
 class CobotCalibration:
     """What a ``*.calib.json`` sidecar says about a recording.
@@ -129,8 +133,7 @@ def load_calibration(path: str | Path) -> CobotCalibration:
         if not isinstance(camera, dict):
             problems.append(f"cameras.{name} must be an object")
             continue
-        entry = {k: camera[k] for k in ("width", "height", "K", "dist", "mount", "T_mount_cam", "latency_s")
-                 if k in camera}
+        entry = {k: camera[k] for k in CALIBRATION_CAMERA_KEYS if k in camera}
         probe = dict(entry)
         if "width" not in probe or "height" not in probe:  # the images give the size (checked then)
             probe.update(width=10 ** 6, height=10 ** 6)
