@@ -105,7 +105,7 @@ def step_iteration(run: Run, args) -> None:
             first = _FirstIterations(args.cpu_iters)
             result = _train(run, f"iteration/{label}/{variant}", episode, device="cuda", iters=iters,
                             compile=VARIANTS[variant], steady_iters=args.steady_iters, profile_iters=args.profile_iters,
-                            sync_iters=10, threads=None, callback=first)
+                            sync_iters=10, threads=os.cpu_count(), callback=first)
             result[f"s_first_{args.cpu_iters}_iters"] = first.seconds
             run.record(f"iteration/{label}/{variant}", result)
 
@@ -147,7 +147,7 @@ def _long_run(run: Run, name: str, episode: Path, iters: int, setting: str) -> N
                                             "psnr_curve": curve})
 
     result = _train(run, name, episode, device="cuda", iters=iters, compile=setting, steady_iters=0,
-                    profile_iters=0, sync_iters=0, threads=None, callback=track)
+                    profile_iters=0, sync_iters=0, threads=os.cpu_count(), callback=track)
     reached = next(((step, s) for step, s, psnr in curve if psnr >= 30.0), None)
     result["psnr_curve"] = curve
     result["to_30_db"] = None if reached is None else {"iteration": reached[0], "s": reached[1]}

@@ -78,7 +78,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=positive(int), metavar="N", help=THREADS_HELP)
     p.add_argument("--compile", default="auto", choices=COMPILE_CHOICES,
                    help="run the training iteration's tensor work through torch.compile: auto (on for CUDA runs "
-                        f"of {COMPILE_MIN_ITERS} iterations or more: 1.7x faster iterations after about 4 minutes of "
+                        f"of {COMPILE_MIN_ITERS} iterations or more: 2x faster iterations after about 4 minutes of "
                         "compiling on an H100; off on the CPU, where compiling costs more than it saves), on, off")
     p.add_argument("--tau", type=positive(), default=DEFAULT_TAU,
                    help=f"Skill distance threshold in metres between the TCP and the object (default {DEFAULT_TAU}; "

@@ -88,12 +88,12 @@ def default_iters(device: str) -> int:
 
 
 COMPILE_CHOICES = ("auto", "on", "off")
-#: "auto" compiles a CUDA run of at least this many iterations: on an H100 compiling saved 9.6 ms
-#: an iteration (22.6 -> 13.0 ms on sim_pick_place_small, gpu_compile/pp_600.json) and took about
-#: 240 s over a whole run (the first graphs, then again when the shadows start and at each new SH
-#: band: gpu_long/long_pp_30000.json), so it pays after about 25 000 (the SH bands no longer
-#: compile since: about 90 s less, to be measured before this moves)
-COMPILE_MIN_ITERS = 25_000
+#: "auto" compiles a CUDA run of at least this many iterations: on an H100, over whole runs of
+#: sim_pick_place_small (densification, held-out estimates, 65 600 Gaussians), an iteration took
+#: 39.4 ms eagerly (gpu_eager/tests_long_pp_10000.json) and 19.7 ms compiled after about 240 s of
+#: compiling (gpu_long/long_pp_30000.json): the compiled run is ahead from about 12 200 iterations
+#: on (the SH bands compile nothing since, about 90 s less, not yet measured)
+COMPILE_MIN_ITERS = 12_500
 
 
 def resolve_compile(name: str, device_type: str, iters: int) -> str | None:

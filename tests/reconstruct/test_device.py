@@ -319,7 +319,9 @@ def test_a_compiled_iteration_computes_the_eager_loss_and_gradients(pick, device
     trained tensor (Gaussians of every node, object poses, light, background). Rounding may flip
     the sign of a pixel's error that is near 0 (|x| has no slope there): that pixel's L1
     gradient jumps and with it the gradients of the Gaussians that cover it, so tensors are
-    compared by their typical element and by norm, not element by element."""
+    compared by their typical element and by norm, not element by element. A tensor of a few
+    elements (the light, the background) sums the whole image's gradient, every such pixel
+    included: it is compared by norm, to 1 % (1.3e-3 on an H100)."""
     rec, _ = _reconstruction(pick, iters=16, device=device)
     rec.train(progress=False)
     frame = rec.plan.train_frames[3]
@@ -331,4 +333,7 @@ def test_a_compiled_iteration_computes_the_eager_loss_and_gradients(pick, device
     for name, g in eager.items():
         error = (compiled[name] - g).abs()
         assert error.norm() <= 0.1 * g.norm(), name
-        assert error.flatten().median() <= 1e-3 * g.abs().flatten().median() + 1e-12, name
+        if g.numel() < 16:
+            assert error.norm() <= 1e-2 * g.norm() + 1e-12, name
+        else:
+            assert error.flatten().median() <= 1e-3 * g.abs().flatten().median() + 1e-12, name
