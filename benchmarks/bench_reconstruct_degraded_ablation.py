@@ -4,7 +4,7 @@ exposure gains (``--no-exposure``), the extrinsic and time-offset check
 (``--keep-extrinsic``), the episode's masks (``--no-masks``: robot masks drawn from the model,
 the object segmented from a point on it in frame 0). Then the camera check alone (no training) on every oak copy
 of both episodes and on the generated test set's episode recorded with a 10 ms camera latency,
-with its stereo-error weights and its camera-facing matching switched off in turn.
+with its stereo-error weights switched off.
 """
 
 from __future__ import annotations
@@ -34,8 +34,7 @@ RUNS = {  # name -> (extra CLI arguments, whether camera.dist is removed from th
     # the box's centre pixel in frame 0, as in bench_reconstruct_inputs.py (undistorted image)
     "no episode masks (drawn)": (("--no-masks", "--object-point", "183.3,147.7"), False),
 }
-CHECKS = {"all": {}, "uniform depth weights": {"depth_weighting": False},
-          "whole link surface": {"camera_facing": False}}
+CHECKS = {"all": {}, "uniform depth weights": {"depth_weighting": False}}
 
 
 def run(ctx: BenchContext) -> list[dict[str, Any]]:

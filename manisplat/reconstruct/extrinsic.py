@@ -8,10 +8,14 @@ every object pose the reconstruction finds in the base frame. The robot is a cal
 whose pose is known in every frame: its measured surface in the camera frame, aligned to its
 model surface over many frames and arm configurations, fixes ``T_base_cam`` and, where the arm
 moves, the time offset (point-to-plane ICP, Gauss-Newton on se(3) and the offset, Huber
-weights; each point matched only to the link surface facing the camera, since a noisy point
-behind a thin part's front would otherwise take its back face: about 1 mm of bias at the oak
-preset's depth noise). Each depth point is trusted by its expected stereo error, which grows with
-the square of its depth (weight ``(z_ref / z)^4``). The static background cannot help: it is seen
+weights). Each depth point is matched along its pixel's ray: the ray is cast into its link's
+meshes, placed by forward kinematics, and the point is compared with the plane of the face the ray
+hits first. Stereo noise moves a point along its ray, so this match does not depend on the noise;
+matching a noisy point to the nearest model point instead (the first version) takes points pushed
+behind a thin part or an edge to another face and biases the fit: at the oak preset's noise from
+1.1 m away that bias was 0.34 deg / 5.8 mm, larger than the calibration error it corrected. Each
+depth point is trusted by its expected stereo error, which grows with the square of its depth
+(weight ``(z_ref / z)^4``). The static background cannot help: it is seen
 by one still camera, so any camera pose explains it.
 
 The uncertainty is a bootstrap over frames (frames resampled with replacement, the converged
@@ -30,7 +34,7 @@ import cv2
 import numpy as np
 import torch
 import trimesh
-from scipy.spatial import cKDTree
+from trimesh.ray.ray_pyembree import RayMeshIntersector
 
 from manisplat.geometry import pose_error, se3_exp
 from manisplat.reconstruct.data import EpisodeData, joints_at
@@ -39,6 +43,9 @@ log = logging.getLogger(__name__)
 
 #: fewer measured robot points than this over all frames: the correction is not estimated
 MIN_POINTS = 2_000
+#: a correction this uncertain (1-sigma, deg and mm) is not applied: its 2-sigma reaches the size of a
+#: hand calibration's error, so the robot's depth cannot tell which camera pose is better
+MAX_SIGMA_ROTATION_DEG, MAX_SIGMA_TRANSLATION_MM = 0.1, 1.5
 #: a correction larger than this is not applied (the calibration is wrong, or the robot model is)
 MAX_ROTATION_DEG, MAX_TRANSLATION_MM, MAX_TIME_OFFSET_S = 3.0, 30.0, 0.2
 #: a time offset is applied when it is this large and three times its spread (s)
@@ -53,7 +60,7 @@ COMPARE_GATE = 0.02
 #: an OAK is a few mm at 1.5 m): the model or the depth is wrong, and the correction means nothing
 MAX_RESIDUAL_MM = 5.0
 _VELOCITY_STEP_S = 0.01  # central difference of the link poses for the surface velocity
-REPLACE_AFTER_S = 0.5e-3  # the surfaces are placed anew when the offset moved this far (s)
+REPLACE_AFTER_S = 0.5e-3  # the meshes are placed anew when the offset moved this far (s)
 
 
 @dataclass
@@ -73,6 +80,10 @@ class ExtrinsicCorrection:
         points, frames: how many robot depth points from how many frames were used.
         applied: False when the extrinsic correction was not trusted (``reason`` says why).
         time_applied: whether the time offset is large and certain enough to re-pair the joints.
+        T_fitted: [4, 4] the fit's camera-to-base, applied or not (``T_after`` when applied).
+        sigma_parts: the spreads the sigmas combine (in quadrature), each (deg, mm, s): "frames",
+            the bootstrap over frames (noise); "links", the jackknife over links (a link's mesh or
+            depth off in the same way in every frame).
     """
 
     T_before: np.ndarray
@@ -90,6 +101,8 @@ class ExtrinsicCorrection:
     applied: bool = True
     reason: str = ""
     time_applied: bool = False
+    T_fitted: np.ndarray | None = None
+    sigma_parts: dict[str, tuple[float, float, float]] | None = None
 
     def to_dict(self) -> dict:
         return {"rotation_deg": self.rotation_deg, "translation_mm": self.translation_mm,
@@ -100,7 +113,15 @@ class ExtrinsicCorrection:
                 "rms_before_mm": self.rms_before_mm, "rms_after_mm": self.rms_after_mm,
                 "points": self.points, "frames": self.frames, "applied": self.applied, "reason": self.reason,
                 "T_correction": (np.linalg.inv(self.T_before) @ self.T_after).tolist(),
-                "method": "robot depth on the URDF link surfaces (point-to-plane ICP), bootstrap over frames"}
+                "sigma_parts": None if self.sigma_parts is None else {  # null where a part could not be told
+                    name: {"rotation_deg": _finite(deg), "translation_mm": _finite(mm), "time_offset_ms": _finite(1e3 * sec)}
+                    for name, (deg, mm, sec) in self.sigma_parts.items()},
+                "method": "robot depth on the URDF link meshes along each pixel's ray (point-to-plane ICP); "
+                          "sigma: bootstrap over frames and jackknife over links, in quadrature"}
+
+
+def _finite(x: float) -> float | None:
+    return None if math.isnan(x) else x
 
 
 def pose_difference(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
@@ -110,60 +131,84 @@ def pose_difference(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
 
 
 class _Group:
-    """Measured robot points of one frame and one link (camera frame), and that link's camera-facing
-    model surface at the frame's time (base frame), with the surface's velocity."""
+    """Measured robot points of one frame (camera frame) and the link meshes they belong to,
+    placed at the frame's time (``now``) and ``_VELOCITY_STEP_S`` before and after it."""
 
-    def __init__(self, frame: int, points_cam: np.ndarray, model: np.ndarray, normals: np.ndarray,
-                 velocity: np.ndarray, w_depth: np.ndarray) -> None:
-        self.frame, self.p, self.w_depth = frame, points_cam, w_depth
-        self.model, self.normals, self.velocity = model, normals, velocity
-        self.tree = cKDTree(model)
+    def __init__(self, frame: int, link: str | None, points_cam: np.ndarray, w_depth: np.ndarray,
+                 meshes: list[trimesh.Trimesh], now: np.ndarray, before: np.ndarray, after: np.ndarray) -> None:
+        self.frame, self.link, self.p, self.w_depth = frame, link, points_cam, w_depth
+        self.meshes, self.now, self.before, self.after = meshes, now, before, after
+        self.rays = self.p / np.linalg.norm(self.p, axis=1, keepdims=True)
+
+    def _first_hits(self, T: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Where each point's pixel ray from the camera at ``T`` first meets the meshes: whether it
+        does [N], the hit [N, 3] and the face normal [N, 3] (base frame), the hit's velocity [N, 3]
+        (m/s) as its link moves."""
+        R, centre = T[:3, :3], T[:3, 3]
+        directions = self.rays @ R.T
+        n = len(self.p)
+        nearest = np.full(n, np.inf)
+        hit, normal, velocity = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3))
+        for mesh, P, P_before, P_after in zip(self.meshes, self.now, self.before, self.after):
+            R_link, t_link = P[:3, :3], P[:3, 3]
+            origins = np.broadcast_to((centre - t_link) @ R_link, (n, 3))
+            local, ray, face = mesh.ray.intersects_location(origins, directions @ R_link, multiple_hits=False)
+            placed = local @ R_link.T + t_link
+            distance = np.linalg.norm(placed - centre, axis=1)
+            closer = distance < nearest[ray]
+            ray, local, face, placed = ray[closer], local[closer], face[closer], placed[closer]
+            nearest[ray], hit[ray] = distance[closer], placed
+            normal[ray] = mesh.face_normals[face] @ R_link.T
+            velocity[ray] = (local @ (P_after[:3, :3] - P_before[:3, :3]).T + P_after[:3, 3] - P_before[:3, 3]) / (
+                2 * _VELOCITY_STEP_S)
+        return np.isfinite(nearest), hit, normal, velocity
 
     def residuals(self, T: np.ndarray, gate: float, shift: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Point-to-plane residuals [N] (m) at camera pose ``T`` with the model moved ``shift`` s
-        along its velocity, whether each is within ``gate`` of the model [N], and their Jacobian
-        [N, 7] for ``T Exp(e)`` and a further time shift ``s``: (e, s) = (v, omega, s), e in the
-        camera frame, s in seconds."""
+        """Point-to-plane residuals [N] (m) at camera pose ``T`` with the meshes moved ``shift`` s
+        along their velocity, whether each ray hit its link within ``gate`` of the plane [N], and
+        their Jacobian [N, 7] for ``T Exp(e)`` and a further time shift ``s``: (e, s) = (v, omega, s),
+        e in the camera frame, s in seconds."""
+        hits, hit, n, velocity = self._first_hits(T)
         R, t = T[:3, :3], T[:3, 3]
-        pb = self.p @ R.T + t
-        dist, idx = self.tree.query(pb, distance_upper_bound=gate)
-        ok = np.isfinite(dist)
-        idx = np.where(ok, idx, 0)
-        n = self.normals[idx]
-        r = np.einsum("ij,ij->i", n, pb - self.model[idx] - shift * self.velocity[idx])
+        r = np.einsum("ij,ij->i", n, self.p @ R.T + t - hit - shift * velocity)
+        ok = hits & (np.abs(r) <= gate)
         # d pb / d e = R [I | -[p]x]; n^T R [I | -[p]x] = [(R^T n)^T | (p x R^T n)^T]; d r / d s = -n.v
         nc = n @ R
-        J = np.concatenate([nc, np.cross(self.p, nc), -np.einsum("ij,ij->i", n, self.velocity[idx])[:, None]], 1)
-        return r, ok, J
+        J = np.concatenate([nc, np.cross(self.p, nc), -np.einsum("ij,ij->i", n, velocity)[:, None]], 1)
+        return np.where(ok, r, 0.0), ok, J
 
 
 def _normal_equations(groups: list[_Group], T: np.ndarray, gate: float, huber: float,
-                      shift: float = 0.0) -> dict[int, tuple]:
-    """frame -> (H [7, 7], g [7], inlier residuals [M] in m) of the Huber- and depth-weighted
-    point-to-plane cost at ``T`` (models moved ``shift`` s) over that frame's groups."""
-    out: dict[int, tuple] = {}
+                      shift: float = 0.0) -> dict[tuple[int, str | None], tuple]:
+    """(frame, link) -> (H [7, 7], g [7], inlier residuals [M] in m) of the Huber- and
+    depth-weighted point-to-plane cost at ``T`` (models moved ``shift`` s) over that group."""
+    out = {}
     for grp in groups:
         r, ok, J = grp.residuals(T, gate, shift)
         a = np.abs(r)
         w = np.where(a <= huber, 1.0, huber / np.maximum(a, 1e-12)) * grp.w_depth * ok
         Jw = J * w[:, None]
-        H, g, kept = Jw.T @ J, Jw.T @ r, r[ok]
-        if grp.frame in out:
-            H0, g0, r0 = out[grp.frame]
-            H, g, kept = H0 + H, g0 + g, np.concatenate([r0, kept])
-        out[grp.frame] = (H, g, kept)
+        out[grp.frame, grp.link] = (Jw.T @ J, Jw.T @ r, r[ok])
     return out
 
 
-def _model_surface(data: EpisodeData, per_link: int, seed: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """link -> (points [M, 3], normals [M, 3]) sampled on its meshes, in the link frame."""
+def _summed(systems: dict, by: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The systems' (H, g) summed over every key sharing element ``by`` of the (frame, link) key."""
+    out: dict = {}
+    for key, (H, g, _) in systems.items():
+        H0, g0 = out.get(key[by], (0.0, 0.0))
+        out[key[by]] = (H0 + H, g0 + g)
+    return list(out.values())
+
+
+def _link_meshes(data: EpisodeData) -> dict[str, trimesh.Trimesh]:
+    """link -> its visual meshes as one mesh (link frame), ray-cast with Embree."""
     out = {}
     for name, visuals in data.robot.visuals.items():
-        if not visuals:
-            continue
-        mesh = trimesh.util.concatenate([v.mesh for v in visuals])
-        points, faces = trimesh.sample.sample_surface(mesh, per_link, seed=seed)
-        out[name] = (np.asarray(points, dtype=np.float64), np.asarray(mesh.face_normals[faces], dtype=np.float64))
+        if visuals:
+            mesh = trimesh.util.concatenate([v.mesh for v in visuals])
+            mesh.ray = RayMeshIntersector(mesh)  # Embree (embreex), not trimesh's slow pure-Python fallback
+            out[name] = mesh
     return out
 
 
@@ -194,13 +239,13 @@ class _Measured:
     w_depth: np.ndarray
 
 
-def _measurements(data: EpisodeData, frames: list[int], surface: dict, erode_px: int, points_per_frame: int,
+def _measurements(data: EpisodeData, frames: list[int], meshes: dict, erode_px: int, points_per_frame: int,
                   rng: np.random.Generator) -> list[_Measured]:
-    """Each mask label naming a link is matched to that link's surface; a robot label naming none
+    """Each mask label naming a link is matched to that link's meshes; a robot label naming none
     (one label for the whole arm) to all links together."""
     by_link: dict[str | None, list[int]] = {}
     for value, link in data.labels.robot.items():
-        by_link.setdefault(link if link in surface else None, []).append(value)
+        by_link.setdefault(link if link in meshes else None, []).append(value)
     share = points_per_frame / max(sum(len(v) for v in by_link.values()), 1)
     out = []
     for f in frames:
@@ -215,50 +260,37 @@ def _measurements(data: EpisodeData, frames: list[int], surface: dict, erode_px:
     return out
 
 
-def _groups(data: EpisodeData, measured: list[_Measured], surface: dict, camera: np.ndarray | None,
+def _groups(data: EpisodeData, measured: list[_Measured], meshes: dict[str, trimesh.Trimesh],
             offset: float) -> list[_Group]:
-    """The measurements with their links' surfaces placed at joint time ``t[f] + offset`` beyond
-    the data's own offset (and the surface velocity there), keeping the surface that faces
-    ``camera`` (base-frame position; None keeps all of it)."""
+    """The measurements with their links' meshes placed at joint time ``t[f] + offset`` beyond
+    the data's own offset (and ``_VELOCITY_STEP_S`` before and after, for their velocity)."""
     names = list(data.robot.link_names)
     frames = sorted({m.frame for m in measured})
     t = data.t.cpu().numpy()[frames] + data.time_offset_s + offset  # joint time of what the frame shows
     h = _VELOCITY_STEP_S
-    times = np.concatenate([t, t - h, t + h])
-    q, gripper = joints_at(data, times)
+    q, gripper = joints_at(data, np.concatenate([t, t - h, t + h]))
     poses = data.robot.forward_kinematics(torch.as_tensor(q), torch.as_tensor(gripper)).double().numpy()
     now, before, after = np.split(poses, 3)
     row = {f: k for k, f in enumerate(frames)}
     groups = []
     for m in measured:
-        k = row[m.frame]
-        links = [m.link] if m.link is not None else list(surface)
-        parts = []
-        for n in links:
-            i = names.index(n)
-            pts, nrm = surface[n]
-            placed = pts @ now[k, i, :3, :3].T + now[k, i, :3, 3]
-            velocity = (pts @ (after[k, i, :3, :3] - before[k, i, :3, :3]).T + after[k, i, :3, 3] - before[k, i, :3, 3]) / (2 * h)
-            parts.append((placed, nrm @ now[k, i, :3, :3].T, velocity))
-        model, normals, velocity = (np.concatenate(x) for x in zip(*parts))
-        front = (np.einsum("ij,ij->i", normals, model - camera) < 0 if camera is not None
-                 else np.ones(len(model), dtype=bool))
-        if front.sum() >= 20:
-            groups.append(_Group(m.frame, m.points, model[front], normals[front], velocity[front], m.w_depth))
+        links = [m.link] if m.link is not None else list(meshes)
+        i, k = [names.index(n) for n in links], row[m.frame]
+        groups.append(_Group(m.frame, m.link, m.points, m.w_depth, [meshes[n] for n in links], now[k, i],
+                             before[k, i], after[k, i]))
     return groups
 
 
 def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 40, points_per_frame: int = 1500,
-                     per_link: int = 20_000, iterations: int = 20, bootstrap: int = 200, erode_px: int = 2,
-                     time_offset: bool = True, depth_weighting: bool = True, camera_facing: bool = True,
-                     seed: int = 0) -> ExtrinsicCorrection | None:
+                     iterations: int = 20, bootstrap: int = 200, erode_px: int = 2, time_offset: bool = True,
+                     depth_weighting: bool = True, seed: int = 0) -> ExtrinsicCorrection | None:
     """Align the robot's measured depth with its model over ``frames`` (training frames).
 
     ``time_offset`` also estimates the camera/joint time offset where the arm moves enough to
     tell it (:data:`MAX_TIME_CONDITION`); it is applied (``time_applied``) when at least
     :data:`MIN_TIME_OFFSET_S` and three times its bootstrap spread. ``depth_weighting`` False
-    weighs every depth point the same and ``camera_facing`` False matches points to the whole link
-    surface (the ablations in ``benchmarks/bench_reconstruct_degraded_ablation.py``).
+    weighs every depth point the same (the ablation in
+    ``benchmarks/bench_reconstruct_degraded_ablation.py``).
 
     Returns None when the episode cannot say (no depth, no robot masks, fewer than
     :data:`MIN_POINTS` robot points, a degenerate geometry); otherwise the correction, with
@@ -273,8 +305,8 @@ def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 
         return None
     rng = np.random.default_rng(seed)
     chosen = list(frames)[:: max(1, len(frames) // max_frames)][:max_frames]
-    surface = _model_surface(data, per_link, seed)
-    measured = _measurements(data, chosen, surface, erode_px, points_per_frame, rng)
+    meshes = _link_meshes(data)
+    measured = _measurements(data, chosen, meshes, erode_px, points_per_frame, rng)
     if not depth_weighting:
         for m in measured:
             m.w_depth = np.ones_like(m.w_depth)
@@ -284,8 +316,7 @@ def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 
         return None
     T0 = np.linalg.inv(data.viewmat.double().numpy())
     T, offset = T0.copy(), 0.0
-    camera = T0[:3, 3] if camera_facing else None
-    groups, placed_at = _groups(data, measured, surface, camera, offset), offset
+    groups, placed_at = _groups(data, measured, meshes, offset), offset
     gate = COMPARE_GATE
     r = np.concatenate([s[2] for s in _normal_equations(groups, T, gate, gate).values()])
     rms_before = _robust_rms(r)
@@ -306,21 +337,25 @@ def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 
         T = T @ se3_exp(torch.as_tensor(step[:6])).numpy()
         if solve_time:
             offset += float(step[6])
-            if abs(offset - placed_at) > REPLACE_AFTER_S:  # the surface at the new time (within it: linear)
-                groups, placed_at = _groups(data, measured, surface, camera, offset), offset
+            if abs(offset - placed_at) > REPLACE_AFTER_S:  # the meshes at the new time (within it: linear)
+                groups, placed_at = _groups(data, measured, meshes, offset), offset
         r = np.concatenate([s[2] for s in _normal_equations(groups, T, gate, huber, offset - placed_at).values()])
         if np.linalg.norm(step[:6]) < 1e-8 and (not solve_time or abs(step[6]) < 1e-6):
             break
     systems = _normal_equations(groups, T, gate, huber, offset - placed_at)
     k = 7 if solve_time else 6
-    sig_rot, sig_trans, sig_time = _bootstrap(T, list(systems.values()), k, bootstrap, rng)
+    by_frames = _bootstrap(T, _summed(systems, 0), k, bootstrap, rng)
+    by_links = _jackknife(T, _summed(systems, 1), k)
+    # one label for the whole arm leaves no links to leave out: then the frames' spread alone (sigma_parts says so)
+    sig_rot, sig_trans, sig_time = (math.hypot(a, 0.0 if math.isnan(b) else b) for a, b in zip(by_frames, by_links))
     rot, trans = pose_difference(T0, T)
     # after compared with before on the same terms: the first iteration's gate
     rms_after = _robust_rms(np.concatenate([s[2] for s in _normal_equations(
         groups, T, COMPARE_GATE, COMPARE_GATE, offset - placed_at).values()]))
     result = ExtrinsicCorrection(T0, T, rot, trans, sig_rot, sig_trans, offset if solve_time else None,
                                  sig_time if solve_time else None, 1000 * rms_before, 1000 * rms_after,
-                                 total, len(chosen))
+                                 total, len(chosen), T_fitted=T.copy(),
+                                 sigma_parts={"frames": by_frames, "links": by_links})
     if solve_time:
         result.time_applied = (abs(offset) >= max(MIN_TIME_OFFSET_S, 3 * sig_time) and abs(offset) <= MAX_TIME_OFFSET_S)
     if 1000 * rms_after > MAX_RESIDUAL_MM:
@@ -342,17 +377,31 @@ def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 
         result.reason = (f"the robot's depth fits the recorded camera (residual RMS {1000 * rms_before:.2f} mm; the "
                          f"fit's {rot:.3f} deg, {trans:.2f} mm does not lower it)")
         result.T_after = T0.copy()
+    elif sig_rot > MAX_SIGMA_ROTATION_DEG or sig_trans > MAX_SIGMA_TRANSLATION_MM:
+        result.applied, result.time_applied = False, False
+        result.reason = (f"the robot's depth cannot pin the camera down: the correction's 1-sigma is {sig_rot:.3f} deg, "
+                         f"{sig_trans:.2f} mm, more than {MAX_SIGMA_ROTATION_DEG} deg / {MAX_SIGMA_TRANSLATION_MM} mm "
+                         "(as uncertain as a hand calibration); the episode's calibration is kept: more of the arm in "
+                         "view, nearer the camera, or a calibration (manisplat-calibrate) decides it")
+        result.T_after = T0.copy()
+        log.warning("camera extrinsic: %s", result.reason)
+    elif rot < 2 * sig_rot and trans < 2 * sig_trans:
+        result.applied = False  # the time offset, if certain, still re-pairs the joints
+        result.reason = (f"the correction ({rot:.3f} deg, {trans:.2f} mm) is within its own 2-sigma ({2 * sig_rot:.3f} "
+                         f"deg, {2 * sig_trans:.2f} mm): the recorded camera agrees with the robot's depth")
+        result.T_after = T0.copy()
     if solve_time:
         verdict = ("applied" if result.time_applied else "not applied: " + (
-            "the extrinsic was not" if not result.applied else
-            f"beyond {MAX_TIME_OFFSET_S} s" if abs(offset) > MAX_TIME_OFFSET_S else "too small to be sure"))
+            f"beyond {MAX_TIME_OFFSET_S} s" if abs(offset) > MAX_TIME_OFFSET_S else
+            "too small to be sure" if abs(offset) < max(MIN_TIME_OFFSET_S, 3 * sig_time) else "the extrinsic was not"))
         timing = f"; camera/joint time offset {1e3 * offset:+.1f} +- {1e3 * sig_time:.1f} ms ({verdict})"
     else:
         timing = ""
     if result.applied or rms_after < rms_before:  # a correction, applied or refused above with a warning
         log.info("camera extrinsic: correction %.3f +- %.3f deg, %.2f +- %.2f mm from %d robot depth points in %d "
                  "frames (residual RMS %.2f -> %.2f mm)%s%s", rot, sig_rot, trans, sig_trans, total, len(chosen),
-                 result.rms_before_mm, result.rms_after_mm, "" if result.applied else "; NOT applied", timing)
+                 result.rms_before_mm, result.rms_after_mm, "" if result.applied else f"; NOT applied: {result.reason}",
+                 timing)
     else:
         log.info("camera extrinsic: kept: %s; %d robot depth points in %d frames%s", result.reason, total,
                  len(chosen), timing)
@@ -374,26 +423,49 @@ def _robust_rms(r: np.ndarray) -> float:
     return float(np.sqrt(np.mean(inl ** 2)))
 
 
-def _bootstrap(T: np.ndarray, systems: list, k: int, n: int, rng: np.random.Generator) -> tuple[float, float, float]:
+def _bootstrap(T: np.ndarray, systems: list[tuple[np.ndarray, np.ndarray]], k: int, n: int,
+               rng: np.random.Generator) -> tuple[float, float, float]:
     """1-sigma spread (deg, mm, s) of the one-step solutions of the first ``k`` parameters with
-    the frames' normal equations resampled with replacement (the time's NaN when ``k`` is 6)."""
-    Hs = np.stack([s[0][:k, :k] for s in systems])
-    gs = np.stack([s[1][:k] for s in systems])
-    angles, shifts, times = [], [], []
+    the frames' normal equations ``systems`` resampled with replacement (the time's NaN when ``k`` is 6)."""
+    Hs = np.stack([H[:k, :k] for H, _ in systems])
+    gs = np.stack([g[:k] for _, g in systems])
+    steps = []
     for _ in range(n):
         pick = rng.integers(0, len(systems), len(systems))
         try:
-            step = -np.linalg.solve(Hs[pick].sum(0), gs[pick].sum(0))
+            steps.append(-np.linalg.solve(Hs[pick].sum(0), gs[pick].sum(0)))
         except np.linalg.LinAlgError:
             continue
-        a, d = pose_difference(T, T @ se3_exp(torch.as_tensor(step[:6])).numpy())
-        angles.append(a)
-        shifts.append(d)
-        times.append(step[6] if k == 7 else math.nan)
-    if not angles:
+    return _spread(T, steps, k, 1.0)
+
+
+def _jackknife(T: np.ndarray, systems: list[tuple[np.ndarray, np.ndarray]], k: int) -> tuple[float, float, float]:
+    """1-sigma jackknife spread (deg, mm, s) of the one-step solutions with each link's normal
+    equations ``systems`` left out in turn: what one link's systematic error (its mesh against the
+    real link, its depth) moves the solution by. NaN with fewer than 3 links."""
+    if len(systems) < 3:
         return math.nan, math.nan, math.nan
-    # the spread of a 3-vector's length about 0: RMS of the bootstrap displacements
-    rms = lambda x: float(np.sqrt(np.mean(np.square(x))))  # noqa: E731
+    H, g = sum(h for h, _ in systems), sum(v for _, v in systems)
+    full = -np.linalg.solve(H[:k, :k], g[:k])
+    steps = []
+    for H_link, g_link in systems:
+        try:
+            steps.append(-np.linalg.solve((H - H_link)[:k, :k], (g - g_link)[:k]) - full)
+        except np.linalg.LinAlgError:
+            return math.nan, math.nan, math.nan
+    n = len(steps)
+    mean = np.mean(steps, axis=0)
+    return _spread(T, [step - mean for step in steps], k, n - 1.0)
+
+
+def _spread(T: np.ndarray, steps: list[np.ndarray], k: int, scale: float) -> tuple[float, float, float]:
+    """sqrt(scale) x the RMS size (deg, mm, s) of the pose steps ``steps`` [k] applied to ``T``:
+    the spread of a 3-vector's length about 0 (the time's NaN when ``k`` is 6, all NaN without steps)."""
+    if not steps:
+        return math.nan, math.nan, math.nan
+    angles, shifts = zip(*(pose_difference(T, T @ se3_exp(torch.as_tensor(step[:6])).numpy()) for step in steps))
+    times = [step[6] for step in steps] if k == 7 else [math.nan]
+    rms = lambda x: float(np.sqrt(scale * np.mean(np.square(x))))  # noqa: E731
     return rms(angles), rms(shifts), rms(times)
 
 
