@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import re
 import subprocess
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -29,20 +30,31 @@ EPISODES: dict[str, list[str]] = {
 def test_set(ctx: BenchContext) -> list[Path]:
     """The episodes (made where missing); raises MissingBenchmarkData without a simulator."""
     root = Path(os.environ.get("MANISPLAT_TESTSET", Path.home() / ".cache" / "manisplat" / "testset"))
-    missing = [name for name in EPISODES if not (root / name / "episode.json").is_file()]
+    return simulated_episodes(ctx, root, {name: [*COMMON, *args] for name, args in EPISODES.items()})
+
+
+def simulated_episodes(ctx: BenchContext, root: Path, episodes: dict[str, list[str]], workers: int = 1) -> list[Path]:
+    """``root/NAME`` for each of ``episodes`` (name -> gen_pick_place.py's arguments), generated
+    where missing with the python of ``$MANISPLAT_SIMENV``, ``workers`` at once; raises
+    MissingBenchmarkData without a simulator."""
+    missing = [name for name in episodes if not (root / name / "episode.json").is_file()]
     if missing:
         simenv = os.environ.get("MANISPLAT_SIMENV")
         if not simenv:
-            raise MissingBenchmarkData(f"test set episodes {missing} missing under {root}: set MANISPLAT_SIMENV "
-                                       "to a mujoco venv's python to generate them")
+            raise MissingBenchmarkData(f"episodes {missing} missing under {root}: set MANISPLAT_SIMENV to a mujoco "
+                                       "venv's python to generate them")
         tools = ctx.require_shared("tools", "sim")
-        for name in missing:
-            cmd = [simenv, "gen_pick_place.py", "--out", str(root / name), *COMMON, *EPISODES[name]]
+
+        def generate(name: str) -> None:
+            cmd = [simenv, "gen_pick_place.py", "--out", str(root / name), *episodes[name]]
             proc = subprocess.run(cmd, cwd=tools, capture_output=True, text=True,
-                                  env={**os.environ, "MUJOCO_GL": "osmesa"})
+                                  env={**os.environ, "MUJOCO_GL": "osmesa", "OMP_NUM_THREADS": "1"})
             if proc.returncode != 0:
                 raise MissingBenchmarkData(f"gen_pick_place.py failed for {name}: {proc.stderr[-800:]}")
-    return [root / name for name in EPISODES]
+
+        with ThreadPoolExecutor(workers) as pool:
+            list(pool.map(generate, missing))
+    return [root / name for name in episodes]
 
 
 def key_light(ctx: BenchContext) -> np.ndarray:

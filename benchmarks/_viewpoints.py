@@ -10,15 +10,15 @@ on 2 cores."""
 
 from __future__ import annotations
 
+import argparse
 import os
-import subprocess
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from benchmarks._harness import BenchContext, MissingBenchmarkData
+from benchmarks._harness import BenchContext
+from benchmarks._testset import simulated_episodes
 
 #: the middle of the workspace (between the objects' start and the mat), base frame, m
 TARGET = (0.28, 0.03, 0.03)
@@ -65,22 +65,13 @@ def root() -> Path:
 def clean_episodes(ctx: BenchContext, viewpoints=VIEWPOINTS, workers: int = 2) -> list[Path]:
     """The simulator's episodes of ``viewpoints`` (made where missing); raises MissingBenchmarkData
     without a simulator."""
-    base = root() / "clean"
-    missing = [v for v in viewpoints if not (base / v.name / "episode.json").is_file()]
-    if missing:
-        simenv = os.environ.get("MANISPLAT_SIMENV")
-        if not simenv:
-            raise MissingBenchmarkData(f"viewpoint episodes {[v.name for v in missing]} missing under {base}: set "
-                                       "MANISPLAT_SIMENV to a mujoco venv's python to generate them")
-        tools = ctx.require_shared("tools", "sim")
+    return simulated_episodes(ctx, root() / "clean", {v.name: v.generator_args() for v in viewpoints}, workers)
 
-        def generate(v: Viewpoint) -> None:
-            cmd = [simenv, "gen_pick_place.py", "--out", str(base / v.name), *v.generator_args()]
-            proc = subprocess.run(cmd, cwd=tools, capture_output=True, text=True,
-                                  env={**os.environ, "MUJOCO_GL": "osmesa", "OMP_NUM_THREADS": "1"})
-            if proc.returncode != 0:
-                raise MissingBenchmarkData(f"gen_pick_place.py failed for {v.name}: {proc.stderr[-800:]}")
 
-        with ThreadPoolExecutor(workers) as pool:
-            list(pool.map(generate, missing))
-    return [base / v.name for v in viewpoints]
+def select(names: str) -> list[Viewpoint]:
+    """The viewpoints named in the comma-separated ``names`` (an argparse ``type``: an unknown name
+    is refused with the known ones)."""
+    by_name = {v.name: v for v in VIEWPOINTS}
+    if unknown := [n for n in names.split(",") if n not in by_name]:
+        raise argparse.ArgumentTypeError(f"unknown viewpoints {unknown}; choose from {', '.join(by_name)}")
+    return [by_name[n] for n in names.split(",")]

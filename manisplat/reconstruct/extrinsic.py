@@ -358,38 +358,13 @@ def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 
                                  sigma_parts={"frames": by_frames, "links": by_links})
     if solve_time:
         result.time_applied = (abs(offset) >= max(MIN_TIME_OFFSET_S, 3 * sig_time) and abs(offset) <= MAX_TIME_OFFSET_S)
-    if 1000 * rms_after > MAX_RESIDUAL_MM:
-        result.applied, result.time_applied = False, False
-        result.reason = (f"the robot's depth does not fit its model (residual RMS {1000 * rms_before:.2f} -> "
-                         f"{1000 * rms_after:.2f} mm, at most {MAX_RESIDUAL_MM} mm expected): the extrinsic cannot "
-                         "be checked and the episode's calibration is kept; check the depth scale and the robot "
-                         "description")
+    refusal = _refusal(rot, trans, sig_rot, sig_trans, rms_before, rms_after)
+    if refusal is not None:
+        result.reason, keeps_time, warn = refusal
+        result.applied, result.time_applied = False, result.time_applied and keeps_time
         result.T_after = T0.copy()
-        log.warning("camera extrinsic: %s", result.reason)
-    elif rot > MAX_ROTATION_DEG or trans > MAX_TRANSLATION_MM:
-        result.applied, result.time_applied = False, False
-        result.reason = (f"the correction ({rot:.2f} deg, {trans:.1f} mm) is larger than {MAX_ROTATION_DEG} deg / "
-                         f"{MAX_TRANSLATION_MM} mm: recalibrate (manisplat-calibrate) or check the robot description")
-        result.T_after = T0.copy()
-        log.warning("camera extrinsic: %s", result.reason)
-    elif rms_after >= rms_before:
-        result.applied, result.time_applied = False, False
-        result.reason = (f"the robot's depth fits the recorded camera (residual RMS {1000 * rms_before:.2f} mm; the "
-                         f"fit's {rot:.3f} deg, {trans:.2f} mm does not lower it)")
-        result.T_after = T0.copy()
-    elif sig_rot > MAX_SIGMA_ROTATION_DEG or sig_trans > MAX_SIGMA_TRANSLATION_MM:
-        result.applied, result.time_applied = False, False
-        result.reason = (f"the robot's depth cannot pin the camera down: the correction's 1-sigma is {sig_rot:.3f} deg, "
-                         f"{sig_trans:.2f} mm, more than {MAX_SIGMA_ROTATION_DEG} deg / {MAX_SIGMA_TRANSLATION_MM} mm "
-                         "(as uncertain as a hand calibration); the episode's calibration is kept: more of the arm in "
-                         "view, nearer the camera, or a calibration (manisplat-calibrate) decides it")
-        result.T_after = T0.copy()
-        log.warning("camera extrinsic: %s", result.reason)
-    elif rot < 2 * sig_rot and trans < 2 * sig_trans:
-        result.applied = False  # the time offset, if certain, still re-pairs the joints
-        result.reason = (f"the correction ({rot:.3f} deg, {trans:.2f} mm) is within its own 2-sigma ({2 * sig_rot:.3f} "
-                         f"deg, {2 * sig_trans:.2f} mm): the recorded camera agrees with the robot's depth")
-        result.T_after = T0.copy()
+        if warn:
+            log.warning("camera extrinsic: %s", result.reason)
     if solve_time:
         verdict = ("applied" if result.time_applied else "not applied: " + (
             f"beyond {MAX_TIME_OFFSET_S} s" if abs(offset) > MAX_TIME_OFFSET_S else
@@ -406,6 +381,32 @@ def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 
         log.info("camera extrinsic: kept: %s; %d robot depth points in %d frames%s", result.reason, total,
                  len(chosen), timing)
     return result
+
+
+def _refusal(rot: float, trans: float, sig_rot: float, sig_trans: float, rms_before: float,
+             rms_after: float) -> tuple[str, bool, bool] | None:
+    """Why a fitted correction (deg, mm, its 1-sigma; residual RMS before and after in m) is not
+    applied, whether a certain time offset still is, and whether that deserves a warning; None
+    when it is applied."""
+    if 1000 * rms_after > MAX_RESIDUAL_MM:
+        return (f"the robot's depth does not fit its model (residual RMS {1000 * rms_before:.2f} -> "
+                f"{1000 * rms_after:.2f} mm, at most {MAX_RESIDUAL_MM} mm expected): the extrinsic cannot be checked "
+                "and the episode's calibration is kept; check the depth scale and the robot description", False, True)
+    if rot > MAX_ROTATION_DEG or trans > MAX_TRANSLATION_MM:
+        return (f"the correction ({rot:.2f} deg, {trans:.1f} mm) is larger than {MAX_ROTATION_DEG} deg / "
+                f"{MAX_TRANSLATION_MM} mm: recalibrate (manisplat-calibrate) or check the robot description", False, True)
+    if rms_after >= rms_before:
+        return (f"the robot's depth fits the recorded camera (residual RMS {1000 * rms_before:.2f} mm; the fit's "
+                f"{rot:.3f} deg, {trans:.2f} mm does not lower it)", False, False)
+    if sig_rot > MAX_SIGMA_ROTATION_DEG or sig_trans > MAX_SIGMA_TRANSLATION_MM:
+        return (f"the robot's depth cannot pin the camera down: the correction's 1-sigma is {sig_rot:.3f} deg, "
+                f"{sig_trans:.2f} mm, more than {MAX_SIGMA_ROTATION_DEG} deg / {MAX_SIGMA_TRANSLATION_MM} mm (as "
+                "uncertain as a hand calibration); the episode's calibration is kept: more of the arm in view, nearer "
+                "the camera, or a calibration (manisplat-calibrate) decides it", False, True)
+    if rot < 2 * sig_rot and trans < 2 * sig_trans:  # a certain time offset still re-pairs the joints
+        return (f"the correction ({rot:.3f} deg, {trans:.2f} mm) is within its own 2-sigma ({2 * sig_rot:.3f} deg, "
+                f"{2 * sig_trans:.2f} mm): the recorded camera agrees with the robot's depth", True, False)
+    return None
 
 
 def _condition(H: np.ndarray) -> float:
