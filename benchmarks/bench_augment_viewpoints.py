@@ -54,7 +54,9 @@ def main(argv: list[str] | None = None) -> int:
             demos = sorted(d for d in out.iterdir() if d.name.startswith("episode_"))
             # physics in the scene the episode was generated in (the clean original: the same scene and truth)
             row = {"viewpoint": v.name, "object": v.obj, "requested": report["requested"], "valid": report["valid"],
-                   "reasons": report["reasons"], **_physics(Path(simenv), demos, clean, ctx)}
+                   "reasons": report["reasons"], "physics_n": 0, "physics_success_clean": 0}
+            if demos:  # a twin whose every draw was refused leaves nothing to execute
+                row.update(_physics(Path(simenv), demos, clean, ctx))
             rows.append(row)
             print(json.dumps(row, default=float), flush=True)
     n = sum(r["physics_n"] for r in rows)
