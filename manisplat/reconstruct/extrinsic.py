@@ -447,11 +447,10 @@ def _jackknife(T: np.ndarray, systems: list[tuple[np.ndarray, np.ndarray]], k: i
     if len(systems) < 3:
         return math.nan, math.nan, math.nan
     H, g = sum(h for h, _ in systems), sum(v for _, v in systems)
-    full = -np.linalg.solve(H[:k, :k], g[:k])
     steps = []
     for H_link, g_link in systems:
         try:
-            steps.append(-np.linalg.solve((H - H_link)[:k, :k], (g - g_link)[:k]) - full)
+            steps.append(-np.linalg.solve((H - H_link)[:k, :k], (g - g_link)[:k]))
         except np.linalg.LinAlgError:
             return math.nan, math.nan, math.nan
     n = len(steps)
