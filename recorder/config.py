@@ -31,6 +31,8 @@ class RecorderConfig:
         max_skew_s: several cameras (:mod:`.rig`): the most another camera's image may be from
             the reference camera's frame time, s (None: half a frame period).
         stall_after_s: a camera silent for longer counts as stalled, s.
+        flush_grace_s: at the end, a lagging camera thread gets ``max_wait_s`` on the recording's
+            clock and at most this much more real time to deliver its last frames, s.
     """
 
     fps: float | None = None
@@ -47,13 +49,15 @@ class RecorderConfig:
     camera_poll_s: float = 0.05
     stall_after_s: float = 0.5
     max_skew_s: float | None = None
+    flush_grace_s: float = 1.0
 
     def __post_init__(self) -> None:
         if self.actions not in ("auto", "on", "off"):
             raise ValueError(f"actions must be auto, on or off; got {self.actions!r}")
         if self.image_format not in ("png", "jpg"):
             raise ValueError(f"image_format must be png or jpg; got {self.image_format!r}")
-        for name in ("max_gap_s", "max_wait_s", "camera_poll_s", "stall_after_s", "max_action_age_s"):
+        for name in ("max_gap_s", "max_wait_s", "camera_poll_s", "stall_after_s", "max_action_age_s",
+                     "flush_grace_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if self.max_skew_s is not None and not self.max_skew_s > 0:

@@ -154,14 +154,14 @@ class EpisodeLoop:
             self.recent.append(self.rec.clock.monotonic())
 
     def flush_pending(self) -> None:
-        """At the end: give every camera up to ``max_wait_s`` (on the clock, at most that + 1 s of
-        real time) to deliver its frames exposed before now (a camera thread may lag, or another
+        """At the end: give every camera up to ``max_wait_s`` (on the clock, at most that +
+        ``flush_grace_s`` of real time) to deliver its frames exposed before now (a camera thread may lag, or another
         camera's recording ended first) and the pending frames their partner images and arm
         states; :meth:`resolve` with force then writes what is left."""
         rec = self.rec
         t_stop = rec.clock.monotonic()
         deadline = t_stop + rec.config.max_wait_s
-        real_deadline = time.monotonic() + rec.config.max_wait_s + 1.0
+        real_deadline = time.monotonic() + rec.config.max_wait_s + rec.config.flush_grace_s
         while not self.sink.failed.is_set():
             self.resolve(force=False)
             caught_up = all(cam.caught_up(t_stop) for cam in rec.camera_feeds.values())

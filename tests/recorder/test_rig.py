@@ -151,7 +151,8 @@ def test_two_arms_are_synced_to_their_true_state_and_each_camera_keeps_its_own_t
     recorder = RigRecorder([RigArm(name, arm, ArmInfo(name=name)) for name, arm in arms.items()],
                            [RigCamera(name, cam, CameraInfo(name, 64, 48, K, mount=CAMERAS[name][0]),
                                       latency_s=late[name]) for name, cam in cams.items()],
-                           clock, RecorderConfig(queue_frames=10_000), nominal_fps=30.0)
+                           clock, RecorderConfig(queue_frames=10_000, flush_grace_s=30.0), nominal_fps=30.0)
+    # (the end waits for every camera thread to catch up: on the manual clock, however loaded the machine)
     try:
         for sim in sims.values():
             sim.start()
