@@ -27,6 +27,7 @@ from manisplat.render.painter import Camera, GroundPlane, MeshItem, look_at, ren
 BOX_SIZE = 0.04
 OPEN, GRASP = 0.07, 0.038  # gripper widths (m): fully open, closed on the 4 cm box
 TABLE_LABEL, BOX_LABEL = 11, 10
+PICK_XY, PLACE_XY = (0.30, -0.09), (0.28, 0.09)  # the box's start and goal (m, base frame)
 TASKS = {"pick_place": "pick the box and place it to the left", "reach": "reach above the box and come back"}
 LINK_COLORS = {
     "base_link": (60, 60, 66), "link1": (210, 210, 215), "link2": (215, 215, 220), "link3": (205, 205, 210),
@@ -45,10 +46,11 @@ class Keyframe:
     phase: str
 
 
-def _script(duration: float, task: str = "pick_place") -> list[Keyframe]:
-    """Pick at (0.30, -0.09), place at (0.28, 0.09); or, for "reach", hover 4 cm above the box and
-    come back with the gripper open. Times scaled to ``duration`` seconds."""
-    pick, place, z_grasp, z_up = (0.30, -0.09), (0.28, 0.09), BOX_SIZE / 2, 0.14
+def _script(duration: float, task: str = "pick_place", pick: tuple[float, float] = PICK_XY,
+            place: tuple[float, float] = PLACE_XY) -> list[Keyframe]:
+    """Pick at ``pick``, place at ``place`` ((x, y) m, base frame); or, for "reach", hover 4 cm
+    above the box and come back with the gripper open. Times scaled to ``duration`` seconds."""
+    z_grasp, z_up = BOX_SIZE / 2, 0.14
     if task == "reach":
         raw = [
             (0.00, (0.25, 0.0, 0.24), OPEN, "approach"),
@@ -111,10 +113,11 @@ class SampleTrajectory:
         return q, g, np.array([self.phases[i + 1] for i in k])
 
 
-def sample_trajectory(duration: float, task: str = "pick_place") -> SampleTrajectory:
-    """Solve the keyframes by IK, each seeded by the previous one (one continuous branch)."""
+def sample_trajectory(duration: float, task: str = "pick_place", pick: tuple[float, float] = PICK_XY,
+                      place: tuple[float, float] = PLACE_XY) -> SampleTrajectory:
+    """Solve the keyframes of :func:`_script` by IK, each seeded by the previous one (one continuous branch)."""
     robot = builtin_piper(with_geometry=False)
-    keys = _script(duration, task)
+    keys = _script(duration, task, pick, place)
     seed = torch.tensor([0.0, 1.2, -1.3, 0.0, 0.6, 0.0], dtype=torch.float64)
     qs = []
     for key in keys:
