@@ -16,7 +16,8 @@ from manisplat.episode.fsio import atomic_write_bytes
 PER_EPISODE = ("K", "T_cam_base", "link_names")
 """Arrays that describe the whole episode, never cut per frame (however long they are)."""
 PER_FRAME = ("t", "q", "gripper", "phase", "T_base_tcp", "T_base_links")
-"""Arrays that always hold one row per frame, as do ``T_base_<object>`` for every listed object."""
+"""Arrays that always hold one row per frame, as do ``T_base_<object>`` / ``T_world_<object>`` for
+every listed object."""
 
 
 def read_gt(path: Path) -> dict[str, np.ndarray]:
@@ -32,11 +33,12 @@ def read_gt(path: Path) -> dict[str, np.ndarray]:
 def per_frame_names(arrays: Mapping[str, np.ndarray], objects: Sequence[str]) -> list[str]:
     """Names of the arrays of ``arrays`` that hold one row per frame.
 
-    Those are :data:`PER_FRAME`, ``T_base_<object>`` for each name in ``objects``, and any other
+    Those are :data:`PER_FRAME`, ``T_base_<object>`` (``T_world_<object>`` in an episode with
+    several arms) for each name in ``objects``, and any other
     array whose first dimension is as long as ``t`` (``t_recorded``, actions, contacts), except
     the :data:`PER_EPISODE` ones and 0-d arrays.
     """
-    named = {*PER_FRAME, *(f"T_base_{o}" for o in objects)}
+    named = {*PER_FRAME, *(f"T_{frame}_{o}" for o in objects for frame in ("base", "world"))}
     t = arrays.get("t")
     frames = len(t) if t is not None and t.ndim >= 1 else None
     return [name for name, a in arrays.items() if name not in PER_EPISODE

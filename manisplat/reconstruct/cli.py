@@ -60,13 +60,16 @@ def build_parser() -> argparse.ArgumentParser:
                     "phases. Writes PLYs, object poses, phases, held-out renders, a pose plot and metrics.json.",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("episode", type=Path, help="episode folder (format v1: docs/episode-format.md)")
+    p.add_argument("episode", type=Path, help="episode folder (docs/episode-format.md; format version 2: several arms in its world frame)")
     p.add_argument("--out", type=Path, required=True,
                    help="output folder: created; must be new or empty unless --overwrite or --resume")
     p.add_argument("--overwrite", action="store_true",
                    help="replace the results of an earlier run in --out (its files are removed first)")
     p.add_argument("--robot", help="robot description: a URDF path or builtin:agilex_piper "
                                    "(default: the episode's robot.description)")
+    p.add_argument("--camera", metavar="NAME",
+                   help="the camera to reconstruct from, in an episode with several (default: its one "
+                        "world-fixed camera)")
     p.add_argument("--iters", type=positive(int), default=None,
                    help=f"training iterations (default {TrainConfig.iters} on the CPU, {GPU_ITERS} on CUDA, where the "
                         "held-out PSNR levels off)")
@@ -101,12 +104,15 @@ def build_parser() -> argparse.ArgumentParser:
         "(not robot) at the point or in the box, followed through the frames; without depth, GrabCut in the "
         "box, then the object's model at its tracked pose. Without depth, the table is the plane z = "
         "--table-z of the base frame and objects start as billboards standing on it.")
-    inputs.add_argument("--object-point", type=_pixel_pair, metavar="U,V",
-                        help="a pixel on the object in the first frame (column, row)")
-    inputs.add_argument("--object-box", type=_pixel_box, metavar="X0,Y0,X1,Y1",
-                        help="a box around the object in the first frame (pixels, inclusive)")
+    inputs.add_argument("--object-point", type=_named(_pixel_pair), action="append", default=[],
+                        metavar="[NAME=]U,V",
+                        help="a pixel on the object in the first frame (column, row); once per object, each "
+                             "named when several (box=152,160)")
+    inputs.add_argument("--object-box", type=_named(_pixel_box), action="append", default=[],
+                        metavar="[NAME=]X0,Y0,X1,Y1",
+                        help="a box around the object in the first frame (pixels, inclusive); once per object")
     inputs.add_argument("--object-name", default="object",
-                        help="name of the prompted object when the episode lists none (default 'object')")
+                        help="name of the one prompted object when the episode lists none (default 'object')")
     inputs.add_argument("--no-depth", action="store_true", help="ignore the episode's depth (monocular reconstruction)")
     inputs.add_argument("--no-masks", action="store_true",
                         help="ignore the episode's masks and draw/segment them (the episode's still score the regions)")
@@ -145,7 +151,7 @@ def _check_out(args: argparse.Namespace) -> None:
         raise ValueError(f"--resume: {args.out} holds no {CHECKPOINT} to continue from")
 
 
-def _run(args: argparse.Namespace, prompt: tuple[str, tuple | None, tuple | None] | None) -> int:
+def _run(args: argparse.Namespace, prompt: list[tuple[str, tuple | None, tuple | None]]) -> int:
     """Load, plan, align, train, write the twin, then evaluate it."""
     import torch
 
@@ -169,14 +175,14 @@ def _run(args: argparse.Namespace, prompt: tuple[str, tuple | None, tuple | None
         iters = args.iters if args.iters is not None else default_iters(device)
         compiled = resolve_compile(args.compile, device.partition(":")[0], iters)
     try:
-        data = load_episode_data(args.episode, robot=args.robot, use_depth=not args.no_depth,
+        data = load_episode_data(args.episode, robot=args.robot, camera=args.camera, use_depth=not args.no_depth,
                                  use_masks=not args.no_masks, progress=not args.quiet)
         masks_from_model = False
         if data.masks is None:
             links = [name for name in data.robot.link_names if data.robot.visuals.get(name)]
-            object_prompt = ObjectPrompt(prompt[0], point=prompt[1], box=prompt[2]) if prompt else None
-            masks_from_model = complete_masks(data, links, object_prompt, progress=not args.quiet)
-        elif prompt is not None:
+            prompts = [ObjectPrompt(name, point=point, box=box) for name, point, box in prompt]
+            masks_from_model = complete_masks(data, links, prompts, progress=not args.quiet)
+        elif prompt:
             print("error: the episode has masks; --object-point/--object-box are for episodes without "
                   "(add --no-masks to segment anew)", file=sys.stderr)
             return ExitCode.BAD_INPUT
@@ -243,13 +249,30 @@ def _run(args: argparse.Namespace, prompt: tuple[str, tuple | None, tuple | None
     return ExitCode.OK
 
 
-def _prompt(args: argparse.Namespace) -> tuple[str, tuple | None, tuple | None] | None:
-    """The object prompt as (name, point, box), or None; both a point and a box is a usage error."""
-    if args.object_point is not None and args.object_box is not None:
-        raise ValueError("give --object-point or --object-box, not both")
-    if args.object_point is None and args.object_box is None:
-        return None
-    return args.object_name, args.object_point, args.object_box
+def _prompt(args: argparse.Namespace) -> list[tuple[str, tuple | None, tuple | None]]:
+    """The object prompts as (name, point, box): one per object, each named when several."""
+    prompts = [(name, point, None) for name, point in args.object_point] + \
+        [(name, None, box) for name, box in args.object_box]
+    if len(prompts) == 1:
+        name = prompts[0][0] or args.object_name
+        return [(name, *prompts[0][1:])]
+    unnamed = [p for p in prompts if p[0] is None]
+    if unnamed:
+        raise ValueError(f"{len(prompts)} object prompts: name each (--object-point NAME=U,V, --object-box NAME=X0,..)")
+    names = [p[0] for p in prompts]
+    if len(set(names)) != len(names):
+        raise ValueError(f"object prompts {names}: one point or box per object")
+    return prompts
+
+
+def _named(parse):
+    """An argparse type for ``[NAME=]VALUE``: (name or None, ``parse(VALUE)``)."""
+    def parse_named(text: str):
+        name, sep, value = text.rpartition("=")
+        if sep and not name:
+            raise argparse.ArgumentTypeError(f"{text!r}: the name before '=' is empty")
+        return (name or None), parse(value)
+    return parse_named
 
 
 def _pixel_pair(text: str) -> tuple[float, float]:

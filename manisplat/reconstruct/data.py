@@ -12,10 +12,12 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from manisplat.episode import Episode
+from manisplat.episode import CameraInfo, Episode
+from manisplat.episode.format import V1_ARM, WORLD_MOUNT
 from manisplat.geometry import matrix_to_quat
 from manisplat.reconstruct.lens import undistortion_for
 from manisplat.robot import BUILTIN_NAME, RobotModel, load_robot
+from manisplat.robot.arms import ArmSet
 from manisplat.splat import opencv_to_splat_K
 from manisplat.twin.twin import resolve_description
 
@@ -62,6 +64,19 @@ class JointStream:
 
 
 @dataclass
+class ArmStreams:
+    """The raw joint streams of several arms (``joints_<arm>.csv``), each at its own times."""
+
+    streams: dict[str, JointStream]
+
+    def at(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(q [M, sum of dof], gripper [M, A]) at ``times`` [M]: the arms' joints concatenated in
+        order, each arm's read from its own stream."""
+        read = [stream.at(times) for stream in self.streams.values()]
+        return np.concatenate([q for q, _ in read], 1), np.stack([g for _, g in read], 1)
+
+
+@dataclass
 class EpisodeData:
     """Everything reconstruction reads from one episode, as tensors.
 
@@ -71,6 +86,13 @@ class EpisodeData:
         K: [3, 3] intrinsics in the rasterizer's half-pixel convention. viewmat: [4, 4] base-to-camera.
         link_poses: [T, L, 4, 4] T_base_link. link_quats: [T, L, 4] their rotations as quaternions.
         tcp: [T, 4, 4] T_base_tcp.
+        robot: one arm's :class:`RobotModel` (format version 1: everything is in its base frame),
+            or an :class:`~manisplat.robot.arms.ArmSet` (version 2: several arms, everything in
+            the episode's world frame, which the names ``T_base_*`` then mean; ``q`` [T, sum of
+            dof] the arms' joints in order, ``gripper`` [T, A], ``tcp`` [T, A, 4, 4]; per arm
+            :meth:`arm_tcp`, :meth:`arm_gripper`).
+        frame: what the poses are in: ``"base"`` (one arm) or ``"world"`` (an arm set); ground
+            truth names object poses ``T_<frame>_<object>``.
         robot_description: the robot description used, independent of the episode folder (a
             built-in name, or an absolute URDF path).
         label_names: mask value -> name of ``masks`` (the episode's ``labels``, or the drawn ones).
@@ -91,7 +113,7 @@ class EpisodeData:
     """
 
     path: Path
-    robot: RobotModel
+    robot: RobotModel | ArmSet
     rgb: torch.Tensor
     depth: torch.Tensor | None
     masks: torch.Tensor | None
@@ -117,9 +139,10 @@ class EpisodeData:
     eval_labels: Labels | None = None
     valid: torch.Tensor | None = None
     dist: tuple[float, ...] = ()
-    joints: JointStream | None = None
+    joints: JointStream | ArmStreams | None = None
     recorded_latency_s: float = 0.0
     time_offset_s: float = 0.0
+    frame: str = "base"
 
     @property
     def n_frames(self) -> int:
@@ -137,6 +160,23 @@ class EpisodeData:
         moved = {f.name: getattr(self, f.name).to(device) for f in fields(self)
                  if isinstance(getattr(self, f.name), torch.Tensor)}
         return replace(self, **moved)
+
+    @property
+    def arm_names(self) -> tuple[str, ...]:
+        """The arms, in the order of ``q``, ``gripper`` and ``tcp`` (one arm: ``("arm",)``)."""
+        return self.robot.arm_names if isinstance(self.robot, ArmSet) else (V1_ARM,)
+
+    def arm_tcp(self, arm: str) -> torch.Tensor:
+        """[T, 4, 4] ``T_base_tcp`` of ``arm`` (world frame for an arm set)."""
+        return self.tcp[:, self.arm_names.index(arm)] if isinstance(self.robot, ArmSet) else self.tcp
+
+    def arm_gripper(self, arm: str) -> torch.Tensor:
+        """[T] the gripper opening of ``arm`` (m)."""
+        return self.gripper[:, self.arm_names.index(arm)] if isinstance(self.robot, ArmSet) else self.gripper
+
+    def tcp_poses(self) -> torch.Tensor:
+        """[T, A, 4, 4] every arm's TCP (one arm: A = 1)."""
+        return self.tcp if isinstance(self.robot, ArmSet) else self.tcp[:, None]
 
     @property
     def size(self) -> tuple[int, int]:
@@ -163,31 +203,39 @@ class EpisodeData:
         return torch.isin(masks[i], torch.tensor(sorted(values), dtype=torch.uint8).to(masks.device))
 
 
-def load_episode_data(path: str | Path, *, robot: str | None = None, load_meshes: bool = True,
-                      use_depth: bool = True, use_masks: bool = True, progress: bool = False) -> EpisodeData:
+def load_episode_data(path: str | Path, *, robot: str | None = None, camera: str | None = None,
+                      load_meshes: bool = True, use_depth: bool = True, use_masks: bool = True,
+                      progress: bool = False) -> EpisodeData:
     """Read an episode for reconstruction.
 
     Args:
-        robot: a robot description overriding the episode's ``robot.description``.
+        robot: a robot description overriding the episode's (every arm's) ``description``.
+        camera: the camera to reconstruct from, by name (default: the episode's one camera, or
+            its one world-fixed camera when it has several).
         use_depth, use_masks: False ignores the episode's depth (monocular reconstruction) or masks
             (drawn and segmented instead; the episode's are kept in ``eval_masks`` for metrics).
         progress: show a progress bar while the images load.
 
     Raises:
-        ReconstructionInputError: the camera is not calibrated (no ``T_mount_cam``) or is not
-            fixed to the base.
+        ReconstructionInputError: the camera is not calibrated (no ``T_mount_cam``), rides on an
+            arm, or is not one of the episode's; an arm of several has no ``T_world_base``.
 
-    Lens distortion (``camera.dist``) is removed on load: images, depth and masks are resampled
-    to the pinhole camera with the same ``K`` (:mod:`manisplat.reconstruct.lens`).
+    An episode with several arms or cameras (format version 2) is read in its world frame with
+    an :class:`~manisplat.robot.arms.ArmSet`; a version 1 episode in its arm's base frame. Lens
+    distortion (``camera.dist``) is removed on load: images, depth and masks are resampled to the
+    pinhole camera with the same ``K`` (:mod:`manisplat.reconstruct.lens`).
     """
     episode = Episode.open(path)
-    cam = episode.camera
+    several = len(episode.arms) > 1 or len(episode.cameras) > 1
+    cam = _camera_of(episode, camera) if several else episode.camera
     if cam.T_mount_cam is None:
         raise ReconstructionInputError(
-            f"{episode.path}: camera.T_mount_cam is null; calibrate the camera (manisplat-calibrate) first"
+            f"{episode.path}: camera {cam.name}: T_mount_cam is null; calibrate the camera (manisplat-calibrate) first"
         )
-    if cam.mount != "base":
-        raise ReconstructionInputError(f"{episode.path}: camera mount {cam.mount!r}: only a base-fixed camera is supported")
+    if cam.mount not in ("base", WORLD_MOUNT):
+        raise ReconstructionInputError(
+            f"{episode.path}: camera {cam.name} is mounted on {cam.mount!r}: only a camera fixed to the "
+            f"{'world' if several else 'base'} is reconstructed from yet")
     try:
         lens = undistortion_for(cam.K, cam.dist, cam.width, cam.height)
     except ValueError as exc:
@@ -196,15 +244,17 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, load_meshes
         log.info("undistorting %s: dist %s, pixels moved up to %.1f px, %.1f %% of the pinhole image covered",
                  episode.path, cam.dist.tolist(), lens.shift_px, 100 * lens.valid_fraction)
     _check_ground_truth(episode)  # refused before training; the evaluation reads it again
-    description = robot or episode.meta.robot.description
-    model = load_robot(description, base_dir=episode.path, load_meshes=load_meshes)
-    frames = episode.frames
+    view = cam.name if several else None  # the one-camera view of a version 1 episode takes no name
     n = len(episode)
+    has_depth = episode.has_images("depth", view) if several else episode.has_depth
+    has_masks = episode.has_images("masks", view) if several else episode.has_masks
     rgb = torch.empty(n, cam.height, cam.width, 3, dtype=torch.uint8)
-    depth = torch.empty(n, cam.height, cam.width) if episode.has_depth and use_depth else None
-    masks = torch.empty(n, cam.height, cam.width, dtype=torch.uint8) if episode.has_masks else None
+    depth = torch.empty(n, cam.height, cam.width) if has_depth and use_depth else None
+    masks = torch.empty(n, cam.height, cam.width, dtype=torch.uint8) if has_masks else None
     for i in tqdm(range(n), desc="loading frames", unit="frame", leave=False, disable=not progress):
-        image, z, label_image = episode.rgb(i), episode.depth(i) if depth is not None else None, episode.mask(i)
+        image = episode.rgb(i, view)
+        z = episode.depth(i, view) if depth is not None else None
+        label_image = episode.mask(i, view) if masks is not None else None
         if lens is not None:
             image = lens.rgb(image)
             z = None if z is None else lens.depth(z)
@@ -214,36 +264,46 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, load_meshes
             depth[i] = torch.from_numpy(z)
         if masks is not None:
             masks[i] = torch.from_numpy(label_image)
-    q = torch.as_tensor(frames.q, dtype=torch.float64)
-    gripper = torch.as_tensor(frames.gripper, dtype=torch.float64)
+    if several:
+        model, t, q, gripper, stream, description = _arms_of(episode, robot, load_meshes)
+        robot_info = {"arms": {name: {"model": arm.model, "joint_names": list(arm.joint_names)}
+                               for name, arm in episode.arms.items()}}
+    else:
+        description = robot or episode.meta.robot.description
+        model = load_robot(description, base_dir=episode.path, load_meshes=load_meshes)
+        frames = episode.frames
+        t, q, gripper = frames.t, frames.q, frames.gripper
+        joints = episode.joints()
+        stream = None if joints is None else JointStream(joints.t, joints.q, joints.gripper)
+        description = resolve_description(description, episode.path)
+        robot_info = {"model": episode.meta.robot.model, "joint_names": list(episode.meta.robot.joint_names)}
+    q = torch.as_tensor(q, dtype=torch.float64)
+    gripper = torch.as_tensor(gripper, dtype=torch.float64)
     link_poses = model.forward_kinematics(q, gripper).float()
-    tcp = model.tcp_pose(q).float()
     K = torch.as_tensor(cam.K, dtype=torch.float64)
     T_base_cam = torch.as_tensor(cam.T_mount_cam, dtype=torch.float64)
     labels = Labels.from_meta(episode.meta.labels, episode.meta.objects)
     eval_masks = None
     if masks is not None and not use_masks:
         eval_masks, masks, labels = masks, None, Labels()
-    log.info("loaded %s: %d frames %dx%d, depth %s, masks %s, robot %s", episode.path, n, cam.width, cam.height,
-             depth is not None, masks is not None, model.name)
-    stream = episode.joints()
+    log.info("loaded %s: %d frames of camera %s %dx%d, depth %s, masks %s, robot %s", episode.path, n, cam.name,
+             cam.width, cam.height, depth is not None, masks is not None, model.name)
     clock = episode.meta.extra.get("clock")
     recorded_latency = float(clock.get("camera_latency_s") or 0.0) if isinstance(clock, dict) else 0.0
     data = EpisodeData(
         path=episode.path, robot=model, rgb=rgb, depth=depth, masks=masks,
-        t=torch.as_tensor(frames.t, dtype=torch.float64), q=q, gripper=gripper,
+        t=torch.as_tensor(t, dtype=torch.float64), q=q, gripper=gripper,
         K=opencv_to_splat_K(K).float(), K_opencv=K, viewmat=torch.linalg.inv(T_base_cam).float(),
-        link_poses=link_poses, link_quats=matrix_to_quat(link_poses[..., :3, :3].double()).float(), tcp=tcp, labels=labels,
+        link_poses=link_poses, link_quats=matrix_to_quat(link_poses[..., :3, :3].double()).float(),
+        tcp=_tcp_of(model, q).float(), labels=labels,
         objects=list(episode.meta.objects), eval_masks=eval_masks,
-        robot_description=resolve_description(description, episode.path), fps=float(episode.meta.fps),
-        robot_info={"model": episode.meta.robot.model, "joint_names": list(episode.meta.robot.joint_names)},
-        camera_name=cam.name, task=episode.meta.extra.get("task"),
+        robot_description=description, fps=float(episode.meta.fps),
+        robot_info=robot_info, camera_name=cam.name, task=episode.meta.extra.get("task"),
         label_names={} if eval_masks is not None else dict(episode.meta.labels),
         eval_labels=Labels.from_meta(episode.meta.labels, episode.meta.objects) if eval_masks is not None else None,
         valid=None if lens is None or lens.valid.all() else torch.from_numpy(lens.valid),
         dist=tuple(float(d) for d in cam.dist) if lens is not None else (),
-        joints=None if stream is None else JointStream(stream.t, stream.q, stream.gripper),
-        recorded_latency_s=recorded_latency,
+        joints=stream, recorded_latency_s=recorded_latency, frame="world" if several else "base",
     )
     latency = cam.extra.get("latency_s")
     if isinstance(latency, (int, float)) and abs(latency - recorded_latency) > 1e-6:
@@ -253,15 +313,59 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, load_meshes
     return data
 
 
+def _camera_of(episode: Episode, name: str | None) -> CameraInfo:
+    """The camera ``name`` of an episode with several, or (None) its one world-fixed camera."""
+    cameras = episode.cameras
+    if name is not None:
+        if name not in cameras:
+            raise ReconstructionInputError(f"{episode.path}: no camera {name!r}; cameras: {', '.join(cameras)}")
+        return cameras[name]
+    fixed = [c for c in cameras.values() if c.mount == WORLD_MOUNT]
+    if len(fixed) != 1:
+        raise ReconstructionInputError(
+            f"{episode.path}: cameras {', '.join(f'{c.name} ({c.mount})' for c in cameras.values())}: "
+            "say which to reconstruct from with --camera NAME")
+    return fixed[0]
+
+
+def _arms_of(episode: Episode, robot: str | None, load_meshes: bool):
+    """(ArmSet, t [T], q [T, sum of dof], gripper [T, A], joint streams or None, description) of
+    an episode with several arms or cameras."""
+    models, bases = {}, {}
+    for name, arm in episode.arms.items():
+        if arm.T_world_base is None:
+            raise ReconstructionInputError(f"{episode.path}: arm {name}: T_world_base is null; calibrate the rig "
+                                           "(manisplat-calibrate solve-rig, then apply) first")
+        models[name] = load_robot(robot or arm.description, base_dir=episode.path, load_meshes=load_meshes)
+        bases[name] = arm.T_world_base
+    tables = {name: episode.arm_frames(name) for name in episode.arms}
+    t = next(iter(tables.values())).t
+    q = np.concatenate([table.q for table in tables.values()], 1)
+    gripper = np.stack([table.gripper for table in tables.values()], 1)
+    joints = {name: episode.joints(name) for name in episode.arms}
+    stream = None if any(j is None for j in joints.values()) else \
+        ArmStreams({name: JointStream(j.t, j.q, j.gripper) for name, j in joints.items()})
+    description = "; ".join(f"{name}: {resolve_description(robot or arm.description, episode.path)}"
+                            for name, arm in episode.arms.items())
+    return ArmSet(models, bases), t, q, gripper, stream, description
+
+
+def _tcp_of(robot: RobotModel | ArmSet, q: torch.Tensor) -> torch.Tensor:
+    """[T, 4, 4] the one arm's TCP, or [T, A, 4, 4] every arm's (an arm set)."""
+    return robot.tcp_poses(q) if isinstance(robot, ArmSet) else robot.tcp_pose(q)
+
+
 def joints_at(data: EpisodeData, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(q [M, dof] rad, gripper [M] m) at joint-stream times ``times`` [M] s: from ``joints.csv``,
     or, without one, interpolated between the frames' own joints (frame f's at ``t[f] + time_offset_s``)."""
     if data.joints is not None:
         return data.joints.at(times)
     when = data.t.cpu().numpy() + data.time_offset_s
-    q = data.q.cpu().numpy()
+    q, gripper = data.q.cpu().numpy(), data.gripper.cpu().numpy()
+    if gripper.ndim == 1:
+        return np.stack([np.interp(times, when, q[:, j]) for j in range(q.shape[1])], 1), np.interp(times, when, gripper)
     return (np.stack([np.interp(times, when, q[:, j]) for j in range(q.shape[1])], 1),
-            np.interp(times, when, data.gripper.cpu().numpy()))
+            np.stack([np.interp(times, when, gripper[:, a]) for a in range(gripper.shape[1])], 1))
 
 
 def retime(data: EpisodeData, offset_s: float) -> None:
@@ -275,7 +379,7 @@ def retime(data: EpisodeData, offset_s: float) -> None:
     data.gripper = torch.as_tensor(gripper, dtype=torch.float64)
     data.link_poses = data.robot.forward_kinematics(data.q, data.gripper).float()
     data.link_quats = matrix_to_quat(data.link_poses[..., :3, :3].double()).float()
-    data.tcp = data.robot.tcp_pose(data.q).float()
+    data.tcp = _tcp_of(data.robot, data.q).float()
     for name in ("q", "gripper", "link_poses", "link_quats", "tcp"):
         setattr(data, name, getattr(data, name).to(device))
     data.time_offset_s = offset_s
@@ -295,11 +399,11 @@ def _check_ground_truth(episode: Episode) -> dict[str, np.ndarray] | None:
     if gt is None:
         return None
     n = len(episode)
-    for name in episode.meta.objects:
-        poses = gt.get(f"T_base_{name}")
+    for key in (f"T_{frame}_{name}" for name in episode.meta.objects for frame in ("base", "world")):
+        poses = gt.get(key)
         if poses is not None and poses.shape != (n, 4, 4):
             raise ReconstructionInputError(
-                f"{episode.path / 'gt.npz'}: T_base_{name} has shape {tuple(poses.shape)} but frames.csv has {n} "
+                f"{episode.path / 'gt.npz'}: {key} has shape {tuple(poses.shape)} but frames.csv has {n} "
                 f"frames (expected ({n}, 4, 4)); run `manisplat-episode validate {episode.path}`, and fix or "
                 "remove gt.npz (without it the pose error is not measured)")
     return gt

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from manisplat.align.acting_arm import acting_arm
 from manisplat.align.phases import gripper_events
 from manisplat.align.pseudo_gt import kinematic_prior
 from manisplat.reconstruct.data import EpisodeData, Labels, ReconstructionInputError
@@ -201,11 +202,14 @@ def object_mask_from_depth(data: EpisodeData, robot_mask: np.ndarray, plane: Pla
 
 
 def follow_object_masks(data: EpisodeData, robot_masks: torch.Tensor, first: np.ndarray, plane: Plane, *,
-                        min_height: float = 0.006, grow: int | None = None, inside: float = 0.5) -> np.ndarray:
+                        arm: str | None = None, min_height: float = 0.006, grow: int | None = None,
+                        inside: float = 0.5) -> np.ndarray:
     """Object masks [T, H, W] bool, frame by frame.
 
-    The first mask's points (from depth) are moved as the gripper implies (resting, or rigidly
-    with the TCP while held: :func:`manisplat.align.pseudo_gt.kinematic_prior`) and projected;
+    The first mask's points (from depth) are moved as the gripper of ``arm`` (default: the one
+    arm, or the one that handles the object: :func:`~manisplat.align.acting_arm.acting_arm`)
+    implies (resting, or rigidly with the TCP while held:
+    :func:`manisplat.align.pseudo_gt.kinematic_prior`) and projected;
     that prediction, grown by ``grow`` px (default: width / 40), takes the above-table, non-robot
     regions lying at least ``inside`` within it, clipped to it: a neighbouring object touching the
     prediction is left out (if the object merged with it, the merged region's part near the
@@ -215,8 +219,10 @@ def follow_object_masks(data: EpisodeData, robot_masks: torch.Tensor, first: np.
     W, H = data.size
     grow = grow or max(3, W // 40)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow + 1, 2 * grow + 1))
-    prior, _ = kinematic_prior(np.eye(4), data.tcp.double().numpy(), gripper_events(data.gripper.numpy()))
     model = _backproject(data.depth[0].numpy(), first, data)
+    arm = arm or handling_arm(data, model.mean(0))
+    prior, _ = kinematic_prior(np.eye(4), data.arm_tcp(arm).double().numpy(),
+                               gripper_events(data.arm_gripper(arm).numpy()))
     out = np.zeros((data.n_frames, H, W), dtype=bool)
     out[0] = first
     for f in range(1, data.n_frames):
@@ -233,6 +239,14 @@ def follow_object_masks(data: EpisodeData, robot_masks: torch.Tensor, first: np.
             chosen = [i for i in range(1, len(counts)) if within[i] >= inside * visible > 0]
         out[f] = np.isin(labels, chosen) & near if chosen else predicted & (robot == 0)
     return out
+
+
+def handling_arm(data: EpisodeData, start: np.ndarray) -> str:
+    """The arm of ``data`` that handles an object starting at ``start`` [3] (m, base/world frame)."""
+    if len(data.arm_names) == 1:
+        return data.arm_names[0]
+    return acting_arm({a: data.arm_tcp(a).double().cpu().numpy()[:, :3, 3] for a in data.arm_names},
+                      {a: data.arm_gripper(a).double().cpu().numpy() for a in data.arm_names}, start)
 
 
 def _splat_points(points: np.ndarray, data: EpisodeData) -> np.ndarray:
@@ -293,54 +307,65 @@ def _backproject(depth: np.ndarray, keep: np.ndarray, data: EpisodeData) -> np.n
     return cam @ T[:3, :3].T + T[:3, 3]
 
 
-def complete_masks(data: EpisodeData, links: list[str], prompt: ObjectPrompt | None, *,
+def complete_masks(data: EpisodeData, links: list[str], prompts: list[ObjectPrompt], *,
                    progress: bool = True) -> bool:
-    """Give an episode without masks its masks: the robot's drawn links, the prompted object.
+    """Give an episode without masks its masks: the robot's drawn links, the prompted objects
+    (the k-th prompt's object labelled ``OBJECT_LABEL + k``).
 
-    Sets ``data.masks``, ``data.labels`` and ``data.objects``. Returns True when the object is
-    masked in the first frame only (no depth to follow it): its model at its tracked pose must
-    give the other frames' (:func:`manisplat.reconstruct.pipeline.build`).
+    Sets ``data.masks``, ``data.labels`` and ``data.objects``. Returns True when the objects are
+    masked in the first frame only (no depth to follow them): their models at their tracked poses
+    must give the other frames' (:func:`manisplat.reconstruct.pipeline.build`).
 
     Raises:
-        ReconstructionInputError: objects are listed but no prompt says where one is.
+        ReconstructionInputError: objects are listed but no prompt says where one is; several
+            prompts without a name each, or names twice; several objects without depth.
     """
-    if prompt is None and data.objects:
+    if not prompts and data.objects:
         raise ReconstructionInputError(
             f"{data.path}: no masks, and objects {data.objects} are listed: say where the object is in "
             "the first frame with --object-point U,V or --object-box X0,Y0,X1,Y1")
-    if prompt is not None and len(data.objects) > 1:
+    names_given = [p.name for p in prompts]
+    if len(set(names_given)) != len(names_given):
+        raise ReconstructionInputError(f"object prompts {names_given}: each object needs its own name")
+    if len(prompts) == 1 and len(data.objects) > 1 and prompts[0].name not in data.objects:
         raise ReconstructionInputError(
-            f"{data.path}: objects {data.objects}: one prompt can segment only one object without masks")
+            f"{data.path}: objects {data.objects}: one prompt can segment only one object without masks; "
+            "name each (--object-point NAME=U,V)")
+    if len(prompts) > 1 and data.depth is None:
+        raise ReconstructionInputError("several objects need depth to be segmented and followed")
     robot_masks, link_labels = render_robot_labels(data, links, progress=progress)
     masks = robot_masks.clone()
     names = {value: f"robot/{name}" for value, name in link_labels.items()}
     names[0] = "background"
     pending = False
-    if prompt is not None:
-        name = data.objects[0] if data.objects else prompt.name
-        robot0 = robot_masks[0].numpy()
-        if data.depth is not None:
-            plane = table_plane(data, robot0)
+    objects = []
+    robot0 = robot_masks[0].numpy()
+    plane = table_plane(data, robot0) if prompts and data.depth is not None else None
+    for k, prompt in enumerate(prompts):
+        name = data.objects[0] if len(prompts) == 1 and len(data.objects) == 1 else prompt.name
+        label = OBJECT_LABEL + k
+        if plane is not None:
             first = object_mask_from_depth(data, robot0, plane, prompt)
             object_masks = follow_object_masks(data, robot_masks, first, plane)
-            masks[torch.from_numpy(object_masks)] = OBJECT_LABEL
+            masks[torch.from_numpy(object_masks) & (masks == 0)] = label
         else:
             if prompt.box is None:
                 raise ReconstructionInputError("without depth, the object needs --object-box (GrabCut segments inside it)")
             first = object_mask_grabcut(data.rgb[0].numpy(), robot0, prompt.box)
-            masks[0][torch.from_numpy(first)] = OBJECT_LABEL
+            masks[0][torch.from_numpy(first)] = label
             pending = True
-        names[OBJECT_LABEL] = f"object/{name}"
-        data.objects = [name]
+        names[label] = f"object/{name}"
+        objects.append(name)
+    data.objects = objects
     data.masks = masks
     data.label_names = dict(names)
     data.labels = Labels.from_meta(names, data.objects)
-    data.mask_source = "drawn robot" + (", object from depth" if prompt and data.depth is not None
-                                        else ", object by GrabCut and its model" if prompt else "")
+    data.mask_source = "drawn robot" + (", objects from depth" if plane is not None
+                                        else ", object by GrabCut and its model" if prompts else "")
     return pending
 
 
 __all__ = [
-    "OBJECT_LABEL", "ObjectPrompt", "Plane", "complete_masks", "fit_plane_ransac", "follow_object_masks",
+    "OBJECT_LABEL", "ObjectPrompt", "Plane", "complete_masks", "fit_plane_ransac", "follow_object_masks", "handling_arm",
     "object_mask_from_depth", "object_mask_grabcut", "redraw_robot_masks", "render_robot_labels", "table_plane",
 ]

@@ -42,6 +42,7 @@ from manisplat.reconstruct.metrics import fit_constant_offset, pose_errors, psnr
 from manisplat.reconstruct.pipeline import ObjectAlignment
 from manisplat.reconstruct.trainer import Reconstruction
 from manisplat.render.sheets import labelled_sheet
+from manisplat.robot.arms import ArmSet
 from manisplat.splat import save_ply
 from manisplat.twin import Phase, Twin
 from manisplat.twin.support import SupportMap, support_map
@@ -79,8 +80,13 @@ def write_twin(rec: Reconstruction, alignments: dict[str, ObjectAlignment], out:
         _write_poses(out / (f"object_poses_{name}.csv" if len(evaluation) > 1 else "object_poses.csv"),
                      rec.data.t.cpu().numpy(), poses, alignments[name].pseudo.source)
     _write_phases(out / "phases.csv", rec.data.t.cpu().numpy(), alignments)
-    twin_of(rec, alignments).save(out)
-    (out / "camera_refined.json").write_text(json.dumps(camera_refined(rec), indent=1) + "\n")
+    if isinstance(rec.data.robot, ArmSet):
+        log.warning("several arms: twin.json / twin.pt and camera_refined.json are not written (a twin, which "
+                    "augmentation and the viewer read, holds one arm and one camera so far); the PLYs, object "
+                    "poses and phases are")
+    else:
+        twin_of(rec, alignments).save(out)
+        (out / "camera_refined.json").write_text(json.dumps(camera_refined(rec), indent=1) + "\n")
     if rec.exposure is not None:
         _write_exposure(out / "exposure.csv", rec)
 
@@ -301,7 +307,7 @@ def _pose_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], alignm
     result: dict[str, dict] = {"pose": {}, "pose_anchored": {}, "pose_pseudo": {}, "pose_baseline": {}}
     plots = {}
     for name, ours in evaluation.items():
-        key = f"T_base_{name}"
+        key = f"T_{rec.data.frame}_{name}"
         if key not in gt:
             continue
         alignment = alignments[name]

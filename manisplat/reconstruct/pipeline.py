@@ -16,7 +16,7 @@ from manisplat.align.tracking import ObjectView, TrackerSettings, visible_surfac
 from manisplat.reconstruct.data import EpisodeData, ReconstructionInputError, retime
 from manisplat.reconstruct.extrinsic import refine_extrinsic
 from manisplat.reconstruct.init import background_gaussians, link_gaussians, object_gaussians
-from manisplat.reconstruct.masks import redraw_robot_masks
+from manisplat.reconstruct.masks import handling_arm, redraw_robot_masks
 from manisplat.reconstruct.plan import Plan
 from manisplat.reconstruct.poses import ObjectTrajectory
 from manisplat.reconstruct.trainer import Reconstruction, TrainConfig
@@ -76,12 +76,14 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
                                       sh_degree=config.sh_degree, table_z=table_z)
     links = link_gaussians(data.robot, plan.links, total=robot_gaussians, sh_degree=config.sh_degree)
     objects, trajectories, alignments = {}, {}, {}
-    tcp = data.tcp.double().numpy()
     for obj in plan.objects:
         gaussians, T_start = object_gaussians(data, obj.label, 0, sh_degree=config.sh_degree, table_z=table_z)
         objects[obj.name] = gaussians
         model = object_view(gaussians, data) if data.depth is None or masks_from_model else None
-        alignment = align_object(data, obj.label, T_start.numpy(), tcp, moves=obj.moves, tau=tau, model=model,
+        arm = handling_arm(data, T_start[:3, 3].double().numpy())
+        if len(data.arm_names) > 1:
+            log.info("object %s: handled by arm %s", obj.name, arm)
+        alignment = align_object(data, obj.label, T_start.numpy(), arm, moves=obj.moves, tau=tau, model=model,
                                  masks_from_model=masks_from_model,
                                  model_points=gaussians.params["means"].detach().double().cpu().numpy(),
                                  observe=frozenset(plan.test_frames))
@@ -99,13 +101,14 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
     return rec, alignments
 
 
-def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.ndarray, *, moves: bool,
+def align_object(data: EpisodeData, label: int, T_start: np.ndarray, arm: str, *, moves: bool,
                  tau: float = DEFAULT_TAU, model: ObjectView | None = None,
                  masks_from_model: bool = False, model_points: np.ndarray | None = None,
                  settings: TrackerSettings = TrackerSettings(),
                  observe: frozenset[int] = frozenset(), rest_from_depth: bool = True,
                  slip_from_depth: bool = True) -> ObjectAlignment:
-    """Phases, hybrid pseudo poses and (for moving objects) the tracking-only baseline.
+    """Phases, hybrid pseudo poses and (for moving objects) the tracking-only baseline, with the
+    TCP and gripper of ``arm`` (the one that handles the object).
 
     ``model`` stands in for the depth (monocular) and, with ``masks_from_model``, for the masks
     of frames after the first. ``model_points`` [M, 3] (object frame) enable the grasp's
@@ -117,8 +120,10 @@ def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.nda
     (:func:`~manisplat.align.pseudo_gt.settle_at_rest`); with it and ``slip_from_depth``, a held one
     follows its slip in the hand (:func:`~manisplat.align.pseudo_gt.follow_slip`).
     """
-    events = gripper_events(data.gripper.numpy())
-    segments = segment_phases(tcp[:, :3, 3], data.gripper.numpy(), T_start[:3, 3], tau=tau)
+    tcp = data.arm_tcp(arm).double().cpu().numpy()
+    width = data.arm_gripper(arm).double().cpu().numpy()
+    events = gripper_events(width)
+    segments = segment_phases(tcp[:, :3, 3], width, T_start[:3, 3], tau=tau)
     if not moves:
         poses = np.repeat(T_start[None], data.n_frames, axis=0)
         pseudo = PseudoPoses(poses, ["static"] * data.n_frames, np.zeros(data.n_frames, dtype=bool))
@@ -142,7 +147,7 @@ def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.nda
         return visible_surface((data.masks[f] == label).numpy(), data.depth[f].numpy(), K, T_base_cam)
 
     pseudo = hybrid_pseudo_poses(segments, T_start, tcp, events, tracker, model_points, observe,
-                                 width=data.gripper.double().numpy(), surface=surface,
+                                 width=width, surface=surface,
                                  slip_from_depth=slip_from_depth)
     baseline = tracked_baseline(tracker, data.n_frames, T_start)
     return ObjectAlignment(segments, events, pseudo, baseline)

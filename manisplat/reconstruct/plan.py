@@ -138,7 +138,7 @@ def _distinct_states(data: EpisodeData, train: list[int], objects_move: bool) ->
         if out:
             j = out[-1]
             still = (float((data.q[i] - data.q[j]).abs().max()) < STILL_JOINTS
-                     and float((data.gripper[i] - data.gripper[j]).abs()) < STILL_GRIPPER)
+                     and float((data.gripper[i] - data.gripper[j]).abs().max()) < STILL_GRIPPER)
             if still and not (objects_move and _images_differ(data, i, j)):
                 continue
         out.append(i)

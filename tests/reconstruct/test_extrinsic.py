@@ -112,7 +112,7 @@ def test_robot_masks_drawn_with_a_miscalibrated_camera_are_drawn_again_once_it_i
 
     def drawn(episode):
         data = load_episode_data(episode, use_masks=False)
-        complete_masks(data, [n for n in data.robot.link_names if data.robot.visuals.get(n)], prompt, progress=False)
+        complete_masks(data, [n for n in data.robot.link_names if data.robot.visuals.get(n)], [prompt], progress=False)
         return data
 
     def iou(a, b):

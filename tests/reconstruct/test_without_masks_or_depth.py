@@ -147,7 +147,7 @@ def test_complete_masks_needs_a_prompt_when_objects_are_listed(pick):
     assert data.masks is None and data.eval_masks is not None
     links = [n for n in data.robot.link_names if data.robot.visuals.get(n)]
     with pytest.raises(ReconstructionInputError, match="--object-point"):
-        complete_masks(data, links, None, progress=False)
+        complete_masks(data, links, [], progress=False)
 
 
 @pytest.mark.parametrize("flags", [["--no-masks", "--object-point", "POINT"],
