@@ -1,6 +1,7 @@
 """A built-in two-arm sample episode (format version 2): two built-in PiPERs 0.6 m apart, facing
 +x, each picks its own 4 cm box and places it 12 cm further towards its own side, seen by one
-world-fixed camera from behind and above, with exact ground truth. No files, devices or GPU needed.
+world-fixed camera from behind and above (and, on request, by a wrist camera on each arm's link6,
+as on an AgileX Cobot Magic), with exact ground truth. No files, devices or GPU needed.
 
 The two-arm counterpart of :mod:`manisplat.episode.synthetic`, whose script (TCP keyframes, IK,
 minimum-jerk moves, the box riding in the gripper) each arm runs in its own base frame; the right
@@ -35,6 +36,22 @@ PLACE_SHIFT = 0.12  # each box is placed this far further from y = 0 (m)
 DELAY = {"left": 0.0, "right": 0.3}  # arm -> when it starts to move (s)
 BOX_COLORS = {"left": (200, 60, 50), "right": (40, 110, 215)}  # red, blue
 TASK = "each arm picks its own box and places it 12 cm further to its side"
+WRIST_CAMERAS = {"left": "cam_left_wrist", "right": "cam_right_wrist"}  # arm -> its wrist camera (on link6)
+WRIST_FOV_DEG = 70.0  # the wrist cameras' vertical field of view
+# A Cobot Magic wrist camera's calibration: the OpenCV camera in AgileX's URDF link6 frame (m): 7.5 cm
+# off the flange axis along URDF y, 5 cm along it, tilted 32 deg back towards the fingers.
+COBOT_MAGIC_T_LINK6_CAM = np.array([[-1.0, 0.0, 0.0, 0.0],
+                                    [0.0, -0.847998304005, -0.529998940003, 0.075],
+                                    [0.0, -0.529998940003, 0.847998304005, 0.05],
+                                    [0.0, 0.0, 0.0, 1.0]])
+# The built-in model's link6 is the DH flange, which AgileX's URDF link6 is rotated from by +90 deg
+# about z (see manisplat.robot.piper; the URDF's fingers close along its x, the built-in's along y):
+# the same mount there is Rz(+90 deg) @ the URDF value, 7.5 cm off the axis along -x, across the
+# closing direction, so both fingertips show at the bottom of the image with the box between them.
+# Taken as it stands, the URDF value would put the camera in line with one finger, which then hides
+# the box at the grasp.
+T_LINK6_WRIST_CAM = np.array([[0.0, -1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0],
+                              [0.0, 0.0, 0.0, 1.0]]) @ COBOT_MAGIC_T_LINK6_CAM
 
 
 def _T_world_base(arm: str) -> np.ndarray:
@@ -53,20 +70,29 @@ def _arm_trajectory(arm: str, span: float) -> tuple[SampleTrajectory, tuple[floa
     return replace(trajectory, times=trajectory.times + DELAY[arm]), pick
 
 
+def _intrinsics(f: float, width: int, height: int) -> np.ndarray:
+    """K (3, 3): focal length ``f`` (px), principal point at the image centre."""
+    return np.array([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
+
+
 def write_two_arm_sample_episode(out: Path, *, duration: float = 4.0, fps: float = 10.0, width: int = 160,
-                                 height: int = 120) -> Path:
+                                 height: int = 120, wrist_cameras: bool = False) -> Path:
     """Write the two-arm sample episode to ``out`` (a new folder) and return its path.
 
     Args:
         duration: episode length (s): ``round(duration * fps)`` frames; the motion ends at the last.
         fps: frame rate (Hz); joint streams ``joints_<arm>.csv`` at 200 Hz.
         width, height: image size (px) of ``cam_high`` (rgb, z-depth at 0.1 mm, masks labelled
-            ``robot/<arm>/<link>``, ``object/box_<arm>``, ``table``).
+            ``robot/<arm>/<link>``, ``object/box_<arm>``, ``table``), and of the wrist cameras.
+        wrist_cameras: also ``cam_left_wrist`` and ``cam_right_wrist`` (mounts ``<arm>/link6``,
+            ``T_mount_cam`` :data:`T_LINK6_WRIST_CAM`, 70 deg vertical field of view), rendered
+            like ``cam_high``.
 
     ``gt.npz`` holds per frame ``t`` (T,) s, ``T_world_tcp_<arm>`` and ``T_world_box_<arm>``
-    (T, 4, 4) float64 for arms ``left`` and ``right``. At the default 4 s the joints accelerate
-    up to about 3.7 times the PiPER's limit (5 rad/s^2): a sample to look at and reconstruct, not
-    to replay on real arms at speed 1 (that takes about 8 s).
+    (T, 4, 4) float64 for arms ``left`` and ``right``; with ``wrist_cameras`` also
+    ``T_world_cam_<camera>`` (T, 4, 4) float64 for every camera (``cam_high``'s constant). At the
+    default 4 s the joints accelerate up to about 3.7 times the PiPER's limit (5 rad/s^2): a sample
+    to look at and reconstruct, not to replay on real arms at speed 1 (that takes about 8 s).
     """
     frames = round(duration * fps)
     if frames < 8:
@@ -76,9 +102,13 @@ def write_two_arm_sample_episode(out: Path, *, duration: float = 4.0, fps: float
     arms = ArmSet({arm: robot for arm in BASE_Y}, {arm: _T_world_base(arm) for arm in BASE_Y})
     scripted = {arm: _arm_trajectory(arm, span) for arm in BASE_Y}
 
-    f = 0.8 * width  # 64 deg horizontal field of view
-    K = np.array([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
-    camera = Camera(K, width, height, look_at(CAMERA_EYE, CAMERA_TARGET))
+    T_world_high = look_at(CAMERA_EYE, CAMERA_TARGET)
+    cam_infos = [CameraInfo(CAMERA, width, height, _intrinsics(0.8 * width, width, height), mount="world",
+                            T_mount_cam=T_world_high)]  # 64 deg horizontal field of view
+    if wrist_cameras:
+        K_wrist = _intrinsics(height / 2 / np.tan(np.radians(WRIST_FOV_DEG) / 2), width, height)
+        cam_infos += [CameraInfo(WRIST_CAMERAS[arm], width, height, K_wrist, mount=f"{arm}/link6",
+                                 T_mount_cam=T_LINK6_WRIST_CAM) for arm in BASE_Y]
     labels = {0: "background", **{i + 1: f"robot/{name}" for i, name in enumerate(arms.link_names)}}
     box_label = {arm: len(labels) + k for k, arm in enumerate(BASE_Y)}
     labels.update({value: f"object/box_{arm}" for arm, value in box_label.items()})
@@ -96,12 +126,13 @@ def write_two_arm_sample_episode(out: Path, *, duration: float = 4.0, fps: float
     T_tcp = arms.tcp_poses(torch.tensor(q)).numpy()  # [T, 2, 4, 4] world
     T_box = {arm: _T_world_base(arm) @ _box_poses(trajectory, robot, t_frames, pick)
              for arm, (trajectory, pick) in scripted.items()}
+    T_cam = {CAMERA: np.repeat(T_world_high[None], frames, 0)}  # camera -> T_world_cam [T, 4, 4]
+    T_cam.update({cam.name: links[:, arms.link_names.index(cam.mount)] @ cam.T_mount_cam for cam in cam_infos[1:]})
 
     arm_infos = [ArmInfo(name=arm, description="builtin:agilex_piper", T_world_base=_T_world_base(arm))
                  for arm in BASE_Y]
-    cam_info = CameraInfo(CAMERA, width, height, K, mount="world", T_mount_cam=camera.T_world_cam)
     out = Path(out)
-    with EpisodeWriterV2(out, arm_infos, [cam_info], fps, source="simulation", depth_scale=1e-4, labels=labels,
+    with EpisodeWriterV2(out, arm_infos, cam_infos, fps, source="simulation", depth_scale=1e-4, labels=labels,
                          objects=[f"box_{arm}" for arm in BASE_Y], actions=True,
                          extra_meta={"task": TASK, "generator": "manisplat.episode.synthetic_arms"}) as writer:
         t_joint = np.arange(0.0, span + 1e-9, 0.005)
@@ -116,12 +147,17 @@ def write_two_arm_sample_episode(out: Path, *, duration: float = 4.0, fps: float
             for i, name in enumerate(arms.link_names):
                 for visual in arms.visuals.get(name, []):
                     meshes.append(_posed(visual.mesh, links[k, i], LINK_COLORS[name.split("/")[1]], i + 1))
-            rgb, depth, mask = render(camera, meshes, ground, exact_depth=True)
+            images = {cam.name: render(Camera(cam.K, width, height, T_cam[cam.name][k]), meshes, ground,
+                                       exact_depth=True) for cam in cam_infos}  # camera -> rgb, depth, mask
             writer.add_frame(float(t_frames[k]), {arm: joints[arm][k] for arm in BASE_Y},
-                             {CAMERA: rgb}, depth={CAMERA: depth}, masks={CAMERA: mask},
+                             {c: rgb for c, (rgb, _, _) in images.items()},
+                             depth={c: depth for c, (_, depth, _) in images.items()},
+                             masks={c: mask for c, (_, _, mask) in images.items()},
                              actions={arm: action[arm][k] for arm in BASE_Y})
     gt = {"t": t_frames, **{f"T_world_tcp_{arm}": T_tcp[:, a] for a, arm in enumerate(BASE_Y)},
           **{f"T_world_box_{arm}": T_box[arm] for arm in BASE_Y}}
+    if wrist_cameras:
+        gt.update({f"T_world_cam_{name}": T for name, T in T_cam.items()})
     write_gt(out / GT_FILE, gt, compressed=False)
     return out
 

@@ -1,11 +1,11 @@
 """A small CPU renderer for synthetic data: flat-shaded triangle meshes over a textured ground
 plane, seen by an OpenCV pinhole camera, giving RGB, z-depth and a label mask.
 
-Meshes are drawn far to near (painter's algorithm) with OpenCV polygon fills; each triangle
-gets one depth (its vertices' mean), so depth is exact on the analytic ground plane and within
-about one triangle's depth extent on meshes; with ``exact_depth`` each pixel gets the depth where
-its ray meets the plane of the triangle drawn there. Good enough for sample episodes and masks; it is
-not the Gaussian rasterizer.
+Meshes are drawn far to near (painter's algorithm) with OpenCV polygon fills, triangles that
+reach behind the near plane cut at it; each triangle gets one depth (its vertices' mean), so
+depth is exact on the analytic ground plane and within about one triangle's depth extent on
+meshes; with ``exact_depth`` each pixel gets the depth where its ray meets the plane of the
+triangle drawn there. Good enough for sample episodes and masks; it is not the Gaussian rasterizer.
 """
 
 from __future__ import annotations
@@ -100,10 +100,10 @@ def render(
         normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
         tri_cam = tri_world @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
         to_camera = -tri_cam.mean(axis=1) @ T_cam_world[:3, :3]  # view vector, world frame
-        visible = (np.einsum("fi,fi->f", normal, to_camera) > 0) & (tri_cam[:, :, 2] > near).all(axis=1)
+        visible = (np.einsum("fi,fi->f", normal, to_camera) > 0) & (tri_cam[:, :, 2] > near).any(axis=1)
         if not visible.any():
             continue
-        tri_cam, normal = tri_cam[visible], normal[visible]
+        tri_cam, normal = _clip_near(tri_cam[visible], normal[visible], near)
         uv = tri_cam @ camera.K.T
         uv = uv[:, :, :2] / uv[:, :, 2:3]
         shade = 0.35 + 0.65 * np.clip(normal @ light, 0.0, 1.0)
@@ -129,6 +129,32 @@ def render(
     if exact_depth:
         _plane_depth(camera.K, np.concatenate(planes), drawn, depth)
     return rgb, depth, mask
+
+
+def _clip_near(tri: np.ndarray, normal: np.ndarray, near: float) -> tuple[np.ndarray, np.ndarray]:
+    """Cut the camera-frame triangles ``tri`` (F, 3, 3) that reach behind z = ``near`` (a camera
+    close to a mesh, on a wrist) at that plane, corners in the same turning order: one corner in
+    front leaves one triangle, two leave a quadrilateral, as two triangles. Returns the triangles
+    (F', 3, 3) and their world-frame ``normal`` (F', 3), the uncut ones first and unchanged."""
+    behind = tri[:, :, 2] <= near
+    cut = behind.any(axis=1)
+    if not cut.any():
+        return tri, normal
+    pieces, normals = [tri[~cut]], [normal[~cut]]
+
+    def on_plane(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # where the edge a-b meets z = near
+        return a + (b - a) * ((near - a[2]) / (b[2] - a[2]))
+
+    for t, n, b in zip(tri[cut], normal[cut], behind[cut]):
+        one_behind = b.sum() == 1
+        a, p, q = np.roll(t, -int(np.flatnonzero(b == one_behind)[0]), axis=0)  # a: the corner alone on its side
+        if one_behind:
+            ap, qa = on_plane(a, p), on_plane(q, a)
+            pieces.append(np.stack([[ap, p, q], [ap, q, qa]]))
+        else:
+            pieces.append(np.stack([[a, on_plane(a, p), on_plane(a, q)]]))
+        normals.append(np.repeat(n[None], len(pieces[-1]), 0))
+    return np.concatenate(pieces), np.concatenate(normals)
 
 
 def _plane_depth(K: np.ndarray, planes: np.ndarray, drawn: np.ndarray, depth: np.ndarray) -> None:

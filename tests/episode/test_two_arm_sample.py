@@ -43,3 +43,21 @@ def test_each_arm_carries_its_own_box(sample, arm):
     relative = np.linalg.inv(tcp[carried]) @ box[carried]  # rigid in its own gripper
     assert np.allclose(relative, relative[0], atol=1e-9) and np.linalg.norm(relative[0, :3, 3]) < 0.01
     assert np.linalg.norm(other[carried, :3, 3] - box[carried, :3, 3], axis=1).min() > 0.1
+
+
+def test_wrist_cameras_ride_on_link6_and_see_their_own_box_at_the_grasp(tmp_path):
+    path = write_two_arm_sample_episode(tmp_path / "ep", duration=2.0, fps=5.0, wrist_cameras=True)
+    report = validate(path)
+    assert report.ok and not report.warnings, str(report)
+    ep = Episode.open(path)
+    assert list(ep.cameras) == ["cam_high", "cam_left_wrist", "cam_right_wrist"]
+    gt = ep.gt()
+    for arm in ARMS:
+        cam = ep.cameras[f"cam_{arm}_wrist"]
+        assert cam.mount == f"{arm}/link6" and ep.has_images("masks", cam.name)
+        box = gt[f"T_world_box_{arm}"]
+        grasp = np.flatnonzero(np.any(box != box[0], axis=(1, 2)))[0] - 1  # the last frame before it rides
+        label = next(v for v, name in ep.meta.labels.items() if name == f"object/box_{arm}")
+        mask = ep.mask(grasp, cam.name)
+        assert (mask == label).mean() > 0.05  # about 10 %; 1 % when the gripper is high above it
+        assert gt[f"T_world_cam_{cam.name}"].shape == (len(ep), 4, 4)

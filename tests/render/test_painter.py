@@ -54,3 +54,15 @@ def test_nearer_mesh_occludes_farther_one_and_depth_matches():
 def test_empty_scene_is_background():
     rgb, depth, mask = render(camera(), [])
     assert rgb.shape == (60, 80, 3) and not depth.any() and not mask.any()
+
+
+def test_a_mesh_reaching_behind_the_camera_is_cut_at_the_near_plane():
+    cam = camera(eye=(0.0, 0.0, 0.5), target=(0.0, 2.0, 0.0))
+    floor = MeshItem(np.array([[-1.0, -1, 0], [1, -1, 0], [1, 3, 0], [-1, 3, 0]]), np.array([[0, 1, 2], [0, 2, 3]]),
+                     (90, 90, 90), 3)  # the plane z = 0 from behind the camera to 3 m ahead
+    _, depth, mask = render(cam, [floor], exact_depth=True)
+    _, ground_depth, ground_mask = render(cam, [], GroundPlane((-1, 1, -1, 3), 0.1, ((0, 0, 0), (9, 9, 9)), 3))
+    drawn = mask == 3
+    assert drawn[-1].all() and (drawn ^ (ground_mask == 3)).sum() < 0.02 * drawn.size  # up to edge pixels
+    both = drawn & (ground_mask == 3)
+    assert np.allclose(depth[both], ground_depth[both], atol=1e-4)
