@@ -62,8 +62,8 @@ def run(ctx: BenchContext) -> list[dict[str, Any]]:
         points = gaussians.params["means"].detach().double().numpy()
         gt = load_ground_truth(episode)[f"T_base_{obj.name}"]
         for variant, (settings, centring, rest, slip) in VARIANTS.items():
-            alignment = align_object(data, obj.label, T_start.numpy(), data.arm_names[0], moves=True,
-                                     model_points=points if centring else None, settings=settings,
+            alignment = align_object(data, obj.label, T_start.numpy(), data.tcp.double().numpy(), data.gripper.numpy(),
+                                     moves=True, model_points=points if centring else None, settings=settings,
                                      rest_from_depth=rest, slip_from_depth=slip)
             poses = alignment.pseudo.poses
             fitted = pose_errors(poses, gt)

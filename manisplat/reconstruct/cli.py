@@ -67,9 +67,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="replace the results of an earlier run in --out (its files are removed first)")
     p.add_argument("--robot", help="robot description: a URDF path or builtin:agilex_piper "
                                    "(default: the episode's robot.description)")
-    p.add_argument("--camera", metavar="NAME",
-                   help="the camera to reconstruct from, in an episode with several (default: its one "
-                        "world-fixed camera)")
+    p.add_argument("--cameras", type=_names, metavar="NAME,...",
+                   help="the cameras to train on, in an episode with several (default: all): the fixed one "
+                        "among them seeds the scene and is checked against the robot; the others (wrist "
+                        "cameras) are posed at each frame by forward kinematics and trained at once")
     p.add_argument("--iters", type=positive(int), default=None,
                    help=f"training iterations (default {TrainConfig.iters} on the CPU, {GPU_ITERS} on CUDA, where the "
                         "held-out PSNR levels off)")
@@ -175,8 +176,14 @@ def _run(args: argparse.Namespace, prompt: list[tuple[str, tuple | None, tuple |
         iters = args.iters if args.iters is not None else default_iters(device)
         compiled = resolve_compile(args.compile, device.partition(":")[0], iters)
     try:
-        data = load_episode_data(args.episode, robot=args.robot, camera=args.camera, use_depth=not args.no_depth,
+        reference, others = _cameras(args.episode, args.cameras)
+        data = load_episode_data(args.episode, robot=args.robot, camera=reference, use_depth=not args.no_depth,
                                  use_masks=not args.no_masks, progress=not args.quiet)
+        views = {name: load_episode_data(args.episode, robot=args.robot, camera=name, use_depth=not args.no_depth,
+                                         use_masks=not args.no_masks, load_meshes=False, progress=not args.quiet)
+                 for name in others}
+        for view in views.values():
+            view.robot = data.robot  # one model (with its meshes) for every camera
         masks_from_model = False
         if data.masks is None:
             links = [name for name in data.robot.link_names if data.robot.visuals.get(name)]
@@ -201,7 +208,8 @@ def _run(args: argparse.Namespace, prompt: list[tuple[str, tuple | None, tuple |
             lambda_pose=args.lambda_pose, seed=args.seed, device=device, compile=args.compile,
         )
         rec, alignments = build(data, plan, config, tau=args.tau, table_z=args.table_z,
-                                masks_from_model=masks_from_model, check_extrinsic=not args.keep_extrinsic)
+                                masks_from_model=masks_from_model, check_extrinsic=not args.keep_extrinsic,
+                                views=views, progress=not args.quiet)
     except (ReconstructionInputError, EpisodeFormatError, RobotModelError, FileNotFoundError, NotImplementedError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return ExitCode.BAD_INPUT
@@ -227,7 +235,9 @@ def _run(args: argparse.Namespace, prompt: list[tuple[str, tuple | None, tuple |
             r.save_checkpoint(checkpoint)
 
     try:
+        trained_from, train_start = rec.step, time.perf_counter()
         rec.train(progress=not args.quiet, callback=save)
+        train_end = time.perf_counter()
     except BackendUnavailable as exc:
         print(f"error: {exc}", file=sys.stderr)
         return ExitCode.FAILED
@@ -238,7 +248,8 @@ def _run(args: argparse.Namespace, prompt: list[tuple[str, tuple | None, tuple |
     rec.save_checkpoint(checkpoint)
     write_twin(rec, alignments, args.out)
     try:
-        metrics = write_evaluation(rec, alignments, args.out, wall_s=time.perf_counter() - start)
+        metrics = write_evaluation(rec, alignments, args.out, wall_s=time.perf_counter() - start,
+                                   ms_per_iter=1e3 * (train_end - train_start) / max(rec.step - trained_from, 1))
     except Exception as exc:  # the trained twin is on disk: report, keep it, fail
         log.debug("evaluation failed", exc_info=True)
         print(f"error: the twin is trained and written to {args.out} (twin.json/.pt, PLYs, object poses, phases, "
@@ -263,6 +274,38 @@ def _prompt(args: argparse.Namespace) -> list[tuple[str, tuple | None, tuple | N
     if len(set(names)) != len(names):
         raise ValueError(f"object prompts {names}: one point or box per object")
     return prompts
+
+
+def _names(text: str) -> list[str]:
+    """An argparse type for ``A,B,...``: the names, none empty, none twice."""
+    names = [n.strip() for n in text.split(",")]
+    if not all(names) or len(set(names)) != len(names):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected distinct names separated by commas")
+    return names
+
+
+def _cameras(episode: Path, names: list[str] | None) -> tuple[str | None, list[str]]:
+    """(the reference camera, the other cameras to train on) of ``names`` (None: every camera of
+    the episode): the reference is the first fixed one; None for an episode with one camera."""
+    from manisplat.episode import Episode
+    from manisplat.episode.format import WORLD_MOUNT
+    from manisplat.reconstruct.data import ReconstructionInputError
+
+    cameras = Episode.open(episode).cameras
+    if names is None:
+        if len(cameras) == 1:
+            return None, []
+        names = list(cameras)
+    unknown = [n for n in names if n not in cameras]
+    if unknown:
+        raise ReconstructionInputError(f"{episode}: no camera {', '.join(unknown)}; cameras: {', '.join(cameras)}")
+    fixed = [n for n in names if cameras[n].mount in ("base", WORLD_MOUNT)]
+    if not fixed:
+        raise ReconstructionInputError(f"cameras {', '.join(names)}: none is fixed; one fixed camera (the head "
+                                       "camera) must seed the scene")
+    if len(cameras) == 1:
+        return None, []
+    return fixed[0], [n for n in names if n != fixed[0]]
 
 
 def _named(parse):

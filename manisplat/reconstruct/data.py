@@ -83,7 +83,8 @@ class EpisodeData:
     Attributes:
         rgb: [T, H, W, 3] uint8. depth: [T, H, W] float32 metres (0 invalid) or None.
         masks: [T, H, W] uint8 labels or None. t: [T] s. q: [T, dof] rad. gripper: [T] m.
-        K: [3, 3] intrinsics in the rasterizer's half-pixel convention. viewmat: [4, 4] base-to-camera.
+        K: [3, 3] intrinsics in the rasterizer's half-pixel convention. viewmat: [4, 4] base-to-camera,
+            or [T, 4, 4] per frame for a camera riding on a link (:attr:`mount`; :meth:`view_at`).
         link_poses: [T, L, 4, 4] T_base_link. link_quats: [T, L, 4] their rotations as quaternions.
         tcp: [T, 4, 4] T_base_tcp.
         robot: one arm's :class:`RobotModel` (format version 1: everything is in its base frame),
@@ -93,6 +94,9 @@ class EpisodeData:
             :meth:`arm_tcp`, :meth:`arm_gripper`).
         frame: what the poses are in: ``"base"`` (one arm) or ``"world"`` (an arm set); ground
             truth names object poses ``T_<frame>_<object>``.
+        mount: where the camera is: ``"base"`` / ``"world"`` (fixed), or the link it rides on, as
+            the robot names it (``"link6"``, ``"left/link6"``); T_mount_cam: [4, 4] float64 the
+            camera in that link's frame (None for a fixed camera).
         robot_description: the robot description used, independent of the episode folder (a
             built-in name, or an absolute URDF path).
         label_names: mask value -> name of ``masks`` (the episode's ``labels``, or the drawn ones).
@@ -143,6 +147,8 @@ class EpisodeData:
     recorded_latency_s: float = 0.0
     time_offset_s: float = 0.0
     frame: str = "base"
+    mount: str = "base"
+    T_mount_cam: torch.Tensor | None = None
 
     @property
     def n_frames(self) -> int:
@@ -160,6 +166,15 @@ class EpisodeData:
         moved = {f.name: getattr(self, f.name).to(device) for f in fields(self)
                  if isinstance(getattr(self, f.name), torch.Tensor)}
         return replace(self, **moved)
+
+    @property
+    def riding(self) -> bool:
+        """Whether the camera rides on a link (a wrist camera): ``viewmat`` is per frame."""
+        return self.T_mount_cam is not None
+
+    def view_at(self, f: int) -> torch.Tensor:
+        """[4, 4] float32 base-to-camera of frame ``f``."""
+        return self.viewmat[f] if self.riding else self.viewmat
 
     @property
     def arm_names(self) -> tuple[str, ...]:
@@ -232,10 +247,6 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, camera: str
         raise ReconstructionInputError(
             f"{episode.path}: camera {cam.name}: T_mount_cam is null; calibrate the camera (manisplat-calibrate) first"
         )
-    if cam.mount not in ("base", WORLD_MOUNT):
-        raise ReconstructionInputError(
-            f"{episode.path}: camera {cam.name} is mounted on {cam.mount!r}: only a camera fixed to the "
-            f"{'world' if several else 'base'} is reconstructed from yet")
     try:
         lens = undistortion_for(cam.K, cam.dist, cam.width, cam.height)
     except ValueError as exc:
@@ -265,7 +276,7 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, camera: str
         if masks is not None:
             masks[i] = torch.from_numpy(label_image)
     if several:
-        model, t, q, gripper, stream, description = _arms_of(episode, robot, load_meshes)
+        model, t, q, gripper, stream, description = _arms_of(episode, robot, load_meshes, episode.camera_times(view))
         robot_info = {"arms": {name: {"model": arm.model, "joint_names": list(arm.joint_names)}
                                for name, arm in episode.arms.items()}}
     else:
@@ -281,7 +292,11 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, camera: str
     gripper = torch.as_tensor(gripper, dtype=torch.float64)
     link_poses = model.forward_kinematics(q, gripper).float()
     K = torch.as_tensor(cam.K, dtype=torch.float64)
-    T_base_cam = torch.as_tensor(cam.T_mount_cam, dtype=torch.float64)
+    T_mount_cam = torch.as_tensor(cam.T_mount_cam, dtype=torch.float64)
+    fixed = cam.mount in ("base", WORLD_MOUNT)
+    if not fixed and cam.mount not in model.link_names:
+        raise ReconstructionInputError(f"{episode.path}: camera {cam.name} is mounted on {cam.mount!r}, which is no "
+                                       f"link of the robot ({', '.join(model.link_names)})")
     labels = Labels.from_meta(episode.meta.labels, episode.meta.objects)
     eval_masks = None
     if masks is not None and not use_masks:
@@ -293,7 +308,7 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, camera: str
     data = EpisodeData(
         path=episode.path, robot=model, rgb=rgb, depth=depth, masks=masks,
         t=torch.as_tensor(t, dtype=torch.float64), q=q, gripper=gripper,
-        K=opencv_to_splat_K(K).float(), K_opencv=K, viewmat=torch.linalg.inv(T_base_cam).float(),
+        K=opencv_to_splat_K(K).float(), K_opencv=K, viewmat=torch.linalg.inv(T_mount_cam).float(),
         link_poses=link_poses, link_quats=matrix_to_quat(link_poses[..., :3, :3].double()).float(),
         tcp=_tcp_of(model, q).float(), labels=labels,
         objects=list(episode.meta.objects), eval_masks=eval_masks,
@@ -304,7 +319,10 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, camera: str
         valid=None if lens is None or lens.valid.all() else torch.from_numpy(lens.valid),
         dist=tuple(float(d) for d in cam.dist) if lens is not None else (),
         joints=stream, recorded_latency_s=recorded_latency, frame="world" if several else "base",
+        mount=cam.mount, T_mount_cam=None if fixed else T_mount_cam,
     )
+    if not fixed:
+        _place_riding_camera(data, q, gripper)
     latency = cam.extra.get("latency_s")
     if isinstance(latency, (int, float)) and abs(latency - recorded_latency) > 1e-6:
         retime(data, -(latency - recorded_latency))
@@ -328,9 +346,11 @@ def _camera_of(episode: Episode, name: str | None) -> CameraInfo:
     return fixed[0]
 
 
-def _arms_of(episode: Episode, robot: str | None, load_meshes: bool):
+def _arms_of(episode: Episode, robot: str | None, load_meshes: bool, camera_times: np.ndarray):
     """(ArmSet, t [T], q [T, sum of dof], gripper [T, A], joint streams or None, description) of
-    an episode with several arms or cameras."""
+    an episode with several arms or cameras, seen by a camera whose frames were exposed at
+    ``camera_times`` [T] s: where they are not the frames' times (a camera of a rig, stamped on its
+    own), the joints are read at them, from the joint streams or between the frames."""
     models, bases = {}, {}
     for name, arm in episode.arms.items():
         if arm.T_world_base is None:
@@ -347,7 +367,22 @@ def _arms_of(episode: Episode, robot: str | None, load_meshes: bool):
         ArmStreams({name: JointStream(j.t, j.q, j.gripper) for name, j in joints.items()})
     description = "; ".join(f"{name}: {resolve_description(robot or arm.description, episode.path)}"
                             for name, arm in episode.arms.items())
+    if np.abs(camera_times - t).max(initial=0.0) > 1e-9:
+        if stream is not None:
+            q, gripper = stream.at(camera_times)
+        else:
+            q = np.stack([np.interp(camera_times, t, q[:, j]) for j in range(q.shape[1])], 1)
+            gripper = np.stack([np.interp(camera_times, t, gripper[:, a]) for a in range(gripper.shape[1])], 1)
+        t = camera_times
     return ArmSet(models, bases), t, q, gripper, stream, description
+
+
+def _place_riding_camera(data: EpisodeData, q: torch.Tensor, gripper: torch.Tensor) -> None:
+    """Set ``data.viewmat`` [T, 4, 4] of a camera riding on a link: ``inv(T_base_link(q) @
+    T_mount_cam)`` per frame, from float64 forward kinematics."""
+    link = data.robot.link_names.index(data.mount)
+    T_link = data.robot.forward_kinematics(q.double(), gripper.double())[:, link]
+    data.viewmat = torch.linalg.inv(T_link @ data.T_mount_cam.to(T_link)).float().to(data.device)
 
 
 def _tcp_of(robot: RobotModel | ArmSet, q: torch.Tensor) -> torch.Tensor:
@@ -382,6 +417,8 @@ def retime(data: EpisodeData, offset_s: float) -> None:
     data.tcp = _tcp_of(data.robot, data.q).float()
     for name in ("q", "gripper", "link_poses", "link_quats", "tcp"):
         setattr(data, name, getattr(data, name).to(device))
+    if data.riding:
+        _place_riding_camera(data, data.q, data.gripper)
     data.time_offset_s = offset_s
 
 

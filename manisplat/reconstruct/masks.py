@@ -21,11 +21,12 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from manisplat.align.acting_arm import acting_arm
+from manisplat.align.acting_arm import Hold, carrier_track, holds
 from manisplat.align.phases import gripper_events
 from manisplat.align.pseudo_gt import kinematic_prior
 from manisplat.reconstruct.data import EpisodeData, Labels, ReconstructionInputError
 from manisplat.reconstruct.init import link_gaussians
+from manisplat.scene import GaussianSet
 from manisplat.scene.transforms import transform_gaussians
 from manisplat.splat import rasterization
 
@@ -37,6 +38,10 @@ OBJECT_LABEL = 200  # mask value given to the prompted object (robot links take 
 # shared/data; drawing the URDF meshes exactly with the painter gives 0.963)
 MASK_DISC_SCALE = 0.5
 MASK_EPS2D = 0.1
+# a wrist camera sees its own fingers from a few centimetres: 60 000 discs over the links leave
+# holes there (robot IoU 0.74-0.79 against the simulated masks of the built-in two-arm sample's
+# wrist cameras); 400 000 close most of them (0.88-0.95)
+RIDING_MASK_SAMPLES = 400_000
 
 
 @dataclass(frozen=True)
@@ -127,7 +132,7 @@ def render_robot_labels(data: EpisodeData, links: list[str], *, occlusion_margin
         with torch.no_grad():
             depth, alpha, meta = rasterization(
                 torch.cat([p[0] for p in placed]), torch.cat([p[1] for p in placed]), scales, opacities, colors,
-                data.viewmat[None], data.K[None], W, H, render_mode="ED", group_ids=groups, num_groups=len(parts),
+                data.view_at(f)[None], data.K[None], W, H, render_mode="ED", group_ids=groups, num_groups=len(parts),
                 eps2d=MASK_EPS2D)
         robot = alpha[0, ..., 0] > 0.5
         if data.depth is not None:  # a measured surface clearly in front of the link occludes it
@@ -152,6 +157,47 @@ def redraw_robot_masks(data: EpisodeData, *, progress: bool = True) -> None:
     free = (masks == 0) & (drawn > 0)
     masks[free] = drawn[free]
     data.masks = masks
+
+
+def draw_view_masks(view: EpisodeData, links: list[str], objects: dict[str, tuple[int, GaussianSet, np.ndarray]],
+                    label_names: dict[int, str], *, occlusion_margin: float = 0.02, progress: bool = True) -> None:
+    """Give another camera's view (a wrist camera) its masks, labelled as the reference camera's:
+    the robot's links drawn at each frame's FK (as :func:`render_robot_labels`), each object its
+    model at its pose in each frame, where no robot link was drawn and, with depth, where no
+    measured surface lies ``occlusion_margin`` m in front of it.
+
+    Args:
+        objects: name -> (label value, the object's Gaussians in its frame, poses [T, 4, 4]
+            ``T_base_obj``), e.g. the pseudo ground truth of alignment.
+        label_names: the reference camera's label values -> names (``robot/<link>`` for the
+            links, which take the same values here).
+    """
+    drawn, drawn_links = render_robot_labels(view, links, samples=RIDING_MASK_SAMPLES, progress=progress)
+    value_of = {name: value for value, name in label_names.items()}
+    missing = [link for link in drawn_links.values() if f"robot/{link}" not in value_of]
+    if missing:
+        raise ValueError(f"links {missing} have no label in the reference camera's masks")
+    masks = torch.zeros_like(drawn)
+    for value, link in drawn_links.items():
+        masks[drawn == value] = value_of[f"robot/{link}"]
+    W, H = view.size
+    for name, (label, gaussians, poses) in objects.items():
+        means, quats, scales, opacities, _ = (x.detach().cpu() for x in gaussians.activated())
+        for f in range(view.n_frames):
+            m, q = transform_gaussians(torch.as_tensor(poses[f], dtype=torch.float64), means, quats)
+            with torch.no_grad():
+                depth, alpha, _ = rasterization(m, q, scales, opacities, torch.zeros_like(means), view.view_at(f)[None],
+                                                view.K[None], W, H, render_mode="ED")
+            seen = (alpha[0, ..., 0] > 0.5) & (masks[f] == 0)
+            if view.depth is not None:
+                measured = view.depth[f]
+                seen &= ~((measured > 0) & (measured < depth[0, ..., 0] - occlusion_margin))
+            masks[f][seen] = label
+    view.masks = masks
+    view.label_names = dict(label_names)
+    view.objects = list(objects)
+    view.labels = Labels.from_meta(label_names, view.objects)
+    view.mask_source = "drawn robot, objects from their models at their poses"
 
 
 def table_plane(data: EpisodeData, robot_mask: np.ndarray, frame: int = 0) -> Plane:
@@ -202,13 +248,11 @@ def object_mask_from_depth(data: EpisodeData, robot_mask: np.ndarray, plane: Pla
 
 
 def follow_object_masks(data: EpisodeData, robot_masks: torch.Tensor, first: np.ndarray, plane: Plane, *,
-                        arm: str | None = None, min_height: float = 0.006, grow: int | None = None,
-                        inside: float = 0.5) -> np.ndarray:
+                        min_height: float = 0.006, grow: int | None = None, inside: float = 0.5) -> np.ndarray:
     """Object masks [T, H, W] bool, frame by frame.
 
-    The first mask's points (from depth) are moved as the gripper of ``arm`` (default: the one
-    arm, or the one that handles the object: :func:`~manisplat.align.acting_arm.acting_arm`)
-    implies (resting, or rigidly with the TCP while held:
+    The first mask's points (from depth) are moved as the grippers that handle the object imply
+    (:func:`object_carrier`: resting, or rigidly with the TCP while held, through handovers:
     :func:`manisplat.align.pseudo_gt.kinematic_prior`) and projected;
     that prediction, grown by ``grow`` px (default: width / 40), takes the above-table, non-robot
     regions lying at least ``inside`` within it, clipped to it: a neighbouring object touching the
@@ -220,9 +264,8 @@ def follow_object_masks(data: EpisodeData, robot_masks: torch.Tensor, first: np.
     grow = grow or max(3, W // 40)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow + 1, 2 * grow + 1))
     model = _backproject(data.depth[0].numpy(), first, data)
-    arm = arm or handling_arm(data, model.mean(0))
-    prior, _ = kinematic_prior(np.eye(4), data.arm_tcp(arm).double().numpy(),
-                               gripper_events(data.arm_gripper(arm).numpy()))
+    track, width, _ = object_carrier(data, model.mean(0))
+    prior, _ = kinematic_prior(np.eye(4), track, gripper_events(width))
     out = np.zeros((data.n_frames, H, W), dtype=bool)
     out[0] = first
     for f in range(1, data.n_frames):
@@ -241,12 +284,18 @@ def follow_object_masks(data: EpisodeData, robot_masks: torch.Tensor, first: np.
     return out
 
 
-def handling_arm(data: EpisodeData, start: np.ndarray) -> str:
-    """The arm of ``data`` that handles an object starting at ``start`` [3] (m, base/world frame)."""
+def object_carrier(data: EpisodeData, start: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[Hold]]:
+    """The tool track that moves an object starting at ``start`` [3] (m, base/world frame):
+    (TCP poses [T, 4, 4], gripper opening [T] m, who holds it when). One arm: its own TCP and
+    gripper. Several: the arm that handles it, carried on by each arm that takes it over
+    (:func:`~manisplat.align.acting_arm.carrier_track`)."""
     if len(data.arm_names) == 1:
-        return data.arm_names[0]
-    return acting_arm({a: data.arm_tcp(a).double().cpu().numpy()[:, :3, 3] for a in data.arm_names},
-                      {a: data.arm_gripper(a).double().cpu().numpy() for a in data.arm_names}, start)
+        arm = data.arm_names[0]
+        return data.arm_tcp(arm).double().cpu().numpy(), data.arm_gripper(arm).double().cpu().numpy(), [Hold(arm, 0)]
+    tcp = {a: data.arm_tcp(a).double().cpu().numpy() for a in data.arm_names}
+    width = {a: data.arm_gripper(a).double().cpu().numpy() for a in data.arm_names}
+    order = holds({a: T[:, :3, 3] for a, T in tcp.items()}, width, start)
+    return (*carrier_track(tcp, width, order), order)
 
 
 def _splat_points(points: np.ndarray, data: EpisodeData) -> np.ndarray:
@@ -366,6 +415,6 @@ def complete_masks(data: EpisodeData, links: list[str], prompts: list[ObjectProm
 
 
 __all__ = [
-    "OBJECT_LABEL", "ObjectPrompt", "Plane", "complete_masks", "fit_plane_ransac", "follow_object_masks", "handling_arm",
+    "OBJECT_LABEL", "ObjectPrompt", "Plane", "complete_masks", "draw_view_masks", "fit_plane_ransac", "follow_object_masks", "object_carrier",
     "object_mask_from_depth", "object_mask_grabcut", "redraw_robot_masks", "render_robot_labels", "table_plane",
 ]

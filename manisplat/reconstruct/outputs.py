@@ -158,11 +158,19 @@ def measured_support(rec: Reconstruction, T_base_cam: np.ndarray) -> SupportMap 
     return support_map(d.depth[frames].cpu().numpy(), background.numpy(), d.K_opencv.cpu().numpy(), T_base_cam)
 
 
-def write_evaluation(rec: Reconstruction, alignments: dict[str, ObjectAlignment], out: Path, *, wall_s: float) -> dict:
-    """Held-out renders and sheets, the pose plot and ``metrics.json``; return the metrics dict."""
+def write_evaluation(rec: Reconstruction, alignments: dict[str, ObjectAlignment], out: Path, *, wall_s: float,
+                     ms_per_iter: float | None = None) -> dict:
+    """Held-out renders and sheets, the pose plot and ``metrics.json``; return the metrics dict.
+    ``wall_s``: the whole run (s); ``ms_per_iter``: training's time per iteration (ms)."""
     evaluation = rec.evaluation_poses()
     metrics = {"psnr": {}, "ssim": {}, "iters": rec.step, "wall_s": round(wall_s, 1), "plan": rec.plan.to_dict()}
-    metrics.update(_image_metrics(rec, evaluation, out))
+    if ms_per_iter is not None:
+        metrics["ms_per_iter"] = round(ms_per_iter, 1)
+    reference = rec.data.camera_name
+    per_camera = {name: _image_metrics(rec, evaluation, out, None if name == reference else name) for name in rec.views}
+    metrics.update(per_camera[reference])
+    if len(per_camera) > 1:
+        metrics["cameras"] = per_camera
     if rec.extrinsic is not None:
         metrics["camera"] = {k: v for k, v in rec.extrinsic.to_dict().items() if k != "T_correction"}
     if rec.graph.shadows is not None:
@@ -192,31 +200,34 @@ def _write_phases(path: Path, t: np.ndarray, alignments: dict[str, ObjectAlignme
 
 
 @torch.no_grad()
-def _image_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], out: Path) -> dict:
-    """Held-out renders, sheets and scores: ``psnr`` / ``ssim`` per region with the frame's exposure
+def _image_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], out: Path, camera: str | None = None) -> dict:
+    """Held-out renders, sheets and scores of ``camera`` (None: the reference camera, in
+    ``renders/test`` and ``renders/sheets``; another in ``renders/<camera>/``): ``psnr`` / ``ssim`` per region with the frame's exposure
     interpolated from its training neighbours, and ``psnr_colour_fitted`` / ``ssim_colour_fitted``
     with an affine colour transform fitted on the frame's own static pixels
     (:func:`colour_fitted`): what the twin gets right apart from a camera's exposure, which no
     training frame can tell for a held-out one."""
-    renders, sheets = out / "renders" / "test", out / "renders" / "sheets"
+    view = rec.view(camera)
+    folder = out / "renders" if camera is None else out / "renders" / camera
+    renders, sheets = folder / "test", folder / "sheets"
     renders.mkdir(parents=True, exist_ok=True)
     sheets.mkdir(parents=True, exist_ok=True)
     keys = ("psnr", "ssim", "psnr_colour_fitted", "ssim_colour_fitted")
     scores = {k: {"full": [], "robot": [], "object": []} for k in keys}
     shadow = {"psnr": [], "psnr_without_shadows": [], "pixels": []}
     for f in rec.plan.test_frames:
-        image = rec.render(f, evaluation)[0].clamp(0, 1)
-        target = rec.data.image(f)
+        image = rec.render(f, evaluation, camera)[0].clamp(0, 1)
+        target = view.image(f)
         rgb8 = (image.cpu().numpy() * 255 + 0.5).astype(np.uint8)
         cv2.imwrite(str(renders / f"{f:06d}.png"), cv2.cvtColor(rgb8, cv2.COLOR_RGB2BGR))
         error = ((image - target).abs().mean(-1, keepdim=True).expand(-1, -1, 3) * 4).clamp(0, 1)
         sheet = (torch.cat([target, image, error], dim=1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
-        sheet = labelled_sheet(sheet, SHEET_COLUMNS, f"frame {f}  t = {float(rec.data.t[f]):.2f} s")
+        sheet = labelled_sheet(sheet, SHEET_COLUMNS, f"{view.camera_name} frame {f}  t = {float(view.t[f]):.2f} s")
         cv2.imwrite(str(sheets / f"{f:06d}.png"), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
-        valid = rec.data.valid  # pixels the recording covers after undistortion (None: all)
+        valid = view.valid  # pixels the recording covers after undistortion (None: all)
         masks = {"full": valid}
-        if rec.data.masks is not None or rec.data.eval_masks is not None:
-            masks.update({k: rec.data.eval_region(f, k) if valid is None else rec.data.eval_region(f, k) & valid
+        if view.masks is not None or view.eval_masks is not None:
+            masks.update({k: view.eval_region(f, k) if valid is None else view.eval_region(f, k) & valid
                           for k in ("robot", "object")})
         static = torch.ones_like(target[..., 0], dtype=torch.bool) if valid is None else valid.clone()
         for k in ("robot", "object"):
@@ -229,7 +240,7 @@ def _image_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], out: 
             scores["psnr_colour_fitted"][key].append(psnr(fitted, target, region))
             scores["ssim_colour_fitted"][key].append(ssim(fitted, target, region))
         if rec.graph.shadows is not None:
-            unshaded = _without_shadows(rec, f, evaluation)
+            unshaded = _without_shadows(rec, f, evaluation, camera)
             shadowed = static & ((image - unshaded).abs().amax(-1) > SHADOWED)
             shadow["pixels"].append(float(shadowed.float().mean()))
             shadow["psnr"].append(psnr(image, target, shadowed))
@@ -245,11 +256,12 @@ def _image_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], out: 
 SHADOWED = 4 / 255  # a background pixel the learned shadows darken by more than this is scored as shadowed
 
 
-def _without_shadows(rec: Reconstruction, frame: int, evaluation: dict[str, np.ndarray]) -> torch.Tensor:
-    """The held-out render [H, W, 3] of ``frame`` with the learned shadows switched off."""
+def _without_shadows(rec: Reconstruction, frame: int, evaluation: dict[str, np.ndarray],
+                     camera: str | None = None) -> torch.Tensor:
+    """The held-out render [H, W, 3] of ``frame`` by ``camera`` with the learned shadows switched off."""
     shadows, rec.graph.shadows = rec.graph.shadows, None
     try:
-        return rec.render(frame, evaluation)[0].clamp(0, 1)
+        return rec.render(frame, evaluation, camera)[0].clamp(0, 1)
     finally:
         rec.graph.shadows = shadows
 

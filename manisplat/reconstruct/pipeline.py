@@ -16,7 +16,7 @@ from manisplat.align.tracking import ObjectView, TrackerSettings, visible_surfac
 from manisplat.reconstruct.data import EpisodeData, ReconstructionInputError, retime
 from manisplat.reconstruct.extrinsic import refine_extrinsic
 from manisplat.reconstruct.init import background_gaussians, link_gaussians, object_gaussians
-from manisplat.reconstruct.masks import handling_arm, redraw_robot_masks
+from manisplat.reconstruct.masks import draw_view_masks, object_carrier, redraw_robot_masks
 from manisplat.reconstruct.plan import Plan
 from manisplat.reconstruct.poses import ObjectTrajectory
 from manisplat.reconstruct.trainer import Reconstruction, TrainConfig
@@ -39,11 +39,16 @@ class ObjectAlignment:
 
 def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DEFAULT_TAU,
           robot_gaussians: int | None = None, table_z: float = 0.0, masks_from_model: bool = False,
-          check_extrinsic: bool = True) -> tuple[Reconstruction, dict[str, ObjectAlignment]]:
+          check_extrinsic: bool = True, views: dict[str, EpisodeData] | None = None,
+          progress: bool = False) -> tuple[Reconstruction, dict[str, ObjectAlignment]]:
     """Check the camera extrinsic against the robot, initialise every node and align every
     object (see the plan for what is skipped).
 
     Args:
+        data: the reference camera's view: a fixed camera; it seeds every node and the alignment.
+        views: other cameras' views trained at once (wrist cameras riding on a link); those
+            without masks get the robot's drawn at each frame and each object's model at its
+            pseudo pose (:func:`~manisplat.reconstruct.masks.draw_view_masks`).
         robot_gaussians: the budget shared by the link meshes (default: a quarter of the image's
             pixels, 2 000 to 20 000): more Gaussians than the robot has pixels add no detail.
         table_z: the table's height in the base frame (m), for a start without depth.
@@ -60,6 +65,9 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
         robot_gaussians = int(min(max(W * H // 4, 2_000), 20_000))
     if data.masks is None:
         raise ReconstructionInputError(f"{data.path}: no masks; draw them first (manisplat.reconstruct.masks)")
+    if data.riding:
+        raise ReconstructionInputError(f"camera {data.camera_name} rides on {data.mount}: the reference camera must be "
+                                       "fixed (it seeds the scene); reconstruct with a fixed one among the cameras")
     train = plan.train_frames
     if plan.objects and train[0] != 0:
         raise ReconstructionInputError("the first frame must be a training frame: it seeds the objects")
@@ -80,10 +88,11 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
         gaussians, T_start = object_gaussians(data, obj.label, 0, sh_degree=config.sh_degree, table_z=table_z)
         objects[obj.name] = gaussians
         model = object_view(gaussians, data) if data.depth is None or masks_from_model else None
-        arm = handling_arm(data, T_start[:3, 3].double().numpy())
+        track, width, held_by = object_carrier(data, T_start[:3, 3].double().numpy())
         if len(data.arm_names) > 1:
-            log.info("object %s: handled by arm %s", obj.name, arm)
-        alignment = align_object(data, obj.label, T_start.numpy(), arm, moves=obj.moves, tau=tau, model=model,
+            log.info("object %s: handled by arm %s", obj.name,
+                     ", then ".join(f"{h.arm} (from frame {h.start})" if h.start else h.arm for h in held_by))
+        alignment = align_object(data, obj.label, T_start.numpy(), track, width, moves=obj.moves, tau=tau, model=model,
                                  masks_from_model=masks_from_model,
                                  model_points=gaussians.params["means"].detach().double().cpu().numpy(),
                                  observe=frozenset(plan.test_frames))
@@ -96,19 +105,29 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
     for g in [*links.values(), *objects.values()]:
         g.scene_scale = background.scene_scale
     graph = SceneGraph(background, links, list(data.robot.link_names), objects)
-    rec = Reconstruction(data, plan, graph, trajectories, config)
+    for name, view in (views or {}).items():
+        if view.masks is None:
+            labels = {label: obj for label, obj in data.labels.objects.items()}
+            drawn = [data.labels.robot[v] for v in sorted(data.labels.robot) if data.robot.visuals.get(data.labels.robot[v])]
+            draw_view_masks(view, drawn,
+                            {obj: (label, objects[obj], alignments[obj].pseudo.poses) for label, obj in labels.items()
+                             if obj in objects}, data.label_names, progress=progress)
+            log.info("camera %s: masks drawn (robot at each frame's FK, objects at their pseudo poses)", name)
+    rec = Reconstruction(data, plan, graph, trajectories, config, views=views)
     rec.extrinsic = correction
     return rec, alignments
 
 
-def align_object(data: EpisodeData, label: int, T_start: np.ndarray, arm: str, *, moves: bool,
+def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.ndarray, width: np.ndarray, *,
+                 moves: bool,
                  tau: float = DEFAULT_TAU, model: ObjectView | None = None,
                  masks_from_model: bool = False, model_points: np.ndarray | None = None,
                  settings: TrackerSettings = TrackerSettings(),
                  observe: frozenset[int] = frozenset(), rest_from_depth: bool = True,
                  slip_from_depth: bool = True) -> ObjectAlignment:
     """Phases, hybrid pseudo poses and (for moving objects) the tracking-only baseline, with the
-    TCP and gripper of ``arm`` (the one that handles the object).
+    tool track that handles the object: ``tcp`` [T, 4, 4] T_base_tcp and the gripper ``width`` [T] m
+    (one arm's, or :func:`~manisplat.reconstruct.masks.object_carrier`'s through handovers).
 
     ``model`` stands in for the depth (monocular) and, with ``masks_from_model``, for the masks
     of frames after the first. ``model_points`` [M, 3] (object frame) enable the grasp's
@@ -120,8 +139,6 @@ def align_object(data: EpisodeData, label: int, T_start: np.ndarray, arm: str, *
     (:func:`~manisplat.align.pseudo_gt.settle_at_rest`); with it and ``slip_from_depth``, a held one
     follows its slip in the hand (:func:`~manisplat.align.pseudo_gt.follow_slip`).
     """
-    tcp = data.arm_tcp(arm).double().cpu().numpy()
-    width = data.arm_gripper(arm).double().cpu().numpy()
     events = gripper_events(width)
     segments = segment_phases(tcp[:, :3, 3], width, T_start[:3, 3], tau=tau)
     if not moves:

@@ -1,6 +1,7 @@
 """Joint optimisation of the scene graph, the object poses and the light (the ManiSplat loss,
-:mod:`manisplat.reconstruct.loss`). Each iteration renders one training frame, drawn from the
-plan's distinct states. Every node densifies with its own strategy state.
+:mod:`manisplat.reconstruct.loss`). Each iteration renders one training frame of one camera,
+drawn from the plan's distinct states of every camera (one image an iteration, whatever the
+number of cameras). Every node densifies with its own strategy state.
 """
 
 from __future__ import annotations
@@ -43,7 +44,11 @@ class TrainingDiverged(FloatingPointError):
 
 
 class Reconstruction:
-    """The trainable twin of one episode: scene graph, object trajectories, light, camera.
+    """The trainable twin of one episode: scene graph, object trajectories, light, cameras.
+
+    ``data`` is the reference camera's view of the episode (fixed: it anchors the scene, its
+    extrinsic may be refined); ``views`` the other cameras' (e.g. wrist cameras riding on link6),
+    each with its own images, masks, exposure and per-frame pose, trained at once.
 
     Everything it trains and reads in the iteration lives on ``config.device`` (resolved by
     :func:`~manisplat.reconstruct.config.resolve_device`): the episode's tensors (moved after
@@ -55,11 +60,15 @@ class Reconstruction:
     """
 
     def __init__(self, data: EpisodeData, plan: Plan, graph: SceneGraph, trajectories: dict[str, ObjectTrajectory],
-                 config: TrainConfig) -> None:
+                 config: TrainConfig, views: dict[str, EpisodeData] | None = None) -> None:
         self.device = torch.device(resolve_device(config.device, config.backend))
         #: the torch.compile mode of the iteration's tensor functions, None: eager (:mod:`manisplat.compilation`)
         self.compiled = resolve_compile(config.compile, self.device.type, config.iters)
         self.data, self.plan, self.graph, self.trajectories, self.config = data.to(self.device), plan, graph, trajectories, config
+        #: camera name -> its view of the episode, the reference camera (``data``) first
+        self.views = {data.camera_name: self.data, **{name: v.to(self.device) for name, v in (views or {}).items()}}
+        if len(self.views) != 1 + len(views or {}):
+            raise ValueError(f"camera {data.camera_name} is both the reference and another view")
         self.graph.to(self.device)
         for t in trajectories.values():
             t.to(self.device)
@@ -67,7 +76,9 @@ class Reconstruction:
         self.camera_delta = torch.nn.Parameter(torch.zeros(6, dtype=torch.float64, device=self.device))
         # colour behind everything (sky, depth holes): learned, starts mid-grey
         self.background_logit = torch.nn.Parameter(torch.zeros(3, device=self.device))
-        self.exposure = FrameExposure(data.n_frames, plan.train_frames, self.device) if config.exposure else None
+        #: camera name -> its per-frame exposure gains (None without ``config.exposure``)
+        self.exposures = ({name: FrameExposure(v.n_frames, plan.train_frames, self.device) for name, v in self.views.items()}
+                          if config.exposure else None)
         #: what the robot's depth said about the camera extrinsic (set by the pipeline; None: not checked)
         self.extrinsic: ExtrinsicCorrection | None = None
         self.scene_scale = graph.background.scene_scale if graph.background is not None else 1.0
@@ -83,11 +94,9 @@ class Reconstruction:
             node.gaussians.strategy_state = self.strategies[node.name].initialize_state(self.scene_scale)
         self.optimizer = self._make_optimizer()
         self.pose_optimizer = TwistAdam(trajectories)
-        dynamic = torch.tensor(sorted(set(data.labels.robot) | set(data.labels.objects)), dtype=torch.uint8)
-        # [T, H, W] bool: the dynamic pixels of every frame, computed once (no label look-ups per iteration)
-        self._dynamic_masks = (torch.isin(self.data.masks, dynamic.to(self.device))
-                               if self.data.masks is not None else None)
-        self._valid = self.data.valid.float() if self.data.valid is not None else None
+        # per camera, [T, H, W] bool: the dynamic pixels of every frame, computed once (no label look-ups per iteration)
+        self._dynamic_masks = {name: _dynamic_pixels(v) for name, v in self.views.items()}
+        self._valid = {name: v.valid.float() if v.valid is not None else None for name, v in self.views.items()}
         self._rng = random.Random(config.seed)
         torch.manual_seed(config.seed)
         self._loss_average: torch.Tensor | None = None  # running mean of the loss, on the device
@@ -121,6 +130,15 @@ class Reconstruction:
         return optimizer
 
     @property
+    def exposure(self) -> FrameExposure | None:
+        """The reference camera's per-frame exposure gains (None without ``config.exposure``)."""
+        return None if self.exposures is None else self.exposures[self.data.camera_name]
+
+    def view(self, camera: str | None) -> EpisodeData:
+        """The view of ``camera`` (None: the reference camera)."""
+        return self.data if camera is None else self.views[camera]
+
+    @property
     def light_optimizer(self) -> torch.optim.Optimizer | None:
         """The optimizer that updates the light (the shared one), or None before shadows start."""
         names = {g["name"] for g in self.optimizer.param_groups}
@@ -145,50 +163,65 @@ class Reconstruction:
             return V
         return (se3_exp(self.camera_delta) @ V.double()).float()
 
-    def render(self, frame: int, evaluation: dict[str, np.ndarray] | None = None):
-        """(image [H, W, 3], alpha [H, W], dynamic alpha [H, W], meta, composed) at ``frame``, the
-        image in the frame's exposure and white balance (with ``exposure``)."""
-        image, *rest = self._render_scene(frame, evaluation)
-        if self.exposure is not None:
-            image = image * self.exposure.gains_of(frame)
+    def render(self, frame: int, evaluation: dict[str, np.ndarray] | None = None, camera: str | None = None):
+        """(image [H, W, 3], alpha [H, W], dynamic alpha [H, W], meta, composed) at ``frame`` seen by
+        ``camera`` (None: the reference camera), the image in the frame's exposure and white
+        balance (with ``exposure``)."""
+        image, *rest = self._render_scene(frame, evaluation, camera)
+        if self.exposures is not None:
+            image = image * self.exposures[self.view(camera).camera_name].gains_of(frame)
         return (image, *rest)
 
-    def _render_scene(self, frame: int, evaluation: dict[str, np.ndarray] | None = None):
-        """:meth:`render_state` at ``frame``'s recorded state: the scene without the frame's exposure."""
-        return self.render_state(self.data.link_poses[frame], self.object_poses(frame, evaluation),
-                                 self.data.link_quats[frame])
+    def _render_scene(self, frame: int, evaluation: dict[str, np.ndarray] | None = None, camera: str | None = None):
+        """:meth:`render_state` at ``frame``'s recorded state (as ``camera`` saw it, at its own
+        time): the scene without the frame's exposure."""
+        view = self.view(camera)
+        viewmat = None if camera is None or camera == self.data.camera_name else view.view_at(frame)
+        return self.render_state(view.link_poses[frame], self.object_poses(frame, evaluation), view.link_quats[frame],
+                                 camera=camera, viewmat=viewmat)
 
     def render_state(self, link_poses: torch.Tensor, object_poses: dict[str, torch.Tensor],
-                     link_quats: torch.Tensor | None = None):
+                     link_quats: torch.Tensor | None = None, *, camera: str | None = None,
+                     viewmat: torch.Tensor | None = None):
         """The twin in any state: link poses [L, 4, 4] (``T_base_link``, FK order, e.g. FK of new
-        joint angles) and object poses name -> [4, 4] ``T_base_obj``, seen from the episode's camera.
+        joint angles) and object poses name -> [4, 4] ``T_base_obj``, seen by ``camera`` (None: the
+        reference camera, with its refinement) from ``viewmat`` [4, 4] (None: the reference
+        camera's; a riding camera's pose depends on the state: pass it).
 
         Returns (image [H, W, 3], alpha [H, W], dynamic alpha [H, W], meta, composed); ``meta``
         holds ``group_alphas`` [1, H, W, groups] (0 background, 1 robot, 2 + k object k).
         """
-        W, H = self.data.size
+        data = self.view(camera)
+        if viewmat is None and data is not self.data:
+            raise ValueError(f"camera {camera} is not the reference camera: pass its viewmat")
+        W, H = data.size
         link_poses = link_poses.to(self.device)
         link_quats = None if link_quats is None else link_quats.to(self.device)
         object_poses = {k: v.to(self.device) for k, v in object_poses.items()}
-        view = render_graph(self.graph, link_poses, object_poses, viewmat=self.viewmat(), K=self.data.K, width=W,
+        viewmat = self.viewmat() if viewmat is None else viewmat.to(self.device)
+        view = render_graph(self.graph, link_poses, object_poses, viewmat=viewmat, K=data.K, width=W,
                             height=H, background=torch.sigmoid(self.background_logit), backend=self.config.backend,
                             link_quats=link_quats)
         dynamic = view.group_alphas[..., ROBOT:].sum(-1)
         return view.rgb, view.alpha, dynamic, view.meta, view.composed
 
     # ------------------------------------------------------------------ losses
-    def losses(self, frame: int) -> tuple[torch.Tensor, dict, object]:
-        """(the loss [] of training frame ``frame``, the rasterizer's meta, the composed union);
-        the frame's exposure gains are fitted and kept on the way (:func:`frame_loss`)."""
+    def losses(self, frame: int, camera: str | None = None) -> tuple[torch.Tensor, dict, object]:
+        """(the loss [] of training frame ``frame`` of ``camera`` (None: the reference camera), the
+        rasterizer's meta, the composed union); the frame's exposure gains are fitted and kept on the
+        way (:func:`frame_loss`)."""
         c = self.config
-        image, _, dynamic_alpha, meta, composed = self._render_scene(frame)
-        dynamic = self._dynamic_masks[frame] if self._dynamic_masks is not None else None
-        exposure = self.exposure.fit_inputs(frame) if self.exposure is not None else None
+        view = self.view(camera)
+        name = view.camera_name
+        image, _, dynamic_alpha, meta, composed = self._render_scene(frame, camera=camera)
+        masks = self._dynamic_masks[name]
+        dynamic = masks[frame] if masks is not None else None
+        exposure = self.exposures[name].fit_inputs(frame) if self.exposures is not None else None
         twists = [t.twist(frame) for t in self.trajectories.values()]
-        loss, gains = frame_loss(image, dynamic_alpha, self.data.rgb[frame], dynamic, self._valid, exposure, twists,
+        loss, gains = frame_loss(image, dynamic_alpha, view.rgb[frame], dynamic, self._valid[name], exposure, twists,
                                  (c.ssim_weight, c.lambda_app, c.lambda_mask, c.lambda_pose))
         if gains is not None:
-            self.exposure.keep(frame, gains)
+            self.exposures[name].keep(frame, gains)
         return loss, meta, composed
 
     # ------------------------------------------------------------------ training
@@ -224,13 +257,16 @@ class Reconstruction:
         if self.exposure is not None and self.step >= c.iters:
             self.refit_exposure()
 
-    def _train_states(self) -> list[int]:
-        """The frames an iteration draws from: one per distinct state, else every training frame."""
-        return self.plan.distinct_train_states or self.plan.train_frames
+    def _train_states(self) -> list[tuple[str | None, int]]:
+        """The (camera, frame) pairs an iteration draws from: every camera's distinct states, else
+        every training frame (None: the reference camera)."""
+        frames = self.plan.distinct_train_states or self.plan.train_frames
+        cameras = [None, *(name for name in self.views if name != self.data.camera_name)]
+        return [(camera, f) for camera in cameras for f in frames]
 
-    def _iteration(self, states: list[int]) -> None:
-        """One training iteration on a frame drawn from ``states`` (the light is searched first,
-        eagerly, when its start is reached)."""
+    def _iteration(self, states: list[tuple[str | None, int]]) -> None:
+        """One training iteration on a (camera, frame) drawn from ``states`` (the light is searched
+        first, eagerly, when its start is reached)."""
         c = self.config
         if c.shadows and self.graph.shadows is None and self.step >= c.shadow_start and self.data.masks is not None:
             with compilation(None):
@@ -238,9 +274,9 @@ class Reconstruction:
         degree = min(c.sh_degree, self.step // max(c.sh_every, 1))
         for node in self.graph.nodes():
             node.gaussians.active_degree = min(degree, node.gaussians.sh_degree)
-        frame = self._rng.choice(states)
+        camera, frame = self._rng.choice(states)
         with value_checks(False):
-            loss, meta, composed = self.losses(frame)
+            loss, meta, composed = self.losses(frame, camera)
             self._before_backward(meta)
             loss.backward()
             self._step_and_densify(frame, meta, composed)
@@ -306,17 +342,20 @@ class Reconstruction:
         """Fit every training frame's exposure gains again on the twin as it is now. During
         training each frame's gains were fitted whenever it was drawn, against the render of that
         moment; a held-out frame's gains, interpolated between two of them, would carry their
-        difference (2 % frame to frame on the clean shared pick-and-place)."""
-        for frame in self.plan.train_frames:
-            image = self._render_scene(frame)[0]
-            self.exposure.fit(frame, image, self.data.image(frame), self._static_region(frame))
+        difference (2 % frame to frame on the clean shared pick-and-place). Every camera's."""
+        for name, view in self.views.items():
+            camera = None if view is self.data else name
+            for frame in self.plan.train_frames:
+                image = self._render_scene(frame, camera=camera)[0]
+                self.exposures[name].fit(frame, image, view.image(frame), self._static_region(frame, name))
 
-    def _static_region(self, frame: int) -> torch.Tensor | None:
-        """[H, W] float 0/1: the frame's pixels that are neither robot nor object and that the
-        recording covers (None: every pixel)."""
-        static = None if self._dynamic_masks is None else 1 - self._dynamic_masks[frame].float()
-        if self._valid is not None:
-            static = self._valid if static is None else static * self._valid
+    def _static_region(self, frame: int, camera: str) -> torch.Tensor | None:
+        """[H, W] float 0/1: the pixels of ``camera``'s frame that are neither robot nor object and
+        that the recording covers (None: every pixel)."""
+        masks, valid = self._dynamic_masks[camera], self._valid[camera]
+        static = None if masks is None else 1 - masks[frame].float()
+        if valid is not None:
+            static = valid if static is None else static * valid
         return static
 
     @torch.no_grad()
@@ -387,6 +426,8 @@ class Reconstruction:
             "trajectories": {k: t.state_dict() for k, t in self.trajectories.items()},
             "camera_delta": self.camera_delta.detach(), "background": self.background_logit.detach(),
             "exposure": self.exposure.fitted.clone() if self.exposure is not None else None,
+            "view_exposures": {name: e.fitted.clone() for name, e in (self.exposures or {}).items()
+                               if name != self.data.camera_name},
             "shadows": self.graph.shadows.state_dict() if self.graph.shadows is not None else None,
             "shadow_geometry": (self.graph.shadows.extent, self.graph.shadows.resolution) if self.graph.shadows else None,
             "rng": self._rng.getstate(), "torch_rng": torch.get_rng_state(),
@@ -422,6 +463,11 @@ class Reconstruction:
                     raise ValueError("the checkpoint has no per-frame exposure (it was trained without it); "
                                      "resume with the same settings, or start a new run (--overwrite)")
                 self.exposure.fitted.copy_(state["exposure"])
+                for name, fitted in state.get("view_exposures", {}).items():
+                    if name not in self.exposures:
+                        raise ValueError(f"the checkpoint was trained with camera {name}, this run has not it; "
+                                         "resume with the same cameras, or start a new run (--overwrite)")
+                    self.exposures[name].fitted.copy_(fitted)
         self.graph.shadows = None
         if state["shadows"] is not None:
             extent, resolution = state["shadow_geometry"]
@@ -470,6 +516,14 @@ def _progress_fields(mean_loss: float, held_out_psnr: float, gaussians: int) -> 
         fields["held-out PSNR"] = f"{held_out_psnr:.2f} dB"
     fields["gaussians"] = gaussians
     return fields
+
+
+def _dynamic_pixels(view: EpisodeData) -> torch.Tensor | None:
+    """[T, H, W] bool: the robot's and the objects' pixels of every frame of ``view`` (None without masks)."""
+    if view.masks is None:
+        return None
+    dynamic = torch.tensor(sorted(set(view.labels.robot) | set(view.labels.objects)), dtype=torch.uint8)
+    return torch.isin(view.masks, dynamic.to(view.masks.device))
 
 
 def _replace_node(graph: SceneGraph, name: str, g: GaussianSet) -> None:

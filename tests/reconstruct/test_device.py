@@ -57,7 +57,7 @@ def tensors_of(rec) -> dict[str, torch.Tensor]:
         out[f"pose_adam.{name}.exp_avg"] = rec.pose_optimizer.exp_avg[name]
         out[f"pose_adam.{name}.exp_avg_sq"] = rec.pose_optimizer.exp_avg_sq[name]
     out["background"], out["camera"] = rec.background_logit, rec.camera_delta
-    out["dynamic_masks"] = rec._dynamic_masks
+    out.update({f"dynamic_masks.{name}": m for name, m in rec._dynamic_masks.items() if m is not None})
     return out
 
 
