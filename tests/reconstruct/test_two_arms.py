@@ -8,14 +8,13 @@ import json
 
 import numpy as np
 import pytest
-
 import torch
 
 from manisplat.episode import Episode
 from manisplat.episode.synthetic_arms import write_two_arm_sample_episode
-from manisplat.reconstruct.cli import main
+from manisplat.reconstruct.cli import _cameras, main
 from manisplat.reconstruct.config import TrainConfig
-from manisplat.reconstruct.data import load_episode_data
+from manisplat.reconstruct.data import ReconstructionInputError, load_episode_data
 from manisplat.reconstruct.masks import ObjectPrompt, complete_masks
 from manisplat.reconstruct.pipeline import build
 from manisplat.reconstruct.plan import make_plan
@@ -82,11 +81,12 @@ def test_both_arms_are_drawn_and_every_camera_is_scored(two_arms):
     assert not (out / "twin.json").exists()  # a twin holds one arm so far: not written rather than wrong
 
 
-def test_the_head_camera_alone_trains_only_on_its_images(wrist_episode, tmp_path):
-    out = tmp_path / "head"
-    assert main([str(wrist_episode), "--out", str(out), "--no-masks", "--iters", "2", "-q", "--cameras", "cam_high",
-                 *prompts_of(wrist_episode)]) == 0
-    assert "cameras" not in json.loads((out / "metrics.json").read_text())
+def test_the_cameras_trained_are_those_named_and_the_fixed_one_seeds_the_scene(wrist_episode):
+    assert _cameras(wrist_episode, None) == ("cam_high", ["cam_left_wrist", "cam_right_wrist"])
+    assert _cameras(wrist_episode, ["cam_left_wrist", "cam_high"]) == ("cam_high", ["cam_left_wrist"])
+    assert _cameras(wrist_episode, ["cam_high"]) == ("cam_high", [])
+    with pytest.raises(ReconstructionInputError, match="no camera cam_low"):
+        _cameras(wrist_episode, ["cam_high", "cam_low"])
 
 
 def test_a_wrist_camera_is_posed_at_each_frame_by_forward_kinematics(wrist_episode):
