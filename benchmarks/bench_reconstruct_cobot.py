@@ -1,0 +1,131 @@
+"""Issue 33, items 1-2: a two-arm, three-camera Cobot Magic recording reconstructed with every
+camera, and with the head camera alone. Each shared sample (``cobot_dual_small``,
+``cobot_handover_small``) is imported as the user does (``manisplat-episode import-act --calib``),
+the manipulated objects are prompted by one pixel each in the head camera's first frame (the
+projection of their start, as a click would give it), and ``manisplat-reconstruct --no-masks``
+runs twice, ``--cameras cam_high,cam_left_wrist,cam_right_wrist`` and ``--cameras cam_high``: both
+arms drawn and driven in the world frame, objects segmented from depth in the head camera and
+followed, each aligned with the arm that handles it; the wrist cameras posed by forward kinematics
+at every frame, their masks drawn. Scored against the simulator's ground truth, which only this
+benchmark reads: held-out PSNR / SSIM per camera and region (the simulator's masks), object pose
+errors in the world frame (fitted and start-anchored), wall time and time per iteration.
+
+``python -m benchmarks reconstruct_cobot [--samples cobot_dual_small,...] [--iters 3000] [--out FILE]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from benchmarks._harness import BENCH_DIR, shared_dir
+from manisplat.episode.cli import main as episode_main
+from manisplat.episode.groundtruth import write_gt
+from manisplat.reconstruct.cli import main as reconstruct_main
+
+OWN_OPTIONS = True
+HEAD = "cam_high"
+CAMERAS = ("cam_high", "cam_left_wrist", "cam_right_wrist")
+SAMPLES = ("cobot_dual_small", "cobot_handover_small")
+SETTINGS = {"all cameras": CAMERAS, "head camera alone": (HEAD,)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m benchmarks reconstruct_cobot", description=__doc__.splitlines()[0])
+    p.add_argument("--samples", default=",".join(SAMPLES), help=f"shared samples (default {','.join(SAMPLES)})")
+    p.add_argument("--iters", type=int, default=3000, help="training iterations (default 3000, the CPU default)")
+    p.add_argument("--out", type=Path, default=BENCH_DIR / "results_reconstruct" / "reconstruct_cobot.json")
+    args = p.parse_args(argv)
+    shared = shared_dir()
+    rows = []
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        for sample in args.samples.split(","):
+            source = shared / "data" / sample
+            episode = Path(tmp) / sample
+            if episode_main(["import-act", str(source / "episode_0.hdf5"), "--calib",
+                             str(source / "episode_0.calib.json"), "--out", str(episode)]) != 0:
+                raise RuntimeError(f"{sample}: import failed")
+            prompts = add_ground_truth(episode, source)
+            for setting, cameras in SETTINGS.items():
+                out = Path(tmp) / f"{sample}_{len(cameras)}"
+                rows.append(reconstruct(episode, out, cameras, prompts, args.iters) | {"sample": sample, "setting": setting})
+                print(json.dumps(rows[-1], default=float), flush=True)
+    result = {"benchmark": "reconstruct_cobot",
+              "command": "python -m benchmarks reconstruct_cobot " + " ".join(argv if argv is not None else sys.argv[1:]),
+              "threads": "torch's default (the machine's cores)", "rows": rows,
+              "wall_s": round(time.perf_counter() - t0, 1)}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=1, default=float) + "\n")
+    return 0
+
+
+def reconstruct(episode: Path, out: Path, cameras: tuple[str, ...], prompts: dict[str, tuple[float, float]],
+                iters: int) -> dict:
+    """One timed ``manisplat-reconstruct`` run and its figures."""
+    logging.disable(logging.WARNING)
+    start = time.perf_counter()
+    try:
+        code = reconstruct_main([str(episode), "--out", str(out), "--cameras", ",".join(cameras), "--no-masks",
+                                 "--quiet", "--iters", str(iters)]
+                                + [a for name, (u, v) in prompts.items() for a in ("--object-point", f"{name}={u:.0f},{v:.0f}")])
+    finally:
+        logging.disable(logging.NOTSET)
+    wall = time.perf_counter() - start
+    if code != 0:
+        raise RuntimeError(f"{episode.name}: manisplat-reconstruct exited {code}")
+    metrics = json.loads((out / "metrics.json").read_text())
+    return {"cameras": list(cameras), "iters": iters, "wall_s": round(wall, 1), "ms_per_iter": metrics.get("ms_per_iter"),
+            "prompts": {k: [round(u), round(v)] for k, (u, v) in prompts.items()},
+            "per_camera": {name: {"psnr": m["psnr"], "ssim": m["ssim"]}
+                           for name, m in metrics.get("cameras", {HEAD: metrics}).items()},
+            "pose": metrics.get("pose"), "pose_anchored": metrics.get("pose_anchored"),
+            "pose_pseudo": metrics.get("pose_pseudo"), "camera_check": metrics.get("camera")}
+
+
+def add_ground_truth(episode: Path, source: Path) -> dict[str, tuple[float, float]]:
+    """Put the simulator's truth where evaluation reads it (``gt.npz``: ``T_world_<object>`` of the
+    manipulated objects; every camera's masks and the labels, which ``--no-masks`` keeps for scoring
+    only) and return each manipulated object's prompt: its start projected into the head camera's
+    first frame."""
+    objects = json.loads((source / "episode_0.objects.json").read_text())["objects"]
+    manipulated = [name for name, o in objects.items() if o["role"] == "manipulated"]
+    gt = np.load(source / "episode_0.gt.npz")
+    write_gt(episode / "gt.npz", {"t": gt["t"], **{f"T_world_{name}": gt[f"T_world_{name}"] for name in manipulated}},
+             compressed=True)
+    for camera in CAMERAS:
+        masks = episode / "masks" / camera
+        masks.mkdir(parents=True)
+        for i, image in enumerate(gt[f"masks_{camera}"]):
+            cv2.imwrite(str(masks / f"{i:06d}.png"), image)
+    meta_path = episode / "episode.json"
+    meta = json.loads(meta_path.read_text())
+    meta["labels"] = {str(v): _label(name) for v, name in enumerate(gt["label_names"].tolist())}
+    meta["objects"] = manipulated
+    meta_path.write_text(json.dumps(meta, indent=1) + "\n")
+    camera = meta["cameras"][HEAD]
+    K, T_cam_world = np.asarray(camera["K"]), np.linalg.inv(np.asarray(camera["T_mount_cam"]))
+    prompts = {}
+    for name in manipulated:
+        x = T_cam_world[:3, :3] @ np.asarray(objects[name]["T_start"])[:3, 3] + T_cam_world[:3, 3]
+        u, v, w = K @ x
+        prompts[name] = (u / w, v / w)
+    return prompts
+
+
+def _label(name: str) -> str:
+    """The simulator's label name as an episode's: what rides on an arm is ``robot/<arm>/<part>``."""
+    arm, _, link = name.partition("/")
+    return f"robot/{name}" if arm in ("left", "right") and link else name  # links and the wrist cameras
+
+
+if __name__ == "__main__":
+    sys.exit(main())
