@@ -70,6 +70,7 @@ def whole_rows(frames_csv: Path) -> list[str]:
 
 
 def wait_for_whole_rows(frames_csv: Path, rows: int, proc: subprocess.Popen, timeout: float = 120.0) -> None:
+    """Wait until the CSV file has ``rows`` whole rows (the recorder still running)."""
     deadline = time.monotonic() + timeout
     while len(whole_rows(frames_csv)) < rows:
         if proc.poll() is not None:
@@ -87,6 +88,8 @@ def test_two_arms_three_cameras_killed_with_sigkill_are_recovered_with_every_wri
     episode = out / "episode_0000"
     try:
         wait_for_whole_rows(episode / "frames.csv", 40, proc)  # past the first fsync (30 rows)
+        for arm in ARMS:  # and each arm's joint stream begun (its writer may lag on a loaded machine)
+            wait_for_whole_rows(episode / f"joints_{arm}.csv", 1, proc)
     finally:
         proc.kill()
         proc.communicate(timeout=60)
