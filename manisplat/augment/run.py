@@ -114,6 +114,10 @@ def _load_twin(recon: Path) -> Twin:
         twin = Twin.load(recon)
     except (TwinFormatError, FileNotFoundError) as exc:
         raise AugmentError(f"{exc} (run {reconstruct_command(recon)} first)") from exc
+    if len(twin.arms) > 1 or len(twin.cameras) > 1:
+        raise AugmentError(f"{recon}: a twin of arms {', '.join(twin.arm_names)} and cameras "
+                           f"{', '.join(twin.cameras)}: augmentation re-plans one arm seen by one camera; several arms or "
+                           "cameras are not supported yet")
     if not twin.objects:
         raise AugmentError(f"{recon}: the reconstruction has no manipulated object to move")
     for name in twin.objects:

@@ -16,9 +16,10 @@ from manisplat.episode import CameraInfo, Episode
 from manisplat.episode.format import V1_ARM, WORLD_MOUNT
 from manisplat.geometry import matrix_to_quat
 from manisplat.reconstruct.lens import undistortion_for
-from manisplat.robot import BUILTIN_NAME, RobotModel, load_robot
+from manisplat.robot import RobotModel, load_robot
 from manisplat.robot.arms import ArmSet
 from manisplat.splat import opencv_to_splat_K
+from manisplat.twin.rig import TwinArm, one_arm
 from manisplat.twin.twin import resolve_description
 
 log = logging.getLogger(__name__)
@@ -97,10 +98,11 @@ class EpisodeData:
         mount: where the camera is: ``"base"`` / ``"world"`` (fixed), or the link it rides on, as
             the robot names it (``"link6"``, ``"left/link6"``); T_mount_cam: [4, 4] float64 the
             camera in that link's frame (None for a fixed camera).
-        robot_description: the robot description used, independent of the episode folder (a
-            built-in name, or an absolute URDF path).
+        arms: each arm's robot description (independent of the episode folder: a built-in name or
+            an absolute URDF path), model, joint names and base, in the order of ``q``
+            (:class:`~manisplat.twin.rig.TwinArm`; one arm at the identity for version 1).
         label_names: mask value -> name of ``masks`` (the episode's ``labels``, or the drawn ones).
-        fps, robot_info (``robot.model``, ``robot.joint_names``), camera_name, task: the episode's.
+        fps, camera_name, task: the episode's.
         mask_source: where ``masks`` came from ("episode", or what :mod:`manisplat.reconstruct.masks` drew).
         eval_masks, eval_labels: the episode's own masks and labels when reconstruction ignores
             them (region metrics still use them).
@@ -132,10 +134,9 @@ class EpisodeData:
     tcp: torch.Tensor
     labels: Labels
     objects: list[str]
-    robot_description: str = BUILTIN_NAME
+    arms: tuple[TwinArm, ...] = ()
     label_names: dict[int, str] = field(default_factory=dict)
     fps: float = 0.0
-    robot_info: dict = field(default_factory=dict)
     camera_name: str = "camera"
     task: str | None = None
     mask_source: str = "episode"
@@ -276,9 +277,9 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, camera: str
         if masks is not None:
             masks[i] = torch.from_numpy(label_image)
     if several:
-        model, t, q, gripper, stream, description = _arms_of(episode, robot, load_meshes, episode.camera_times(view))
-        robot_info = {"arms": {name: {"model": arm.model, "joint_names": list(arm.joint_names)}
-                               for name, arm in episode.arms.items()}}
+        model, t, q, gripper, stream = _arms_of(episode, robot, load_meshes, episode.camera_times(view))
+        arms = tuple(TwinArm(name, resolve_description(robot or arm.description, episode.path), arm.model,
+                             tuple(arm.joint_names), arm.T_world_base) for name, arm in episode.arms.items())
     else:
         description = robot or episode.meta.robot.description
         model = load_robot(description, base_dir=episode.path, load_meshes=load_meshes)
@@ -286,8 +287,8 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, camera: str
         t, q, gripper = frames.t, frames.q, frames.gripper
         joints = episode.joints()
         stream = None if joints is None else JointStream(joints.t, joints.q, joints.gripper)
-        description = resolve_description(description, episode.path)
-        robot_info = {"model": episode.meta.robot.model, "joint_names": list(episode.meta.robot.joint_names)}
+        arms = (one_arm(resolve_description(description, episode.path), episode.meta.robot.model,
+                        episode.meta.robot.joint_names),)
     q = torch.as_tensor(q, dtype=torch.float64)
     gripper = torch.as_tensor(gripper, dtype=torch.float64)
     link_poses = model.forward_kinematics(q, gripper).float()
@@ -312,8 +313,7 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, camera: str
         link_poses=link_poses, link_quats=matrix_to_quat(link_poses[..., :3, :3].double()).float(),
         tcp=_tcp_of(model, q).float(), labels=labels,
         objects=list(episode.meta.objects), eval_masks=eval_masks,
-        robot_description=description, fps=float(episode.meta.fps),
-        robot_info=robot_info, camera_name=cam.name, task=episode.meta.extra.get("task"),
+        arms=arms, fps=float(episode.meta.fps), camera_name=cam.name, task=episode.meta.extra.get("task"),
         label_names={} if eval_masks is not None else dict(episode.meta.labels),
         eval_labels=Labels.from_meta(episode.meta.labels, episode.meta.objects) if eval_masks is not None else None,
         valid=None if lens is None or lens.valid.all() else torch.from_numpy(lens.valid),
@@ -347,7 +347,7 @@ def _camera_of(episode: Episode, name: str | None) -> CameraInfo:
 
 
 def _arms_of(episode: Episode, robot: str | None, load_meshes: bool, camera_times: np.ndarray):
-    """(ArmSet, t [T], q [T, sum of dof], gripper [T, A], joint streams or None, description) of
+    """(ArmSet, t [T], q [T, sum of dof], gripper [T, A], joint streams or None) of
     an episode with several arms or cameras, seen by a camera whose frames were exposed at
     ``camera_times`` [T] s: where they are not the frames' times (a camera of a rig, stamped on its
     own), the joints are read at them, from the joint streams or between the frames."""
@@ -365,8 +365,6 @@ def _arms_of(episode: Episode, robot: str | None, load_meshes: bool, camera_time
     joints = {name: episode.joints(name) for name in episode.arms}
     stream = None if any(j is None for j in joints.values()) else \
         ArmStreams({name: JointStream(j.t, j.q, j.gripper) for name, j in joints.items()})
-    description = "; ".join(f"{name}: {resolve_description(robot or arm.description, episode.path)}"
-                            for name, arm in episode.arms.items())
     if np.abs(camera_times - t).max(initial=0.0) > 1e-9:
         if stream is not None:
             q, gripper = stream.at(camera_times)
@@ -374,7 +372,7 @@ def _arms_of(episode: Episode, robot: str | None, load_meshes: bool, camera_time
             q = np.stack([np.interp(camera_times, t, q[:, j]) for j in range(q.shape[1])], 1)
             gripper = np.stack([np.interp(camera_times, t, gripper[:, a]) for a in range(gripper.shape[1])], 1)
         t = camera_times
-    return ArmSet(models, bases), t, q, gripper, stream, description
+    return ArmSet(models, bases), t, q, gripper, stream
 
 
 def _place_riding_camera(data: EpisodeData, q: torch.Tensor, gripper: torch.Tensor) -> None:

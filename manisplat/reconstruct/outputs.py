@@ -1,6 +1,7 @@
 """What ``manisplat-reconstruct`` writes into its output folder.
 
-* ``twin.json`` + ``twin.pt``: the twin, loadable with :meth:`manisplat.twin.Twin.load`.
+* ``twin.json`` + ``twin.pt``: the twin, loadable with :meth:`manisplat.twin.Twin.load` (every
+  arm and every camera trained; :mod:`manisplat.twin.files`).
 * ``<node>.ply`` per node (background in the base frame, ``robot_<link>.ply`` in link frames,
   ``object_<name>.ply`` in the canonical object frame), 3DGS layout.
 * ``object_poses.csv`` per object: ``frame, t, source, T_base_obj`` (16 numbers, row-major).
@@ -18,7 +19,7 @@
   without shadows (``psnr_without_shadows``: a shadow in the wrong place scores below it), and
   their share of the image (``pixels``).
 * ``exposure.csv``: per frame, held out or not, the learned per-channel exposure gain.
-* ``camera_refined.json``: the camera as the reconstruction used it, in the
+* ``camera_refined.json`` (one arm): the camera as the reconstruction used it, in the
   ``manisplat-calibration`` format (``manisplat-calibrate apply camera_refined.json EPISODE``
   writes it back), with ``correction`` (deg, mm, 1-sigma, residuals) against the episode's.
 """
@@ -37,7 +38,7 @@ import numpy as np
 import torch
 
 from manisplat.align.phases import phase_of_frames
-from manisplat.reconstruct.data import load_ground_truth
+from manisplat.reconstruct.data import EpisodeData, load_ground_truth
 from manisplat.reconstruct.metrics import fit_constant_offset, pose_errors, psnr, ssim, start_anchored_errors
 from manisplat.reconstruct.pipeline import ObjectAlignment
 from manisplat.reconstruct.trainer import Reconstruction
@@ -45,6 +46,7 @@ from manisplat.render.sheets import labelled_sheet
 from manisplat.robot.arms import ArmSet
 from manisplat.splat import save_ply
 from manisplat.twin import Phase, Twin
+from manisplat.twin.rig import TwinCamera
 from manisplat.twin.support import SupportMap, support_map
 
 log = logging.getLogger(__name__)
@@ -80,12 +82,11 @@ def write_twin(rec: Reconstruction, alignments: dict[str, ObjectAlignment], out:
         _write_poses(out / (f"object_poses_{name}.csv" if len(evaluation) > 1 else "object_poses.csv"),
                      rec.data.t.cpu().numpy(), poses, alignments[name].pseudo.source)
     _write_phases(out / "phases.csv", rec.data.t.cpu().numpy(), alignments)
+    twin_of(rec, alignments).save(out)
     if isinstance(rec.data.robot, ArmSet):
-        log.warning("several arms: twin.json / twin.pt and camera_refined.json are not written (a twin, which "
-                    "augmentation and the viewer read, holds one arm and one camera so far); the PLYs, object "
-                    "poses and phases are")
+        log.info("several arms: camera_refined.json is not written (a calibration file holds one arm's camera); "
+                 "the head camera's extrinsic as trained is in twin.json")
     else:
-        twin_of(rec, alignments).save(out)
         (out / "camera_refined.json").write_text(json.dumps(camera_refined(rec), indent=1) + "\n")
     if rec.exposure is not None:
         _write_exposure(out / "exposure.csv", rec)
@@ -128,18 +129,30 @@ def camera_refined(rec: Reconstruction) -> dict:
 
 
 def twin_of(rec: Reconstruction, alignments: dict[str, ObjectAlignment]) -> Twin:
-    """The trained reconstruction as a :class:`~manisplat.twin.Twin` (evaluation poses per frame)."""
+    """The trained reconstruction as a :class:`~manisplat.twin.Twin` (evaluation poses per frame):
+    every arm, every camera trained (the reference first, with its extrinsic as trained)."""
     d = rec.data
     T_base_cam = np.linalg.inv(rec.viewmat().detach().double().cpu().numpy())
     return Twin(
         graph=rec.graph, background_rgb=torch.sigmoid(rec.background_logit.detach()), robot=d.robot,
-        robot_description=d.robot_description, K=d.K_opencv.cpu().numpy(), width=d.size[0], height=d.size[1],
-        T_base_cam=T_base_cam, labels=d.label_names, t=d.t.cpu().numpy(), q=d.q.cpu().numpy(), gripper=d.gripper.cpu().numpy(),
+        arms=list(d.arms), cameras=[_twin_camera(view, T_base_cam if name == d.camera_name else None)
+                                    for name, view in rec.views.items()],
+        labels=d.label_names, t=d.t.cpu().numpy(), q=d.q.cpu().numpy(), gripper=d.gripper.cpu().numpy(),
         object_poses=rec.evaluation_poses(), pose_sources={k: list(a.pseudo.source) for k, a in alignments.items()},
         phases={k: [Phase(s.kind, s.name, s.start, s.end) for s in a.segments] for k, a in alignments.items()},
-        fps=d.fps, episode=Path(d.path).name, backend=rec.config.backend, robot_info=d.robot_info,
-        camera_name=d.camera_name, task=d.task, support=measured_support(rec, T_base_cam),
+        fps=d.fps, episode=Path(d.path).name, backend=rec.config.backend, task=d.task,
+        support=measured_support(rec, T_base_cam),
     )
+
+
+def _twin_camera(view: EpisodeData, T_frame_cam: np.ndarray | None = None) -> TwinCamera:
+    """A camera's view as the twin keeps it: fixed (at ``T_frame_cam`` when given, the extrinsic as
+    trained) or riding on its link with ``T_mount_cam``."""
+    if view.riding:
+        return TwinCamera(view.camera_name, view.K_opencv.cpu().numpy(), *view.size, view.mount,
+                          view.T_mount_cam.double().cpu().numpy())
+    T = T_frame_cam if T_frame_cam is not None else np.linalg.inv(view.viewmat.double().cpu().numpy())
+    return TwinCamera(view.camera_name, view.K_opencv.cpu().numpy(), *view.size, view.frame, T)
 
 
 SUPPORT_FRAMES = 60  # training frames the support map's median is taken over (evenly spread)

@@ -98,11 +98,12 @@ class Viewer:
         self._object_frames: dict[str, Any] = {}
         self._splats: list[Any] = []
         if twin is not None:
-            graph, (arm_name,) = twin.graph, content.arms
+            graph = twin.graph
             if graph.background is not None:
                 self._splats.append(self._add_splats("/background", graph.background))
-            for name, gaussians in graph.links.items():
-                self._splats.append(self._add_splats(f"/arms/{arm_name}/{name}/gaussians", gaussians))
+            for name, gaussians in graph.links.items():  # "link1" of a one-arm twin, "left/link1" of several
+                arm_link = name if "/" in name else f"{next(iter(content.arms))}/{name}"
+                self._splats.append(self._add_splats(f"/arms/{arm_link}/gaussians", gaussians))
             for name, gaussians in graph.objects.items():
                 self._object_frames[name] = scene.add_frame(f"/objects/{name}", show_axes=False)
                 self._splats.append(self._add_splats(f"/objects/{name}/gaussians", gaussians))
@@ -232,14 +233,15 @@ class Viewer:
                 frame.wxyz, frame.position = _wxyz_xyz(objects[name])
             rendered = None
             if content.twin is not None and self._render_twin.value:
-                rendered = content.twin.render(demo.q[i], float(demo.gripper[i]), objects).rgb
+                rendered = content.twin_render(demo, i)
                 self._rendered.image = rendered
             for name, frustum in self._frustums.items():
                 frustum.wxyz, frustum.position = _wxyz_xyz(T_cams[name])
                 recorded = demo.episode.rgb(i, name) if demo.episode is not None else None
                 if recorded is not None:
                     self._recorded[name].image = recorded
-                shown = recorded if recorded is not None else rendered  # a twin has one camera: its own
+                twin_view = rendered if content.twin is not None and name == content.twin.camera_name else None
+                shown = recorded if recorded is not None else twin_view  # the twin renders its reference camera
                 if shown is not None:
                     frustum.image = shown
                 self._update_depth(name, demo, i, T_cams[name], recorded)

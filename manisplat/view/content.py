@@ -150,6 +150,12 @@ class ViewContent:
         return {name: demo.object_poses[name][i] if name in demo.object_poses else track[0]
                 for name, track in self.twin.object_poses.items()}
 
+    def twin_render(self, demo: Demo, i: int, T_base_cam: np.ndarray | None = None) -> np.ndarray:
+        """[H, W, 3] uint8: the twin at frame ``i`` of ``demo`` (every arm's joints, the objects of
+        :meth:`object_poses_at`) from its reference camera, or from ``T_base_cam`` [4, 4]."""
+        q, gripper = self.twin.joint_state({name: (track.q[i], track.gripper[i]) for name, track in demo.arms.items()})
+        return self.twin.render(q, gripper, self.object_poses_at(demo, i), T_base_cam=T_base_cam).rgb
+
     def link_poses(self, arm: str, demo: Demo, i: int | slice | np.ndarray) -> np.ndarray:
         """[..., L, 4, 4] ``T_base_link`` of ``arm``'s links (order ``robot.link_names``) at frame(s) ``i``."""
         import torch
@@ -239,10 +245,13 @@ def _load_episode(path: Path) -> ViewContent:
 
 
 def _twin_parts(twin: Any) -> tuple[dict[str, ViewArm], dict[str, ViewCamera]]:
-    """The twin's one arm (its base is the world) and its one camera."""
-    arm = ViewArm(V1_ARM, load_robot(twin.robot_description), np.eye(4))
-    camera = ViewCamera(twin.camera_name, twin.K, twin.width, twin.height, WORLD_MOUNT, twin.T_base_cam)
-    return {V1_ARM: arm}, {camera.name: camera}
+    """The twin's arms (a one-arm twin's base is the world) and cameras."""
+    arms = {arm.name: ViewArm(arm.name, load_robot(arm.description), arm.T_world_base) for arm in twin.arms}
+    one_arm = twin.frame == "base"
+    cameras = {cam.name: ViewCamera(cam.name, cam.K, cam.width, cam.height,
+                                    WORLD_MOUNT if cam.fixed else f"{V1_ARM}/{cam.mount}" if one_arm else cam.mount,
+                                    cam.T_mount_cam) for cam in twin.cameras.values()}
+    return arms, cameras
 
 
 def _find_episode(name: str, near: list[Path]) -> Path | None:
@@ -274,7 +283,8 @@ def _load_twin(path: Path, episode: Path | None) -> tuple[Any, Demo, list[str]]:
     else:
         notes.append(f"the source episode {twin.episode!r} was not found beside {path} or here: no recorded images "
                      "(pass --episode EP to show them)")
-    demo = Demo(name=twin.episode, t=twin.t, arms={V1_ARM: ArmTrack(twin.q, twin.gripper)},
+    demo = Demo(name=twin.episode, t=twin.t, arms={name: ArmTrack(q, gripper) for name, (q, gripper)
+                                                   in twin.arm_tracks().items()},
                 object_poses=twin.object_poses, episode=ep)
     return twin, demo, notes
 

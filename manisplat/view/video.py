@@ -77,11 +77,11 @@ def _frames(content: ViewContent, orbit_deg: float) -> Iterator[np.ndarray]:
                 image = demo.episode.rgb(i, cameras[0]) if len(cameras) == 1 else camera_sheet(demo, i, cameras)
             elif orbit_deg:
                 T = orbit_pose(twin.T_base_cam, target, np.deg2rad(orbit_deg) * shown / max(1, total - 1))
-                image = twin.render(demo.q[i], float(demo.gripper[i]), content.object_poses_at(demo, i), T_base_cam=T).rgb
+                image = content.twin_render(demo, i, T_base_cam=T)
             elif demo.episode is not None and demo.episode.meta.source == "augmentation":  # twin renders already
                 image = demo.episode.rgb(i)
             else:
-                image = twin.render(demo.q[i], float(demo.gripper[i]), content.object_poses_at(demo, i)).rgb
+                image = content.twin_render(demo, i)
                 if content.kind == "reconstruction" and demo.episode is not None:
                     image = labelled_sheet(np.concatenate([demo.episode.rgb(i), image], axis=1), SIDE_BY_SIDE,
                                            f"frame {i}  t = {demo.t[i]:.2f} s")

@@ -5,12 +5,16 @@ handles it, and the prompts' usage errors named."""
 from __future__ import annotations
 
 import json
+import socket
 
 import numpy as np
 import pytest
 import torch
+import viser
 
+from manisplat.augment.cli import main as augment
 from manisplat.episode import Episode
+from manisplat.exit_codes import ExitCode
 from manisplat.episode.synthetic_arms import write_two_arm_sample_episode
 from manisplat.reconstruct.cli import _cameras, main
 from manisplat.reconstruct.config import TrainConfig
@@ -18,6 +22,9 @@ from manisplat.reconstruct.data import ReconstructionInputError, load_episode_da
 from manisplat.reconstruct.masks import ObjectPrompt, complete_masks
 from manisplat.reconstruct.pipeline import build
 from manisplat.reconstruct.plan import make_plan
+from manisplat.twin import Twin
+from manisplat.view.app import Viewer
+from manisplat.view.content import load_content
 
 
 @pytest.mark.parametrize("prompts, message", [
@@ -78,7 +85,66 @@ def test_both_arms_are_drawn_and_every_camera_is_scored(two_arms):
         assert all(scores["psnr"][k] is not None for k in ("full", "robot", "object")), name
     assert metrics["psnr"] == cameras["cam_high"]["psnr"]  # the top-level figures are the head camera's
     assert sorted(p.name for p in (out / "renders" / "cam_left_wrist" / "sheets").iterdir())
-    assert not (out / "twin.json").exists()  # a twin holds one arm so far: not written rather than wrong
+
+
+def test_the_twin_keeps_both_arms_and_every_camera_where_they_were(two_arms, wrist_episode):
+    """twin.json + twin.pt of a two-arm, three-camera episode: each arm at its base, the head camera
+    fixed, each wrist camera riding on its arm's link6 (at the simulator's true pose per frame),
+    and each camera's render showing the robot where the episode's masks have it."""
+    out, _ = two_arms
+    twin = Twin.load(out)
+    episode = Episode.open(wrist_episode)
+    assert twin.frame == "world" and twin.arm_names == ("left", "right")
+    for arm in twin.arms:
+        np.testing.assert_array_equal(arm.T_world_base, episode.arms[arm.name].T_world_base)
+    assert list(twin.cameras) == ["cam_high", "cam_left_wrist", "cam_right_wrist"]
+    assert twin.reference.fixed and twin.cameras["cam_right_wrist"].mount == "right/link6"
+    gt = np.load(wrist_episode / "gt.npz")
+    robot_values = [v for v, name in episode.meta.labels.items() if name.startswith("robot/")]
+    for camera in twin.cameras:
+        for f in (5, 25):
+            links = twin.robot.forward_kinematics(torch.as_tensor(twin.q[f]), torch.as_tensor(twin.gripper[f]))
+            if camera != "cam_high":
+                np.testing.assert_allclose(twin.camera_pose(camera, links), gt[f"T_world_cam_{camera}"][f], atol=1e-4)
+            view = twin.render_frame(f, camera=camera)
+            truth = np.isin(episode.mask(f, camera), robot_values)
+            ours = np.isin(view.labels, robot_values)
+            assert view.rgb.shape == (*truth.shape, 3)
+            assert (truth & ours).sum() / (truth | ours).sum() > 0.6, (camera, f)
+
+
+def test_the_viewer_shows_a_two_arm_twin_with_its_wrist_cameras(two_arms):
+    out, _ = two_arms
+    content = load_content(out)
+    assert set(content.arms) == {"left", "right"}
+    assert {name: cam.mount for name, cam in content.cameras.items()} == {
+        "cam_high": "world", "cam_left_wrist": "left/link6", "cam_right_wrist": "right/link6"}
+    demo = content.demos[0]
+    twin = Twin.load(out)
+    np.testing.assert_array_equal(content.twin_render(demo, 7), twin.render_frame(7).rgb)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    server = viser.ViserServer(host="127.0.0.1", port=port, verbose=False)
+    viewer = Viewer(content, server)
+    try:
+        viewer.set_frame(7)
+        links = twin.robot.forward_kinematics(torch.as_tensor(twin.q[7]), torch.as_tensor(twin.gripper[7])).numpy()
+        for arm in ("left", "right"):  # each arm's link frames (in its base) carry that arm's Gaussians
+            handle = viewer._link_frames[arm]["link6"]
+            base = content.arms[arm].T_world_base
+            world = base[:3, :3] @ np.asarray(handle.position) + base[:3, 3]
+            np.testing.assert_allclose(world, links[twin.robot.link_names.index(f"{arm}/link6"), :3, 3], atol=1e-6)
+        assert len(viewer._splats) == len(list(twin.graph.nodes()))
+    finally:
+        viewer.close()
+        server.stop()
+
+
+def test_augmentation_refuses_a_two_arm_twin_by_name(two_arms, tmp_path, capsys):
+    out, _ = two_arms
+    assert augment([str(out), "--n", "1", "--out", str(tmp_path / "aug"), "-q"]) == ExitCode.BAD_INPUT
+    assert "arms left, right" in capsys.readouterr().err
 
 
 def test_the_cameras_trained_are_those_named_and_the_fixed_one_seeds_the_scene(wrist_episode):

@@ -3,6 +3,7 @@ as the trainer does, and new states (objects moved) where geometry says they are
 
 from __future__ import annotations
 
+import json
 import shutil
 
 import numpy as np
@@ -126,3 +127,27 @@ def test_the_support_map_travels_with_the_twin(trained):
     footprint = np.stack(np.meshgrid(a, a), -1).reshape(-1, 2) + centre
     assert abs(np.nanmedian(support.height_at(footprint))) < 0.003  # the table is the base's z = 0 plane
     assert support.edge_drop(footprint) < 0.0025
+
+
+def test_a_twin_written_in_version_1_still_loads_and_renders_the_same(trained, tmp_path):
+    """Twins written before several arms and cameras (version 1: ``robot`` and ``camera``
+    sections, one arm, a fixed camera ``T_base_cam``) load as the same twin."""
+    _, out, _ = trained
+    old = tmp_path / "old"
+    shutil.copytree(out, old)
+    meta = json.loads((old / "twin.json").read_text())
+    arm, camera = meta.pop("arms")[0], meta.pop("cameras")[0]
+    meta.update(version=1, robot={"description": arm["description"], "link_order": meta.pop("link_order"),
+                                  "model": arm["model"], "joint_names": arm["joint_names"]},
+                camera={"name": camera["name"], "width": camera["width"], "height": camera["height"],
+                        "K": camera["K"], "T_base_cam": camera["T_mount_cam"]})
+    del meta["frame"]
+    (old / "twin.json").write_text(json.dumps(meta))
+    before, after = Twin.load(out), Twin.load(old)
+    assert after.frame == "base" and after.arm_names == ("arm",) and after.camera_name == before.camera_name
+    np.testing.assert_array_equal(after.T_base_cam, before.T_base_cam)
+    np.testing.assert_array_equal(after.render_frame(9).rgb, before.render_frame(9).rgb)
+    meta["version"] = 3
+    (old / "twin.json").write_text(json.dumps(meta))
+    with pytest.raises(TwinFormatError, match="version 3"):
+        Twin.load(old)

@@ -1,0 +1,197 @@
+"""The twin as a self-contained folder, loadable without the source episode and without
+unpickling code.
+
+``twin.json`` (format ``manisplat-twin`` version 2) holds the description: the frame (``"base"``
+for one arm, ``"world"`` for several), the arms (robot description, model, joint names,
+``T_world_base``), the link order, the cameras (intrinsics, mount, ``T_mount_cam``; the reference
+camera first), labels, objects, phases, per-frame pose sources, node list, light. ``twin.pt``
+holds only tensors, read with ``torch.load(..., weights_only=True)``: every node's Gaussian
+parameters, the light, the background colour, the recorded trajectory (``t`` [T] s, ``q``
+[T, dof] rad, ``gripper`` [T] or [T, A] m, object poses ``T_<frame>_obj`` [T, 4, 4] float64)
+and, when the recording had depth, the support height map (:mod:`manisplat.twin.support`).
+Version 1 folders (one arm, one camera, written before 2026-11-27) still load.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+
+import torch
+
+from manisplat.episode.fsio import atomic_write_bytes
+from manisplat.robot import RobotModel, load_robot
+from manisplat.robot.arms import ArmSet
+from manisplat.scene import GaussianSet, SceneGraph
+from manisplat.scene.shadows import DirectionalShadows
+from manisplat.twin.rig import BASE_FRAME, TwinArm, TwinCamera, one_arm
+from manisplat.twin.support import SupportMap
+from manisplat.twin.twin import Phase, Twin, TwinFormatError
+
+TWIN_JSON, TWIN_TENSORS = "twin.json", "twin.pt"
+FORMAT, VERSION = "manisplat-twin", 2
+READABLE_VERSIONS = (1, 2)
+
+
+def save_twin(twin: Twin, folder: Path) -> None:
+    """Write ``twin.json`` and ``twin.pt`` into ``folder`` (each to a temporary name, then renamed)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    # host copies: a twin trained on a GPU loads anywhere with torch.load(..., weights_only=True)
+    tensors = {"background_rgb": twin.background_rgb.detach().cpu().clone(),
+               "t": torch.as_tensor(twin.t), "q": torch.as_tensor(twin.q), "gripper": torch.as_tensor(twin.gripper)}
+    nodes = []
+    for node in twin.graph.nodes():
+        params = node.gaussians.params
+        nodes.append({"name": node.name, "count": len(node.gaussians), "params": sorted(params)})
+        tensors.update({f"node/{node.name}/{k}": v.detach().cpu().clone() for k, v in params.items()})
+    for name, poses in twin.object_poses.items():
+        tensors[f"object_poses/{name}"] = torch.as_tensor(poses)
+    light = None
+    if twin.graph.shadows is not None:
+        sh = twin.graph.shadows
+        light = {"extent": sh.extent, "resolution": sh.resolution, "softness": sh.softness}
+        tensors.update({f"shadows/{k}": v.detach().cpu().clone() for k, v in sh.state_dict().items()})
+    support = None
+    if twin.support is not None:
+        support = {"origin": list(twin.support.origin), "cell": twin.support.cell}
+        tensors["support/heights"] = torch.as_tensor(twin.support.heights)
+    meta = {
+        "format": FORMAT, "version": VERSION, "episode": twin.episode, "fps": twin.fps, "task": twin.task,
+        "frame": twin.frame, "arms": [arm.to_dict() for arm in twin.arms], "link_order": list(twin.graph.link_index),
+        "cameras": [cam.to_dict() for cam in twin.cameras.values()],
+        "labels": {str(k): v for k, v in sorted(twin.labels.items())},
+        "nodes": nodes, "shadows": light, "support": support,
+        "objects": {name: {"pose_source": twin.pose_sources.get(name, []),
+                           "phases": [vars(p) for p in twin.phases.get(name, [])]}
+                    for name in twin.graph.objects},
+    }
+    buffer = io.BytesIO()
+    torch.save(tensors, buffer)
+    atomic_write_bytes(folder / TWIN_TENSORS, buffer.getvalue())
+    atomic_write_bytes(folder / TWIN_JSON, (json.dumps(meta, indent=1) + "\n").encode())
+
+
+def load_twin(folder: Path, *, backend: str = "auto", device: torch.device | str = "cpu") -> Twin:
+    """The twin ``folder`` holds, its Gaussians on ``device`` (see :meth:`Twin.load`)."""
+    meta = read_meta(folder / TWIN_JSON)
+    tensors_path = folder / TWIN_TENSORS
+    if not tensors_path.is_file():
+        raise TwinFormatError(f"{tensors_path}: missing (the folder is not a complete reconstruction)")
+    try:
+        tensors = torch.load(tensors_path, weights_only=True, map_location="cpu")
+    except Exception as exc:  # torch raises several types for damaged files
+        first = (str(exc).strip().splitlines() or [""])[0]  # torch's messages run over many lines
+        raise TwinFormatError(f"{tensors_path}: unreadable, damaged or not written by manisplat-reconstruct "
+                              f"({type(exc).__name__}: {first})") from exc
+
+    def tensor(key: str) -> torch.Tensor:
+        if key not in tensors:
+            raise TwinFormatError(f"{tensors_path}: no tensor {key!r}")
+        return tensors[key]
+
+    arms = [TwinArm.from_dict(a) for a in meta["arms"]]
+    robot = _robot_of(arms, meta["frame"])
+    if list(meta["link_order"]) != list(robot.link_names):
+        raise TwinFormatError(f"{folder / TWIN_JSON}: link order {meta['link_order']} does not match the robot "
+                              f"{robot.name!r} ({list(robot.link_names)})")
+    background, links, objects = _nodes(meta, tensor, tensors_path, device)
+    graph = SceneGraph(background, links, list(meta["link_order"]), objects)
+    if meta["shadows"] is not None:
+        light = meta["shadows"]
+        sh = DirectionalShadows(torch.tensor([0.0, 0.0, 1.0]), torch.zeros(3), light["extent"],
+                                resolution=light["resolution"], softness=light["softness"])
+        sh.load_state_dict({k: tensor(f"shadows/{k}") for k in sh.state_dict()})
+        graph.shadows = sh.to(device)
+    objects_meta = meta["objects"]
+    support = None
+    if meta.get("support") is not None:  # twins written before support maps have none
+        support = SupportMap(tensor("support/heights").numpy(), tuple(meta["support"]["origin"]),
+                             float(meta["support"]["cell"]))
+    try:
+        return Twin(
+            graph=graph, background_rgb=tensor("background_rgb"), robot=robot, arms=arms,
+            cameras=[TwinCamera.from_dict(c) for c in meta["cameras"]],
+            labels={int(k): v for k, v in meta["labels"].items()},
+            t=tensor("t").numpy(), q=tensor("q").numpy(), gripper=tensor("gripper").numpy(),
+            object_poses={name: tensor(f"object_poses/{name}").numpy() for name in objects_meta},
+            pose_sources={name: o["pose_source"] for name, o in objects_meta.items()},
+            phases={name: [Phase(**p) for p in o["phases"]] for name, o in objects_meta.items()},
+            fps=meta["fps"], episode=meta["episode"], backend=backend, task=meta.get("task"), support=support,
+        )
+    except ValueError as exc:  # arms, cameras or mounts that do not fit together
+        raise TwinFormatError(f"{folder / TWIN_JSON}: {exc}") from exc
+
+
+def _robot_of(arms: list[TwinArm], frame: str) -> RobotModel | ArmSet:
+    """The kinematics of the twin's arms: one arm's model in its base frame, else an arm set."""
+    if frame == BASE_FRAME:
+        return load_robot(arms[0].description, load_meshes=False)
+    return ArmSet({a.name: load_robot(a.description, load_meshes=False) for a in arms},
+                  {a.name: a.T_world_base for a in arms})
+
+
+def _nodes(meta: dict, tensor, tensors_path: Path, device
+           ) -> tuple[GaussianSet | None, dict[str, GaussianSet], dict[str, GaussianSet]]:
+    """The Gaussians of ``twin.json``'s nodes: (background or None, link -> set, object -> set)."""
+    background, links, objects = None, {}, {}
+    for node in meta["nodes"]:
+        g = GaussianSet({k: tensor(f"node/{node['name']}/{k}") for k in node["params"]}, device=device)
+        if len(g) != node["count"]:
+            raise TwinFormatError(f"{tensors_path}: node {node['name']} has {len(g)} Gaussians, "
+                                  f"twin.json says {node['count']}")
+        g.active_degree = g.sh_degree
+        kind, _, name = node["name"].partition("/")  # "robot/left/link1" -> ("robot", "left/link1")
+        if kind == "background":
+            background = g
+        elif kind == "robot":
+            links[name] = g
+        else:
+            objects[name] = g
+    return background, links, objects
+
+
+def read_meta(path: Path) -> dict:
+    """``twin.json``, checked for the keys loading needs; a version 1 file in version 2's terms."""
+    if not path.is_file():
+        raise TwinFormatError(f"{path}: missing (not a reconstruction folder, or written before twins were saved)")
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise TwinFormatError(f"{path}: unreadable ({exc})") from exc
+    if meta.get("format") != FORMAT or meta.get("version") not in READABLE_VERSIONS:
+        raise TwinFormatError(f"{path}: format {meta.get('format')!r} version {meta.get('version')!r}; "
+                              f"expected {FORMAT!r} version {' or '.join(map(str, READABLE_VERSIONS))}")
+    if meta["version"] == 1:
+        _require(path, meta, {"": ("robot", "camera"), "robot": ("description", "link_order", "model", "joint_names"),
+                              "camera": ("name", "width", "height", "K", "T_base_cam")})
+        meta = _from_version_1(meta)
+    _require(path, meta, {"": ("frame", "arms", "link_order", "cameras", "labels", "nodes", "shadows", "objects",
+                               "fps", "episode")})
+    for k, arm in enumerate(meta["arms"]):
+        _require(path, arm, {"": ("name", "description", "model", "joint_names", "T_world_base")}, f"arms[{k}]")
+    for k, cam in enumerate(meta["cameras"]):
+        _require(path, cam, {"": ("name", "width", "height", "K", "mount", "T_mount_cam")}, f"cameras[{k}]")
+    if not meta["arms"] or not meta["cameras"]:
+        raise TwinFormatError(f"{path}: a twin needs at least one arm and one camera")
+    return meta
+
+
+def _from_version_1(meta: dict) -> dict:
+    """A version 1 ``twin.json`` (one arm, one camera fixed in its base frame) as version 2."""
+    robot, camera = meta.pop("robot"), meta.pop("camera")
+    meta["frame"] = BASE_FRAME
+    meta["arms"] = [one_arm(robot["description"], robot["model"], robot["joint_names"]).to_dict()]
+    meta["link_order"] = robot["link_order"]
+    meta["cameras"] = [{"name": camera["name"], "width": camera["width"], "height": camera["height"],
+                        "K": camera["K"], "mount": BASE_FRAME, "T_mount_cam": camera["T_base_cam"]}]
+    return meta
+
+
+def _require(path: Path, meta: dict, required: dict[str, tuple[str, ...]], prefix: str = "") -> None:
+    for section, keys in required.items():
+        content = meta if not section else meta.get(section)
+        for key in keys:
+            if not isinstance(content, dict) or key not in content:
+                name = ".".join(filter(None, (prefix, section, key)))
+                raise TwinFormatError(f"{path}: no key {name!r}")
