@@ -30,6 +30,13 @@ what it does, per demonstration: sample a new start pose for each manipulated ob
   depth and label masks from the twin; write an episode (docs/episode-format.md, source
   augmentation) with augmentation.json. Invalid samples are discarded and counted by reason.
 
+several arms (a twin of a version 2 episode, e.g. a Cobot Magic's): each arm's skills move with
+  the objects it handles and its motions are planned in its base frame (ranges along its base's
+  axes); the arms then run together and a demonstration where they (or an arm and the other's
+  object) come within 5 mm in any frame is discarded (arm_collision); every camera is rendered,
+  a wrist camera from its link at the new joints; written as version 2 episodes (every arm's
+  joints and commands). Not yet: an object handed from one arm to the other (refused), --poses.
+
 output: OUT/episode_NNNN/ (complete episodes only: each is written under a hidden name and
   renamed when complete), OUT/augment_report.json (validity rate, reasons, per-sample results,
   timings), OUT/tcp_paths.png (top view of every TCP path), OUT/sheets/ (contact sheets of the

@@ -17,12 +17,14 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from manisplat.augment.bimanual import BimanualPlanner, BimanualTrajectory
 from manisplat.augment.cli import REPORT, load_poses_file
 from manisplat.augment.frames import from_centre_frame, to_centre_frame
 from manisplat.augment.trajectory import (AugmentConfig, NewTrajectory, ObjectTarget, Rejected, augment_trajectory,
                                           sample_targets)
 from manisplat.augment.writer import write_demonstration
 from manisplat.episode.fsio import atomic_write_bytes
+from manisplat.robot.arms import ArmSet
 from manisplat.twin import Twin, TwinFormatError
 
 log = logging.getLogger("manisplat.augment")
@@ -40,8 +42,8 @@ class Sample:
 
     index: int
     seed: int
-    targets: dict[str, ObjectTarget]
-    trajectory: NewTrajectory | None = None
+    targets: dict  # object -> ObjectTarget; with several arms: arm -> object -> ObjectTarget (its base frame)
+    trajectory: NewTrajectory | BimanualTrajectory | None = None
     reason: str | None = None
     detail: str | None = None
     plan_s: float = 0.0
@@ -57,6 +59,7 @@ def run_augmentation(args: argparse.Namespace) -> dict:
         _remove_earlier(args.out)
     args.out.mkdir(parents=True, exist_ok=True)
     config = AugmentConfig(speed=args.speed, planner_timeout_s=args.planner_timeout, seed=args.seed)
+    arms = _arms_planner(twin, args)
     explicit = _explicit_targets(args.poses, twin) if args.poses else None
     wanted = len(explicit) if explicit is not None else args.n
     limit = len(explicit) if explicit is not None else (args.max_samples or max(10, 3 * args.n))
@@ -70,12 +73,14 @@ def run_augmentation(args: argparse.Namespace) -> dict:
         seed = args.seed * 1_000_003 + index
         if explicit is not None:
             targets = explicit[index]
+        elif arms is not None:
+            targets = arms.sample_targets(np.random.default_rng(seed), object_range, target_range)
         else:
             targets = sample_targets(twin, np.random.default_rng(seed), object_range, target_range)
         sample = Sample(index, seed, targets)
         t0 = time.perf_counter()
         try:
-            sample.trajectory = augment_trajectory(twin, targets, config)
+            sample.trajectory = arms.run(targets, config) if arms is not None else augment_trajectory(twin, targets, config)
             bar.update(1)
         except Rejected as exc:
             sample.reason, sample.detail = exc.reason, exc.detail
@@ -114,10 +119,6 @@ def _load_twin(recon: Path) -> Twin:
         twin = Twin.load(recon)
     except (TwinFormatError, FileNotFoundError) as exc:
         raise AugmentError(f"{exc} (run {reconstruct_command(recon)} first)") from exc
-    if len(twin.arms) > 1 or len(twin.cameras) > 1:
-        raise AugmentError(f"{recon}: a twin of arms {', '.join(twin.arm_names)} and cameras "
-                           f"{', '.join(twin.cameras)}: augmentation re-plans one arm seen by one camera; several arms or "
-                           "cameras are not supported yet")
     if not twin.objects:
         raise AugmentError(f"{recon}: the reconstruction has no manipulated object to move")
     for name in twin.objects:
@@ -126,6 +127,19 @@ def _load_twin(recon: Path) -> Twin:
         if name not in twin.object_poses or len(twin.object_poses[name]) != twin.n_frames:
             raise AugmentError(f"{recon}: object {name!r} has no pose per frame in twin.pt")
     return twin
+
+
+def _arms_planner(twin: Twin, args: argparse.Namespace) -> BimanualPlanner | None:
+    """The planner of a twin of several arms (or cameras: a version 2 episode's), None for one arm."""
+    if not isinstance(twin.robot, ArmSet):
+        return None
+    if args.poses:
+        raise AugmentError(f"--poses: the twin has arms {', '.join(twin.arm_names)}; explicit poses are read for "
+                           "one arm only (drop --poses to sample new poses)")
+    try:
+        return BimanualPlanner(twin)
+    except Rejected as exc:
+        raise AugmentError(f"{args.recon}: {exc.detail}") from exc
 
 
 def _explicit_targets(path: Path, twin: Twin) -> list[dict[str, ObjectTarget]]:
@@ -169,7 +183,7 @@ def _init_worker(recon: str, backend: str) -> None:
     _WORKER_TWIN = Twin.load(recon, backend=backend)
 
 
-def _write_one(trajectory: NewTrajectory, path: str, seed: int, image_format: str) -> str:
+def _write_one(trajectory: NewTrajectory | BimanualTrajectory, path: str, seed: int, image_format: str) -> str:
     assert _WORKER_TWIN is not None
     write_demonstration(_WORKER_TWIN, trajectory, Path(path), seed=seed, image_format=image_format)
     return path
@@ -202,9 +216,12 @@ def _report(twin: Twin, args: argparse.Namespace, samples: list[Sample], wanted:
     for s in samples:
         if s.reason:
             reasons[s.reason] = reasons.get(s.reason, 0) + 1
-    motions = [r for s in valid for r in s.trajectory.planner["segments"]]
-    skill_mm = [s.trajectory.validation.get("skill_error_mm", 0.0) for s in valid]
-    skill_deg = [s.trajectory.validation.get("skill_error_deg", 0.0) for s in valid]
+    arms = [arm for s in valid for arm in _per_arm(s.trajectory)]
+    motions = [r for arm in arms for r in arm.planner["segments"]]
+    skill_mm = [arm.validation.get("skill_error_mm", 0.0) for arm in arms]
+    skill_deg = [arm.validation.get("skill_error_deg", 0.0) for arm in arms]
+    clearances = [s.trajectory.validation["min_arm_clearance_m"] for s in valid
+                  if isinstance(s.trajectory, BimanualTrajectory)]
     return {
         "parent": twin.episode, "recon": str(args.recon), "seed": args.seed, "requested": wanted,
         "drawn": len(samples), "valid": len(valid), "written": len(valid),
@@ -218,35 +235,57 @@ def _report(twin: Twin, args: argparse.Namespace, samples: list[Sample], wanted:
         "plan_s_per_sample": round(float(np.mean([s.plan_s for s in samples])) if samples else 0.0, 4),
         "samples": [{"index": s.index, "seed": s.seed, "valid": s.trajectory is not None, "episode": s.episode,
                      "reason": s.reason, "detail": s.detail, "plan_s": round(s.plan_s, 4)} for s in samples],
+        **({"min_arm_clearance_m": min(clearances)} if clearances else {}),
     }
 
 
+def _per_arm(traj: NewTrajectory | BimanualTrajectory) -> list[NewTrajectory]:
+    return list(traj.arms.values()) if isinstance(traj, BimanualTrajectory) else [traj]
+
+
 def _plot_tcp_paths(path: Path, twin: Twin, valid: list[Sample]) -> None:
-    """Top view (base x-y, cm) of every new TCP path over the source's, with the new object poses."""
+    """Top view (x-y of the twin's frame, cm) of every new TCP path (every arm's) over the source's,
+    with the new object poses."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import torch
 
     fig, ax = plt.subplots(figsize=(6.5, 6))
-    source = twin.robot.tcp_pose(torch.as_tensor(twin.q)).numpy()[:, :2, 3] * 100
     for k, s in enumerate(valid):
-        tcp = twin.robot.tcp_pose(torch.as_tensor(s.trajectory.q)).numpy()[:, :2, 3] * 100
-        ax.plot(tcp[:, 0], tcp[:, 1], lw=0.8, alpha=0.6, color=f"C{k % 10}")
-        for name, poses in s.trajectory.objects.items():
-            start, end = (to_centre_frame(twin, name, poses[key])[:2, 3] * 100 for key in ("T_start", "T_end"))
+        for tcp in _tcp_xy_cm(twin, s.trajectory):
+            ax.plot(tcp[:, 0], tcp[:, 1], lw=0.8, alpha=0.6, color=f"C{k % 10}")
+        for name, poses in s.trajectory.object_poses.items():
+            start, end = (to_centre_frame(twin, name, poses[f])[:2, 3] * 100 for f in (0, -1))
             ax.plot(*start, "o", ms=3, color=f"C{k % 10}")
             ax.plot(*end, "s", ms=3, mfc="none", color=f"C{k % 10}")
-    ax.plot(source[:, 0], source[:, 1], "k--", lw=1.8, label="source demonstration")
+    for j, source in enumerate(_tcp_xy_cm(twin, None)):
+        ax.plot(source[:, 0], source[:, 1], "k--", lw=1.8, label="source demonstration" if j == 0 else None)
     ax.plot([], [], "o", color="grey", ms=3, label="object start")
     ax.plot([], [], "s", mfc="none", color="grey", ms=3, label="object end")
-    ax.set(xlabel="x (cm, robot base)", ylabel="y (cm)", title=f"TCP paths of {len(valid)} new demonstrations",
+    frame = "robot base" if twin.frame == "base" else "world"
+    ax.set(xlabel=f"x (cm, {frame})", ylabel="y (cm)", title=f"TCP paths of {len(valid)} new demonstrations",
            aspect="equal")
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def _tcp_xy_cm(twin: Twin, traj: NewTrajectory | BimanualTrajectory | None) -> list[np.ndarray]:
+    """Each arm's TCP path [T, 2] (cm, the twin's frame) over ``traj`` (None: the source)."""
+    import torch
+
+    if traj is None:
+        q = twin.q
+    elif isinstance(traj, BimanualTrajectory):
+        q = np.concatenate([traj.arms[name].q for name in twin.arm_names], axis=1)
+    else:
+        q = traj.q
+    if not isinstance(twin.robot, ArmSet):
+        return [twin.robot.tcp_pose(torch.as_tensor(q)).numpy()[:, :2, 3] * 100]
+    tcp = twin.robot.tcp_poses(torch.as_tensor(q)).numpy()
+    return [tcp[:, k, :2, 3] * 100 for k in range(tcp.shape[1])]
 
 
 def _contact_sheet(episode: Path, path: Path, frames: int = 8) -> None:
@@ -256,11 +295,13 @@ def _contact_sheet(episode: Path, path: Path, frames: int = 8) -> None:
     from manisplat.episode import Episode
 
     ep = Episode.open(episode)
+    camera = next(name for name, c in ep.cameras.items() if c.mount in ("base", "world"))  # the fixed one
+    t = ep.arm_frames(next(iter(ep.arms))).t
     chosen = np.linspace(0, len(ep) - 1, frames).round().astype(int)
     tiles = []
     for i in chosen:
-        tile = cv2.cvtColor(ep.rgb(int(i)), cv2.COLOR_RGB2BGR)
-        cv2.putText(tile, f"{i}  {ep.frames.t[i]:.2f} s", (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1,
+        tile = cv2.cvtColor(ep.rgb(int(i), camera if len(ep.cameras) > 1 else None), cv2.COLOR_RGB2BGR)
+        cv2.putText(tile, f"{i}  {t[i]:.2f} s", (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1,
                     cv2.LINE_AA)
         tiles.append(tile)
     rows = [np.concatenate(tiles[r * 4:(r + 1) * 4], axis=1) for r in range(frames // 4)]

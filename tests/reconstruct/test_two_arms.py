@@ -1,6 +1,7 @@
 """manisplat-reconstruct on a version 2 episode with two arms (a Cobot Magic): both arms drawn
 and driven in the world frame, several objects prompted by name, each aligned with the arm that
-handles it, and the prompts' usage errors named."""
+handles it, and the prompts' usage errors named; the twin it writes (both arms, every camera),
+shown by manisplat-view and augmented by manisplat-augment (each arm with its own box)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,9 @@ import pytest
 import torch
 import viser
 
+from manisplat.augment.bimanual import MIN_ARM_CLEARANCE_M, BimanualPlanner
 from manisplat.augment.cli import main as augment
+from manisplat.augment.trajectory import AugmentConfig, Rejected
 from manisplat.episode import Episode
 from manisplat.exit_codes import ExitCode
 from manisplat.episode.synthetic_arms import write_two_arm_sample_episode
@@ -141,9 +144,93 @@ def test_the_viewer_shows_a_two_arm_twin_with_its_wrist_cameras(two_arms):
         server.stop()
 
 
-def test_augmentation_refuses_a_two_arm_twin_by_name(two_arms, tmp_path, capsys):
+@pytest.fixture(scope="module")
+def augmented(two_arms, tmp_path_factory):
+    """manisplat-augment on the two-arm twin: two new demonstrations; (twin folder, output folder)."""
     out, _ = two_arms
-    assert augment([str(out), "--n", "1", "--out", str(tmp_path / "aug"), "-q"]) == ExitCode.BAD_INPUT
+    aug = tmp_path_factory.mktemp("two_arm_aug") / "aug"
+    assert augment([str(out), "--n", "2", "--out", str(aug), "--seed", "1", "-q"]) == ExitCode.OK
+    return out, aug
+
+
+def _held(poses: np.ndarray) -> np.ndarray:
+    """[T] bool: frames where an object is off both its first and its last pose (carried)."""
+    return (np.linalg.norm(poses[:, :3, 3] - poses[0, :3, 3], axis=1) > 1e-3) & \
+        (np.linalg.norm(poses[:, :3, 3] - poses[-1, :3, 3], axis=1) > 1e-3)
+
+
+def test_each_arm_moves_its_own_box_and_carries_it_as_the_source_did(augmented):
+    """Each new demonstration (version 2: both arms with their commands, every camera with depth
+    and masks) starts each box elsewhere, and the arm that handles it carries it rigidly in its
+    gripper (the box in that arm's TCP frame constant while carried)."""
+    twin_dir, aug = augmented
+    twin = Twin.load(twin_dir)
+    report = json.loads((aug / "augment_report.json").read_text())
+    assert report["valid"] == 2 and report["min_arm_clearance_m"] >= 0.005
+    for k in range(2):
+        ep = Episode.open(aug / f"episode_{k:04d}")
+        assert list(ep.arms) == ["left", "right"]
+        assert list(ep.cameras) == ["cam_high", "cam_left_wrist", "cam_right_wrist"]
+        assert all(ep.has_images(kind, cam) for cam in ep.cameras for kind in ("depth", "masks"))
+        poses = np.load(ep.path / "object_poses.npz")
+        for arm, box in (("left", "box_left"), ("right", "box_right")):
+            frames = ep.arm_frames(arm)
+            assert frames.actions is not None
+            assert np.linalg.norm(poses[box][0, :3, 3] - twin.object_poses[box][0, :3, 3]) > 0.002
+            tcp = ep.arms[arm].T_world_base @ twin.robot.arms[arm].tcp_pose(torch.as_tensor(frames.q)).numpy()
+            held = _held(poses[box])
+            assert held.sum() >= 5, (arm, held.sum())
+            in_tcp = np.linalg.inv(tcp[held]) @ poses[box][held]
+            np.testing.assert_allclose(in_tcp, np.broadcast_to(in_tcp[0], in_tcp.shape), atol=1e-5)
+
+
+def test_a_wrist_camera_sees_the_moved_box_from_its_link_at_the_new_joints(augmented):
+    """Where the episode says the left wrist camera is (its arm's base, FK of the new joints,
+    T_mount_cam), the carried box projects onto pixels its written masks label as the box."""
+    twin_dir, aug = augmented
+    twin = Twin.load(twin_dir)
+    ep = Episode.open(aug / "episode_0000")
+    camera = ep.cameras["cam_left_wrist"]
+    box_value = next(v for v, name in ep.meta.labels.items() if name == "object/box_left")
+    poses = np.load(ep.path / "object_poses.npz")["box_left"]
+    frames = ep.arm_frames("left")
+    robot = twin.robot.arms["left"]
+    seen = 0
+    for f in np.flatnonzero(_held(poses))[::3]:
+        T_link = robot.forward_kinematics(torch.as_tensor(frames.q[f]), torch.as_tensor(frames.gripper[f])).numpy()
+        T_cam = ep.arms["left"].T_world_base @ T_link[robot.link_names.index("link6")] @ camera.T_mount_cam
+        centre = twin_centre(twin, "box_left", poses[f])
+        x = np.linalg.inv(T_cam) @ np.append(centre, 1.0)
+        u, v = (camera.K @ x[:3])[:2] / x[2]
+        window = ep.mask(int(f), "cam_left_wrist")[max(0, int(v) - 3):int(v) + 4, max(0, int(u) - 3):int(u) + 4]
+        seen += bool(x[2] > 0 and (window == box_value).any())
+    assert seen >= 2
+
+
+def twin_centre(twin: Twin, name: str, T_world_obj: np.ndarray) -> np.ndarray:
+    """The object's bounding-box centre (world) at pose ``T_world_obj``."""
+    from manisplat.augment.frames import centre_offset
+
+    return (T_world_obj @ centre_offset(twin, name))[:3, 3]
+
+
+def test_arms_that_would_come_too_close_are_rejected_naming_the_links(two_arms):
+    out, _ = two_arms
+    planner = BimanualPlanner(Twin.load(out))
+    assert planner.run({}, AugmentConfig()).validation["min_arm_clearance_m"] >= MIN_ARM_CLEARANCE_M
+    shifted = planner.arms["left"].T_world_base.copy()
+    shifted[1, 3] -= 0.05  # the right arm's base 5 cm beside the left's
+    planner.arms["right"].T_world_base = shifted
+    with pytest.raises(Rejected) as rejected:
+        planner.run({}, AugmentConfig())
+    assert rejected.value.reason == "arm_collision" and "left/" in rejected.value.detail
+
+
+def test_explicit_poses_are_refused_for_two_arms(two_arms, tmp_path, capsys):
+    out, _ = two_arms
+    poses = tmp_path / "poses.json"
+    poses.write_text("[]")
+    assert augment([str(out), "--poses", str(poses), "--out", str(tmp_path / "aug"), "-q"]) == ExitCode.BAD_INPUT
     assert "arms left, right" in capsys.readouterr().err
 
 

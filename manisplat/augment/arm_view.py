@@ -1,0 +1,160 @@
+"""One arm of a twin of several arms, seen as a twin of that arm alone in its base frame: what the
+one-arm augmenter (:mod:`manisplat.augment.trajectory`) reads of a twin (robot, joints, gripper,
+phases, the objects this arm handles at their poses, the object and background Gaussians, the
+support map), so that each arm's skills are moved and its motions planned as for one arm.
+
+Which arm handles an object is decided from the twin's own demonstration, as reconstruction
+aligned it (:func:`manisplat.align.acting_arm.holds`: the arm whose gripper first closes nearest
+the object's start); an object passed from one gripper to the other (a handover) is refused here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from manisplat.align.acting_arm import holds
+from manisplat.augment.source import SourceError
+from manisplat.robot import RobotModel
+from manisplat.robot.arms import ArmSet
+from manisplat.twin import Phase, Twin
+from manisplat.twin.rig import TwinArm
+from manisplat.twin.support import EDGE_MARGIN, SupportMap
+
+
+@dataclass(frozen=True)
+class PointSet:
+    """Gaussian parameters as the collision model reads them: ``params["means"]`` [N, 3] (the arm's
+    base frame) and ``params["opacities"]`` [N] (logits)."""
+
+    params: dict[str, torch.Tensor]
+
+    def __len__(self) -> int:
+        return len(self.params["means"])
+
+
+@dataclass(frozen=True)
+class ArmScene:
+    """The parts of the scene graph augmentation reads: the objects' Gaussians (canonical frames,
+    as they are) and the background's, moved into the arm's base frame."""
+
+    objects: dict
+    background: PointSet | None
+
+
+class BaseFrameSupport:
+    """A twin's support map (world frame) read in an arm's base frame: the base is level (its z
+    axis the world's), so a footprint's x, y map through the base's planar pose."""
+
+    def __init__(self, support: SupportMap, T_world_base: np.ndarray) -> None:
+        if abs(T_world_base[2, 2] - 1.0) > 1e-3:
+            raise SourceError("the arm's base is not level (its z axis off the world's by more than 2.6 deg): the "
+                              "support map cannot be read in its frame")
+        self.support, self.T = support, np.asarray(T_world_base, np.float64)
+
+    def _world_xy(self, xy: np.ndarray) -> np.ndarray:
+        return np.asarray(xy, np.float64) @ self.T[:2, :2].T + self.T[:2, 3]
+
+    def height_at(self, xy: np.ndarray) -> np.ndarray:
+        """[N] the surface height (m, the base frame's z) under base-frame points ``xy`` [N, 2]."""
+        return self.support.height_at(self._world_xy(xy)) - self.T[2, 3]
+
+    def edge_drop(self, footprint_xy: np.ndarray, margin: float = EDGE_MARGIN) -> float | None:
+        """:meth:`SupportMap.edge_drop` of a base-frame footprint [N, 2] (m)."""
+        return self.support.edge_drop(self._world_xy(footprint_xy), margin)
+
+
+@dataclass(eq=False)
+class ArmTwin:
+    """One arm of a twin in its base frame, with the objects it handles (see the module docstring).
+
+    Attributes:
+        name, T_world_base: the arm and its base in the twin's world (m).
+        robot: its kinematics; robot_description, robot_info: its description, model, joint names.
+        t, q, gripper, fps: its part of the source demonstration ([T] s, [T, 6] rad, [T] m).
+        objects: the objects this arm handles; object_poses: name -> [T, 4, 4] ``T_base_obj``.
+        phases: name -> the object's Motion/Skill segments.
+        graph: :class:`ArmScene`; support: :class:`BaseFrameSupport` or None.
+    """
+
+    name: str
+    T_world_base: np.ndarray
+    robot: RobotModel
+    robot_description: str
+    robot_info: dict
+    t: np.ndarray
+    q: np.ndarray
+    gripper: np.ndarray
+    fps: float
+    objects: list[str]
+    object_poses: dict[str, np.ndarray]
+    phases: dict[str, list[Phase]]
+    graph: ArmScene
+    support: BaseFrameSupport | None
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.t)
+
+    def to_world(self, T_base: np.ndarray) -> np.ndarray:
+        """Poses [..., 4, 4] in this arm's base frame -> the twin's world frame."""
+        return self.T_world_base @ np.asarray(T_base, np.float64)
+
+
+def handled_objects(twin: Twin) -> dict[str, list[str]]:
+    """Arm name -> the twin's objects it handles (every arm listed, in order).
+
+    Raises:
+        SourceError: an object is handed from one arm to another (not augmented yet).
+    """
+    tracks = twin.arm_tracks()
+    tcp = {name: twin.robot.tcp_poses(torch.as_tensor(twin.q)).numpy()[:, k, :3, 3]
+           for k, name in enumerate(twin.arm_names)}
+    gripper = {name: g for name, (_, g) in tracks.items()}
+    out: dict[str, list[str]] = {name: [] for name in twin.arm_names}
+    for obj in twin.objects:
+        who = holds(tcp, gripper, twin.object_poses[obj][0][:3, 3])
+        if len(who) > 1:
+            raise SourceError(f"{obj} is handed from the {who[0].arm} arm to the {who[1].arm} arm at frame "
+                              f"{who[1].start}: augmenting a handover is not supported yet")
+        out[who[0].arm].append(obj)
+    return out
+
+
+def arm_twins(twin: Twin) -> dict[str, ArmTwin]:
+    """Each arm of a twin of several arms as an :class:`ArmTwin` (raises :class:`SourceError`)."""
+    if not isinstance(twin.robot, ArmSet):
+        raise SourceError("arm_twins: the twin has one arm; augment it as it is")
+    tracks = twin.arm_tracks()
+    handled = handled_objects(twin)
+    background = twin.graph.background
+    out = {}
+    for arm in twin.arms:
+        T_base_world = np.linalg.inv(arm.T_world_base)
+        out[arm.name] = ArmTwin(
+            name=arm.name, T_world_base=arm.T_world_base, robot=twin.robot.arms[arm.name],
+            robot_description=arm.description, robot_info=_info(arm), t=twin.t, q=tracks[arm.name][0],
+            gripper=tracks[arm.name][1], fps=twin.fps, objects=handled[arm.name],
+            object_poses={name: T_base_world @ twin.object_poses[name] for name in handled[arm.name]},
+            phases={name: twin.phases.get(name, []) for name in handled[arm.name]},
+            graph=ArmScene({name: twin.graph.objects[name] for name in handled[arm.name]},
+                           None if background is None else _moved(background, T_base_world)),
+            support=None if twin.support is None else BaseFrameSupport(twin.support, arm.T_world_base),
+        )
+    return out
+
+
+def _info(arm: TwinArm) -> dict:
+    return {"model": arm.model, "joint_names": list(arm.joint_names)}
+
+
+def _moved(gaussians, T: np.ndarray) -> PointSet:
+    """The background's means (and opacities) moved by ``T`` [4, 4] (world -> the arm's base)."""
+    means = gaussians.params["means"].detach().double().cpu().numpy()
+    moved = means @ T[:3, :3].T + T[:3, 3]
+    return PointSet({"means": torch.from_numpy(moved), "opacities": gaussians.params["opacities"].detach().cpu()})
+
+
+__all__ = ["ArmScene", "ArmTwin", "BaseFrameSupport", "PointSet", "arm_twins", "handled_objects"]
