@@ -21,6 +21,7 @@ from manisplat.augment.writer import OBJECT_POSES_FILE
 from manisplat.episode.format import V1_ARM, VERSION, WORLD_MOUNT, EpisodeFormatError
 from manisplat.episode.reader import Episode
 from manisplat.robot import RobotModel, RobotModelError, load_robot
+from manisplat.twin.rig import TwinCamera
 
 log = logging.getLogger(__name__)
 
@@ -92,22 +93,10 @@ class ViewArm:
 
 
 @dataclass(frozen=True)
-class ViewCamera:
-    """A camera as shown.
-
-    Attributes:
-        name: the camera's name (its images' label).
-        K: [3, 3] intrinsics (px); width, height: image size (px).
-        mount: ``"world"`` or ``"<arm>/<link>"`` (a wrist camera riding on that arm's link).
-        T_mount_cam: [4, 4] float64 camera-to-mount (m): ``T_world_cam`` for ``"world"``.
-    """
-
-    name: str
-    K: np.ndarray
-    width: int
-    height: int
-    mount: str
-    T_mount_cam: np.ndarray
+class ViewCamera(TwinCamera):
+    """A camera as shown: a :class:`~manisplat.twin.rig.TwinCamera` whose ``mount`` is ``"world"``
+    (``T_mount_cam`` is then ``T_world_cam``) or ``"<arm>/<link>"`` (a wrist camera riding on that
+    arm's link)."""
 
     @property
     def arm_link(self) -> tuple[str, str] | None:
