@@ -207,6 +207,18 @@ def test_a_wrist_camera_sees_the_moved_box_from_its_link_at_the_new_joints(augme
     assert seen >= 2
 
 
+def test_the_viewer_plays_the_new_two_arm_demonstrations_over_their_twin(augmented):
+    _, aug = augmented
+    content = load_content(aug)
+    assert content.kind == "augmentation" and set(content.arms) == {"left", "right"} and content.twin is not None
+    assert [d.name for d in content.demos][1:] == ["episode_0000", "episode_0001"]
+    new = content.demos[1]
+    poses = np.load(aug / "episode_0000" / "object_poses.npz")
+    np.testing.assert_array_equal(content.object_poses_at(new, 4)["box_left"], poses["box_left"][4])
+    head = content.cameras["cam_high"]
+    assert content.twin_render(new, 4).shape == (head.height, head.width, 3)
+
+
 def twin_centre(twin: Twin, name: str, T_world_obj: np.ndarray) -> np.ndarray:
     """The object's bounding-box centre (world) at pose ``T_world_obj``."""
     from manisplat.augment.frames import centre_offset
