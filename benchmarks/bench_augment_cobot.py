@@ -75,7 +75,8 @@ def main(argv: list[str] | None = None) -> int:
     report = json.loads((aug / "augment_report.json").read_text())
     episodes = sorted(aug.glob("episode_*"))
     if not (act / "augmentation.json").exists():
-        if episode_main(["export", *map(str, episodes), "--format", "act-hdf5", "--out", str(act), "--overwrite"]) != 0:
+        if episode_main(["export", *map(str, episodes), "--format", "act-hdf5", "--compress", "--out", str(act),
+                         "--overwrite"]) != 0:
             raise RuntimeError("export failed")
     t0 = time.perf_counter()
     physics = execute_all(Path(simenv), source, Twin.load(twin_dir), episodes, act, work / "physics", args.render_check)
