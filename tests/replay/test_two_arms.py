@@ -25,7 +25,8 @@ from tests.replay.helpers import NEW_URDF, base_at, smooth_motion, write_arms_ep
 BASES = {"left": base_at(0.3), "right": base_at(-0.3)}  # a Cobot Magic: 0.6 m apart, facing +x
 READY = np.radians([0.0, 60.0, -60.0, 0.0, 0.0, 0.0])  # reaching forward, TCP 0.35 m ahead
 NO_TARGETS = "0 resets (0x150 B0=2), 0 disables (0x471 01), 0 e-stops, 0 joint targets"
-RELAXED = ["--feedback-timeout-ms", "500", "--max-tracking-error-deg", "20"]  # a loaded CI must not trip these
+RELAXED = ["--feedback-timeout-ms", "2000", "--max-tracking-error-deg", "20"]  # a loaded CI must not trip these
+# (a starved simulated arm on the 2-core CI once went 509 ms without feedback)
 
 
 def swing_in(amplitude_deg: float, duration: float = 3.0, fps: float = 20.0) -> tuple[np.ndarray, dict, dict]:
