@@ -109,10 +109,9 @@ def handled_objects(twin: Twin) -> dict[str, list[str]]:
     Raises:
         SourceError: an object is handed from one arm to another (not augmented yet).
     """
-    tracks = twin.arm_tracks()
-    tcp = {name: twin.robot.tcp_poses(torch.as_tensor(twin.q)).numpy()[:, k, :3, 3]
-           for k, name in enumerate(twin.arm_names)}
-    gripper = {name: g for name, (_, g) in tracks.items()}
+    positions = twin.robot.tcp_poses(torch.as_tensor(twin.q)).numpy()[..., :3, 3]  # [T, A, 3], every arm at once
+    tcp = {name: positions[:, k] for k, name in enumerate(twin.arm_names)}
+    gripper = {name: g for name, (_, g) in twin.arm_tracks().items()}
     out: dict[str, list[str]] = {name: [] for name in twin.arm_names}
     for obj in twin.objects:
         who = holds(tcp, gripper, twin.object_poses[obj][0][:3, 3])
