@@ -59,6 +59,7 @@ class EpisodeLoop:
         self.reference = rec.camera_feeds[rec.reference]
         self.others = [feed for name, feed in rec.camera_feeds.items() if name != rec.reference]
         self.camera_error: str | None = None
+        self.end: float | None = None  # set when the episode ends: frames exposed from then on are not its own
         self.queued = 0
         self.last_gap = 0.0
         self.recent: collections.deque[float] = collections.deque()
@@ -74,29 +75,41 @@ class EpisodeLoop:
         next_status = clock.monotonic() + status_every_s
         while True:
             now = clock.monotonic()
-            if stop.is_set():
-                return "stopped"
             if duration is not None and now - self.t0 >= duration:
+                self.end = self.t0 + duration
                 return "duration"
-            if self.sink.failed.is_set():
-                return "write error"
-            failed = [cam.error for cam in self.rec.camera_feeds.values() if cam.error]
-            if failed:
-                self.camera_error = "; ".join(failed)
-                return "camera error"
-            if any(cam.ended for cam in self.rec.camera_feeds.values()):
-                return "camera ended"
-            self.resolve(force=False)
+            reason = self._stop_reason(stop)
+            if reason is not None:
+                self.end = now
+                return reason
+            self.resolve(force=False, until=now)
             self.rec.clock_map.maybe_remeasure()
             if on_status is not None and now >= next_status:
                 next_status = now + status_every_s
                 on_status(self.status(now))
             clock.sleep_until(clock.monotonic() + 0.005, RealDeadline(0.01, stop))
 
-    def resolve(self, force: bool) -> None:
-        """Write the reference frames whose partner images and arm states are known (or waited long enough)."""
+    def _stop_reason(self, stop: threading.Event) -> str | None:
+        """Why the episode ends now other than its duration, or None."""
+        if stop.is_set():
+            return "stopped"
+        if self.sink.failed.is_set():
+            return "write error"
+        failed = [cam.error for cam in self.rec.camera_feeds.values() if cam.error]
+        if failed:
+            self.camera_error = "; ".join(failed)
+            return "camera error"
+        if any(cam.ended for cam in self.rec.camera_feeds.values()):
+            return "camera ended"
+        return None
+
+    def resolve(self, force: bool, until: float) -> None:
+        """Write the reference frames exposed before ``until`` (monotonic s) whose partner images
+        and arm states are known (or waited long enough). Bounded by ``until``, one call ends even
+        when the cameras deliver faster than frames are written (a lock-step clock on a loaded
+        machine) and never writes a frame exposed after the episode's end."""
         rec, c = self.rec, self.rec.config
-        while (head := self.reference.oldest()) is not None:
+        while (head := self.reference.oldest()) is not None and head[0] < until:
             t, frame = head
             decide = force or rec.clock.monotonic() - t >= c.max_wait_s
             if not (decide or all(feed.known_at(t) for feed in rec.feeds.values())):
@@ -155,17 +168,20 @@ class EpisodeLoop:
 
     def flush_pending(self) -> None:
         """At the end: give every camera up to ``max_wait_s`` (on the clock, at most that +
-        ``flush_grace_s`` of real time) to deliver its frames exposed before now (a camera thread may lag, or another
+        ``flush_grace_s`` of real time) to deliver its frames exposed before the episode's end (a camera thread may lag, or another
         camera's recording ended first) and the pending frames their partner images and arm
         states; :meth:`resolve` with force then writes what is left."""
         rec = self.rec
-        t_stop = rec.clock.monotonic()
-        deadline = t_stop + rec.config.max_wait_s
+        if self.end is None:  # the loop did not end normally (an exception)
+            self.end = rec.clock.monotonic()
+        t_stop = self.end
+        deadline = rec.clock.monotonic() + rec.config.max_wait_s
         real_deadline = time.monotonic() + rec.config.max_wait_s + rec.config.flush_grace_s
         while not self.sink.failed.is_set():
-            self.resolve(force=False)
+            self.resolve(force=False, until=t_stop)
             caught_up = all(cam.caught_up(t_stop) for cam in rec.camera_feeds.values())
-            if ((caught_up and self.reference.oldest() is None) or rec.clock.monotonic() >= deadline
+            pending = self.reference.oldest()
+            if ((caught_up and (pending is None or pending[0] >= t_stop)) or rec.clock.monotonic() >= deadline
                     or time.monotonic() >= real_deadline):
                 break
             rec.clock.sleep_until(min(deadline, rec.clock.monotonic() + 0.005), RealDeadline(0.01))

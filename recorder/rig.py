@@ -200,11 +200,11 @@ class RigRecorder:
             loop.flush_pending()
             for cam in self.camera_feeds.values():
                 cam.stop()
-            loop.resolve(force=True)
+            loop.resolve(force=True, until=loop.end)
             for name, feed in self.feeds.items():
                 stats.arms[name].joint_samples = feed.deactivate()
                 feed.can_log.seal()
-        stats.duration_s = self.clock.monotonic() - t0
+        stats.duration_s = loop.end - t0
         stats.dropped_queue = sink.frames_dropped
         for name, cam in self.camera_feeds.items():
             cam.drop_waiting()

@@ -10,7 +10,9 @@ import shutil
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import can
 import numpy as np
@@ -24,6 +26,8 @@ from manisplat.episode.writer_v2 import EpisodeWriterV2
 from manisplat.recorder.cli import main
 from manisplat.recorder.clock import ManualClock
 from manisplat.recorder.replaycam import ReplayCamera
+from manisplat.recorder.layout import VersionTwo
+from manisplat.recorder.result import EpisodeResult
 from manisplat.recorder.rig import RigArm, RigCamera, RigRecorder
 from manisplat.recorder.session import RecorderConfig
 from manisplat.recorder.simrig import SimRig
@@ -137,15 +141,39 @@ def _keep_pace(me: SimRig, other: SimRig) -> None:
         time.sleep(0.0002)
 
 
-def test_two_arms_are_synced_to_their_true_state_and_each_camera_keeps_its_own_time(
-        tmp_path: Path, sources: dict[str, Path]) -> None:
-    """Lock-step on a ManualClock (independent of the machine's speed): two simulated arms that
-    keep pace with each other, three replayed cameras stamped 0, 10 and 20 ms late."""
+LATE = {"cam_high": 0.0, "cam_left_wrist": 0.010, "cam_right_wrist": 0.020}
+"""Each replayed camera's stamp latency, s."""
+
+
+@dataclass
+class LockstepRig:
+    """Two simulated arms that keep pace with each other and three replayed cameras on a ManualClock
+    (independent of the machine's speed), recorded by one RigRecorder."""
+
+    sims: dict[str, SimRig]
+    arms: dict[str, PiperArm]
+    cams: dict[str, ReplayCamera]
+    recorder: RigRecorder
+
+    def record(self, path: Path, duration: float) -> EpisodeResult:
+        try:
+            for sim in self.sims.values():
+                sim.start()
+            self.recorder.wait_for_arms(timeout=30.0)
+            return self.recorder.record_episode(path, duration=duration)
+        finally:
+            for cam in self.cams.values():
+                cam.close()
+            for name in ARMS:
+                self.sims[name].stop()
+                self.arms[name].close()
+
+
+def lockstep_rig(sources: dict[str, Path]) -> LockstepRig:
     clock = ManualClock()
-    late = {"cam_high": 0.0, "cam_left_wrist": 0.010, "cam_right_wrist": 0.020}
     sims = {name: SimRig(clock, motion="wave") for name in ARMS}
     arms = {name: PiperArm(sim.open_bus(), read_only=True, own_bus=True) for name, sim in sims.items()}
-    cams = {name: ReplayCamera(lambda p=sources[name]: EpisodeCamera(p), clock, loop=True, stamp_latency_s=late[name])
+    cams = {name: ReplayCamera(lambda p=sources[name]: EpisodeCamera(p), clock, loop=True, stamp_latency_s=LATE[name])
             for name in CAMERAS}
     for name, sim in sims.items():
         sim.add_consumer(lambda n, arm=arms[name]: arm.wait_for_frames(n, timeout=30.0))
@@ -153,20 +181,18 @@ def test_two_arms_are_synced_to_their_true_state_and_each_camera_keeps_its_own_t
         sim.follow(lambda: min(cam.consumed_until for cam in cams.values()))
     recorder = RigRecorder([RigArm(name, arm, ArmInfo(name=name)) for name, arm in arms.items()],
                            [RigCamera(name, cam, CameraInfo(name, 64, 48, K, mount=CAMERAS[name][0]),
-                                      latency_s=late[name]) for name, cam in cams.items()],
+                                      latency_s=LATE[name]) for name, cam in cams.items()],
                            clock, RecorderConfig(queue_frames=10_000, flush_grace_s=30.0), nominal_fps=30.0)
-    # (the end waits for every camera thread to catch up: on the manual clock, however loaded the machine)
-    try:
-        for sim in sims.values():
-            sim.start()
-        recorder.wait_for_arms(timeout=30.0)
-        result = recorder.record_episode(tmp_path / "ep", duration=2.0)
-    finally:
-        for cam in cams.values():
-            cam.close()
-        for name in ARMS:
-            sims[name].stop()
-            arms[name].close()
+    return LockstepRig(sims, arms, cams, recorder)
+
+
+def test_two_arms_are_synced_to_their_true_state_and_each_camera_keeps_its_own_time(
+        tmp_path: Path, sources: dict[str, Path]) -> None:
+    """Lock-step: the cameras stamped 0, 10 and 20 ms late (the end waits for every camera
+    thread to catch up: on the manual clock, however loaded the machine)."""
+    rig = lockstep_rig(sources)
+    result = rig.record(tmp_path / "ep", duration=2.0)
+    sims, cams = rig.sims, rig.cams
     assert result.valid and result.error is None
     ep = Episode.open(tmp_path / "ep")
     t0 = ep.meta.extra["clock"]["t0_monotonic"]
@@ -258,3 +284,33 @@ def test_each_camera_replays_its_own_camera_of_a_recorded_two_arm_episode(tmp_pa
             "--out", str(tmp_path / "o"), "--start", "now", "--duration", "1"]
     assert main(argv) == 2
     assert "has the cameras cam_high, cam_left_wrist, cam_right_wrist" in capsys.readouterr().err
+
+
+def test_an_episode_ends_at_its_duration_when_frames_are_matched_slower_than_the_cameras_deliver(
+        tmp_path: Path, sources: dict[str, Path], monkeypatch: pytest.MonkeyPatch) -> None:
+    """On a lock-step clock nothing holds the cameras back to real time: while the matching loop
+    is stalled at its first frame (a loaded machine), the clock runs 4 s ahead. The episode
+    still holds only the frames exposed within its 2 s, every arm state interpolated (none
+    flagged: before, the loop wrote on past the end until the joint history had dropped the
+    samples its frames needed)."""
+    write = VersionTwo.frame_item
+    rig = lockstep_rig(sources)
+    clock = rig.recorder.clock
+    stalled = {"until": None}
+
+    def stalled_frame_item(*args: Any, **kwargs: Any) -> Any:
+        """The first frame's write waits until the clock has run 4 s past it (real-time bound 60 s)."""
+        if stalled["until"] is None:
+            stalled["until"] = clock.monotonic() + 4.0
+            deadline = time.monotonic() + 60.0
+            while clock.monotonic() < stalled["until"] and time.monotonic() < deadline:
+                time.sleep(0.01)
+        return write(*args, **kwargs)
+
+    monkeypatch.setattr(VersionTwo, "frame_item", stalled_frame_item)
+    result = rig.record(tmp_path / "ep", duration=2.0)
+    assert result.valid and result.error is None
+    assert clock.monotonic() >= stalled["until"]  # the clock did run ahead of the loop
+    ep = Episode.open(tmp_path / "ep")
+    assert 55 <= len(ep) <= 61 and ep.arm_frames("left").t.max() < 2.0
+    assert result.stats.duration_s == pytest.approx(2.0) and result.stats.flagged == 0
