@@ -3,7 +3,9 @@ picking two things at once): each arm's skills move with the objects it handles 
 are re-planned as for one arm (:mod:`manisplat.augment.trajectory`, in the arm's base frame, against
 the table, the background and its own objects), then the arms run together from frame 0 and every
 frame is checked arm against arm and arm against the other arm's objects (coal, convex link
-hulls, object boxes), rejecting a demonstration where they come closer than ``min_clearance_m``.
+hulls, object boxes). Where they come closer than ``min_clearance_m``, one arm waits at its start
+until the other is out of its way (the shortest of :data:`WAITS_S` that clears, either arm); a
+demonstration that no wait clears is rejected.
 
     >>> planner = BimanualPlanner(twin)                      # raises Rejected("source", ...) for a handover
     >>> targets = planner.sample_targets(np.random.default_rng(3))
@@ -34,6 +36,9 @@ from manisplat.robot.hulls import convex, link_hulls
 
 MIN_ARM_CLEARANCE_M = 0.005
 """Arms (and an arm and the other arm's objects) closer than this in any frame: rejected."""
+WAITS_S = (0.5, 1.0, 1.5, 2.0, 3.0)
+"""When the arms would come too close, one arm waits at its start this long (s) before it moves,
+the shortest wait that clears first, either arm (the demonstration is rejected when none does)."""
 
 
 @dataclass
@@ -69,6 +74,26 @@ def held_to(traj: NewTrajectory, frames: int, fps: float) -> NewTrajectory:
     return replace(traj, t=np.arange(frames) / fps, q=hold(traj.q), gripper=hold(traj.gripper),
                    action_q=hold(traj.action_q), action_gripper=hold(traj.action_gripper),
                    object_poses={k: hold(v) for k, v in traj.object_poses.items()})
+
+
+def waiting(traj: NewTrajectory, frames: int, fps: float) -> NewTrajectory:
+    """``traj`` started ``frames`` later: the arm holds its first frame (at rest: joints, gripper,
+    objects; the command is the held state), every segment shifted and a ``wait`` segment first."""
+    if frames < 0:
+        raise ValueError(f"waiting: {frames} frames")
+    if frames == 0:
+        return traj
+
+    def first(a: np.ndarray) -> np.ndarray:
+        return np.concatenate([np.repeat(a[:1], frames, axis=0), a], axis=0)
+
+    shifted = [{**seg, "frames": [seg["frames"][0] + frames, seg["frames"][1] + frames]} for seg in traj.segments]
+    wait = {"kind": "wait", "name": "W_wait", "object": None, "frames": [0, frames - 1], "source_frames": None,
+            "T": None}
+    return replace(traj, t=np.arange(len(traj.t) + frames) / fps, q=first(traj.q), gripper=first(traj.gripper),
+                   action_q=np.concatenate([np.repeat(traj.q[:1], frames, axis=0), traj.action_q]),
+                   action_gripper=np.concatenate([np.repeat(traj.gripper[:1], frames), traj.action_gripper]),
+                   object_poses={k: first(v) for k, v in traj.object_poses.items()}, segments=[wait, *shifted])
 
 
 class ArmPairCheck:
@@ -163,24 +188,45 @@ class BimanualPlanner:
                 planned[name] = augment_trajectory(arm, targets.get(name, {}), config)
             except Rejected as exc:
                 raise Rejected(exc.reason, f"{name} arm: {exc.detail}") from exc
+        together = self._together(planned)
+        distance, frame, pair = together.validation["clearance"]
+        if distance < self.min_clearance_m:  # one arm waits at its start: the shortest wait that clears
+            for wait_s in WAITS_S:
+                for name in planned:
+                    waited = dict(planned, **{name: waiting(planned[name], round(wait_s * self.fps), self.fps)})
+                    candidate = self._together(waited)
+                    if candidate.validation["clearance"][0] >= self.min_clearance_m:
+                        candidate.validation["waited"] = {"arm": name, "s": wait_s, "without": {
+                            "min_arm_clearance_m": round(distance, 5), "closest": pair, "closest_frame": frame}}
+                        return self._validated(candidate)
+            tried = f"; either arm waiting up to {WAITS_S[-1]:g} s did not clear" if WAITS_S else ""
+            raise Rejected("arm_collision", f"{pair} come within {distance * 1e3:.1f} mm at frame {frame} "
+                                            f"(t = {frame / self.fps:.2f} s; at least {self.min_clearance_m * 1e3:g} "
+                                            f"mm required{tried})")
+        return self._validated(together)
+
+    def _together(self, planned: dict[str, NewTrajectory]) -> BimanualTrajectory:
+        """The arms' trajectories on one timeline (the one that ends first holds) and their closest
+        approach, ``validation["clearance"]`` = (m, frame, pair)."""
         frames = max(len(traj.t) for traj in planned.values())
         planned = {name: held_to(traj, frames, self.fps) for name, traj in planned.items()}
         object_poses = {obj: self.arms[name].to_world(traj.object_poses[obj])
                         for name, traj in planned.items() for obj in self.arms[name].objects}
-        distance, frame, pair = self.check.closest(planned, object_poses)
-        if distance < self.min_clearance_m:
-            raise Rejected("arm_collision", f"{pair} come within {distance * 1e3:.1f} mm at frame {frame} "
-                                            f"(t = {frame / self.fps:.2f} s; at least {self.min_clearance_m * 1e3:g} "
-                                            "mm required)")
-        validation = {"arms": {name: traj.validation for name, traj in planned.items()},
-                      "min_arm_clearance_m": round(distance, 5), "closest": pair, "closest_frame": frame,
-                      "clearance_measured_up_to_m": self.check.reach,  # farther pairs: at least this
-                      "required_arm_clearance_m": self.min_clearance_m}
-        return BimanualTrajectory(np.arange(frames) / self.fps, planned, object_poses, validation)
+        clearance = self.check.closest(planned, object_poses)
+        return BimanualTrajectory(np.arange(frames) / self.fps, planned, object_poses, {"clearance": clearance})
+
+    def _validated(self, traj: BimanualTrajectory) -> BimanualTrajectory:
+        distance, frame, pair = traj.validation.pop("clearance")
+        traj.validation.update({"arms": {name: arm.validation for name, arm in traj.arms.items()},
+                                "min_arm_clearance_m": round(distance, 5), "closest": pair, "closest_frame": frame,
+                                "clearance_measured_up_to_m": self.check.reach,  # farther pairs: at least this
+                                "required_arm_clearance_m": self.min_clearance_m})
+        return traj
 
 
 def _transform(T: np.ndarray) -> coal.Transform3s:
     return coal.Transform3s(np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]))
 
 
-__all__ = ["ArmPairCheck", "BimanualPlanner", "BimanualTrajectory", "MIN_ARM_CLEARANCE_M", "held_to"]
+__all__ = ["ArmPairCheck", "BimanualPlanner", "BimanualTrajectory", "MIN_ARM_CLEARANCE_M", "WAITS_S", "held_to",
+           "waiting"]

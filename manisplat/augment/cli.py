@@ -32,8 +32,9 @@ what it does, per demonstration: sample a new start pose for each manipulated ob
 
 several arms (a twin of a version 2 episode, e.g. a Cobot Magic's): each arm's skills move with
   the objects it handles and its motions are planned in its base frame (ranges along its base's
-  axes); the arms then run together and a demonstration where they (or an arm and the other's
-  object) come within 5 mm in any frame is discarded (arm_collision); every camera is rendered,
+  axes); the arms then run together; where they (or an arm and the other's object) would come
+  within 5 mm, one arm waits at its start (0.5-3 s, the shortest wait that clears), and a
+  demonstration that no wait clears is discarded (arm_collision); every camera is rendered,
   a wrist camera from its link at the new joints; written as version 2 episodes (every arm's
   joints and commands). Not yet: an object handed from one arm to the other (refused), --poses.
 

@@ -220,8 +220,8 @@ def _report(twin: Twin, args: argparse.Namespace, samples: list[Sample], wanted:
     motions = [r for arm in arms for r in arm.planner["segments"]]
     skill_mm = [arm.validation.get("skill_error_mm", 0.0) for arm in arms]
     skill_deg = [arm.validation.get("skill_error_deg", 0.0) for arm in arms]
-    clearances = [s.trajectory.validation["min_arm_clearance_m"] for s in valid
-                  if isinstance(s.trajectory, BimanualTrajectory)]
+    several = [s.trajectory for s in valid if isinstance(s.trajectory, BimanualTrajectory)]
+    clearances = [traj.validation["min_arm_clearance_m"] for traj in several]
     return {
         "parent": twin.episode, "recon": str(args.recon), "seed": args.seed, "requested": wanted,
         "drawn": len(samples), "valid": len(valid), "written": len(valid),
@@ -235,7 +235,8 @@ def _report(twin: Twin, args: argparse.Namespace, samples: list[Sample], wanted:
         "plan_s_per_sample": round(float(np.mean([s.plan_s for s in samples])) if samples else 0.0, 4),
         "samples": [{"index": s.index, "seed": s.seed, "valid": s.trajectory is not None, "episode": s.episode,
                      "reason": s.reason, "detail": s.detail, "plan_s": round(s.plan_s, 4)} for s in samples],
-        **({"min_arm_clearance_m": min(clearances)} if clearances else {}),
+        **({"min_arm_clearance_m": min(clearances),  # and how many needed one arm to wait
+            "arm_waited": sum("waited" in traj.validation for traj in several)} if clearances else {}),
     }
 
 

@@ -238,6 +238,32 @@ def test_arms_that_would_come_too_close_are_rejected_naming_the_links(two_arms):
     assert rejected.value.reason == "arm_collision" and "left/" in rejected.value.detail
 
 
+def test_arms_that_would_meet_on_the_way_are_cleared_by_one_waiting_at_its_start(two_arms, monkeypatch):
+    """The right arm's base 50 cm beside the left's: moving at once, the wrists meet halfway; with
+    the left arm 1.5 s late they pass 5 mm apart or more. The waiting arm holds its first state
+    (joints, gripper and commands) and then moves as planned."""
+    out, _ = two_arms
+    planner = BimanualPlanner(Twin.load(out))
+    alone = planner.run({}, AugmentConfig()).arms["left"]
+    shifted = planner.arms["left"].T_world_base.copy()
+    shifted[1, 3] -= 0.50
+    planner.arms["right"].T_world_base = shifted
+    traj = planner.run({}, AugmentConfig())
+    waited = traj.validation["waited"]
+    assert waited["without"]["min_arm_clearance_m"] < MIN_ARM_CLEARANCE_M <= traj.validation["min_arm_clearance_m"]
+    assert waited["arm"] == "left" and waited["s"] > 0
+    wait = round(waited["s"] * planner.fps)
+    left = traj.arms["left"]
+    np.testing.assert_array_equal(left.q[:wait + 1], np.broadcast_to(alone.q[0], (wait + 1, 6)))
+    np.testing.assert_array_equal(left.action_q[:wait], np.broadcast_to(alone.q[0], (wait, 6)))
+    np.testing.assert_array_equal(left.q[wait:], alone.q[:len(left.q) - wait])  # (alone: held to the right arm's end)
+    assert left.segments[0]["kind"] == "wait" and left.segments[1]["frames"][0] == wait
+    monkeypatch.setattr("manisplat.augment.bimanual.WAITS_S", ())
+    with pytest.raises(Rejected) as rejected:
+        planner.run({}, AugmentConfig())
+    assert rejected.value.reason == "arm_collision"
+
+
 def test_explicit_poses_are_refused_for_two_arms(two_arms, tmp_path, capsys):
     out, _ = two_arms
     poses = tmp_path / "poses.json"
