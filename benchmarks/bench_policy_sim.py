@@ -55,6 +55,14 @@ def _seeds(text: str) -> list[int]:
     return seeds
 
 
+def _size(text: str) -> tuple[int, int]:
+    """'160x120' -> (160, 120)."""
+    width, _, height = text.partition("x")
+    if not (width.isdigit() and height.isdigit() and int(width) >= 32 and int(height) >= 24):
+        raise argparse.ArgumentTypeError(f"{text!r}: WIDTHxHEIGHT in pixels, at least 32x24, e.g. 160x120")
+    return int(width), int(height)
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m benchmarks policy_sim", description=__doc__.splitlines()[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -63,7 +71,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--n", type=positive(int), nargs="+", help="demonstrations in B, C and D (default 50; --quick 4)")
     p.add_argument("--eval-seeds", type=_seeds, help="evaluation start seeds (default 1000-1049; --quick 1000-1003)")
     p.add_argument("--conditions", default="C,B,A,D", help="which conditions to run, in order (default C,B,A,D)")
-    p.add_argument("--steps", type=positive(int), help="training steps per condition (default 3000; --quick 150)")
+    p.add_argument("--steps", type=positive(int), help="training steps per condition (default 9000: 48 passes over 50 demonstrations; --quick 150)")
+    p.add_argument("--image-size", type=_size,
+                   help="the policy's view of the workspace, WIDTHxHEIGHT (default 160x120: benchmarks.policy.data)")
     p.add_argument("--twin-iters", type=positive(int), help="reconstruction iterations (default 1000; --quick 300)")
     p.add_argument("--work", type=Path, help="stage outputs, reused when present (default a new temporary folder)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_policy", help="JSON and plots")
@@ -86,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"--conditions: choose among {','.join(CONDITIONS)}")
     ns = sorted(args.n or ([4] if quick else [50]))
     eval_seeds = args.eval_seeds or (list(range(1000, 1004)) if quick else list(range(1000, 1050)))
-    steps = args.steps or (150 if quick else 3000)
+    steps = args.steps or (150 if quick else 9000)
     work = (args.work or Path(tempfile.mkdtemp(prefix="policy_sim_"))).resolve()
     work.mkdir(parents=True, exist_ok=True)
     print(f"policy_sim: source {source}, N {ns}, evaluation seeds {_seed_text(eval_seeds)}, "
@@ -96,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
 
     stages = Stages(source=source, work=work, simenv=Path(simenv), tools=shared / "tools" / "sim",
                     object_range=OBJECT_RANGE, place_range=PLACE_RANGE, twin_iters=args.twin_iters or
-                    (300 if quick else 1000))
+                    (300 if quick else 1000), **({"image_size": args.image_size} if args.image_size else {}))
     started = time.perf_counter()
     args.out.mkdir(parents=True, exist_ok=True)
     suffix = "_quick" if quick else ""

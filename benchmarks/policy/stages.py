@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from benchmarks.policy.data import Viewport, episode_folders, load_demonstrations, workspace_viewport
+from benchmarks.policy.data import IMAGE_SIZE, Viewport, episode_folders, load_demonstrations, workspace_viewport
 from benchmarks.policy.rollout import Rollout, evaluate, wilson_interval
 from benchmarks.policy.sim_env import SimEnv
 from benchmarks.policy.train import Budget, Normaliser, TrainedPolicy, train
@@ -40,15 +40,16 @@ class Stages:
         simenv, tools: the simulator venv's python and shared/tools/sim.
         object_range, place_range: (x m, y m, yaw deg) half-ranges for augmentation and oracle.
         twin_iters: manisplat-reconstruct iterations.
+        image_size: (width, height) of the policy's view of the workspace.
     """
 
     def __init__(self, source: Path, work: Path, simenv: Path, tools: Path, object_range: tuple[float, ...],
-                 place_range: tuple[float, ...], twin_iters: int) -> None:
+                 place_range: tuple[float, ...], twin_iters: int, image_size: tuple[int, int] = IMAGE_SIZE) -> None:
         self.source, self.work, self.simenv, self.tools = source, work, simenv, tools
         self.object_range, self.place_range, self.twin_iters = object_range, place_range, twin_iters
         self.data_report: dict[str, Any] = {}
         self.training_starts: dict[str, np.ndarray] = {}
-        self.viewport: Viewport = workspace_viewport(source, max(object_range[:2]))
+        self.viewport: Viewport = workspace_viewport(source, max(object_range[:2]), image_size)
 
     # ------------------------------------------------------------------ demonstrations
     def twin(self) -> Path:

@@ -116,3 +116,17 @@ def test_rollouts_of_earlier_runs_are_found_by_seed_for_their_own_policy_only(tm
     assert sorted(found) == list(range(1000, 1040))
     assert all(found[seed].seed == seed for seed in found)
     assert sorted(_cached_rollouts(tmp_path, "B50_3000_v1", {1005, 1031, 1045})) == [1005, 1031]
+
+
+@pytest.mark.parametrize("text, size", [("80x60", (80, 60)), ("160x120", (160, 120)), ("80", None), ("16x12", None),
+                                        ("ax60", None)])
+def test_the_policy_view_size_option(text, size):
+    import argparse
+
+    from benchmarks.bench_policy_sim import _size
+
+    if size is None:
+        with pytest.raises(argparse.ArgumentTypeError, match="WIDTHxHEIGHT"):
+            _size(text)
+    else:
+        assert _size(text) == size
