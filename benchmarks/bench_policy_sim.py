@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks._harness import BENCH_DIR, MissingBenchmarkData, machine_info, shared_dir
-from manisplat.cli_args import positive
+from manisplat.cli_args import bounded, positive
 
 OWN_OPTIONS = True  # python -m benchmarks policy_sim [options] calls main()
 OBJECT_RANGE = (0.08, 0.08, 45.0)  # m, m, deg: policy_env's reset(seed) ranges
@@ -74,6 +74,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=positive(int), help="training steps per condition (default 9000: 48 passes over 50 demonstrations; --quick 150)")
     p.add_argument("--image-size", type=_size,
                    help="the policy's view of the workspace, WIDTHxHEIGHT (default 160x120: benchmarks.policy.data)")
+    p.add_argument("--augment-speed", type=bounded(0.05, 1.0), default=1.0,
+                   help="manisplat-augment --speed for B and D: fraction 0.05-1 of the joint limits (default 1.0, its own)")
     p.add_argument("--twin-iters", type=positive(int), help="reconstruction iterations (default 1000; --quick 300)")
     p.add_argument("--work", type=Path, help="stage outputs, reused when present (default a new temporary folder)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_policy", help="JSON and plots")
@@ -106,7 +108,8 @@ def main(argv: list[str] | None = None) -> int:
 
     stages = Stages(source=source, work=work, simenv=Path(simenv), tools=shared / "tools" / "sim",
                     object_range=OBJECT_RANGE, place_range=PLACE_RANGE, twin_iters=args.twin_iters or
-                    (300 if quick else 1000), **({"image_size": args.image_size} if args.image_size else {}))
+                    (300 if quick else 1000), augment_speed=args.augment_speed,
+                    **({"image_size": args.image_size} if args.image_size else {}))
     started = time.perf_counter()
     args.out.mkdir(parents=True, exist_ok=True)
     suffix = "_quick" if quick else ""

@@ -41,15 +41,20 @@ class Stages:
         object_range, place_range: (x m, y m, yaw deg) half-ranges for augmentation and oracle.
         twin_iters: manisplat-reconstruct iterations.
         image_size: (width, height) of the policy's view of the workspace.
+        augment_speed: manisplat-augment's --speed (1.0, its default, keeps the folder names of
+            earlier runs; another speed gets its own folders, policies and rollouts).
     """
 
     def __init__(self, source: Path, work: Path, simenv: Path, tools: Path, object_range: tuple[float, ...],
-                 place_range: tuple[float, ...], twin_iters: int, image_size: tuple[int, int] = IMAGE_SIZE) -> None:
+                 place_range: tuple[float, ...], twin_iters: int, image_size: tuple[int, int] = IMAGE_SIZE,
+                 augment_speed: float = 1.0) -> None:
         self.source, self.work, self.simenv, self.tools = source, work, simenv, tools
         self.object_range, self.place_range, self.twin_iters = object_range, place_range, twin_iters
         self.data_report: dict[str, Any] = {}
         self.training_starts: dict[str, np.ndarray] = {}
         self.viewport: Viewport = workspace_viewport(source, max(object_range[:2]), image_size)
+        self.augment_speed = float(augment_speed)
+        self.speed_tag = "" if self.augment_speed == 1.0 else f"_speed{self.augment_speed:g}"
 
     # ------------------------------------------------------------------ demonstrations
     def twin(self) -> Path:
@@ -68,8 +73,9 @@ class Stages:
         return out
 
     def augmented(self, n: int) -> list[Path]:
-        """n demonstrations of manisplat-augment (seed 0), made once per n and kept in ``augmented_<n>``."""
-        out = self.work / f"augmented_{n}"
+        """n demonstrations of manisplat-augment (seed 0), made once per n (and speed) and kept in
+        ``augmented_<n>[_speed<s>]``."""
+        out = self.work / f"augmented_{n}{self.speed_tag}"
         if not (out / "augment_report.json").exists():
             from manisplat.augment.cli import main as augment
 
@@ -77,6 +83,7 @@ class Stages:
             _log(f"manisplat-augment: {n} demonstrations")
             start = time.perf_counter()
             augment([str(twin), "--n", str(n), "--out", str(out), "--workers", "2", "--seed", "0", "-q", "--overwrite",
+                     "--speed", str(self.augment_speed),
                      "--object-range", ",".join(map(str, self.object_range)),
                      "--target-range", ",".join(map(str, self.place_range))])
             self.data_report[f"augment_{n}_s"] = round(time.perf_counter() - start, 1)
@@ -119,7 +126,7 @@ class Stages:
     def sim_rendered(self, augmented: list[Path]) -> list[Path]:
         """The augmented demonstrations executed in the simulator with contact physics; each gets the
         simulator's renders of its own motion as rgb/ (everything else linked from the original)."""
-        renders, out = self.work / "sim_render", self.work / "sim_rendered"
+        renders, out = self.work / f"sim_render{self.speed_tag}", self.work / f"sim_rendered{self.speed_tag}"
         todo = [p for p in augmented if not (renders / f"{p.name}.json").exists()]
         if todo:
             _log(f"execute_episode.py --render: {len(todo)} augmented demonstrations")
@@ -166,10 +173,14 @@ class Stages:
     def budget_of(steps: int) -> Budget:
         return Budget(steps=steps)
 
+    def key(self, condition: str, n: int) -> str:
+        """The name of a condition's policy and rollouts: A, C50, B50, B50_speed0.6, ..."""
+        return condition if condition == "A" else f"{condition}{n}" + (self.speed_tag if condition in "BD" else "")
+
     def condition(self, condition: str, n: int, steps: int, seeds: list[int], envs: int
                   ) -> tuple[dict[str, Any], list[Rollout]]:
         """Train the policy on the condition's demonstrations and evaluate it from ``seeds``."""
-        key = condition if condition == "A" else f"{condition}{n}"
+        key = self.key(condition, n)
         folders = self.folders(condition, n)
         self.training_starts[key] = np.array([_start_xy(f, self.source) for f in folders])
         budget = self.budget_of(steps)

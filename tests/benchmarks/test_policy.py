@@ -130,3 +130,27 @@ def test_the_policy_view_size_option(text, size):
             _size(text)
     else:
         assert _size(text) == size
+
+
+def test_another_augmentation_speed_gets_its_own_folders_and_policies(tmp_path):
+    """B and D at --augment-speed 0.6 never reuse the demonstrations, policies or rollouts of the
+    default speed (kept in the same work folder); A and C do."""
+    import json
+
+    from manisplat.episode.synthetic import write_sample_episode
+
+    from benchmarks.policy.stages import Stages
+
+    source = write_sample_episode(tmp_path / "sample", frames=8, width=160, height=120)
+    made = {speed: Stages(source, tmp_path / "work", tmp_path / "python", tmp_path / "tools", (0.05, 0.05, 30.0),
+                          (0.02, 0.02, 30.0), 10, augment_speed=speed) for speed in (1.0, 0.6)}
+    for folder in ("augmented_2", "augmented_2_speed0.6"):  # as manisplat-augment left them
+        for k in range(2):
+            (tmp_path / "work" / folder / f"episode_{k:04d}").mkdir(parents=True)
+            (tmp_path / "work" / folder / f"episode_{k:04d}" / "episode.json").write_text("{}")
+        (tmp_path / "work" / folder / "augment_report.json").write_text(json.dumps(
+            {"requested": 2, "drawn": 2, "valid": 2, "reasons": {}}))
+    assert made[1.0].augmented(2)[0].parent.name == "augmented_2"
+    assert made[0.6].augmented(2)[0].parent.name == "augmented_2_speed0.6"
+    assert [made[1.0].key(c, 50) for c in "ABCD"] == ["A", "B50", "C50", "D50"]
+    assert [made[0.6].key(c, 50) for c in "ABCD"] == ["A", "B50_speed0.6", "C50", "D50_speed0.6"]
