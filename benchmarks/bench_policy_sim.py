@@ -108,8 +108,7 @@ def main(argv: list[str] | None = None) -> int:
 
     stages = Stages(source=source, work=work, simenv=Path(simenv), tools=shared / "tools" / "sim",
                     object_range=OBJECT_RANGE, place_range=PLACE_RANGE, twin_iters=args.twin_iters or
-                    (300 if quick else 1000), augment_speed=args.augment_speed,
-                    **({"image_size": args.image_size} if args.image_size else {}))
+                    (300 if quick else 1000), image_size=args.image_size, augment_speed=args.augment_speed)
     started = time.perf_counter()
     args.out.mkdir(parents=True, exist_ok=True)
     suffix = "_quick" if quick else ""

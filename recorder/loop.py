@@ -75,13 +75,16 @@ class EpisodeLoop:
         next_status = clock.monotonic() + status_every_s
         while True:
             now = clock.monotonic()
+            if stop.is_set():
+                self.end = now
+                return "stopped"
             if duration is not None and now - self.t0 >= duration:
                 self.end = self.t0 + duration
                 return "duration"
-            reason = self._stop_reason(stop)
-            if reason is not None:
+            failure = self._failure()
+            if failure is not None:
                 self.end = now
-                return reason
+                return failure
             self.resolve(force=False, until=now)
             self.rec.clock_map.maybe_remeasure()
             if on_status is not None and now >= next_status:
@@ -89,10 +92,8 @@ class EpisodeLoop:
                 on_status(self.status(now))
             clock.sleep_until(clock.monotonic() + 0.005, RealDeadline(0.01, stop))
 
-    def _stop_reason(self, stop: threading.Event) -> str | None:
-        """Why the episode ends now other than its duration, or None."""
-        if stop.is_set():
-            return "stopped"
+    def _failure(self) -> str | None:
+        """Why the episode must end now (the writer or a camera failed, a camera ended), or None."""
         if self.sink.failed.is_set():
             return "write error"
         failed = [cam.error for cam in self.rec.camera_feeds.values() if cam.error]

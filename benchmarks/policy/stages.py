@@ -40,19 +40,19 @@ class Stages:
         simenv, tools: the simulator venv's python and shared/tools/sim.
         object_range, place_range: (x m, y m, yaw deg) half-ranges for augmentation and oracle.
         twin_iters: manisplat-reconstruct iterations.
-        image_size: (width, height) of the policy's view of the workspace.
+        image_size: (width, height) of the policy's view of the workspace (None: ``data.IMAGE_SIZE``).
         augment_speed: manisplat-augment's --speed (1.0, its default, keeps the folder names of
             earlier runs; another speed gets its own folders, policies and rollouts).
     """
 
     def __init__(self, source: Path, work: Path, simenv: Path, tools: Path, object_range: tuple[float, ...],
-                 place_range: tuple[float, ...], twin_iters: int, image_size: tuple[int, int] = IMAGE_SIZE,
+                 place_range: tuple[float, ...], twin_iters: int, image_size: tuple[int, int] | None = None,
                  augment_speed: float = 1.0) -> None:
         self.source, self.work, self.simenv, self.tools = source, work, simenv, tools
         self.object_range, self.place_range, self.twin_iters = object_range, place_range, twin_iters
         self.data_report: dict[str, Any] = {}
         self.training_starts: dict[str, np.ndarray] = {}
-        self.viewport: Viewport = workspace_viewport(source, max(object_range[:2]), image_size)
+        self.viewport: Viewport = workspace_viewport(source, max(object_range[:2]), image_size or IMAGE_SIZE)
         self.augment_speed = float(augment_speed)
         self.speed_tag = "" if self.augment_speed == 1.0 else f"_speed{self.augment_speed:g}"
 

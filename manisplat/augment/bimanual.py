@@ -188,35 +188,37 @@ class BimanualPlanner:
                 planned[name] = augment_trajectory(arm, targets.get(name, {}), config)
             except Rejected as exc:
                 raise Rejected(exc.reason, f"{name} arm: {exc.detail}") from exc
-        together = self._together(planned)
-        distance, frame, pair = together.validation["clearance"]
+        together, (distance, frame, pair) = self._together(planned)
         if distance < self.min_clearance_m:  # one arm waits at its start: the shortest wait that clears
             for wait_s in WAITS_S:
                 for name in planned:
                     waited = dict(planned, **{name: waiting(planned[name], round(wait_s * self.fps), self.fps)})
-                    candidate = self._together(waited)
-                    if candidate.validation["clearance"][0] >= self.min_clearance_m:
+                    candidate, clearance = self._together(waited)
+                    if clearance[0] >= self.min_clearance_m:
                         candidate.validation["waited"] = {"arm": name, "s": wait_s, "without": {
                             "min_arm_clearance_m": round(distance, 5), "closest": pair, "closest_frame": frame}}
-                        return self._validated(candidate)
+                        return self._validated(candidate, clearance)
             tried = f"; either arm waiting up to {WAITS_S[-1]:g} s did not clear" if WAITS_S else ""
             raise Rejected("arm_collision", f"{pair} come within {distance * 1e3:.1f} mm at frame {frame} "
                                             f"(t = {frame / self.fps:.2f} s; at least {self.min_clearance_m * 1e3:g} "
                                             f"mm required{tried})")
-        return self._validated(together)
+        return self._validated(together, (distance, frame, pair))
 
-    def _together(self, planned: dict[str, NewTrajectory]) -> BimanualTrajectory:
+    def _together(self, planned: dict[str, NewTrajectory]
+                  ) -> tuple[BimanualTrajectory, tuple[float, int | None, str | None]]:
         """The arms' trajectories on one timeline (the one that ends first holds) and their closest
-        approach, ``validation["clearance"]`` = (m, frame, pair)."""
+        approach (m, frame, pair) by :meth:`ArmPairCheck.closest`."""
         frames = max(len(traj.t) for traj in planned.values())
         planned = {name: held_to(traj, frames, self.fps) for name, traj in planned.items()}
         object_poses = {obj: self.arms[name].to_world(traj.object_poses[obj])
                         for name, traj in planned.items() for obj in self.arms[name].objects}
         clearance = self.check.closest(planned, object_poses)
-        return BimanualTrajectory(np.arange(frames) / self.fps, planned, object_poses, {"clearance": clearance})
+        return BimanualTrajectory(np.arange(frames) / self.fps, planned, object_poses, {}), clearance
 
-    def _validated(self, traj: BimanualTrajectory) -> BimanualTrajectory:
-        distance, frame, pair = traj.validation.pop("clearance")
+    def _validated(self, traj: BimanualTrajectory, clearance: tuple[float, int | None, str | None]
+                   ) -> BimanualTrajectory:
+        """``traj`` with its validation record: every arm's and the closest approach."""
+        distance, frame, pair = clearance
         traj.validation.update({"arms": {name: arm.validation for name, arm in traj.arms.items()},
                                 "min_arm_clearance_m": round(distance, 5), "closest": pair, "closest_frame": frame,
                                 "clearance_measured_up_to_m": self.check.reach,  # farther pairs: at least this
