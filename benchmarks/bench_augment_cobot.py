@@ -10,8 +10,14 @@ demonstration moved the twin's object by. For the first ``--render-check`` demon
 simulator also renders every camera at the executed states, and the twin's images are scored
 against them per region (the simulator's masks).
 
+``--planned M`` executes M more demonstrations that are planned (the planner manisplat-augment
+runs, its default ranges, another seed) but not rendered: their commands, as the export writes
+them (each arm's ``a1..a6, a_gripper``), go to the simulator directly. Rendering takes about
+86 s per two-arm demonstration on a core, planning under a second. ``--source-seed S`` makes the
+source with ``gen_bimanual.py --seed S`` (the sample's task) instead of reading the shared sample.
+
 ``MANISPLAT_SIMENV=SIMENV/bin/python python -m benchmarks augment_cobot [--sample cobot_dual_small] [--n 100]
-[--iters 1000] [--render-check 10] [--work DIR] [--out FILE]``
+[--planned 0] [--source-seed S] [--iters 1000] [--render-check 10] [--work DIR] [--out FILE]``
 """
 
 from __future__ import annotations
@@ -26,11 +32,14 @@ import time
 from pathlib import Path
 
 import cv2
+import h5py
 import numpy as np
 
 from benchmarks._harness import BENCH_DIR, MissingBenchmarkData, shared_dir
 from benchmarks.bench_reconstruct_cobot import CAMERAS, add_ground_truth, reconstruct
+from manisplat.augment.bimanual import BimanualPlanner, BimanualTrajectory
 from manisplat.augment.cli import main as augment_main
+from manisplat.augment.trajectory import AugmentConfig, Rejected
 from manisplat.episode import Episode
 from manisplat.episode.cli import main as episode_main
 from manisplat.twin import Twin
@@ -41,7 +50,9 @@ OWN_OPTIONS = True
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks augment_cobot", description=__doc__.splitlines()[0])
     p.add_argument("--sample", default="cobot_dual_small", help="a shared Cobot Magic sample (default cobot_dual_small)")
-    p.add_argument("--n", type=int, default=100, help="demonstrations (default 100)")
+    p.add_argument("--n", type=int, default=100, help="demonstrations written by manisplat-augment (default 100)")
+    p.add_argument("--planned", type=int, default=0, help="more demonstrations planned only, executed in physics (default 0)")
+    p.add_argument("--source-seed", type=int, help="make the source with gen_bimanual.py --seed S instead")
     p.add_argument("--iters", type=int, default=1000, help="reconstruction iterations (default 1000)")
     p.add_argument("--render-check", type=int, default=10, help="demonstrations the simulator also renders (default 10)")
     p.add_argument("--work", type=Path, help="stage outputs, reused when present (default a temporary folder)")
@@ -50,11 +61,13 @@ def main(argv: list[str] | None = None) -> int:
     simenv = os.environ.get("MANISPLAT_SIMENV")
     if not simenv:
         raise MissingBenchmarkData("set MANISPLAT_SIMENV to the python of a venv with mujoco (shared/tools/sim)")
-    source = shared_dir() / "data" / args.sample
     work = (args.work or Path(tempfile.mkdtemp(prefix="augment_cobot_"))).resolve()
     work.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     stages: dict[str, float] = {}
+    source = shared_dir() / "data" / args.sample
+    if args.source_seed is not None:
+        source = generated_source(Path(simenv), source, args.source_seed, work / "source")
 
     episode, twin_dir, aug, act = work / "episode", work / "twin", work / "aug", work / "act"
     if not (episode / "episode.json").exists():
@@ -82,27 +95,26 @@ def main(argv: list[str] | None = None) -> int:
     physics = execute_all(Path(simenv), source, Twin.load(twin_dir), episodes, act, work / "physics", args.render_check)
     stages["physics_s"] = round(time.perf_counter() - t0, 1)
     renders = [score_renders(ep, work / "physics" / f"render_{k}", source) for k, ep in enumerate(episodes[:args.render_check])]
+    planned = {}
+    if args.planned:
+        t0 = time.perf_counter()
+        planned = plan_and_execute(Path(simenv), source, Twin.load(twin_dir), args.planned, work / "planned")
+        stages["planned_s"] = round(time.perf_counter() - t0, 1)
 
     result = {
-        "benchmark": "augment_cobot", "sample": args.sample,
+        "benchmark": "augment_cobot", "sample": args.sample, "source_seed": args.source_seed,
         "command": "python -m benchmarks augment_cobot " + " ".join(argv if argv is not None else sys.argv[1:]),
         "augment": {k: report.get(k) for k in ("requested", "drawn", "valid", "validity_rate", "reasons",
                                                 "min_arm_clearance_m", "timing_s", "plan_s_per_sample")},
-        "physics": {"executed": len(physics), "success": sum(r["success"] for r in physics),
-                    "success_clean": sum(r["success_clean"] for r in physics),
-                    "arm_arm_contact_steps": sum(r["collisions"]["arm_arm"] for r in physics),
-                    "demonstrations_with_arm_arm_contact": sum(r["collisions"]["arm_arm"] > 0 for r in physics),
-                    "final_pos_err_cm_max": {name: max(r["objects"][name]["final_pos_err_cm"] for r in physics)
-                                             for name in physics[0]["objects"]} if physics else {},
-                    "failures": [{"episode": r["episode"], **{k: r[k] for k in ("success", "collisions",
-                                                                                 "first_collision")},
-                                  "objects": r["objects"]} for r in physics if not r["success_clean"]]},
+        "physics": summarise_physics(physics),
+        **({"planned": planned["plan"], "physics_planned": summarise_physics(planned["physics"])} if planned else {}),
         "renders_vs_simulator": summarise_renders(renders), "stages_s": stages,
         "wall_s": round(time.perf_counter() - started, 1), "work": str(work),
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1, default=float) + "\n")
-    print(json.dumps({k: result[k] for k in ("augment", "physics", "renders_vs_simulator")}, indent=1, default=float))
+    print(json.dumps({k: result.get(k) for k in ("augment", "physics", "physics_planned", "renders_vs_simulator")},
+                     indent=1, default=float))
     return 0
 
 
@@ -119,12 +131,12 @@ def _prompts(episode: Path, source: Path) -> dict[str, tuple[float, float]]:
     return prompts
 
 
-def new_objects(source: Path, twin: Twin, episode: Path) -> dict:
-    """The simulator's objects.json for an augmented demonstration: each manipulated object's
-    source start and end (the simulator's frames) moved by the world transforms that took the
-    twin's object from its source start to the new start, and from its source end to the new end."""
+def new_objects(source: Path, twin: Twin, new: dict[str, np.ndarray]) -> dict:
+    """The simulator's objects.json for an augmented demonstration whose objects' world poses are
+    ``new`` (name -> [T, 4, 4]): each manipulated object's source start and end (the simulator's
+    frames) moved by the world transforms that took the twin's object from its source start to the
+    new start, and from its source end to the new end."""
     spec = json.loads((source / "episode_0.objects.json").read_text())
-    new = np.load(episode / "object_poses.npz")
     objects = {}
     for name, o in spec["objects"].items():
         if o["role"] != "manipulated":
@@ -140,7 +152,7 @@ def new_objects(source: Path, twin: Twin, episode: Path) -> dict:
 def execute_all(simenv: Path, source: Path, twin: Twin, episodes: list[Path], act: Path, out: Path,
                 render_check: int) -> list[dict]:
     """execute_bimanual.py on every exported demonstration, two at a time; its JSON per demonstration."""
-    tools = source.parent.parent / "tools" / "sim"
+    tools = shared_dir() / "tools" / "sim"
     out.mkdir(parents=True, exist_ok=True)
     running: list[tuple[Path, subprocess.Popen]] = []
     results = []
@@ -152,7 +164,7 @@ def execute_all(simenv: Path, source: Path, twin: Twin, episodes: list[Path], ac
             if report.exists():
                 continue
             spec = out / f"episode_{k}.objects.json"
-            spec.write_text(json.dumps(new_objects(source, twin, ep)))
+            spec.write_text(json.dumps(new_objects(source, twin, dict(np.load(ep / "object_poses.npz")))))
             command = [str(simenv), "execute_bimanual.py", str(act / f"episode_{k}.hdf5"), "--objects", str(spec),
                        "--json", str(report.with_suffix(".part"))]
             if k < render_check:
@@ -166,6 +178,71 @@ def execute_all(simenv: Path, source: Path, twin: Twin, episodes: list[Path], ac
     for k, ep in enumerate(episodes):
         results.append(json.loads((out / f"episode_{k}.json").read_text()) | {"episode": ep.name})
     return results
+
+
+def summarise_physics(physics: list[dict]) -> dict:
+    """Counts of execute_bimanual.py's results: success, contacts, largest end errors, the failures."""
+    return {"executed": len(physics), "success": sum(r["success"] for r in physics),
+            "success_clean": sum(r["success_clean"] for r in physics),
+            "arm_arm_contact_steps": sum(r["collisions"]["arm_arm"] for r in physics),
+            "demonstrations_with_arm_arm_contact": sum(r["collisions"]["arm_arm"] > 0 for r in physics),
+            "final_pos_err_cm_max": {name: max(r["objects"][name]["final_pos_err_cm"] for r in physics)
+                                     for name in physics[0]["objects"]} if physics else {},
+            "failures": [{"episode": r["episode"], **{k: r[k] for k in ("success", "collisions", "first_collision")},
+                          "objects": r["objects"]} for r in physics if not r["success_clean"]]}
+
+
+def generated_source(simenv: Path, sample: Path, seed: int, out: Path) -> Path:
+    """``gen_bimanual.py --task T --seed S`` into ``out`` (once), T the shared sample's task."""
+    if not (out / "episode_0.hdf5").exists():
+        task = json.loads((sample / "episode_0.objects.json").read_text())["task"]
+        subprocess.run([str(simenv), "gen_bimanual.py", "--task", task, "--seed", str(seed), "--out", str(out)],
+                       cwd=shared_dir() / "tools" / "sim", check=False, stdout=subprocess.DEVNULL,
+                       env={**os.environ, "MUJOCO_GL": "osmesa"})
+        if not (out / "episode_0.hdf5").exists():
+            raise RuntimeError(f"gen_bimanual.py --task {task} --seed {seed} wrote no episode")
+    return out
+
+
+def plan_and_execute(simenv: Path, source: Path, twin: Twin, n: int, out: Path, seed: int = 1) -> dict:
+    """``n`` demonstrations planned as manisplat-augment plans them (its default ranges, samples
+    ``seed * 1000003 + k``; not rendered), their commands written as the ACT export writes them
+    (``/action``: each arm's ``a1..a6, a_gripper``) and executed by execute_bimanual.py."""
+    planner, config = BimanualPlanner(twin), AugmentConfig(seed=seed)
+    valid: list[BimanualTrajectory] = []
+    reasons: dict[str, int] = {}
+    drawn = 0
+    while len(valid) < n and drawn < 3 * n:
+        rng = np.random.default_rng(seed * 1_000_003 + drawn)
+        drawn += 1
+        try:
+            valid.append(planner.run(planner.sample_targets(rng), config))
+        except Rejected as exc:
+            reasons[exc.reason] = reasons.get(exc.reason, 0) + 1
+    out.mkdir(parents=True, exist_ok=True)
+    tools = shared_dir() / "tools" / "sim"
+    running: list[tuple[Path, subprocess.Popen]] = []
+    for k, traj in enumerate(valid):
+        name = f"planned_{k:04d}"
+        report = out / f"{name}.json"
+        if not report.exists():
+            with h5py.File(out / f"{name}.hdf5", "w") as f:
+                f.create_dataset("action", data=np.concatenate(
+                    [np.column_stack([traj.arms[a].action_q, traj.arms[a].action_gripper]) for a in twin.arm_names], 1))
+            (out / f"{name}.objects.json").write_text(json.dumps(new_objects(source, twin, traj.object_poses)))
+            running.append((report, subprocess.Popen(
+                [str(simenv), "execute_bimanual.py", str(out / f"{name}.hdf5"), "--objects", str(out / f"{name}.objects.json"),
+                 "--fps", str(twin.fps), "--json", str(report.with_suffix(".part"))], cwd=tools,
+                stdout=subprocess.DEVNULL, env={**os.environ, "MUJOCO_GL": "osmesa"})))
+        while len(running) >= 2 or (running and k == len(valid) - 1):
+            done, proc = running.pop(0)
+            proc.wait()  # exit 2: the task's self-checks failed, which the JSON says
+            done.with_suffix(".part").rename(done)
+    physics = [json.loads((out / f"planned_{k:04d}.json").read_text()) | {"episode": f"planned_{k:04d}"}
+               for k in range(len(valid))]
+    return {"plan": {"requested": n, "drawn": drawn, "valid": len(valid), "reasons": reasons, "seed": seed,
+                     "waited_s": [traj.validation.get("handover", {}).get("waited_s") for traj in valid][:5]},
+            "physics": physics}
 
 
 def score_renders(episode: Path, render: Path, source: Path) -> dict:

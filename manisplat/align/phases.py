@@ -22,6 +22,7 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 DEFAULT_TAU = 0.08  # m
+HYSTERESIS = 1.25  # a skill is left where the distance exceeds tau times this
 
 
 @dataclass(frozen=True)
@@ -67,7 +68,7 @@ def gripper_events(width: np.ndarray, *, min_change: float = 0.005) -> list[Grip
     return events
 
 
-def _interval_around(d: np.ndarray, frame: int, tau: float, leave: float) -> tuple[int, int] | None:
+def interval_around(d: np.ndarray, frame: int, tau: float, leave: float) -> tuple[int, int] | None:
     """The stretch around ``frame`` where the distance stays below ``leave``, entered below ``tau``."""
     if d[frame] >= leave:
         return None
@@ -88,7 +89,7 @@ def segment_phases(
     object_start: np.ndarray,
     *,
     tau: float = DEFAULT_TAU,
-    hysteresis: float = 1.25,
+    hysteresis: float = HYSTERESIS,
     min_duration: int = 3,
 ) -> list[Segment]:
     """Phases of an episode from TCP positions [T, 3], gripper widths [T] and the object's
@@ -102,13 +103,13 @@ def segment_phases(
             # the object is held between grasp and release: it sits at the TCP plus the grasp offset
             offset = object_start - tcp[event.grasp]
             d_pick = np.linalg.norm(tcp - object_start, axis=1)
-            pick = _interval_around(d_pick, event.grasp, tau, leave)
+            pick = interval_around(d_pick, event.grasp, tau, leave)
             if pick is not None:
                 skills.append((*pick, "S_pick"))
             if event.release is not None:
                 place_spot = tcp[event.release] + offset
                 d_place = np.linalg.norm(tcp - place_spot, axis=1)
-                place = _interval_around(d_place, event.release, tau, leave)
+                place = interval_around(d_place, event.release, tau, leave)
                 if place is not None:
                     skills.append((*place, "S_place"))
                 object_start = place_spot

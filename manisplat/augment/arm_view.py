@@ -5,7 +5,9 @@ support map), so that each arm's skills are moved and its motions planned as for
 
 Which arm handles an object is decided from the twin's own demonstration, as reconstruction
 aligned it (:func:`manisplat.align.acting_arm.holds`: the arm whose gripper first closes nearest
-the object's start); an object passed from one gripper to the other (a handover) is refused here.
+the object's start, then any arm that takes it over). An object passed from one gripper to the
+other (a handover) is handled by both arms, each seeing its own half of it
+(:mod:`manisplat.augment.handover`).
 """
 
 from __future__ import annotations
@@ -15,7 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from manisplat.align.acting_arm import holds
+from manisplat.align.acting_arm import Hold, holds
+from manisplat.augment.handover import Handover, find_handover, giver_part, taker_part
 from manisplat.augment.source import SourceError
 from manisplat.robot import RobotModel
 from manisplat.robot.arms import ArmSet
@@ -103,23 +106,35 @@ class ArmTwin:
         return self.T_world_base @ np.asarray(T_base, np.float64)
 
 
-def handled_objects(twin: Twin) -> dict[str, list[str]]:
-    """Arm name -> the twin's objects it handles (every arm listed, in order).
-
-    Raises:
-        SourceError: an object is handed from one arm to another (not augmented yet).
-    """
+def _tcp_and_gripper(twin: Twin) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Arm name -> its TCP positions [T, 3] (the twin's frame, m); arm name -> its opening [T] (m)."""
     positions = twin.robot.tcp_poses(torch.as_tensor(twin.q)).numpy()[..., :3, 3]  # [T, A, 3], every arm at once
-    tcp = {name: positions[:, k] for k, name in enumerate(twin.arm_names)}
-    gripper = {name: g for name, (_, g) in twin.arm_tracks().items()}
+    return ({name: positions[:, k] for k, name in enumerate(twin.arm_names)},
+            {name: g for name, (_, g) in twin.arm_tracks().items()})
+
+
+def _holds(twin: Twin) -> dict[str, list[Hold]]:
+    """Object name -> who holds it when (:func:`~manisplat.align.acting_arm.holds`)."""
+    tcp, gripper = _tcp_and_gripper(twin)
+    return {obj: holds(tcp, gripper, twin.object_poses[obj][0][:3, 3]) for obj in twin.objects}
+
+
+def handled_objects(twin: Twin) -> dict[str, list[str]]:
+    """Arm name -> the twin's objects it handles (every arm listed, in order; a handed-over object
+    under both arms)."""
     out: dict[str, list[str]] = {name: [] for name in twin.arm_names}
-    for obj in twin.objects:
-        who = holds(tcp, gripper, twin.object_poses[obj][0][:3, 3])
-        if len(who) > 1:
-            raise SourceError(f"{obj} is handed from the {who[0].arm} arm to the {who[1].arm} arm at frame "
-                              f"{who[1].start}: augmenting a handover is not supported yet")
-        out[who[0].arm].append(obj)
+    for obj, order in _holds(twin).items():
+        for arm in dict.fromkeys(h.arm for h in order):
+            out[arm].append(obj)
     return out
+
+
+def handovers(twin: Twin) -> list[Handover]:
+    """The twin's objects passed from one arm to the other (raises :class:`SourceError` for one
+    that :func:`~manisplat.augment.handover.find_handover` cannot augment)."""
+    tcp, gripper = _tcp_and_gripper(twin)
+    return [find_handover(obj, order, tcp, gripper, twin.object_poses[obj])
+            for obj, order in _holds(twin).items() if len(order) > 1]
 
 
 def arm_twins(twin: Twin) -> dict[str, ArmTwin]:
@@ -128,16 +143,23 @@ def arm_twins(twin: Twin) -> dict[str, ArmTwin]:
         raise SourceError("arm_twins: the twin has one arm; augment it as it is")
     tracks = twin.arm_tracks()
     handled = handled_objects(twin)
+    parts = {}  # (arm, object) -> (world poses [T, 4, 4], phases) where the arm sees a part of a handover
+    for h in handovers(twin):
+        poses, phases = twin.object_poses[h.object], twin.phases.get(h.object, [])
+        parts[h.giver, h.object] = giver_part(h, poses, phases)
+        parts[h.taker, h.object] = taker_part(h, poses, phases)
     background = twin.graph.background
     out = {}
     for arm in twin.arms:
         T_base_world = np.linalg.inv(arm.T_world_base)
+        seen = {name: parts.get((arm.name, name), (twin.object_poses[name], twin.phases.get(name, [])))
+                for name in handled[arm.name]}
         out[arm.name] = ArmTwin(
             name=arm.name, T_world_base=arm.T_world_base, robot=twin.robot.arms[arm.name],
             robot_description=arm.description, robot_info=_info(arm), t=twin.t, q=tracks[arm.name][0],
             gripper=tracks[arm.name][1], fps=twin.fps, objects=handled[arm.name],
-            object_poses={name: T_base_world @ twin.object_poses[name] for name in handled[arm.name]},
-            phases={name: twin.phases.get(name, []) for name in handled[arm.name]},
+            object_poses={name: T_base_world @ poses for name, (poses, _) in seen.items()},
+            phases={name: phases for name, (_, phases) in seen.items()},
             graph=ArmScene({name: twin.graph.objects[name] for name in handled[arm.name]},
                            None if background is None else _moved(background, T_base_world)),
             support=None if twin.support is None else BaseFrameSupport(twin.support, arm.T_world_base),
@@ -156,4 +178,4 @@ def _moved(gaussians, T: np.ndarray) -> PointSet:
     return PointSet({"means": torch.from_numpy(moved), "opacities": gaussians.params["opacities"].detach().cpu()})
 
 
-__all__ = ["ArmScene", "ArmTwin", "BaseFrameSupport", "PointSet", "arm_twins", "handled_objects"]
+__all__ = ["ArmScene", "ArmTwin", "BaseFrameSupport", "PointSet", "arm_twins", "handled_objects", "handovers"]

@@ -7,7 +7,13 @@ hulls, object boxes). Where they come closer than ``min_clearance_m``, one arm w
 until the other is out of its way (the shortest of :data:`WAITS_S` that clears, either arm); a
 demonstration that no wait clears is rejected.
 
-    >>> planner = BimanualPlanner(twin)                      # raises Rejected("source", ...) for a handover
+An object handed from one arm to the other (:mod:`manisplat.augment.handover`) is planned by each
+arm for its half; the arm that would reach the shared handover skill first waits at its start until
+both enter it at the same frame (no other wait then), and inside that skill the link pairs that the
+source demonstration itself brought closer than the clearance (the two grippers on one object) are
+not measured.
+
+    >>> planner = BimanualPlanner(twin)                      # raises Rejected("source", ...)
     >>> targets = planner.sample_targets(np.random.default_rng(3))
     >>> traj = planner.run(targets, AugmentConfig(seed=3))   # raises Rejected
 
@@ -26,9 +32,11 @@ import coal
 import numpy as np
 import torch
 
-from manisplat.augment.arm_view import ArmTwin, arm_twins
+from manisplat.augment.arm_view import ArmTwin, arm_twins, handovers
 from manisplat.augment.collision import CollisionSettings, _object_box
 from manisplat.augment.errors import Rejected
+from manisplat.augment.handover import (HANDOVER_RANGE, Handover, entry_delays, handed_track, moved_handover,
+                                        skill_segment)
 from manisplat.augment.sampling import ObjectTarget, sample_targets
 from manisplat.augment.source import SourceError
 from manisplat.augment.trajectory import AugmentConfig, NewTrajectory, augment_trajectory
@@ -96,6 +104,26 @@ def waiting(traj: NewTrajectory, frames: int, fps: float) -> NewTrajectory:
                    object_poses={k: first(v) for k, v in traj.object_poses.items()}, segments=[wait, *shifted])
 
 
+@dataclass(frozen=True)
+class HandoverWindow:
+    """Frames ``first..last`` (inclusive) of the common timeline where ``giver`` and ``taker`` share
+    the handover skill of ``object``: there the link pairs in ``allowed`` (frozensets of two
+    "<arm>/<link>" labels) are not measured, and the object belongs to both arms; before, to the
+    giver; after, to the taker."""
+
+    object: str
+    giver: str
+    taker: str
+    first: int
+    last: int
+    allowed: frozenset
+
+    def owners(self, k: int) -> frozenset[str]:
+        if k < self.first:
+            return frozenset({self.giver})
+        return frozenset({self.giver, self.taker}) if k <= self.last else frozenset({self.taker})
+
+
 class ArmPairCheck:
     """Distances between the arms' convex link hulls, and between each arm's links and the boxes
     of the objects the other arms handle, frame by frame (coal GJK). Pairs whose bounding
@@ -111,74 +139,128 @@ class ArmPairCheck:
                 centre = vertices.mean(axis=0)
                 self.hulls[name][link] = (convex(vertices), centre, float(np.linalg.norm(vertices - centre, axis=1).max()))
         margin = CollisionSettings().object_margin
-        self.boxes: dict[str, tuple[str, coal.Box, np.ndarray, float]] = {}
+        self.boxes: dict[str, tuple[frozenset[str], coal.Box, np.ndarray, float]] = {}
         for name, arm in arms.items():
             for obj in arm.objects:
+                owners = frozenset({name}) | (self.boxes[obj][0] if obj in self.boxes else frozenset())
                 means = arm.graph.objects[obj].params["means"].detach().double().cpu().numpy()
                 extents, centre = _object_box(means, margin)
-                self.boxes[obj] = (name, coal.Box(*extents), centre, float(np.linalg.norm(extents) / 2))
+                self.boxes[obj] = (owners, coal.Box(*extents), centre, float(np.linalg.norm(extents) / 2))
 
-    def _link_poses(self, arm: str, traj: NewTrajectory) -> dict[str, np.ndarray]:
-        """Link name -> [T, 4, 4] ``T_world_link`` of ``arm`` over ``traj``."""
+    def _link_poses(self, arm: str, q: np.ndarray, gripper: np.ndarray) -> dict[str, np.ndarray]:
+        """Link name -> [T, 4, 4] ``T_world_link`` of ``arm`` at joints ``q`` [T, 6] and ``gripper`` [T]."""
         twin = self.arms[arm]
-        poses = twin.robot.forward_kinematics(torch.as_tensor(traj.q), torch.as_tensor(traj.gripper)).numpy()
+        poses = twin.robot.forward_kinematics(torch.as_tensor(q), torch.as_tensor(gripper)).numpy()
         index = {link: k for k, link in enumerate(twin.robot.link_names)}
         return {link: twin.T_world_base @ poses[:, index[link]] for link in self.hulls[arm]}
 
-    def closest(self, arms: dict[str, NewTrajectory], object_poses: dict[str, np.ndarray]
-                ) -> tuple[float, int | None, str | None]:
+    def _candidates(self, k: int, links: dict[str, dict[str, np.ndarray]], object_poses: dict[str, np.ndarray],
+                    windows: tuple[HandoverWindow, ...]):
+        """Yield the pairs to measure at frame ``k``: (bounding-sphere gap m, label, geometry,
+        T_world_geom, label, geometry, T_world_geom)."""
+        window = next((w for w in windows if w.first <= k <= w.last), None)
+        shapes = []  # (owner arms, label, geometry, T_world_geom, centre, radius)
+        for arm, poses in links.items():
+            for link, (hull, centre, radius) in self.hulls[arm].items():
+                shapes.append((frozenset({arm}), f"{arm}/{link}", hull, poses[link][k], centre, radius))
+        for obj, (owners, box, centre, radius) in self.boxes.items():
+            owners = next((w.owners(k) for w in windows if w.object == obj), owners)
+            T_obj = object_poses[obj][k].copy()
+            T_obj[:3, 3] += T_obj[:3, :3] @ centre
+            shapes.append((owners, f"object {obj}", box, T_obj, np.zeros(3), radius))
+        for i, (own_a, label_a, geom_a, T_a, c_a, r_a) in enumerate(shapes):
+            for own_b, label_b, geom_b, T_b, c_b, r_b in shapes[i + 1:]:
+                if own_a & own_b:
+                    continue  # an arm against its own links and objects: checked when it was planned
+                if window is not None and frozenset({label_a, label_b}) in window.allowed:
+                    continue  # as close as the source demonstration brought them in its handover
+                gap = np.linalg.norm(T_a[:3, :3] @ c_a + T_a[:3, 3] - T_b[:3, :3] @ c_b - T_b[:3, 3]) - r_a - r_b
+                yield gap, label_a, geom_a, T_a, label_b, geom_b, T_b
+
+    def closest(self, arms: dict[str, NewTrajectory], object_poses: dict[str, np.ndarray],
+                windows: tuple[HandoverWindow, ...] = ()) -> tuple[float, int | None, str | None]:
         """(smallest distance m, its frame, "what and what") over every frame and pair; the
         distance is ``reach`` (frame and pair None) where nothing came that close."""
-        links = {name: self._link_poses(name, traj) for name, traj in arms.items()}
-        names = list(arms)
-        T = len(next(iter(arms.values())).t)
+        links = {name: self._link_poses(name, traj.q, traj.gripper) for name, traj in arms.items()}
         best: tuple[float, int | None, str | None] = (self.reach, None, None)
         request, result = coal.DistanceRequest(), coal.DistanceResult()
-        for k in range(T):
-            shapes = []  # (owner arm, label, geometry, T_world_geom, centre, radius)
-            for arm in names:
-                for link, (hull, centre, radius) in self.hulls[arm].items():
-                    shapes.append((arm, f"{arm}/{link}", hull, links[arm][link][k], centre, radius))
-            for obj, (arm, box, centre, radius) in self.boxes.items():
-                T_obj = object_poses[obj][k].copy()
-                T_obj[:3, 3] += T_obj[:3, :3] @ centre
-                shapes.append((arm, f"object {obj}", box, T_obj, np.zeros(3), radius))
-            for i, (arm_a, label_a, geom_a, T_a, c_a, r_a) in enumerate(shapes):
-                for arm_b, label_b, geom_b, T_b, c_b, r_b in shapes[i + 1:]:
-                    if arm_a == arm_b:
-                        continue  # an arm against its own links and objects: checked when it was planned
-                    gap = np.linalg.norm(T_a[:3, :3] @ c_a + T_a[:3, 3] - T_b[:3, :3] @ c_b - T_b[:3, 3]) - r_a - r_b
-                    if gap >= best[0]:
-                        continue
-                    result.clear()
-                    d = coal.distance(geom_a, _transform(T_a), geom_b, _transform(T_b), request, result)
-                    if d < best[0]:
-                        best = (float(d), k, f"{label_a} and {label_b}")
+        for k in range(len(next(iter(arms.values())).t)):
+            for gap, label_a, geom_a, T_a, label_b, geom_b, T_b in self._candidates(k, links, object_poses, windows):
+                if gap >= best[0]:
+                    continue
+                result.clear()
+                d = coal.distance(geom_a, _transform(T_a), geom_b, _transform(T_b), request, result)
+                if d < best[0]:
+                    best = (float(d), k, f"{label_a} and {label_b}")
         return best
+
+    def within(self, joints: dict[str, tuple[np.ndarray, np.ndarray]], object_poses: dict[str, np.ndarray],
+               frames: range, distance: float, windows: tuple[HandoverWindow, ...] = ()) -> set[frozenset[str]]:
+        """The pairs (frozensets of two labels) nearer than ``distance`` in any of ``frames``, at
+        joints arm name -> (q [T, 6], gripper [T])."""
+        links = {name: self._link_poses(name, q, g) for name, (q, g) in joints.items()}
+        found: set[frozenset[str]] = set()
+        request, result = coal.DistanceRequest(), coal.DistanceResult()
+        for k in frames:
+            for gap, label_a, geom_a, T_a, label_b, geom_b, T_b in self._candidates(k, links, object_poses, windows):
+                if gap >= distance or frozenset({label_a, label_b}) in found:
+                    continue
+                result.clear()
+                if coal.distance(geom_a, _transform(T_a), geom_b, _transform(T_b), request, result) < distance:
+                    found.add(frozenset({label_a, label_b}))
+        return found
 
 
 class BimanualPlanner:
     """Everything about a twin of several arms that does not depend on the sample: each arm's
-    :class:`ArmTwin` and the arm-pair check.
+    :class:`ArmTwin`, the handover (if any) and the arm-pair check.
 
     Raises:
-        Rejected: ("source", ...) when the twin cannot be augmented this way (a handover).
+        Rejected: ("source", ...) when the twin cannot be augmented this way (e.g. an object that
+            changes hands twice, or two handovers).
     """
 
     def __init__(self, twin, min_clearance_m: float = MIN_ARM_CLEARANCE_M) -> None:
         try:
             self.arms = arm_twins(twin)
+            self.handovers = handovers(twin)
         except SourceError as exc:
             raise Rejected("source", str(exc)) from exc
+        if len(self.handovers) > 1:
+            raise Rejected("source", f"{len(self.handovers)} objects change hands "
+                                     f"({', '.join(h.object for h in self.handovers)}): augmentation handles one handover")
         self.twin, self.min_clearance_m, self.fps = twin, float(min_clearance_m), float(twin.fps)
         self.check = ArmPairCheck(self.arms)
+        self.allowed = {h.object: self._source_contacts(h) for h in self.handovers}
+
+    def _source_contacts(self, handover: Handover) -> frozenset[frozenset[str]]:
+        """The link pairs of the two arms that the source demonstration itself brings closer than
+        the clearance during its handover skill (the grippers on one object)."""
+        tracks = self.twin.arm_tracks()
+        joints = {name: tracks[name] for name in self.arms}
+        whole = HandoverWindow(handover.object, handover.giver, handover.taker, 0, self.twin.n_frames, frozenset())
+        pairs = self.check.within(joints, {obj: self.twin.object_poses[obj] for obj in self.check.boxes},
+                                  range(handover.skill.start, handover.skill.end), self.min_clearance_m, (whole,))
+        return frozenset(p for p in pairs if not any(label.startswith("object ") for label in p))
 
     def sample_targets(self, rng: np.random.Generator, object_range=(0.08, 0.08, math.radians(45)),
-                       target_range=(0.05, 0.05, math.radians(45))) -> dict[str, dict[str, ObjectTarget]]:
+                       target_range=(0.05, 0.05, math.radians(45)), handover_range=HANDOVER_RANGE
+                       ) -> dict[str, dict[str, ObjectTarget]]:
         """Arm name -> new start (and place) poses of the objects it handles, in its base frame
-        (ranges as :func:`~manisplat.augment.sampling.sample_targets`, about the base's axes)."""
-        return {name: sample_targets(arm, rng, object_range, target_range) if arm.objects else {}
-                for name, arm in self.arms.items()}
+        (ranges as :func:`~manisplat.augment.sampling.sample_targets`, about the base's axes); a
+        handed object's new handover pose (:func:`~manisplat.augment.handover.moved_handover`,
+        ``handover_range`` m along the world's axes) is where the giver leaves it and the taker
+        finds it."""
+        out = {name: sample_targets(arm, rng, object_range, target_range) if arm.objects else {}
+               for name, arm in self.arms.items()}
+        for h in self.handovers:
+            T_world_handover = moved_handover(h.T_world_obj, rng, handover_range)
+            giver, taker = out[h.giver][h.object], out[h.taker][h.object]
+            out[h.giver][h.object] = ObjectTarget(giver.T_start,
+                                                  np.linalg.inv(self.arms[h.giver].T_world_base) @ T_world_handover)
+            out[h.taker][h.object] = ObjectTarget(np.linalg.inv(self.arms[h.taker].T_world_base) @ T_world_handover,
+                                                  taker.T_place)
+        return out
 
     def run(self, targets: dict[str, dict[str, ObjectTarget]], config: AugmentConfig) -> BimanualTrajectory:
         """Plan every arm, put them on one timeline and check them against each other."""
@@ -188,6 +270,8 @@ class BimanualPlanner:
                 planned[name] = augment_trajectory(arm, targets.get(name, {}), config)
             except Rejected as exc:
                 raise Rejected(exc.reason, f"{name} arm: {exc.detail}") from exc
+        if self.handovers:
+            return self._handed_over(planned, self.handovers[0])
         together, (distance, frame, pair) = self._together(planned)
         if distance < self.min_clearance_m:  # one arm waits at its start: the shortest wait that clears
             for wait_s in WAITS_S:
@@ -199,20 +283,43 @@ class BimanualPlanner:
                             "min_arm_clearance_m": round(distance, 5), "closest": pair, "closest_frame": frame}}
                         return self._validated(candidate, clearance)
             tried = f"; either arm waiting up to {WAITS_S[-1]:g} s did not clear" if WAITS_S else ""
-            raise Rejected("arm_collision", f"{pair} come within {distance * 1e3:.1f} mm at frame {frame} "
-                                            f"(t = {frame / self.fps:.2f} s; at least {self.min_clearance_m * 1e3:g} "
-                                            f"mm required{tried})")
+            raise Rejected("arm_collision", _too_close(distance, frame, pair, self.fps, self.min_clearance_m, tried))
+        return self._validated(together, (distance, frame, pair))
+
+    def _handed_over(self, planned: dict[str, NewTrajectory], handover: Handover) -> BimanualTrajectory:
+        """The arms of a handover on one timeline: the one that reaches the shared skill first
+        waits at its start until the other does (no other wait), then the arm-pair check."""
+        delays = entry_delays({name: traj.segments for name, traj in planned.items()}, handover)
+        planned = {name: waiting(traj, delays.get(name, 0), self.fps) for name, traj in planned.items()}
+        together, (distance, frame, pair) = self._together(planned)
+        if distance < self.min_clearance_m:
+            raise Rejected("arm_collision", _too_close(distance, frame, pair, self.fps, self.min_clearance_m,
+                                                       "; the handover sets when each arm moves"))
+        segment = skill_segment(together.arms[handover.taker].segments, handover)
+        together.validation["handover"] = {
+            "object": handover.object, "giver": handover.giver, "taker": handover.taker,
+            "frames": segment["frames"], "waited_s": {name: round(d / self.fps, 4) for name, d in delays.items()},
+            "source_pairs_allowed": sorted(" and ".join(sorted(p)) for p in self.allowed[handover.object])}
         return self._validated(together, (distance, frame, pair))
 
     def _together(self, planned: dict[str, NewTrajectory]
                   ) -> tuple[BimanualTrajectory, tuple[float, int | None, str | None]]:
         """The arms' trajectories on one timeline (the one that ends first holds) and their closest
-        approach (m, frame, pair) by :meth:`ArmPairCheck.closest`."""
+        approach (m, frame, pair) by :meth:`ArmPairCheck.closest`; a handed object's track is the
+        giver's, then the taker's (:func:`~manisplat.augment.handover.handed_track`)."""
         frames = max(len(traj.t) for traj in planned.values())
         planned = {name: held_to(traj, frames, self.fps) for name, traj in planned.items()}
         object_poses = {obj: self.arms[name].to_world(traj.object_poses[obj])
                         for name, traj in planned.items() for obj in self.arms[name].objects}
-        clearance = self.check.closest(planned, object_poses)
+        windows = []
+        for h in self.handovers:
+            giver, taker = planned[h.giver], planned[h.taker]
+            object_poses[h.object] = handed_track(self.arms[h.giver].to_world(giver.object_poses[h.object]),
+                                                  self.arms[h.taker].to_world(taker.object_poses[h.object]),
+                                                  taker.segments, h)
+            first, last = skill_segment(taker.segments, h)["frames"]
+            windows.append(HandoverWindow(h.object, h.giver, h.taker, first, last, self.allowed[h.object]))
+        clearance = self.check.closest(planned, object_poses, tuple(windows))
         return BimanualTrajectory(np.arange(frames) / self.fps, planned, object_poses, {}), clearance
 
     def _validated(self, traj: BimanualTrajectory, clearance: tuple[float, int | None, str | None]
@@ -226,9 +333,15 @@ class BimanualPlanner:
         return traj
 
 
+def _too_close(distance: float, frame: int, pair: str | None, fps: float, required: float, why: str) -> str:
+    """The arm_collision message: what came how close when, and ``why`` no wait cleared it."""
+    return (f"{pair} come within {distance * 1e3:.1f} mm at frame {frame} (t = {frame / fps:.2f} s; at least "
+            f"{required * 1e3:g} mm required{why})")
+
+
 def _transform(T: np.ndarray) -> coal.Transform3s:
     return coal.Transform3s(np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]))
 
 
-__all__ = ["ArmPairCheck", "BimanualPlanner", "BimanualTrajectory", "MIN_ARM_CLEARANCE_M", "WAITS_S", "held_to",
-           "waiting"]
+__all__ = ["ArmPairCheck", "BimanualPlanner", "BimanualTrajectory", "HandoverWindow", "MIN_ARM_CLEARANCE_M",
+           "WAITS_S", "held_to", "waiting"]

@@ -36,7 +36,10 @@ several arms (a twin of a version 2 episode, e.g. a Cobot Magic's): each arm's s
   within 5 mm, one arm waits at its start (0.5-3 s, the shortest wait that clears), and a
   demonstration that no wait clears is discarded (arm_collision); every camera is rendered,
   a wrist camera from its link at the new joints; written as version 2 episodes (every arm's
-  joints and commands). Not yet: an object handed from one arm to the other (refused), --poses.
+  joints and commands). An object handed from one arm to the other: the handover skill (both
+  grippers on it) moves rigidly as one to a handover point drawn within --handover-range, the
+  giver picks the object at its new start and the taker places it at its new place, and the arm
+  that would reach the handover first waits at its start. Not yet: --poses with several arms.
 
 output: OUT/episode_NNNN/ (complete episodes only: each is written under a hidden name and
   renamed when complete), OUT/augment_report.json (validity rate, reasons, per-sample results,
@@ -74,6 +77,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "table (default 0.08,0.08,45)")
     p.add_argument("--target-range", type=finite_numbers((3,)), default=[0.05, 0.05, 45.0], metavar="X,Y,YAW",
                    help="the place pose of a pick-and-place likewise (default 0.05,0.05,45)")
+    p.add_argument("--handover-range", type=finite_numbers((3,)), default=[0.04, 0.04, 0.02], metavar="X,Y,Z",
+                   help="an object handed from one arm to the other: the handover point is moved by up to +-X, +-Y, "
+                        "+-Z metres along the world's axes (default 0.04,0.04,0.02)")
     p.add_argument("--poses", type=Path, metavar="FILE",
                    help="exact object poses per demonstration instead of sampling (see below; --n is ignored)")
     p.add_argument("--max-samples", type=positive(int),
@@ -99,8 +105,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.speed > 1.0:
         parser.error(f"--speed must be in (0, 1]; got {args.speed}")
-    if any(v < 0 for v in (*args.object_range, *args.target_range)):
-        parser.error("--object-range and --target-range take non-negative half-widths")
+    if any(v < 0 for v in (*args.object_range, *args.target_range, *args.handover_range)):
+        parser.error("--object-range, --target-range and --handover-range take non-negative half-widths")
     try:
         check_output_folder(args.out, allowed=args.overwrite,
                             refusal="; pass --overwrite to replace its demonstrations, or choose another folder")

@@ -136,14 +136,19 @@ class SceneCollision:
 
     # ------------------------------------------------------------------ scene estimates
     def _table_height(self, twin) -> tuple[float, dict]:
+        """The table's height (m, the twin's frame) and its estimates: the lowest points of the
+        manipulated objects where they rest (median over objects), else the background's most
+        common height."""
         est = {}
         lows = []
         for name, obj in self.src.objects.items():
             if not obj.manipulated or name not in twin.graph.objects:
                 continue
             means = twin.graph.objects[name].params["means"].detach().double().numpy()
-            world = means @ obj.T_rest[:3, :3].T + obj.T_rest[:3, 3]
-            lows.append(float(np.percentile(world[:, 2], 2)))
+            # where it starts and where it is left, the lower: one of them may be in another
+            # gripper (a handover) or on a raised surface
+            rests = [T for T in (obj.T_rest, obj.T_placed) if T is not None]
+            lows.append(min(float(np.percentile((means @ T[:3, :3].T + T[:3, 3])[:, 2], 2)) for T in rests))
         if lows:
             est["objects"] = float(np.median(lows))
         bg = twin.graph.background

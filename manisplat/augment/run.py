@@ -74,7 +74,8 @@ def run_augmentation(args: argparse.Namespace) -> dict:
         if explicit is not None:
             targets = explicit[index]
         elif arms is not None:
-            targets = arms.sample_targets(np.random.default_rng(seed), object_range, target_range)
+            targets = arms.sample_targets(np.random.default_rng(seed), object_range, target_range,
+                                          tuple(args.handover_range))
         else:
             targets = sample_targets(twin, np.random.default_rng(seed), object_range, target_range)
         sample = Sample(index, seed, targets)
@@ -102,7 +103,8 @@ def run_augmentation(args: argparse.Namespace) -> dict:
     for s in valid[:SHEETS]:
         _contact_sheet(args.out / s.episode, args.out / "sheets" / f"{s.episode}.png")
     report = _report(twin, args, samples, wanted, {"plan": plan_s, "render_and_write": render_s,
-                                                   "total": time.perf_counter() - start})
+                                                   "total": time.perf_counter() - start},
+                     handover=arms is not None and bool(arms.handovers))
     atomic_write_bytes(args.out / REPORT, (json.dumps(report, indent=1) + "\n").encode())
     return report
 
@@ -210,7 +212,8 @@ def _render_and_write(twin: Twin, recon: Path, valid: list[Sample], out: Path, *
 
 
 # ------------------------------------------------------------------ report and plot
-def _report(twin: Twin, args: argparse.Namespace, samples: list[Sample], wanted: int, timing: dict) -> dict:
+def _report(twin: Twin, args: argparse.Namespace, samples: list[Sample], wanted: int, timing: dict,
+            handover: bool) -> dict:
     valid = [s for s in samples if s.trajectory is not None]
     reasons: dict[str, int] = {}
     for s in samples:
@@ -226,7 +229,8 @@ def _report(twin: Twin, args: argparse.Namespace, samples: list[Sample], wanted:
         "parent": twin.episode, "recon": str(args.recon), "seed": args.seed, "requested": wanted,
         "drawn": len(samples), "valid": len(valid), "written": len(valid),
         "validity_rate": len(valid) / max(len(samples), 1), "reasons": reasons,
-        "ranges": {"object": args.object_range, "target": args.target_range, "units": "m, m, deg"},
+        "ranges": {"object": args.object_range, "target": args.target_range, "units": "m, m, deg",
+                   **({"handover": args.handover_range, "handover_units": "m, m, m"} if handover else {})},
         "speed": args.speed, "workers": args.workers,
         "skill_error_max": {"mm": max(skill_mm, default=0.0), "deg": max(skill_deg, default=0.0)},
         "motions": {"planned": len(motions), "by_method": dict(Counter(r["method"] for r in motions)),

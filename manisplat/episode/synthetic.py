@@ -116,8 +116,13 @@ class SampleTrajectory:
 def sample_trajectory(duration: float, task: str = "pick_place", pick: tuple[float, float] = PICK_XY,
                       place: tuple[float, float] = PLACE_XY) -> SampleTrajectory:
     """Solve the keyframes of :func:`_script` by IK, each seeded by the previous one (one continuous branch)."""
+    return solve_keyframes(_script(duration, task, pick, place))
+
+
+def solve_keyframes(keys: list[Keyframe]) -> SampleTrajectory:
+    """The built-in PiPER's joints at each keyframe (TCP pointing down, :func:`_tcp_down`), by IK
+    seeded with the previous keyframe's solution."""
     robot = builtin_piper(with_geometry=False)
-    keys = _script(duration, task, pick, place)
     seed = torch.tensor([0.0, 1.2, -1.3, 0.0, 0.6, 0.0], dtype=torch.float64)
     qs = []
     for key in keys:
