@@ -35,8 +35,8 @@ import torch
 from manisplat.augment.arm_view import ArmTwin, arm_twins, handovers
 from manisplat.augment.collision import CollisionSettings, _object_box
 from manisplat.augment.errors import Rejected
-from manisplat.augment.handover import (HANDOVER_RANGE, Handover, entry_delays, handed_track, moved_handover,
-                                        skill_segment)
+from manisplat.augment.handover import (HANDOVER_RANGE, HANDOVER_SKILL, Handover, entry_delays, handed_track,
+                                        moved_handover, output_frame, skill_segment)
 from manisplat.augment.sampling import ObjectTarget, sample_targets
 from manisplat.augment.source import SourceError
 from manisplat.augment.trajectory import AugmentConfig, NewTrajectory, augment_trajectory
@@ -271,7 +271,7 @@ class BimanualPlanner:
             except Rejected as exc:
                 raise Rejected(exc.reason, f"{name} arm: {exc.detail}") from exc
         if self.handovers:
-            return self._handed_over(planned, self.handovers[0])
+            return self._handed_over(self._at_one_pace(planned, targets, config, self.handovers[0]), self.handovers[0])
         together, (distance, frame, pair) = self._together(planned)
         if distance < self.min_clearance_m:  # one arm waits at its start: the shortest wait that clears
             for wait_s in WAITS_S:
@@ -286,6 +286,22 @@ class BimanualPlanner:
             raise Rejected("arm_collision", _too_close(distance, frame, pair, self.fps, self.min_clearance_m, tried))
         return self._validated(together, (distance, frame, pair))
 
+    def _at_one_pace(self, planned: dict[str, NewTrajectory], targets: dict[str, dict[str, ObjectTarget]],
+                     config: AugmentConfig, handover: Handover) -> dict[str, NewTrajectory]:
+        """``planned`` with the arm that plays the shared skill faster planned again at the other's
+        pace (a skill is slowed uniformly where its new joints would break a limit)."""
+        pace = {arm: float(skill_segment(planned[arm].segments, handover).get("slowed", 1.0))
+                for arm in (handover.giver, handover.taker)}
+        slowest = max(pace.values())
+        for arm, own in pace.items():
+            if own < slowest:
+                paced = replace(config, min_slow={**config.min_slow, HANDOVER_SKILL: slowest})
+                try:
+                    planned = {**planned, arm: augment_trajectory(self.arms[arm], targets.get(arm, {}), paced)}
+                except Rejected as exc:
+                    raise Rejected(exc.reason, f"{arm} arm, at the other arm's pace x{slowest:.2f}: {exc.detail}") from exc
+        return planned
+
     def _handed_over(self, planned: dict[str, NewTrajectory], handover: Handover) -> BimanualTrajectory:
         """The arms of a handover on one timeline: the one that reaches the shared skill first
         waits at its start until the other does (no other wait), then the arm-pair check."""
@@ -298,7 +314,8 @@ class BimanualPlanner:
         segment = skill_segment(together.arms[handover.taker].segments, handover)
         together.validation["handover"] = {
             "object": handover.object, "giver": handover.giver, "taker": handover.taker,
-            "frames": segment["frames"], "waited_s": {name: round(d / self.fps, 4) for name, d in delays.items()},
+            "frames": segment["frames"], "takeover_frame": output_frame(segment, handover.takeover),
+            "slowed": segment["slowed"], "waited_s": {name: round(d / self.fps, 4) for name, d in delays.items()},
             "source_pairs_allowed": sorted(" and ".join(sorted(p)) for p in self.allowed[handover.object])}
         return self._validated(together, (distance, frame, pair))
 

@@ -142,29 +142,35 @@ def entry_delays(segments: dict[str, list[dict]], handover: Handover) -> dict[st
     them 0), from the arms' new segments.
 
     Raises:
-        Rejected: ("handover_timing", ...) where either arm's shared skill had to be slowed: its
-            frames would no longer meet the other arm's.
+        Rejected: ("handover_timing", ...) where the arms play the shared skill at different paces
+            (one slowed to stay within its limits more than the other): their frames would not meet.
     """
-    entry = {}
-    for arm in (handover.giver, handover.taker):
-        segment = skill_segment(segments[arm], handover)
-        if abs(segment.get("slowed", 1.0) - 1.0) > 1e-9:
-            raise Rejected("handover_timing", f"{arm} arm: the handover of {handover.object} is slowed "
-                                              f"x{segment['slowed']:.2f} to stay within the joint limits; the "
-                                              "other arm would not meet it")
-        entry[arm] = segment["frames"][0]
+    shared = {arm: skill_segment(segments[arm], handover) for arm in (handover.giver, handover.taker)}
+    paces = {arm: float(segment.get("slowed", 1.0)) for arm, segment in shared.items()}
+    if abs(paces[handover.giver] - paces[handover.taker]) > 1e-9:
+        raise Rejected("handover_timing", "the handover of {} is slowed x{:.2f} by the {} arm and x{:.2f} by the {} arm "
+                                          "to stay within their limits: the arms would not meet".format(
+                                              handover.object, paces[handover.giver], handover.giver,
+                                              paces[handover.taker], handover.taker))
+    entry = {arm: segment["frames"][0] for arm, segment in shared.items()}
     latest = max(entry.values())
     return {arm: latest - frame for arm, frame in entry.items()}
+
+
+def output_frame(segment: dict, source_frame: float) -> int:
+    """The first frame of a skill ``segment`` (its ``frames`` and ``source_frames``, both inclusive,
+    slowed or not) at or after ``source_frame``."""
+    (first, last), (begin, end) = segment["frames"], segment["source_frames"]
+    return first + int(math.ceil((source_frame - begin) * (last - first) / (end - begin) - 1e-9))
 
 
 def handed_track(giver_track: np.ndarray, taker_track: np.ndarray, taker_segments: list[dict],
                  handover: Handover) -> np.ndarray:
     """The handed object's poses [T, 4, 4] on the common timeline: the giver's track until the
     frame the taker holds it (its takeover, in the taker's shared skill), the taker's from there."""
-    segment = skill_segment(taker_segments, handover)
-    takeover = segment["frames"][0] + handover.takeover - segment["source_frames"][0]
+    takeover = output_frame(skill_segment(taker_segments, handover), handover.takeover)
     return np.concatenate([giver_track[:takeover], taker_track[takeover:]])
 
 
 __all__ = ["HANDOVER_RANGE", "HANDOVER_SKILL", "Handover", "entry_delays", "find_handover", "giver_part",
-           "handed_track", "moved_handover", "skill_segment", "taker_part"]
+           "handed_track", "moved_handover", "output_frame", "skill_segment", "taker_part"]

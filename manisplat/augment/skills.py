@@ -75,10 +75,11 @@ def finite_difference_ratios(q: np.ndarray, dt: float, vlim: np.ndarray, alim: n
 
 def solve_skill(kin: PinRobot, spline: SourceSpline, first: int, last: int, D: np.ndarray, *, dt: float,
                 vlim: np.ndarray, alim: np.ndarray, tol_pos: float, tol_rot: float, margin: float = 0.95,
-                max_slow: float = 12.0, seed: int = 0, name: str = "skill") -> SkillResult:
-    """The skill on source frames ``first..last`` moved by ``D``, slowed if it must be."""
-    k = 1.0
-    result = _solve_at(kin, spline, first, last, D, 1.0, tol_pos, tol_rot, seed, name)
+                max_slow: float = 12.0, seed: int = 0, name: str = "skill", min_slow: float = 1.0) -> SkillResult:
+    """The skill on source frames ``first..last`` moved by ``D``, slowed if it must be (and at
+    least by ``min_slow``)."""
+    k = max(1.0, float(min_slow))
+    result = _solve_at(kin, spline, first, last, D, k, tol_pos, tol_rot, seed, name)
     for _ in range(12):
         rv, ra = finite_difference_ratios(result.q, dt, vlim * margin, alim * margin)
         if rv <= 1.0 and ra <= 1.0:

@@ -74,6 +74,8 @@ class AugmentConfig:
             falls more than this (m) below the highest surface under it is discarded: it would
             rest on an edge and tip (:mod:`manisplat.twin.support`; not checked when the twin has
             no support map).
+        min_slow: skill name -> the least uniform slow-down it is solved at (1: its recorded
+            pace); a handover skill is played by both arms at one pace.
     """
 
     speed: float = 1.0
@@ -84,6 +86,7 @@ class AugmentConfig:
     obstacles: tuple[BoxObstacle, ...] = ()
     headroom: float = 0.95
     max_support_step: float = MAX_STEP
+    min_slow: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not (0 < self.speed <= 1):
@@ -223,7 +226,8 @@ class Augmenter:
             transforms.append((D, T_new, T_src))
             skills.append(solve_skill(kin, self.spline, spec.first, spec.last, D, dt=self.dt, vlim=self.vlim,
                                       alim=self.alim, tol_pos=tol_pos, tol_rot=tol_rot, margin=config.headroom,
-                                      seed=config.seed, name=f"{spec.name} ({spec.object})"))
+                                      seed=config.seed, name=f"{spec.name} ({spec.object})",
+                                      min_slow=config.min_slow.get(spec.name, 1.0)))
         timings["ik_s"] += time.perf_counter() - t0
 
         # 2. the timeline: motion, skill, motion, ..., motion

@@ -16,7 +16,7 @@ from manisplat.augment.bimanual import MIN_ARM_CLEARANCE_M, BimanualPlanner
 from manisplat.augment.cli import build_parser, main as augment
 from manisplat.augment.handover import HANDOVER_RANGE, HANDOVER_SKILL, entry_delays, find_handover
 from manisplat.augment.source import SourceError
-from manisplat.augment.trajectory import AugmentConfig, Rejected
+from manisplat.augment.trajectory import AugmentConfig, Rejected, augmenter_for
 from manisplat.episode import Episode
 from manisplat.episode.synthetic_arms import write_two_arm_sample_episode
 from manisplat.exit_codes import ExitCode
@@ -97,8 +97,8 @@ def test_the_box_rides_in_the_left_gripper_then_in_the_right_one(planner, handed
     box = traj.object_poses["box"]
     np.testing.assert_allclose(box[0], planner.arms["left"].to_world(targets["left"]["box"].T_start), atol=1e-9)
     np.testing.assert_allclose(box[-1], planner.arms["right"].to_world(targets["right"]["box"].T_place), atol=1e-9)
-    first = traj.validation["handover"]["frames"][0]
-    takeover = first + handover.takeover - handover.skill.start
+    takeover = traj.validation["handover"]["takeover_frame"]
+    assert takeover == traj.validation["handover"]["frames"][0] + handover.takeover - handover.skill.start
     moving = np.flatnonzero(np.linalg.norm(np.diff(box[:, :3, 3], axis=0), axis=1) > 1e-6)
     for arm, frames in (("left", np.arange(moving[0] + 1, takeover)), ("right", np.arange(takeover, moving[-1] + 1))):
         in_tcp = np.linalg.inv(world_tcp(planner, arm, traj.arms[arm].q[frames])) @ box[frames]
@@ -119,13 +119,35 @@ def test_the_grippers_meeting_as_in_the_source_are_not_counted_as_a_collision(pl
     assert unexempted[0] < MIN_ARM_CLEARANCE_M and "link" in unexempted[2]
 
 
-def test_a_slowed_handover_is_refused_as_the_other_arm_would_miss_it(planner, handed):
+def test_an_arm_that_must_slow_the_handover_down_sets_the_pace_of_both(twin_folder):
+    """The left arm's velocity limits lowered until its half of the handover must be slowed: the
+    right arm is planned again at the same pace, both play the skill on the same frames, and the
+    box changes hands on the frame the slowed skill reaches the takeover."""
+    planner = BimanualPlanner(Twin.load(twin_folder))
+    augmenter_for(planner.arms["left"]).vlim *= 0.25
+    traj = planner.run(planner.sample_targets(np.random.default_rng(SEED)), AugmentConfig(seed=SEED))
+    segments = {arm: next(s for s in traj.arms[arm].segments if s["name"] == HANDOVER_SKILL) for arm in traj.arms}
+    assert segments["left"]["slowed"] == segments["right"]["slowed"] > 1.2
+    assert segments["left"]["frames"] == segments["right"]["frames"]
+    (handover,) = planner.handovers
+    takeover = traj.validation["handover"]["takeover_frame"]
+    first, last = segments["right"]["frames"]
+    source_time = handover.skill.start + (takeover - first) * (handover.skill.end - 1 - handover.skill.start) / (last - first)
+    assert handover.takeover <= source_time < handover.takeover + segments["right"]["slowed"]
+    box = traj.object_poses["box"]
+    tcp = {arm: world_tcp(planner, arm, traj.arms[arm].q) for arm in ("left", "right")}
+    for arm, frames in (("left", range(takeover - 4, takeover)), ("right", range(takeover, takeover + 4))):
+        in_tcp = np.linalg.inv(tcp[arm][list(frames)]) @ box[list(frames)]
+        np.testing.assert_allclose(in_tcp, np.broadcast_to(in_tcp[0], in_tcp.shape), atol=1e-6)
+
+
+def test_arms_playing_the_handover_at_different_paces_are_refused(planner, handed):
     _, traj = handed
     segments = {arm: [dict(s) for s in t.segments] for arm, t in traj.arms.items()}
     next(s for s in segments["right"] if s["name"] == HANDOVER_SKILL)["slowed"] = 1.3
     with pytest.raises(Rejected) as rejected:
         entry_delays(segments, planner.handovers[0])
-    assert rejected.value.reason == "handover_timing" and "right arm" in rejected.value.detail
+    assert rejected.value.reason == "handover_timing" and "x1.30 by the right arm" in rejected.value.detail
 
 
 def test_augment_writes_handed_over_demonstrations(twin_folder, tmp_path):
