@@ -213,7 +213,7 @@ def _render_and_write(twin: Twin, recon: Path, valid: list[Sample], out: Path, *
 
 # ------------------------------------------------------------------ report and plot
 def _report(twin: Twin, args: argparse.Namespace, samples: list[Sample], wanted: int, timing: dict,
-            handover: bool) -> dict:
+            handover: bool = False) -> dict:
     valid = [s for s in samples if s.trajectory is not None]
     reasons: dict[str, int] = {}
     for s in samples:
