@@ -80,7 +80,6 @@ class ArmTwin:
         objects: the objects this arm handles; object_poses: name -> [T, 4, 4] ``T_base_obj``.
         phases: name -> the object's Motion/Skill segments.
         graph: :class:`ArmScene`; support: :class:`BaseFrameSupport` or None.
-        command_offset: its part of the source's commanded minus recorded joints [T, 6] rad, or None.
     """
 
     name: str
@@ -97,7 +96,6 @@ class ArmTwin:
     phases: dict[str, list[Phase]]
     graph: ArmScene
     support: BaseFrameSupport | None
-    command_offset: np.ndarray | None = None
 
     @property
     def n_frames(self) -> int:
@@ -151,7 +149,6 @@ def arm_twins(twin: Twin) -> dict[str, ArmTwin]:
         parts[h.giver, h.object] = giver_part(h, poses, phases)
         parts[h.taker, h.object] = taker_part(h, poses, phases)
     background = twin.graph.background
-    offsets = twin.arm_command_offsets()
     out = {}
     for arm in twin.arms:
         T_base_world = np.linalg.inv(arm.T_world_base)
@@ -166,7 +163,6 @@ def arm_twins(twin: Twin) -> dict[str, ArmTwin]:
             graph=ArmScene({name: twin.graph.objects[name] for name in handled[arm.name]},
                            None if background is None else _moved(background, T_base_world)),
             support=None if twin.support is None else BaseFrameSupport(twin.support, arm.T_world_base),
-            command_offset=offsets[arm.name],
         )
     return out
 

@@ -65,7 +65,6 @@ class SourceDemo:
     skills: list[SkillSpec]
     objects: dict[str, ObjectSource]
     object_poses: dict[str, np.ndarray] = field(default_factory=dict)
-    command_offset: np.ndarray | None = None  # [T, dof] commanded minus recorded joints, if recorded
 
     @property
     def n_frames(self) -> int:
@@ -125,7 +124,7 @@ def source_demo(twin) -> SourceDemo:
     if not skills:
         raise SourceError("the demonstration has no Skill phase")
     return SourceDemo(float(twin.fps), q, gripper, tcp, skills, objects,
-                      {k: np.asarray(v, np.float64) for k, v in twin.object_poses.items()}, twin.command_offset)
+                      {k: np.asarray(v, np.float64) for k, v in twin.object_poses.items()})
 
 
 def rigid(T: np.ndarray) -> np.ndarray:

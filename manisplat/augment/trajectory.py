@@ -22,9 +22,8 @@ A demonstration whose last skill ends moving gets an extra Motion, "M_settle", t
 arm to rest along its direction of travel (so the last commanded frame is at rest).
 
 Conventions of :class:`NewTrajectory`:
-* frames at ``t = k / fps`` of the parent; ``action_q`` the commands, in the relation the
-  source's commands had to its joints (:mod:`.commands`: in skills the source's own command
-  offsets, in motions its lead; the next frame's joints where it recorded no commands), ``action_gripper``
+* frames at ``t = k / fps`` of the parent; ``action_q[k] = q[k + 1]`` (the next frame's joints, as
+  a leader arm's command leads the follower; the last frame repeats itself), ``action_gripper``
   0.07 (open) or 0.0 (closed) from the source's gripper events (closed from the grasp to the
   release);
 * skill frames carry the source's gripper signal (interpolated when slowed); motions hold the
@@ -41,7 +40,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from manisplat.augment.collision import BoxObstacle, SceneCollision
-from manisplat.augment.commands import commanded
 from manisplat.augment.errors import Rejected
 from manisplat.augment.frames import solid_points
 from manisplat.augment.kinematics import PinRobot
@@ -505,11 +503,7 @@ class Augmenter:
         action_gripper = np.asarray(cmd, np.float64)
         T = len(q)
         t = np.arange(T) / src.fps
-        in_skill = np.zeros(T, bool)
-        for seg in segments:
-            if seg["kind"] == "skill":
-                in_skill[seg["frames"][0]:seg["frames"][1] + 1] = True
-        action_q = commanded(q, np.asarray(svals, np.float64), in_skill, src.q, src.command_offset)
+        action_q = np.concatenate([q[1:], q[-1:]], axis=0)
 
         # objects per frame
         tcp_all = kin.tcp_batch(q)

@@ -116,8 +116,6 @@ class EpisodeData:
             with frames (episode.json ``clock.camera_latency_s``; 0 when unknown).
         time_offset_s: frame f shows the robot at joint time ``t[f] + time_offset_s``; ``q``,
             ``gripper`` and the poses are read there (:func:`retime`).
-        command_offset: [T, dof] rad, each frame's commanded joints minus its recorded ones
-            (:func:`command_offsets`), or None where the episode records no commands.
     """
 
     path: Path
@@ -152,7 +150,6 @@ class EpisodeData:
     frame: str = "base"
     mount: str = "base"
     T_mount_cam: torch.Tensor | None = None
-    command_offset: np.ndarray | None = None
 
     @property
     def n_frames(self) -> int:
@@ -322,7 +319,7 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, camera: str
         valid=None if lens is None or lens.valid.all() else torch.from_numpy(lens.valid),
         dist=tuple(float(d) for d in cam.dist) if lens is not None else (),
         joints=stream, recorded_latency_s=recorded_latency, frame="world" if several else "base",
-        mount=cam.mount, T_mount_cam=None if fixed else T_mount_cam, command_offset=command_offsets(episode),
+        mount=cam.mount, T_mount_cam=None if fixed else T_mount_cam,
     )
     if not fixed:
         _place_riding_camera(data, q, gripper)
@@ -421,16 +418,6 @@ def retime(data: EpisodeData, offset_s: float) -> None:
     if data.riding:
         _place_riding_camera(data, data.q, data.gripper)
     data.time_offset_s = offset_s
-
-
-def command_offsets(episode: Episode) -> np.ndarray | None:
-    """[T, dof] rad: each frame's commanded joints minus its recorded joints (``frames.csv``'s
-    ``a1..a6`` against ``q``, every arm's in arm order): how far the commands led the arm, and
-    how hard they pressed where it was held back. None where an arm records no commands."""
-    tables = [episode.arm_frames(name) for name in episode.arms]
-    if any(table.actions is None for table in tables):
-        return None
-    return np.concatenate([table.actions[:, :6] - table.q for table in tables], axis=1)
 
 
 def load_ground_truth(path: str | Path) -> dict[str, np.ndarray] | None:

@@ -7,9 +7,8 @@ for one arm, ``"world"`` for several), the arms (robot description, model, joint
 camera first), labels, objects, phases, per-frame pose sources, node list, light. ``twin.pt``
 holds only tensors, read with ``torch.load(..., weights_only=True)``: every node's Gaussian
 parameters, the light, the background colour, the recorded trajectory (``t`` [T] s, ``q``
-[T, dof] rad, ``gripper`` [T] or [T, A] m, object poses ``T_<frame>_obj`` [T, 4, 4] float64),
-when the recording had depth the support height map (:mod:`manisplat.twin.support`), and when
-it had commands ``command_offset`` [T, dof] rad (commanded minus recorded joints per frame).
+[T, dof] rad, ``gripper`` [T] or [T, A] m, object poses ``T_<frame>_obj`` [T, 4, 4] float64)
+and, when the recording had depth, the support height map (:mod:`manisplat.twin.support`).
 Version 1 folders (one arm, one camera, written before 2026-11-27) still load.
 """
 
@@ -41,8 +40,6 @@ def save_twin(twin: Twin, folder: Path) -> None:
     # host copies: a twin trained on a GPU loads anywhere with torch.load(..., weights_only=True)
     tensors = {"background_rgb": twin.background_rgb.detach().cpu().clone(),
                "t": torch.as_tensor(twin.t), "q": torch.as_tensor(twin.q), "gripper": torch.as_tensor(twin.gripper)}
-    if twin.command_offset is not None:
-        tensors["command_offset"] = torch.as_tensor(twin.command_offset)
     nodes = []
     for node in twin.graph.nodes():
         params = node.gaussians.params
@@ -121,7 +118,6 @@ def load_twin(folder: Path, *, backend: str = "auto", device: torch.device | str
             pose_sources={name: o["pose_source"] for name, o in objects_meta.items()},
             phases={name: [Phase(**p) for p in o["phases"]] for name, o in objects_meta.items()},
             fps=meta["fps"], episode=meta["episode"], backend=backend, task=meta.get("task"), support=support,
-            command_offset=tensor("command_offset").numpy() if "command_offset" in tensors else None,
         )
     except ValueError as exc:  # arms, cameras or mounts that do not fit together
         raise TwinFormatError(f"{folder / TWIN_JSON}: {exc}") from exc

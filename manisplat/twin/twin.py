@@ -68,17 +68,13 @@ class Twin:
         task, episode (folder name), fps: the source episode's.
         support: the support surfaces' height map, measured from the recording's depth (None
             without depth): where objects can be set down.
-        command_offset: [T, dof] rad, the source's commanded joints minus its recorded ones per
-            frame (None where it recorded no commands): what augmentation keeps of how the
-            commands led and pressed.
     """
 
     def __init__(self, *, graph: SceneGraph, background_rgb: torch.Tensor, robot: RobotModel | ArmSet,
                  arms: list[TwinArm], cameras: list[TwinCamera], labels: dict[int, str], t: np.ndarray,
                  q: np.ndarray, gripper: np.ndarray, object_poses: dict[str, np.ndarray],
                  pose_sources: dict[str, list[str]], phases: dict[str, list[Phase]], fps: float, episode: str,
-                 task: str | None = None, backend: str = "auto", support: SupportMap | None = None,
-                 command_offset: np.ndarray | None = None) -> None:
+                 task: str | None = None, backend: str = "auto", support: SupportMap | None = None) -> None:
         if [a.name for a in arms] != list(_arm_names(robot)):
             raise ValueError(f"twin arms {[a.name for a in arms]} do not match the robot's {list(_arm_names(robot))}")
         if not cameras or not cameras[0].fixed:
@@ -94,9 +90,6 @@ class Twin:
         self.pose_sources, self.phases = pose_sources, phases
         self.fps, self.episode, self.backend = float(fps), episode, backend
         self.task, self.support = task, support
-        self.command_offset = None if command_offset is None else np.asarray(command_offset, np.float64)
-        if self.command_offset is not None and self.command_offset.shape != self.q.shape:
-            raise ValueError(f"command_offset {self.command_offset.shape} does not match q {self.q.shape}")
         self.device = graph.device  # where it renders: the Gaussians' device
         self.background_rgb = self.background_rgb.to(self.device)
         self._node_labels = self._label_of_nodes()
@@ -160,12 +153,6 @@ class Twin:
             return {self.arms[0].name: (self.q, self.gripper)}
         return {name: (self.robot.arm_q(self.q, name).numpy(), self.gripper[:, k])
                 for k, name in enumerate(self.arm_names)}
-
-    def arm_command_offsets(self) -> dict[str, np.ndarray | None]:
-        """Arm name -> its part of :attr:`command_offset` [T, dof_arm] rad (None for every arm without it)."""
-        if self.command_offset is None or not isinstance(self.robot, ArmSet):
-            return {name: self.command_offset for name in self.arm_names}
-        return {name: self.robot.arm_q(self.command_offset, name).numpy() for name in self.arm_names}
 
     def joint_state(self, arms: Mapping[str, tuple[np.ndarray, float]]) -> tuple[np.ndarray, np.ndarray | float]:
         """(q [dof], gripper) as :meth:`render` takes them, from each arm's (q [dof_arm], gripper m)."""

@@ -129,13 +129,6 @@ def test_the_support_map_travels_with_the_twin(trained):
     assert support.edge_drop(footprint) < 0.0025
 
 
-def test_the_source_s_commands_travel_with_the_twin_as_offsets_from_its_joints(trained):
-    """frames.csv's commands minus its joints, per frame, loaded from twin.pt alone."""
-    _, out, episode = trained
-    frames = episode.frames
-    np.testing.assert_array_equal(Twin.load(out).command_offset, frames.actions[:, :6] - frames.q)
-
-
 def test_a_twin_written_in_version_1_still_loads_and_renders_the_same(trained, tmp_path):
     """Twins written before several arms and cameras (version 1: ``robot`` and ``camera``
     sections, one arm, a fixed camera ``T_base_cam``) load as the same twin."""
