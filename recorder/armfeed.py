@@ -27,6 +27,9 @@ from manisplat.recorder.sync import JointHistory
 from manisplat.recorder.writer import EpisodeSink
 
 WALL_STAMP_TOLERANCE_S = 5.0  # CAN stamps further than this from the wall clock are not wall-clock stamps
+JOINT_TAIL_S = 0.1
+"""s: the joints.csv of an episode of a set duration goes on this far past its end (20 samples at
+200 Hz: the last frame's state is bracketed), however long the frames then take to be matched."""
 
 
 class _Active:
@@ -38,9 +41,10 @@ class _Active:
         self.arm = arm
         self.last_joint_t = -math.inf
         self.joint_samples = 0
+        self.until = math.inf  # monotonic s: later samples are not the episode's
 
     def add_joint(self, t: float, q: np.ndarray, gripper: float) -> None:
-        if t > self.last_joint_t:
+        if self.last_joint_t < t <= self.until:
             self.last_joint_t = t
             self.joint_samples += 1
             self.sink.put_joint(t - self.t0, q, gripper, self.arm)
@@ -104,10 +108,11 @@ class ArmFeed:
 
     # -- episodes -----------------------------------------------------------------------------
 
-    def activate(self, t0: float, sink: EpisodeSink) -> None:
-        """Send joint samples at or after ``t0`` (monotonic s) to ``sink``, starting with those
-        already received (the set-up takes a few ms)."""
+    def activate(self, t0: float, sink: EpisodeSink, until: float = math.inf) -> None:
+        """Send joint samples at or after ``t0`` and not after ``until`` (monotonic s) to ``sink``,
+        starting with those already received (the set-up takes a few ms)."""
         active = _Active(t0, sink, self.name)
+        active.until = until
         with self._lock:
             self._active = active
             times, values = self.history.since(t0)

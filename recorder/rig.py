@@ -29,6 +29,7 @@ own thread; one writer thread (:class:`~.writer.EpisodeSink`) writes the episode
 from __future__ import annotations
 
 import logging
+import math
 import threading
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -38,7 +39,7 @@ from manisplat.drivers.base import Camera, DriverError
 from manisplat.drivers.piper import PiperArm
 from manisplat.episode import RobotInfo
 from manisplat.episode.infos import CameraInfo
-from manisplat.recorder.armfeed import ArmFeed
+from manisplat.recorder.armfeed import JOINT_TAIL_S, ArmFeed
 from manisplat.recorder.camfeed import CameraFeed
 from manisplat.recorder.canlog import can_log_name
 from manisplat.recorder.clock import Clock, ClockMap
@@ -188,7 +189,7 @@ class RigRecorder:
         sink = EpisodeSink(writer, [feed.can_log for feed in self.feeds.values()], queue_frames=c.queue_frames)
         stats = self._new_stats()
         for feed in self.feeds.values():
-            feed.activate(t0, sink)
+            feed.activate(t0, sink, until=t0 + duration + JOINT_TAIL_S if duration else math.inf)
         for cam in self.camera_feeds.values():
             cam.start(t0)
         loop = EpisodeLoop(self, t0, sink, stats, with_actions, max_skew_s)

@@ -23,6 +23,7 @@ from manisplat.drivers.replay import EpisodeCamera
 from manisplat.episode import Episode, validate
 from manisplat.episode.infos import ArmInfo, CameraInfo
 from manisplat.episode.writer_v2 import EpisodeWriterV2
+from manisplat.recorder.armfeed import JOINT_TAIL_S
 from manisplat.recorder.cli import main
 from manisplat.recorder.clock import ManualClock
 from manisplat.recorder.replaycam import ReplayCamera
@@ -292,7 +293,7 @@ def test_an_episode_ends_at_its_duration_when_frames_are_matched_slower_than_the
     is stalled at its first frame (a loaded machine), the clock runs 4 s ahead. The episode
     still holds only the frames exposed within its 2 s, every arm state interpolated (none
     flagged: before, the loop wrote on past the end until the joint history had dropped the
-    samples its frames needed)."""
+    samples its frames needed), and its joints.csv ends with it."""
     write = VersionTwo.frame_item
     rig = lockstep_rig(sources)
     clock = rig.recorder.clock
@@ -314,3 +315,6 @@ def test_an_episode_ends_at_its_duration_when_frames_are_matched_slower_than_the
     ep = Episode.open(tmp_path / "ep")
     assert 55 <= len(ep) <= 61 and ep.arm_frames("left").t.max() < 2.0
     assert result.stats.duration_s == pytest.approx(2.0) and result.stats.flagged == 0
+    for arm in ARMS:  # the joints too end with the episode, however long the loop took to get there
+        joints = ep.joints(arm)
+        assert ep.arm_frames(arm).t.max() < joints.t[-1] <= 2.0 + JOINT_TAIL_S + 1e-9
