@@ -13,8 +13,9 @@ own half of the object's story and is planned as one arm is (:mod:`manisplat.aug
   picks it up there and places it.
 
 Then one arm's start is delayed so that both enter the shared skill at the same frame
-(:func:`synchronised`), and the object's track is the giver's until the taker holds it, the
-taker's after (:func:`handed_track`).
+(:func:`entry_delays`; where one arm must slow the skill down for its limits, the other is planned
+again at that pace by :class:`~manisplat.augment.bimanual.BimanualPlanner`), and the object's
+track is the giver's until the taker holds it, the taker's after (:func:`handed_track`).
 """
 
 from __future__ import annotations
