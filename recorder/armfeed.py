@@ -28,8 +28,8 @@ from manisplat.recorder.writer import EpisodeSink
 
 WALL_STAMP_TOLERANCE_S = 5.0  # CAN stamps further than this from the wall clock are not wall-clock stamps
 JOINT_TAIL_S = 0.1
-"""s: the joints.csv of an episode of a set duration goes on this far past its end (20 samples at
-200 Hz: the last frame's state is bracketed), however long the frames then take to be matched."""
+"""s: an episode's joints.csv goes on this far past its end (20 samples at 200 Hz: the last frame's
+state is bracketed), however long its frames then take to be matched."""
 
 
 class _Active:
@@ -118,6 +118,13 @@ class ArmFeed:
             times, values = self.history.since(t0)
             for t, v in zip(times, values):
                 active.add_joint(float(t), v[:6], float(v[6]))
+
+    def end_at(self, t: float) -> None:
+        """Send no joint sample stamped after ``t`` (monotonic s) to the episode: it has ended,
+        and the recorder may go on a while to match its last frames."""
+        with self._lock:
+            if self._active is not None:
+                self._active.until = min(self._active.until, t)
 
     def deactivate(self) -> int:
         """Stop sending joint samples to the episode; returns how many it got."""

@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 
 from manisplat.drivers.base import CameraFrame
+from manisplat.recorder.armfeed import JOINT_TAIL_S
 from manisplat.recorder.clock import RealDeadline
 from manisplat.recorder.result import Status
 from manisplat.recorder.stats import RigStats
@@ -176,6 +177,8 @@ class EpisodeLoop:
         if self.end is None:  # the loop did not end normally (an exception)
             self.end = rec.clock.monotonic()
         t_stop = self.end
+        for feed in rec.feeds.values():  # the episode's joints end with it (a stopped one's too)
+            feed.end_at(t_stop + JOINT_TAIL_S)
         deadline = rec.clock.monotonic() + rec.config.max_wait_s
         real_deadline = time.monotonic() + rec.config.max_wait_s + rec.config.flush_grace_s
         while not self.sink.failed.is_set():

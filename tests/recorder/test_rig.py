@@ -9,6 +9,7 @@ import json
 import shutil
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +29,7 @@ from manisplat.recorder.cli import main
 from manisplat.recorder.clock import ManualClock
 from manisplat.recorder.replaycam import ReplayCamera
 from manisplat.recorder.layout import VersionTwo
+from manisplat.recorder.loop import EpisodeLoop
 from manisplat.recorder.result import EpisodeResult
 from manisplat.recorder.rig import RigArm, RigCamera, RigRecorder
 from manisplat.recorder.session import RecorderConfig
@@ -156,12 +158,12 @@ class LockstepRig:
     cams: dict[str, ReplayCamera]
     recorder: RigRecorder
 
-    def record(self, path: Path, duration: float) -> EpisodeResult:
+    def record(self, path: Path, duration: float | None, **options: Any) -> EpisodeResult:
         try:
             for sim in self.sims.values():
                 sim.start()
             self.recorder.wait_for_arms(timeout=30.0)
-            return self.recorder.record_episode(path, duration=duration)
+            return self.recorder.record_episode(path, duration=duration, **options)
         finally:
             for cam in self.cams.values():
                 cam.close()
@@ -318,3 +320,33 @@ def test_an_episode_ends_at_its_duration_when_frames_are_matched_slower_than_the
     for arm in ARMS:  # the joints too end with the episode, however long the loop took to get there
         joints = ep.joints(arm)
         assert ep.arm_frames(arm).t.max() < joints.t[-1] <= 2.0 + JOINT_TAIL_S + 1e-9
+
+
+def test_a_stopped_episode_s_joints_end_with_it_while_its_last_frames_are_matched(
+        tmp_path: Path, sources: dict[str, Path], monkeypatch: pytest.MonkeyPatch) -> None:
+    """Stopped at 1.5 s; matching its last frames then stalls while the clock runs 2 s on (a
+    loaded machine): joints.csv still ends JOINT_TAIL_S after the stop."""
+    resolve = EpisodeLoop.resolve
+    rig = lockstep_rig(sources)
+    clock = rig.recorder.clock
+    stalled: dict[str, float | None] = {"until": None}
+
+    def stalled_resolve(self: EpisodeLoop, force: bool, until: float) -> None:
+        """The first matching after the end waits until the clock has run 2 s on (real-time bound 60 s)."""
+        if self.end is not None and not force and stalled["until"] is None:
+            stalled["until"] = clock.monotonic() + 2.0
+            deadline = time.monotonic() + 60.0
+            while clock.monotonic() < stalled["until"] and time.monotonic() < deadline:
+                time.sleep(0.01)
+        resolve(self, force, until)
+
+    monkeypatch.setattr(EpisodeLoop, "resolve", stalled_resolve)
+    stop = threading.Event()
+    result = rig.record(tmp_path / "ep", None, stop=stop,
+                        on_status=lambda status: stop.set() if status.elapsed_s >= 1.5 else None)
+    assert result.valid and result.error is None and result.stats.stop_reason == "stopped"
+    assert clock.monotonic() >= stalled["until"]  # the clock did run on
+    ep = Episode.open(tmp_path / "ep")
+    for arm in ARMS:
+        joints = ep.joints(arm)
+        assert ep.arm_frames(arm).t.max() < joints.t[-1] <= result.stats.duration_s + JOINT_TAIL_S + 1e-9
