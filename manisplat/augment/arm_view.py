@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from manisplat.align.acting_arm import Hold, holds
+from manisplat.align.acting_arm import holds
 from manisplat.augment.handover import Handover, find_handover, giver_part, taker_part
 from manisplat.augment.source import SourceError
 from manisplat.robot import RobotModel
@@ -106,45 +106,35 @@ class ArmTwin:
         return self.T_world_base @ np.asarray(T_base, np.float64)
 
 
-def _tcp_and_gripper(twin: Twin) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-    """Arm name -> its TCP positions [T, 3] (the twin's frame, m); arm name -> its opening [T] (m)."""
+def handling(twin: Twin) -> tuple[dict[str, list[str]], list[Handover]]:
+    """Who handles what: arm name -> the twin's objects it handles (every arm listed, in order; a
+    handed-over object under both arms), and the objects passed from one arm to the other.
+
+    Raises:
+        SourceError: a handover that :func:`~manisplat.augment.handover.find_handover` cannot augment.
+    """
     positions = twin.robot.tcp_poses(torch.as_tensor(twin.q)).numpy()[..., :3, 3]  # [T, A, 3], every arm at once
-    return ({name: positions[:, k] for k, name in enumerate(twin.arm_names)},
-            {name: g for name, (_, g) in twin.arm_tracks().items()})
-
-
-def _holds(twin: Twin) -> dict[str, list[Hold]]:
-    """Object name -> who holds it when (:func:`~manisplat.align.acting_arm.holds`)."""
-    tcp, gripper = _tcp_and_gripper(twin)
-    return {obj: holds(tcp, gripper, twin.object_poses[obj][0][:3, 3]) for obj in twin.objects}
-
-
-def handled_objects(twin: Twin) -> dict[str, list[str]]:
-    """Arm name -> the twin's objects it handles (every arm listed, in order; a handed-over object
-    under both arms)."""
-    out: dict[str, list[str]] = {name: [] for name in twin.arm_names}
-    for obj, order in _holds(twin).items():
+    tcp = {name: positions[:, k] for k, name in enumerate(twin.arm_names)}
+    gripper = {name: g for name, (_, g) in twin.arm_tracks().items()}
+    handled: dict[str, list[str]] = {name: [] for name in twin.arm_names}
+    handed = []
+    for obj in twin.objects:
+        order = holds(tcp, gripper, twin.object_poses[obj][0][:3, 3])
         for arm in dict.fromkeys(h.arm for h in order):
-            out[arm].append(obj)
-    return out
+            handled[arm].append(obj)
+        if len(order) > 1:
+            handed.append(find_handover(obj, order, tcp, gripper, twin.object_poses[obj]))
+    return handled, handed
 
 
-def handovers(twin: Twin) -> list[Handover]:
-    """The twin's objects passed from one arm to the other (raises :class:`SourceError` for one
-    that :func:`~manisplat.augment.handover.find_handover` cannot augment)."""
-    tcp, gripper = _tcp_and_gripper(twin)
-    return [find_handover(obj, order, tcp, gripper, twin.object_poses[obj])
-            for obj, order in _holds(twin).items() if len(order) > 1]
-
-
-def arm_twins(twin: Twin) -> dict[str, ArmTwin]:
-    """Each arm of a twin of several arms as an :class:`ArmTwin` (raises :class:`SourceError`)."""
+def arm_twins(twin: Twin, handled: dict[str, list[str]], handed: list[Handover]) -> dict[str, ArmTwin]:
+    """Each arm of a twin of several arms as an :class:`ArmTwin`, from :func:`handling`'s
+    ``handled`` objects and ``handed`` ones (raises :class:`SourceError`)."""
     if not isinstance(twin.robot, ArmSet):
         raise SourceError("arm_twins: the twin has one arm; augment it as it is")
     tracks = twin.arm_tracks()
-    handled = handled_objects(twin)
     parts = {}  # (arm, object) -> (world poses [T, 4, 4], phases) where the arm sees a part of a handover
-    for h in handovers(twin):
+    for h in handed:
         poses, phases = twin.object_poses[h.object], twin.phases.get(h.object, [])
         parts[h.giver, h.object] = giver_part(h, poses, phases)
         parts[h.taker, h.object] = taker_part(h, poses, phases)
@@ -178,4 +168,4 @@ def _moved(gaussians, T: np.ndarray) -> PointSet:
     return PointSet({"means": torch.from_numpy(moved), "opacities": gaussians.params["opacities"].detach().cpu()})
 
 
-__all__ = ["ArmScene", "ArmTwin", "BaseFrameSupport", "PointSet", "arm_twins", "handled_objects", "handovers"]
+__all__ = ["ArmScene", "ArmTwin", "BaseFrameSupport", "PointSet", "arm_twins", "handling"]

@@ -32,7 +32,7 @@ import coal
 import numpy as np
 import torch
 
-from manisplat.augment.arm_view import ArmTwin, arm_twins, handovers
+from manisplat.augment.arm_view import ArmTwin, arm_twins, handling
 from manisplat.augment.collision import CollisionSettings, _object_box
 from manisplat.augment.errors import Rejected
 from manisplat.augment.handover import (HANDOVER_RANGE, HANDOVER_SKILL, Handover, entry_delays, handed_track,
@@ -222,8 +222,8 @@ class BimanualPlanner:
 
     def __init__(self, twin, min_clearance_m: float = MIN_ARM_CLEARANCE_M) -> None:
         try:
-            self.arms = arm_twins(twin)
-            self.handovers = handovers(twin)
+            handled, self.handovers = handling(twin)
+            self.arms = arm_twins(twin, handled, self.handovers)
         except SourceError as exc:
             raise Rejected("source", str(exc)) from exc
         if len(self.handovers) > 1:
