@@ -23,6 +23,7 @@ from manisplat.augment.source import SourceError
 from manisplat.robot import RobotModel
 from manisplat.robot.arms import ArmSet
 from manisplat.twin import Phase, Twin
+from manisplat.twin.commands import CommandRelation
 from manisplat.twin.rig import TwinArm
 from manisplat.twin.support import EDGE_MARGIN, SupportMap
 
@@ -80,6 +81,7 @@ class ArmTwin:
         objects: the objects this arm handles; object_poses: name -> [T, 4, 4] ``T_base_obj``.
         phases: name -> the object's Motion/Skill segments.
         graph: :class:`ArmScene`; support: :class:`BaseFrameSupport` or None.
+        commands: its part of the source's :class:`CommandRelation` (press [T, 6] rad), or None.
     """
 
     name: str
@@ -96,6 +98,7 @@ class ArmTwin:
     phases: dict[str, list[Phase]]
     graph: ArmScene
     support: BaseFrameSupport | None
+    commands: CommandRelation | None = None
 
     @property
     def n_frames(self) -> int:
@@ -139,6 +142,7 @@ def arm_twins(twin: Twin, handled: dict[str, list[str]], handed: list[Handover])
         parts[h.giver, h.object] = giver_part(h, poses, phases)
         parts[h.taker, h.object] = taker_part(h, poses, phases)
     background = twin.graph.background
+    commands = twin.arm_commands()
     out = {}
     for arm in twin.arms:
         T_base_world = np.linalg.inv(arm.T_world_base)
@@ -153,6 +157,7 @@ def arm_twins(twin: Twin, handled: dict[str, list[str]], handed: list[Handover])
             graph=ArmScene({name: twin.graph.objects[name] for name in handled[arm.name]},
                            None if background is None else _moved(background, T_base_world)),
             support=None if twin.support is None else BaseFrameSupport(twin.support, arm.T_world_base),
+            commands=commands[arm.name],
         )
     return out
 

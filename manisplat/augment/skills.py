@@ -9,6 +9,8 @@ differences at the parent's fps, as ``manisplat-replay`` computes them); then it
 uniformly by the smallest factor ``k`` that passes: the new frames sit at source times
 ``s_j = first + j (last - first) / (n - 1)``, the source TCP there being the FK of a C2 cubic spline
 through the source joints (so accelerations fall as ``1/k^2``), and the gripper is interpolated.
+The skill's commands (its joints led and pressed as the source's were, :mod:`.commands`) are held
+to the same limits.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.interpolate import CubicSpline
 
+from manisplat.augment.commands import SourceCommands
 from manisplat.augment.errors import Rejected
 from manisplat.augment.kinematics import PinRobot, pose_error
 
@@ -28,6 +31,7 @@ class SkillResult:
     s: np.ndarray            # [n] source time (fractional source frame index) of each new frame
     q: np.ndarray            # [n, dof]
     gripper: np.ndarray      # [n]
+    press: np.ndarray        # [n, dof] rad the source's press at s, added to the commands
     tcp_target: np.ndarray   # [n, 4, 4]
     tcp_source: np.ndarray   # [n, 4, 4] the source TCP at s (before D)
     pos_err: np.ndarray      # [n] m
@@ -74,27 +78,30 @@ def finite_difference_ratios(q: np.ndarray, dt: float, vlim: np.ndarray, alim: n
 
 
 def solve_skill(kin: PinRobot, spline: SourceSpline, first: int, last: int, D: np.ndarray, *, dt: float,
-                vlim: np.ndarray, alim: np.ndarray, tol_pos: float, tol_rot: float, margin: float = 0.95,
-                max_slow: float = 12.0, seed: int = 0, name: str = "skill", min_slow: float = 1.0) -> SkillResult:
-    """The skill on source frames ``first..last`` moved by ``D``, slowed if it must be (and at
-    least by ``min_slow``)."""
+                vlim: np.ndarray, alim: np.ndarray, tol_pos: float, tol_rot: float, commands: SourceCommands,
+                margin: float = 0.95, max_slow: float = 12.0, seed: int = 0, name: str = "skill",
+                min_slow: float = 1.0) -> SkillResult:
+    """The skill on source frames ``first..last`` moved by ``D``, slowed if its joints or its
+    commands must be (and at least by ``min_slow``)."""
     k = max(1.0, float(min_slow))
-    result = _solve_at(kin, spline, first, last, D, k, tol_pos, tol_rot, seed, name)
+    result = _solve_at(kin, spline, commands, first, last, D, k, tol_pos, tol_rot, seed, name)
     for _ in range(12):
-        rv, ra = finite_difference_ratios(result.q, dt, vlim * margin, alim * margin)
+        # the commands up to the last frame, whose lead mixes in the motion after the skill
+        rv, ra = np.max([finite_difference_ratios(path, dt, vlim * margin, alim * margin)
+                         for path in (result.q, commands.commanded(result.q, result.press)[:-1])], axis=0)
         if rv <= 1.0 and ra <= 1.0:
             return result
         need = max(rv, math.sqrt(ra)) * k
         k = max(need, k * 1.05)
         if k > max_slow:
-            raise Rejected("limits", f"{name}: its new joints would have to be slowed more than {max_slow:g}x to stay "
-                                     f"within the velocity/acceleration limits")
-        result = _solve_at(kin, spline, first, last, D, k, tol_pos, tol_rot, seed, name)
+            raise Rejected("limits", f"{name}: its new joints and commands would have to be slowed more than "
+                                     f"{max_slow:g}x to stay within the velocity/acceleration limits")
+        result = _solve_at(kin, spline, commands, first, last, D, k, tol_pos, tol_rot, seed, name)
     raise Rejected("limits", f"{name}: no uniform slow-down within the limits")
 
 
-def _solve_at(kin, spline: SourceSpline, first: int, last: int, D: np.ndarray, k: float, tol_pos: float,
-              tol_rot: float, seed: int, name: str) -> SkillResult:
+def _solve_at(kin, spline: SourceSpline, commands: SourceCommands, first: int, last: int, D: np.ndarray, k: float,
+              tol_pos: float, tol_rot: float, seed: int, name: str) -> SkillResult:
     n = int(math.ceil((last - first) * k - 1e-9)) + 1
     s = np.linspace(first, last, n) if k > 1.0 else np.arange(first, last + 1, dtype=np.float64)
     q_src = spline.joints(s)
@@ -123,4 +130,5 @@ def _solve_at(kin, spline: SourceSpline, first: int, last: int, D: np.ndarray, k
         q[j], prev = sol.q, sol.q
     reached = kin.tcp_batch(q)
     pos, rot = pose_error(reached, targets)
-    return SkillResult(s, q, spline.gripper_at(s), targets, T_src, pos, rot, k, iters, restarts)
+    return SkillResult(s, q, spline.gripper_at(s), commands.press_at(s, first, last), targets, T_src, pos, rot, k,
+                       iters, restarts)

@@ -23,6 +23,7 @@ import torch
 
 from manisplat.align.phases import gripper_events
 from manisplat.geometry import orthonormalize
+from manisplat.twin.commands import CommandRelation
 
 
 class SourceError(ValueError):
@@ -65,6 +66,7 @@ class SourceDemo:
     skills: list[SkillSpec]
     objects: dict[str, ObjectSource]
     object_poses: dict[str, np.ndarray] = field(default_factory=dict)
+    commands: CommandRelation | None = None  # how its commands led and pressed its joints, if recorded
 
     @property
     def n_frames(self) -> int:
@@ -124,7 +126,7 @@ def source_demo(twin) -> SourceDemo:
     if not skills:
         raise SourceError("the demonstration has no Skill phase")
     return SourceDemo(float(twin.fps), q, gripper, tcp, skills, objects,
-                      {k: np.asarray(v, np.float64) for k, v in twin.object_poses.items()})
+                      {k: np.asarray(v, np.float64) for k, v in twin.object_poses.items()}, twin.commands)
 
 
 def rigid(T: np.ndarray) -> np.ndarray:

@@ -22,10 +22,11 @@ A demonstration whose last skill ends moving gets an extra Motion, "M_settle", t
 arm to rest along its direction of travel (so the last commanded frame is at rest).
 
 Conventions of :class:`NewTrajectory`:
-* frames at ``t = k / fps`` of the parent; ``action_q[k] = q[k + 1]`` (the next frame's joints, as
-  a leader arm's command leads the follower; the last frame repeats itself), ``action_gripper``
-  0.07 (open) or 0.0 (closed) from the source's gripper events (closed from the grasp to the
-  release);
+* frames at ``t = k / fps`` of the parent; ``action_q`` the commands, in the relation the
+  source's commands had to its joints (:mod:`.commands`: every frame led by the source's lead,
+  skills pressing as the source did; the next frame's joints where it recorded no commands),
+  ``action_gripper`` 0.07 (open) or 0.0 (closed) from the source's gripper events (closed from
+  the grasp to the release);
 * skill frames carry the source's gripper signal (interpolated when slowed); motions hold the
   gripper of the frame before them (the first motion: the source's frame 0).
 """
@@ -40,6 +41,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from manisplat.augment.collision import BoxObstacle, SceneCollision
+from manisplat.augment.commands import SourceCommands
 from manisplat.augment.errors import Rejected
 from manisplat.augment.frames import solid_points
 from manisplat.augment.kinematics import PinRobot
@@ -143,6 +145,7 @@ class Augmenter:
         self.convention, self.convention_note = _convention(twin)
         self._limit_positions()
         self.spline = SourceSpline(self.kin, self.src.q, self.src.gripper, self.src.tcp)
+        self.commands = SourceCommands(self.src.commands, self.kin.dof, self.src.fps)
         self.scene = SceneCollision(twin, self.kin, self.src, obstacles=tuple(obstacles))
         self.skill_allowed = [frozenset(self.scene.skill_allowances(s)) for s in self.src.skills]
         self.footprints = {name: solid_points(twin, name) for name in twin.objects}  # seen from above
@@ -225,7 +228,8 @@ class Augmenter:
             D = T_new @ np.linalg.inv(T_src)
             transforms.append((D, T_new, T_src))
             skills.append(solve_skill(kin, self.spline, spec.first, spec.last, D, dt=self.dt, vlim=self.vlim,
-                                      alim=self.alim, tol_pos=tol_pos, tol_rot=tol_rot, margin=config.headroom,
+                                      alim=self.alim, tol_pos=tol_pos, tol_rot=tol_rot, commands=self.commands,
+                                      margin=config.headroom,
                                       seed=config.seed, name=f"{spec.name} ({spec.object})",
                                       min_slow=config.min_slow.get(spec.name, 1.0)))
         timings["ik_s"] += time.perf_counter() - t0
@@ -443,7 +447,7 @@ class Augmenter:
 
     def _assemble(self, pieces, skills, transforms, plan, config, timings, attempts) -> NewTrajectory:
         src, kin = self.src, self.kin
-        qs, grip, cmd, svals, states, segments = [], [], [], [], [], []
+        qs, grip, cmd, press, svals, states, segments = [], [], [], [], [], [], []
         skill_errors, ik_errors = [], []
         frame = 0
         for k, piece in enumerate(pieces):
@@ -462,6 +466,7 @@ class Augmenter:
                     qs.append(row)
                     grip.append(piece["width"])
                     cmd.append(_command(src, s_mid))
+                    press.append(np.zeros(kin.dof))
                     svals.append(s_mid)
                     states.append(piece["state"])
                 segments.append({"kind": "motion", "name": piece["name"], "object": None,
@@ -488,6 +493,7 @@ class Augmenter:
                     qs.append(res.q[j])
                     grip.append(res.gripper[j])
                     cmd.append(_command(src, s))
+                    press.append(res.press[j])
                     svals.append(s)
                     states.append(st)
                 frame += len(res.q)
@@ -503,7 +509,7 @@ class Augmenter:
         action_gripper = np.asarray(cmd, np.float64)
         T = len(q)
         t = np.arange(T) / src.fps
-        action_q = np.concatenate([q[1:], q[-1:]], axis=0)
+        action_q = self.commands.commanded(q, np.asarray(press))
 
         # objects per frame
         tcp_all = kin.tcp_batch(q)
@@ -557,6 +563,7 @@ class Augmenter:
                                "ik_iterations": r.ik_iterations, "ik_restarts": r.ik_restarts}
                               for s, r in zip(self.src.skills, skills)],
                    "times_s": {k: round(v, 5) for k, v in timings.items()},
+                   "commands": {"lead_frames": round(self.commands.lead, 4), "press": self.commands.recorded},
                    "convention": self.convention_note}
         return NewTrajectory(t=t, q=q, gripper=gripper, action_q=action_q, action_gripper=action_gripper,
                              object_poses=object_poses, segments=segments, objects=objects, validation=validation,

@@ -19,6 +19,7 @@ from manisplat.reconstruct.lens import undistortion_for
 from manisplat.robot import RobotModel, load_robot
 from manisplat.robot.arms import ArmSet
 from manisplat.splat import opencv_to_splat_K
+from manisplat.twin.commands import CommandRelation, command_relation
 from manisplat.twin.rig import TwinArm, one_arm
 from manisplat.twin.twin import resolve_description
 
@@ -116,6 +117,8 @@ class EpisodeData:
             with frames (episode.json ``clock.camera_latency_s``; 0 when unknown).
         time_offset_s: frame f shows the robot at joint time ``t[f] + time_offset_s``; ``q``,
             ``gripper`` and the poses are read there (:func:`retime`).
+        commands: how ``frames.csv``'s commands relate to its joints (:func:`recorded_commands`,
+            before any retiming), or None where the episode records no commands.
     """
 
     path: Path
@@ -150,6 +153,7 @@ class EpisodeData:
     frame: str = "base"
     mount: str = "base"
     T_mount_cam: torch.Tensor | None = None
+    commands: CommandRelation | None = None
 
     @property
     def n_frames(self) -> int:
@@ -319,7 +323,7 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, camera: str
         valid=None if lens is None or lens.valid.all() else torch.from_numpy(lens.valid),
         dist=tuple(float(d) for d in cam.dist) if lens is not None else (),
         joints=stream, recorded_latency_s=recorded_latency, frame="world" if several else "base",
-        mount=cam.mount, T_mount_cam=None if fixed else T_mount_cam,
+        mount=cam.mount, T_mount_cam=None if fixed else T_mount_cam, commands=recorded_commands(episode),
     )
     if not fixed:
         _place_riding_camera(data, q, gripper)
@@ -418,6 +422,17 @@ def retime(data: EpisodeData, offset_s: float) -> None:
     if data.riding:
         _place_riding_camera(data, data.q, data.gripper)
     data.time_offset_s = offset_s
+
+
+def recorded_commands(episode: Episode) -> CommandRelation | None:
+    """How ``frames.csv``'s commands ``a1..a6`` relate to its joints ``q`` (every arm's, in arm
+    order; both as recorded at each frame): their lead and press. None where an arm records no
+    commands."""
+    tables = [episode.arm_frames(name) for name in episode.arms]
+    if any(table.actions is None for table in tables):
+        return None
+    return command_relation(np.concatenate([table.q for table in tables], axis=1),
+                            np.concatenate([table.actions[:, :6] for table in tables], axis=1))
 
 
 def load_ground_truth(path: str | Path) -> dict[str, np.ndarray] | None:

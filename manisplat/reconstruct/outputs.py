@@ -141,7 +141,7 @@ def twin_of(rec: Reconstruction, alignments: dict[str, ObjectAlignment]) -> Twin
         object_poses=rec.evaluation_poses(), pose_sources={k: list(a.pseudo.source) for k, a in alignments.items()},
         phases={k: [Phase(s.kind, s.name, s.start, s.end) for s in a.segments] for k, a in alignments.items()},
         fps=d.fps, episode=Path(d.path).name, backend=rec.config.backend, task=d.task,
-        support=measured_support(rec, T_base_cam),
+        support=measured_support(rec, T_base_cam), commands=d.commands,
     )
 
 

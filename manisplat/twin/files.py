@@ -7,8 +7,10 @@ for one arm, ``"world"`` for several), the arms (robot description, model, joint
 camera first), labels, objects, phases, per-frame pose sources, node list, light. ``twin.pt``
 holds only tensors, read with ``torch.load(..., weights_only=True)``: every node's Gaussian
 parameters, the light, the background colour, the recorded trajectory (``t`` [T] s, ``q``
-[T, dof] rad, ``gripper`` [T] or [T, A] m, object poses ``T_<frame>_obj`` [T, 4, 4] float64)
-and, when the recording had depth, the support height map (:mod:`manisplat.twin.support`).
+[T, dof] rad, ``gripper`` [T] or [T, A] m, object poses ``T_<frame>_obj`` [T, 4, 4] float64),
+when the recording had depth the support height map (:mod:`manisplat.twin.support`), and when
+it had commands their press ``command_press`` [T, dof] rad (``twin.json``'s ``command_lead``, the
+lead: :mod:`manisplat.twin.commands`).
 Version 1 folders (one arm, one camera, written before 2026-11-27) still load.
 """
 
@@ -26,6 +28,7 @@ from manisplat.robot.arms import ArmSet
 from manisplat.scene import GaussianSet, SceneGraph
 from manisplat.scene.shadows import DirectionalShadows
 from manisplat.twin.rig import BASE_FRAME, TwinArm, TwinCamera, one_arm
+from manisplat.twin.commands import CommandRelation
 from manisplat.twin.support import SupportMap
 from manisplat.twin.twin import Phase, Twin, TwinFormatError
 
@@ -40,6 +43,8 @@ def save_twin(twin: Twin, folder: Path) -> None:
     # host copies: a twin trained on a GPU loads anywhere with torch.load(..., weights_only=True)
     tensors = {"background_rgb": twin.background_rgb.detach().cpu().clone(),
                "t": torch.as_tensor(twin.t), "q": torch.as_tensor(twin.q), "gripper": torch.as_tensor(twin.gripper)}
+    if twin.commands is not None:
+        tensors["command_press"] = torch.as_tensor(twin.commands.press)
     nodes = []
     for node in twin.graph.nodes():
         params = node.gaussians.params
@@ -62,6 +67,7 @@ def save_twin(twin: Twin, folder: Path) -> None:
         "cameras": [cam.to_dict() for cam in twin.cameras.values()],
         "labels": {str(k): v for k, v in sorted(twin.labels.items())},
         "nodes": nodes, "shadows": light, "support": support,
+        "command_lead": None if twin.commands is None else twin.commands.lead,
         "objects": {name: {"pose_source": twin.pose_sources.get(name, []),
                            "phases": [vars(p) for p in twin.phases.get(name, [])]}
                     for name in twin.graph.objects},
@@ -108,6 +114,9 @@ def load_twin(folder: Path, *, backend: str = "auto", device: torch.device | str
     if meta.get("support") is not None:  # twins written before support maps have none
         support = SupportMap(tensor("support/heights").numpy(), tuple(meta["support"]["origin"]),
                              float(meta["support"]["cell"]))
+    commands = None
+    if meta.get("command_lead") is not None:  # twins of recordings without commands, or written before, have none
+        commands = CommandRelation(meta["command_lead"], tensor("command_press").numpy())
     try:
         return Twin(
             graph=graph, background_rgb=tensor("background_rgb"), robot=robot, arms=arms,
@@ -118,6 +127,7 @@ def load_twin(folder: Path, *, backend: str = "auto", device: torch.device | str
             pose_sources={name: o["pose_source"] for name, o in objects_meta.items()},
             phases={name: [Phase(**p) for p in o["phases"]] for name, o in objects_meta.items()},
             fps=meta["fps"], episode=meta["episode"], backend=backend, task=meta.get("task"), support=support,
+            commands=commands,
         )
     except ValueError as exc:  # arms, cameras or mounts that do not fit together
         raise TwinFormatError(f"{folder / TWIN_JSON}: {exc}") from exc

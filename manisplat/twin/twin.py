@@ -17,6 +17,7 @@ from manisplat.robot.arms import ArmSet
 from manisplat.scene import SceneGraph
 from manisplat.scene.render import render_graph
 from manisplat.splat import opencv_to_splat_K
+from manisplat.twin.commands import CommandRelation
 from manisplat.twin.rig import BASE_FRAME, TwinArm, TwinCamera
 from manisplat.twin.support import SupportMap
 
@@ -68,13 +69,16 @@ class Twin:
         task, episode (folder name), fps: the source episode's.
         support: the support surfaces' height map, measured from the recording's depth (None
             without depth): where objects can be set down.
+        commands: how the source's commands led and pressed its joints (:class:`CommandRelation`,
+            press [T, dof]; None where it recorded no commands): augmentation commands new joints so.
     """
 
     def __init__(self, *, graph: SceneGraph, background_rgb: torch.Tensor, robot: RobotModel | ArmSet,
                  arms: list[TwinArm], cameras: list[TwinCamera], labels: dict[int, str], t: np.ndarray,
                  q: np.ndarray, gripper: np.ndarray, object_poses: dict[str, np.ndarray],
                  pose_sources: dict[str, list[str]], phases: dict[str, list[Phase]], fps: float, episode: str,
-                 task: str | None = None, backend: str = "auto", support: SupportMap | None = None) -> None:
+                 task: str | None = None, backend: str = "auto", support: SupportMap | None = None,
+                 commands: CommandRelation | None = None) -> None:
         if [a.name for a in arms] != list(_arm_names(robot)):
             raise ValueError(f"twin arms {[a.name for a in arms]} do not match the robot's {list(_arm_names(robot))}")
         if not cameras or not cameras[0].fixed:
@@ -90,6 +94,9 @@ class Twin:
         self.pose_sources, self.phases = pose_sources, phases
         self.fps, self.episode, self.backend = float(fps), episode, backend
         self.task, self.support = task, support
+        self.commands = commands
+        if commands is not None and commands.press.shape != self.q.shape:
+            raise ValueError(f"command press {commands.press.shape} does not match q {self.q.shape}")
         self.device = graph.device  # where it renders: the Gaussians' device
         self.background_rgb = self.background_rgb.to(self.device)
         self._node_labels = self._label_of_nodes()
@@ -153,6 +160,13 @@ class Twin:
             return {self.arms[0].name: (self.q, self.gripper)}
         return {name: (self.robot.arm_q(self.q, name).numpy(), self.gripper[:, k])
                 for k, name in enumerate(self.arm_names)}
+
+    def arm_commands(self) -> dict[str, CommandRelation | None]:
+        """Arm name -> its part of :attr:`commands` (press [T, dof_arm]; None for every arm without it)."""
+        if self.commands is None or not isinstance(self.robot, ArmSet):
+            return {name: self.commands for name in self.arm_names}
+        return {name: CommandRelation(self.commands.lead, self.robot.arm_q(self.commands.press, name).numpy())
+                for name in self.arm_names}
 
     def joint_state(self, arms: Mapping[str, tuple[np.ndarray, float]]) -> tuple[np.ndarray, np.ndarray | float]:
         """(q [dof], gripper) as :meth:`render` takes them, from each arm's (q [dof_arm], gripper m)."""

@@ -14,6 +14,7 @@ import torch
 from manisplat.align.acting_arm import Hold
 from manisplat.augment.bimanual import MIN_ARM_CLEARANCE_M, BimanualPlanner
 from manisplat.augment.cli import build_parser, main as augment
+from manisplat.augment.commands import SourceCommands
 from manisplat.augment.handover import HANDOVER_RANGE, HANDOVER_SKILL, entry_delays, find_handover
 from manisplat.augment.source import SourceError
 from manisplat.augment.trajectory import AugmentConfig, Rejected, augmenter_for
@@ -22,6 +23,7 @@ from manisplat.episode.synthetic_arms import write_two_arm_sample_episode
 from manisplat.exit_codes import ExitCode
 from manisplat.reconstruct.cli import main as reconstruct
 from manisplat.twin import Twin
+from manisplat.twin.commands import CommandRelation, led
 
 SEED = 1  # a sample whose targets the twin's arms reach (several others leave the left arm's reach)
 
@@ -139,6 +141,31 @@ def test_an_arm_that_must_slow_the_handover_down_sets_the_pace_of_both(twin_fold
     for arm, frames in (("left", range(takeover - 4, takeover)), ("right", range(takeover, takeover + 4))):
         in_tcp = np.linalg.inv(tcp[arm][list(frames)]) @ box[list(frames)]
         np.testing.assert_allclose(in_tcp, np.broadcast_to(in_tcp[0], in_tcp.shape), atol=1e-6)
+
+
+def test_a_new_place_presses_where_the_source_s_commands_pressed(twin_folder):
+    """The source's right-arm commands pressing up to 0.01 rad past its joint 2 through its place
+    skill (rising and falling smoothly): the new commands press as much at the same source times,
+    on top of the lead; before the place they only lead."""
+    twin = Twin.load(twin_folder)
+    place = next(p for p in twin.phases["box"] if p.name == "S_place")
+    press = np.zeros(len(twin.q))
+    press[place.start:place.end] = 0.01 * np.sin(np.linspace(0, np.pi, place.end - place.start)) ** 2
+    pressed = np.zeros_like(twin.q)
+    pressed[:, 6 + 1] = press  # the right arm's joint 2
+    twin.commands = CommandRelation(0.4, pressed)
+    planner = BimanualPlanner(twin)
+    traj = planner.run(planner.sample_targets(np.random.default_rng(SEED)), AugmentConfig(seed=SEED))
+    right, source = traj.arms["right"], planner.arms["right"]
+    commands = SourceCommands(source.commands, 6, twin.fps)
+    segment = next(s for s in right.segments if s["name"] == "S_place")
+    (first, last), (begin, end) = segment["frames"], segment["source_frames"]
+    played = np.linspace(begin, end, last - first + 1)
+    expected = commands.press_at(played, begin, end)[:, 1]
+    pressed = right.action_q[first:last + 1, 1] - led(right.q, commands.lead)[first:last + 1, 1]
+    np.testing.assert_allclose(pressed, expected, atol=1e-9)
+    assert expected.max() > 0.008
+    np.testing.assert_allclose(right.action_q[:first], led(right.q, commands.lead)[:first], atol=1e-12)
 
 
 def test_arms_playing_the_handover_at_different_paces_are_refused(planner, handed):

@@ -18,6 +18,7 @@ from manisplat.reconstruct.pipeline import build
 from manisplat.reconstruct.plan import make_plan
 from manisplat.reconstruct.trainer import TrainConfig
 from manisplat.twin import Twin, TwinFormatError
+from manisplat.twin.commands import led
 
 
 @pytest.fixture(scope="module")
@@ -127,6 +128,15 @@ def test_the_support_map_travels_with_the_twin(trained):
     footprint = np.stack(np.meshgrid(a, a), -1).reshape(-1, 2) + centre
     assert abs(np.nanmedian(support.height_at(footprint))) < 0.003  # the table is the base's z = 0 plane
     assert support.edge_drop(footprint) < 0.0025
+
+
+def test_the_source_s_commands_travel_with_the_twin_as_its_joints_led_and_pressed(trained):
+    """frames.csv's commands, as recorded against its joints (not the twin's retimed joints),
+    given back by the lead and press the twin loads."""
+    _, out, episode = trained
+    frames = episode.frames
+    commands = Twin.load(out).commands
+    np.testing.assert_allclose(led(frames.q, commands.lead) + commands.press, frames.actions[:, :6], atol=1e-12)
 
 
 def test_a_twin_written_in_version_1_still_loads_and_renders_the_same(trained, tmp_path):
