@@ -128,6 +128,12 @@ def _load_twin(recon: Path) -> Twin:
             raise AugmentError(f"{recon}: object {name!r} has no Motion/Skill phases in twin.json")
         if name not in twin.object_poses or len(twin.object_poses[name]) != twin.n_frames:
             raise AugmentError(f"{recon}: object {name!r} has no pose per frame in twin.pt")
+    if twin.commands is None:
+        log.warning("%s keeps no recorded commands (the recording has none, or the twin was made before "
+                    "2026-11-27): the new commands are the next frame's joints; %s keeps them where the "
+                    "recording has commands", recon, reconstruct_command(recon))
+    else:
+        log.info("commands: the source's, led by %.2f of a frame, skills pressing as it did", twin.commands.lead)
     return twin
 
 

@@ -4,8 +4,10 @@ validity rate, nothing half-written, and clear errors for bad input."""
 from __future__ import annotations
 
 import json
+import logging
 import re
 import shlex
+import shutil
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -185,3 +187,19 @@ def test_the_report_counts_how_the_motions_were_planned():
     assert report["reasons"] == {"collision": 1} and report["valid"] == 2
     assert ("motions: 4 (1 straight, 2 rrtconnect, 1 stop along the last velocity); 2 stopped at a skill to turn"
             in summary(report, Path("out")))
+
+
+def test_a_twin_without_recorded_commands_is_named_with_how_to_keep_them(recon, tmp_path, caplog):
+    """A twin made before it kept the recording's commands still augments, with next-frame
+    commands, and says so: not silently."""
+    old = tmp_path / "old_twin"
+    shutil.copytree(recon, old)
+    meta = json.loads((old / "twin.json").read_text())
+    assert meta.pop("command_lead") is not None
+    (old / "twin.json").write_text(json.dumps(meta))
+    with caplog.at_level(logging.WARNING, logger="manisplat.augment"):
+        assert main([str(old), "--n", "1", "--out", str(tmp_path / "aug"), "-q"]) == 0
+    warned = [r.getMessage() for r in caplog.records if "no recorded commands" in r.getMessage()]
+    assert len(warned) == 1 and "manisplat-reconstruct" in warned[0]
+    frames = Episode.open(tmp_path / "aug" / "episode_0000").frames
+    np.testing.assert_allclose(frames.actions[:-1, :6], frames.q[1:], atol=1e-12)
