@@ -5,8 +5,9 @@ Replaying a demonstration's joints as its commands loses what its commands did: 
 physics, a place the recorded commands did cleanly brushes the surface with a finger (a simulated
 Cobot Magic handover: 98 of 100 new demonstrations). So every new command is the new joints led by
 the source's lead, and a skill's frames add the source's press at the source time they play
-(:meth:`SourceCommands.press_at`), faded in and out over ``FADE_S`` at the skill's ends so that
-the commands join the motions around it without a jump. The skill's slow-down
+(:meth:`SourceCommands.press_at`), faded in and out over ``FADE_S`` inside ``CLEAR_FRAMES`` at
+the skill's ends, so that the commands join the motions around it where only the joints
+accelerate (a motion may leave a skill at its full acceleration limit). The skill's slow-down
 (:func:`manisplat.augment.skills.solve_skill`) keeps these commands within the limits too: a
 slowed skill stretches its press in time.
 
@@ -21,7 +22,10 @@ from scipy.interpolate import CubicSpline
 from manisplat.twin.commands import CommandRelation, led
 
 FADE_S = 0.15
-"""s of source time over which a skill's press fades in after its first frame and out before its last."""
+"""s of source time over which a skill's press fades in and out."""
+
+CLEAR_FRAMES = 2
+"""source frames at each end of a skill that press nothing (the fades lie inside them)."""
 
 
 class SourceCommands:
@@ -47,11 +51,12 @@ class SourceCommands:
 
     def press_at(self, s: np.ndarray, first: float, last: float) -> np.ndarray:
         """[n, dof] rad: the press at source times ``s`` [n] of the skill on source frames
-        ``first..last``, faded to zero at both ends (zeros without recorded commands)."""
+        ``first..last``: none within ``CLEAR_FRAMES`` of its ends, faded in and out inside them
+        (zeros without recorded commands)."""
         s = np.asarray(s, np.float64)
         if self._press is None:
             return np.zeros((len(s), self.dof))
-        return self._press(s) * _fade(s, first, last, self.fade)[:, None]
+        return self._press(s) * _fade(s, first + CLEAR_FRAMES, last - CLEAR_FRAMES, self.fade)[:, None]
 
     def commanded(self, q: np.ndarray, press: np.ndarray) -> np.ndarray:
         """Commands [T, dof] for new joints ``q`` [T, dof]: led by the source's lead, plus ``press``
@@ -60,8 +65,8 @@ class SourceCommands:
 
 
 def _fade(s: np.ndarray, first: float, last: float, width: float) -> np.ndarray:
-    """[n] in [0, 1]: 0 at ``first`` and ``last``, 1 from ``width`` frames inside them, a raised
-    cosine between (zero slope at both ends of each ramp)."""
+    """[n] in [0, 1]: 0 up to ``first`` and from ``last``, 1 from ``width`` frames inside them, a
+    raised cosine between (zero slope at both ends of each ramp)."""
     width = min(width, 0.5 * (last - first))
     if width <= 0:
         return np.zeros_like(s)
@@ -69,4 +74,4 @@ def _fade(s: np.ndarray, first: float, last: float, width: float) -> np.ndarray:
     return 0.5 - 0.5 * np.cos(np.pi * u)
 
 
-__all__ = ["FADE_S", "SourceCommands"]
+__all__ = ["CLEAR_FRAMES", "FADE_S", "SourceCommands"]

@@ -86,9 +86,8 @@ def solve_skill(kin: PinRobot, spline: SourceSpline, first: int, last: int, D: n
     k = max(1.0, float(min_slow))
     result = _solve_at(kin, spline, commands, first, last, D, k, tol_pos, tol_rot, seed, name)
     for _ in range(12):
-        # the commands up to the last frame, whose lead mixes in the motion after the skill
         rv, ra = np.max([finite_difference_ratios(path, dt, vlim * margin, alim * margin)
-                         for path in (result.q, commands.commanded(result.q, result.press)[:-1])], axis=0)
+                         for path in (result.q, _joined_commands(commands, result))], axis=0)
         if rv <= 1.0 and ra <= 1.0:
             return result
         need = max(rv, math.sqrt(ra)) * k
@@ -98,6 +97,18 @@ def solve_skill(kin: PinRobot, spline: SourceSpline, first: int, last: int, D: n
                                      f"{max_slow:g}x to stay within the velocity/acceleration limits")
         result = _solve_at(kin, spline, commands, first, last, D, k, tol_pos, tol_rot, seed, name)
     raise Rejected("limits", f"{name}: no uniform slow-down within the limits")
+
+
+def _joined_commands(commands: SourceCommands, result: SkillResult) -> np.ndarray:
+    """[n + 1, dof] the skill's commands and the one before it: the motions on either side join the
+    skill at its end velocities (a frame extrapolated at each end, pressing nothing), which the
+    first and last commands' lead mixes in."""
+    q = result.q
+    if len(q) < 2:
+        return commands.commanded(q, result.press)
+    joined = np.concatenate([2 * q[:1] - q[1:2], q, 2 * q[-1:] - q[-2:-1]])
+    press = np.concatenate([np.zeros((1, q.shape[1])), result.press, np.zeros((1, q.shape[1]))])
+    return commands.commanded(joined, press)[:-1]
 
 
 def _solve_at(kin, spline: SourceSpline, commands: SourceCommands, first: int, last: int, D: np.ndarray, k: float,

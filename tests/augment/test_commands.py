@@ -1,6 +1,6 @@
 """A new demonstration's commands: the new joints led by the source's lead, and in a skill the
-source's press at the source time the frame plays, faded in and out at the skill's ends; the next
-frame's joints where the source had none."""
+source's press at the source time the frame plays, faded in and out inside the skill's ends; the
+next frame's joints where the source had none."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import copy
 
 import numpy as np
 
-from manisplat.augment.commands import FADE_S, SourceCommands
+from manisplat.augment.commands import CLEAR_FRAMES, FADE_S, SourceCommands
 from manisplat.augment.source import source_demo
 from manisplat.augment.trajectory import AugmentConfig, ObjectTarget, augment_trajectory
 from manisplat.drivers.piper.trajectory import ReplayLimits, Trajectory, check_trajectory
@@ -44,26 +44,30 @@ def test_new_joints_are_led_by_the_source_s_lead():
     np.testing.assert_allclose(out[:-1], q[:-1] + 0.3 * 0.01, atol=1e-12)
 
 
-def test_a_skill_presses_where_the_source_pressed_and_fades_in_and_out_at_its_ends():
+def test_a_skill_presses_where_the_source_pressed_and_fades_in_and_out_inside_its_ends():
     """The skill on source frames 5-34 played slowed 2x: inside, the source's press at the same
-    source time; zero at both ends; half of it halfway through the fade, all of it after."""
+    source time; none within CLEAR_FRAMES of its ends; half of it halfway through a fade, all of
+    it after."""
     commands = SourceCommands(source(press=-0.01), 2, FPS)
     s = np.linspace(5, 34, 59)
     press = commands.press_at(s, 5, 34)
-    fade = FADE_S * FPS
-    pressing = (s >= 11) & (s <= 28) & (s >= 5 + fade) & (s <= 34 - fade)
+    fade, clear = FADE_S * FPS, CLEAR_FRAMES
+    pressing = (s >= 11) & (s <= 28) & (s >= 5 + clear + fade) & (s <= 34 - clear - fade)
     np.testing.assert_allclose(press[pressing, 1], -0.01, atol=1e-3)
     np.testing.assert_allclose(press[:, 0], 0.0, atol=1e-12)  # joint 0 only leads
-    np.testing.assert_allclose(press[[0, -1]], 0.0, atol=1e-15)
-    at = np.array([12.0, 12 + fade / 2, 12 + fade])  # a skill starting inside the press
-    ramp = commands.press_at(at, 12, 34)[:, 1] / commands.press_at(at, 0, 39)[:, 1]
+    ends = (s <= 5 + clear) | (s >= 34 - clear)
+    assert ends.sum() >= 8 and np.all(press[ends] == 0.0)
+    start = 10.0 + clear  # a skill starting inside the press
+    at = np.array([start, start + fade / 2, start + fade])
+    ramp = commands.press_at(at, 10, 34)[:, 1] / commands.press_at(at, 0, 39)[:, 1]
     np.testing.assert_allclose(ramp, [0.0, 0.5, 1.0], atol=1e-12)
 
 
 def test_a_skill_is_slowed_until_its_commands_too_keep_the_limits(twin):
     """The source's commands pressing 0.03 rad back and forth on joint 2 every other frame: at the
-    pace the joints alone allow they would accelerate past the limits, so each skill is slowed
-    further, until they do not, and the new commands (pressing) pass the replay's checks."""
+    pace the joints alone allow they would accelerate past the limits, so the pick (long enough to
+    press between its faded ends) is slowed further, until they do not, and the new commands
+    (pressing) pass the replay's checks."""
     targets = {k: ObjectTarget(o.T_rest, o.T_placed) for k, o in source_demo(twin).objects.items() if o.manipulated}
     calm = augment_trajectory(twin, targets, AugmentConfig())
     pressing = copy.copy(twin)
@@ -71,8 +75,8 @@ def test_a_skill_is_slowed_until_its_commands_too_keep_the_limits(twin):
     press[:, 1] = 0.03 * (-1.0) ** np.arange(len(twin.q))
     pressing.commands = CommandRelation(1.0, press)
     traj = augment_trajectory(pressing, targets, AugmentConfig())
-    for own, pressed in zip(calm.planner["skills"], traj.planner["skills"]):
-        assert pressed["slowed"] > 1.1 * own["slowed"], (own, pressed)
+    own, pressed = calm.planner["skills"][0], traj.planner["skills"][0]
+    assert own["name"] == "S_pick" and pressed["slowed"] > 1.1 * own["slowed"], (own, pressed)
     robot = builtin_piper(with_geometry=False)
     plan = Trajectory(traj.t.copy(), traj.action_q, traj.action_gripper, "actions", 1.0)
     assert check_trajectory(plan, robot, ReplayLimits()) == []
