@@ -27,6 +27,14 @@ class MissingBenchmarkData(RuntimeError):
     """A benchmark needs files (e.g. ``shared/data``) that are not on this machine."""
 
 
+def simulator_python() -> Path:
+    """``$MANISPLAT_SIMENV``: the python of a venv with mujoco that runs ``shared/tools/sim``."""
+    simenv = os.environ.get("MANISPLAT_SIMENV")
+    if not simenv:
+        raise MissingBenchmarkData("set MANISPLAT_SIMENV to the python of a venv with mujoco (shared/tools/sim)")
+    return Path(simenv)
+
+
 @dataclass
 class BenchContext:
     """What a benchmark's ``run`` receives.

@@ -35,7 +35,7 @@ import cv2
 import h5py
 import numpy as np
 
-from benchmarks._harness import BENCH_DIR, MissingBenchmarkData, shared_dir
+from benchmarks._harness import BENCH_DIR, shared_dir, simulator_python
 from benchmarks.bench_reconstruct_cobot import CAMERAS, add_ground_truth, reconstruct
 from manisplat.augment.bimanual import BimanualPlanner, BimanualTrajectory
 from manisplat.augment.cli import main as augment_main
@@ -58,16 +58,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--work", type=Path, help="stage outputs, reused when present (default a temporary folder)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_augment" / "augment_cobot.json")
     args = p.parse_args(argv)
-    simenv = os.environ.get("MANISPLAT_SIMENV")
-    if not simenv:
-        raise MissingBenchmarkData("set MANISPLAT_SIMENV to the python of a venv with mujoco (shared/tools/sim)")
+    simenv = simulator_python()
     work = (args.work or Path(tempfile.mkdtemp(prefix="augment_cobot_"))).resolve()
     work.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     stages: dict[str, float] = {}
     source = shared_dir() / "data" / args.sample
     if args.source_seed is not None:
-        source = generated_source(Path(simenv), source, args.source_seed, work / "source")
+        source = generated_source(simenv, source, args.source_seed, work / "source")
 
     episode, twin_dir, aug, act = work / "episode", work / "twin", work / "aug", work / "act"
     if not (episode / "episode.json").exists():
@@ -92,13 +90,13 @@ def main(argv: list[str] | None = None) -> int:
                          "--overwrite"]) != 0:
             raise RuntimeError("export failed")
     t0 = time.perf_counter()
-    physics = execute_all(Path(simenv), source, Twin.load(twin_dir), episodes, act, work / "physics", args.render_check)
+    physics = execute_all(simenv, source, Twin.load(twin_dir), episodes, act, work / "physics", args.render_check)
     stages["physics_s"] = round(time.perf_counter() - t0, 1)
     renders = [score_renders(ep, work / "physics" / f"render_{k}", source) for k, ep in enumerate(episodes[:args.render_check])]
     planned = {}
     if args.planned:
         t0 = time.perf_counter()
-        planned = plan_and_execute(Path(simenv), source, Twin.load(twin_dir), args.planned, work / "planned")
+        planned = plan_and_execute(simenv, source, Twin.load(twin_dir), args.planned, work / "planned")
         stages["planned_s"] = round(time.perf_counter() - t0, 1)
 
     result = {

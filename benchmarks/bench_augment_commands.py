@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._harness import BENCH_DIR, MissingBenchmarkData, machine_info, shared_dir
+from benchmarks._harness import BENCH_DIR, MissingBenchmarkData, machine_info, shared_dir, simulator_python
 
 OWN_OPTIONS = True
 MODES = ("recorded", "next_frame")
@@ -47,9 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--work", type=Path, help="outputs (default a temporary folder)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_augment" / "augment_commands.json")
     args = p.parse_args(argv)
-    simenv = os.environ.get("MANISPLAT_SIMENV")
-    if not simenv:
-        raise MissingBenchmarkData("set MANISPLAT_SIMENV to the python of a venv with mujoco (shared/tools/sim)")
+    simenv = simulator_python()
     source = (args.source or shared_dir() / "data" / "sim_pick_place_small").resolve()
     if not (source / "episode.json").exists():
         raise MissingBenchmarkData(f"{source}: not an episode folder")
@@ -74,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
         planned = copy.copy(twin)  # its own planner: augment_trajectory keeps one per twin
         planned.commands = relation if mode == "recorded" else None
         plan = _plan(planned, args.n)
-        physics = _execute_all(Path(simenv), source, plan.pop("trajectories"), work / mode)
+        physics = _execute_all(simenv, source, plan.pop("trajectories"), work / mode)
         modes[mode] = {**plan, **_summary(physics), "runs": physics}
         print(f"{mode}: {modes[mode]['success']}/{modes[mode]['executed']} succeed, "
               f"{modes[mode]['success_clean']} clean", flush=True)
