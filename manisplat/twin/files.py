@@ -27,8 +27,8 @@ from manisplat.robot import RobotModel, load_robot
 from manisplat.robot.arms import ArmSet
 from manisplat.scene import GaussianSet, SceneGraph
 from manisplat.scene.shadows import DirectionalShadows
-from manisplat.twin.rig import BASE_FRAME, TwinArm, TwinCamera, one_arm
 from manisplat.twin.commands import CommandRelation
+from manisplat.twin.rig import BASE_FRAME, TwinArm, TwinCamera, one_arm
 from manisplat.twin.support import SupportMap
 from manisplat.twin.twin import Phase, Twin, TwinFormatError
 
