@@ -20,7 +20,6 @@ final errors. Writes ``benchmarks/results_augment/augment_commands.json``.
 from __future__ import annotations
 
 import argparse
-import copy
 import csv
 import json
 import os
@@ -28,6 +27,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -69,8 +69,8 @@ def main(argv: list[str] | None = None) -> int:
     relation = twin.commands
     modes = {}
     for mode in MODES:
-        planned = copy.copy(twin)  # its own planner: augment_trajectory keeps one per twin
-        planned.commands = relation if mode == "recorded" else None
+        # a twin object of its own (augment_trajectory keeps a planner per twin)
+        planned = twin.with_demonstration(replace(twin.demonstration, commands=relation if mode == "recorded" else None))
         plan = _plan(planned, args.n)
         physics = _execute_all(simenv, source, plan.pop("trajectories"), work / mode)
         modes[mode] = {**plan, **_summary(physics), "runs": physics}

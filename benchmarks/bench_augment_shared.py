@@ -117,13 +117,36 @@ def _physics(simenv: Path, episodes: list[Path], parent: Path, ctx: BenchContext
             "final_rot_err_deg_median": float(np.median(rot)), "failures": failures}
 
 
-def _fidelity(simenv: Path, episodes: list[Path], parent: Path, recon: Path, ctx: BenchContext,
-              work: Path) -> list[dict[str, Any]]:
+def render_scores(path: Path, sim: Path) -> dict[str, float]:
+    """PSNR / SSIM (``psnr_full``, ``psnr_robot``, ``psnr_object``, ``ssim_*``; means over frames) of
+    the demonstration ``path``'s images against the simulator's renders of it in ``sim``
+    (``execute_episode.py --render``: ``rgb/``, ``masks/``), regions from the simulator's masks."""
     import cv2
 
     from manisplat.episode import Episode
     from manisplat.reconstruct.metrics import psnr, ssim
 
+    ours = Episode.open(path)
+    labels = ours.meta.labels
+    robot_values = [v for v, name in labels.items() if name.startswith("robot/")]
+    object_values = [v for v, name in labels.items() if name.startswith("object/") and name[7:] in ours.meta.objects]
+    scores: dict[str, list[float]] = {}
+    sim_rgb = sorted((sim / "rgb").iterdir())
+    sim_masks = sorted((sim / "masks").iterdir())
+    for i in range(len(ours)):
+        pred = torch.from_numpy(ours.rgb(i)).float() / 255
+        target = torch.from_numpy(cv2.cvtColor(cv2.imread(str(sim_rgb[i])), cv2.COLOR_BGR2RGB)).float() / 255
+        mask = cv2.imread(str(sim_masks[i]), cv2.IMREAD_UNCHANGED)
+        regions = {"full": None, "robot": torch.from_numpy(np.isin(mask, robot_values)),
+                   "object": torch.from_numpy(np.isin(mask, object_values))}
+        for key, region in regions.items():
+            scores.setdefault(f"psnr_{key}", []).append(psnr(pred, target, region))
+            scores.setdefault(f"ssim_{key}", []).append(ssim(pred, target, region))
+    return {"frames": len(ours), **{k: float(np.nanmean(v)) for k, v in scores.items()}}
+
+
+def _fidelity(simenv: Path, episodes: list[Path], parent: Path, recon: Path, ctx: BenchContext,
+              work: Path) -> list[dict[str, Any]]:
     held_out = json.loads((recon / "metrics.json").read_text())
     rows = [{"row": "reconstruction held-out (source demonstration)", **{f"psnr_{k}": v for k, v in
                                                                         held_out["psnr"].items()},
@@ -131,22 +154,7 @@ def _fidelity(simenv: Path, episodes: list[Path], parent: Path, recon: Path, ctx
     for path in episodes:
         sim = work / "sim_render" / path.name
         _execute(simenv, path, parent, ctx, render=sim)
-        ours = Episode.open(path)
-        labels = ours.meta.labels
-        robot_values = [v for v, name in labels.items() if name.startswith("robot/")]
-        object_values = [v for v, name in labels.items() if name.startswith("object/") and name[7:] in ours.meta.objects]
-        scores: dict[str, list[float]] = {}
-        sim_rgb = sorted((sim / "rgb").iterdir())
-        sim_masks = sorted((sim / "masks").iterdir())
-        for i in range(len(ours)):
-            pred = torch.from_numpy(ours.rgb(i)).float() / 255
-            target = torch.from_numpy(cv2.cvtColor(cv2.imread(str(sim_rgb[i])), cv2.COLOR_BGR2RGB)).float() / 255
-            mask = cv2.imread(str(sim_masks[i]), cv2.IMREAD_UNCHANGED)
-            regions = {"full": None, "robot": torch.from_numpy(np.isin(mask, robot_values)),
-                       "object": torch.from_numpy(np.isin(mask, object_values))}
-            for key, region in regions.items():
-                scores.setdefault(f"psnr_{key}", []).append(psnr(pred, target, region))
-                scores.setdefault(f"ssim_{key}", []).append(ssim(pred, target, region))
-        rows.append({"row": f"new demonstration {path.name} vs the simulator's render", "frames": len(ours),
-                     **{k: float(np.nanmean(v)) for k, v in scores.items()}})
+        scores = render_scores(path, sim)
+        rows.append({"row": f"new demonstration {path.name} vs the simulator's render", "frames": scores.pop("frames"),
+                     **scores})
     return rows

@@ -80,6 +80,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--handover-range", type=finite_numbers((3,)), default=[0.04, 0.04, 0.02], metavar="X,Y,Z",
                    help="an object handed from one arm to the other: the handover point is moved by up to +-X, +-Y, "
                         "+-Z metres along the world's axes (default 0.04,0.04,0.02)")
+    p.add_argument("--sources", default="all", metavar="all|EPISODE,...",
+                   help="the source demonstrations of a twin of several episodes: all (the default), or those named; "
+                        "sample k starts from the k-th of them in turn, and the report names each one's source")
     p.add_argument("--poses", type=Path, metavar="FILE",
                    help="exact object poses per demonstration instead of sampling (see below; --n is ignored)")
     p.add_argument("--max-samples", type=positive(int),

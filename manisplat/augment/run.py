@@ -48,6 +48,7 @@ class Sample:
     detail: str | None = None
     plan_s: float = 0.0
     episode: str | None = None
+    source: str = ""  # the source demonstration it was planned from (its episode's name)
 
 
 def run_augmentation(args: argparse.Namespace) -> dict:
@@ -55,11 +56,12 @@ def run_augmentation(args: argparse.Namespace) -> dict:
     start = time.perf_counter()
     logging.getLogger("manisplat.episode").setLevel(logging.WARNING)  # one line per episode written: the bar says it
     twin = _load_twin(args.recon)
+    sources = _sources(twin, args)
     if args.overwrite:
         _remove_earlier(args.out)
     args.out.mkdir(parents=True, exist_ok=True)
     config = AugmentConfig(speed=args.speed, planner_timeout_s=args.planner_timeout, seed=args.seed)
-    arms = _arms_planner(twin, args)
+    planners = {name: _arms_planner(source, args) for name, source in sources.items()}
     explicit = _explicit_targets(args.poses, twin) if args.poses else None
     wanted = len(explicit) if explicit is not None else args.n
     limit = len(explicit) if explicit is not None else (args.max_samples or max(10, 3 * args.n))
@@ -71,17 +73,19 @@ def run_augmentation(args: argparse.Namespace) -> dict:
     while sum(s.trajectory is not None for s in samples) < wanted and len(samples) < limit:
         index = len(samples)
         seed = args.seed * 1_000_003 + index
+        name = list(sources)[index % len(sources)]
+        source, arms = sources[name], planners[name]
         if explicit is not None:
             targets = explicit[index]
         elif arms is not None:
             targets = arms.sample_targets(np.random.default_rng(seed), object_range, target_range,
                                           tuple(args.handover_range))
         else:
-            targets = sample_targets(twin, np.random.default_rng(seed), object_range, target_range)
-        sample = Sample(index, seed, targets)
+            targets = sample_targets(source, np.random.default_rng(seed), object_range, target_range)
+        sample = Sample(index, seed, targets, source=name)
         t0 = time.perf_counter()
         try:
-            sample.trajectory = arms.run(targets, config) if arms is not None else augment_trajectory(twin, targets, config)
+            sample.trajectory = arms.run(targets, config) if arms is not None else augment_trajectory(source, targets, config)
             bar.update(1)
         except Rejected as exc:
             sample.reason, sample.detail = exc.reason, exc.detail
@@ -96,15 +100,15 @@ def run_augmentation(args: argparse.Namespace) -> dict:
         s.episode = f"episode_{k:04d}"
 
     t0 = time.perf_counter()
-    _render_and_write(twin, args.recon, valid, args.out, workers=args.workers, image_format=args.image_format,
+    _render_and_write(sources, args.recon, valid, args.out, workers=args.workers, image_format=args.image_format,
                       quiet=args.quiet)
     render_s = time.perf_counter() - t0
-    _plot_tcp_paths(args.out / PLOT, twin, valid)
+    _plot_tcp_paths(args.out / PLOT, twin, valid, sources)
     for s in valid[:SHEETS]:
         _contact_sheet(args.out / s.episode, args.out / "sheets" / f"{s.episode}.png")
     report = _report(twin, args, samples, wanted, {"plan": plan_s, "render_and_write": render_s,
                                                    "total": time.perf_counter() - start},
-                     handover=arms is not None and bool(arms.handovers))
+                     handover=any(a is not None and bool(a.handovers) for a in planners.values()))
     atomic_write_bytes(args.out / REPORT, (json.dumps(report, indent=1) + "\n").encode())
     return report
 
@@ -135,6 +139,23 @@ def _load_twin(recon: Path) -> Twin:
     else:
         log.info("commands: the source's, led by %.2f of a frame, skills pressing as it did", twin.commands.lead)
     return twin
+
+
+def _sources(twin: Twin, args: argparse.Namespace) -> dict[str, Twin]:
+    """Episode name -> the twin with that source demonstration, for ``--sources`` (all, or named)."""
+    names = list(twin.demonstrations) if args.sources == "all" else [n.strip() for n in args.sources.split(",")]
+    unknown = [n for n in names if n not in twin.demonstrations]
+    if unknown or not names or len(set(names)) != len(names):
+        raise AugmentError(f"--sources {args.sources}: the twin's demonstrations are {', '.join(twin.demonstrations)}"
+                           + (f" ({', '.join(unknown)} is none of them)" if unknown else " (name each once)"))
+    sources = {name: twin.source(name) for name in names}
+    for name, source in sources.items():
+        missing = [obj for obj in source.objects if not source.phases.get(obj)]
+        if missing:
+            raise AugmentError(f"{args.recon}: source {name}: objects {missing} have no Motion/Skill phases")
+    if len(sources) > 1:
+        log.info("sources: %d demonstrations (%s), taken in turn", len(sources), ", ".join(sources))
+    return sources
 
 
 def _arms_planner(twin: Twin, args: argparse.Namespace) -> BimanualPlanner | None:
@@ -191,26 +212,29 @@ def _init_worker(recon: str, backend: str) -> None:
     _WORKER_TWIN = Twin.load(recon, backend=backend)
 
 
-def _write_one(trajectory: NewTrajectory | BimanualTrajectory, path: str, seed: int, image_format: str) -> str:
+def _write_one(trajectory: NewTrajectory | BimanualTrajectory, source: str, path: str, seed: int,
+               image_format: str) -> str:
     assert _WORKER_TWIN is not None
-    write_demonstration(_WORKER_TWIN, trajectory, Path(path), seed=seed, image_format=image_format)
+    write_demonstration(_WORKER_TWIN.source(source), trajectory, Path(path), seed=seed, image_format=image_format)
     return path
 
 
-def _render_and_write(twin: Twin, recon: Path, valid: list[Sample], out: Path, *, workers: int, image_format: str,
-                      quiet: bool) -> None:
-    """Render and write ``valid``: with ``twin`` here, or in ``workers`` processes that each load it from ``recon``."""
+def _render_and_write(sources: dict[str, Twin], recon: Path, valid: list[Sample], out: Path, *, workers: int,
+                      image_format: str, quiet: bool) -> None:
+    """Render and write ``valid``, each with the twin of its source: here, or in ``workers``
+    processes that each load the twin from ``recon``."""
     frames = sum(len(s.trajectory.t) for s in valid)
     bar = tqdm(total=frames if workers == 1 else len(valid), desc="rendering",
                unit="frame" if workers == 1 else "demo", disable=quiet)
     if workers == 1:
         for s in valid:
-            write_demonstration(twin, s.trajectory, out / s.episode, seed=s.seed, image_format=image_format,
+            write_demonstration(sources[s.source], s.trajectory, out / s.episode, seed=s.seed, image_format=image_format,
                                 on_frame=lambda: bar.update(1))
     else:
-        with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker,
-                                 initargs=(str(recon), twin.backend)) as pool:
-            futures = [pool.submit(_write_one, s.trajectory, str(out / s.episode), s.seed, image_format) for s in valid]
+        backend = next(iter(sources.values())).backend
+        with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker, initargs=(str(recon), backend)) as pool:
+            futures = [pool.submit(_write_one, s.trajectory, s.source, str(out / s.episode), s.seed, image_format)
+                       for s in valid]
             for future in as_completed(futures):
                 future.result()
                 bar.update(1)
@@ -233,6 +257,7 @@ def _report(twin: Twin, args: argparse.Namespace, samples: list[Sample], wanted:
     clearances = [traj.validation["min_arm_clearance_m"] for traj in several]
     return {
         "parent": twin.episode, "recon": str(args.recon), "seed": args.seed, "requested": wanted,
+        "sources": dict(Counter(s.source for s in valid)),
         "drawn": len(samples), "valid": len(valid), "written": len(valid),
         "validity_rate": len(valid) / max(len(samples), 1), "reasons": reasons,
         "ranges": {"object": args.object_range, "target": args.target_range, "units": "m, m, deg",
@@ -243,8 +268,8 @@ def _report(twin: Twin, args: argparse.Namespace, samples: list[Sample], wanted:
                     "joined_at_rest": sum(r.get("joined") == "at rest" for r in motions)},
         "timing_s": {k: round(v, 2) for k, v in timing.items()},
         "plan_s_per_sample": round(float(np.mean([s.plan_s for s in samples])) if samples else 0.0, 4),
-        "samples": [{"index": s.index, "seed": s.seed, "valid": s.trajectory is not None, "episode": s.episode,
-                     "reason": s.reason, "detail": s.detail, "plan_s": round(s.plan_s, 4)} for s in samples],
+        "samples": [{"index": s.index, "seed": s.seed, "source": s.source, "valid": s.trajectory is not None,
+                     "episode": s.episode, "reason": s.reason, "detail": s.detail, "plan_s": round(s.plan_s, 4)} for s in samples],
         **({"min_arm_clearance_m": min(clearances),  # and how many needed one arm to wait
             "arm_waited": sum("waited" in traj.validation for traj in several)} if clearances else {}),
     }
@@ -254,8 +279,8 @@ def _per_arm(traj: NewTrajectory | BimanualTrajectory) -> list[NewTrajectory]:
     return list(traj.arms.values()) if isinstance(traj, BimanualTrajectory) else [traj]
 
 
-def _plot_tcp_paths(path: Path, twin: Twin, valid: list[Sample]) -> None:
-    """Top view (x-y of the twin's frame, cm) of every new TCP path (every arm's) over the source's,
+def _plot_tcp_paths(path: Path, twin: Twin, valid: list[Sample], sources: dict[str, Twin]) -> None:
+    """Top view (x-y of the twin's frame, cm) of every new TCP path (every arm's) over the sources',
     with the new object poses."""
     import matplotlib
 
@@ -270,8 +295,11 @@ def _plot_tcp_paths(path: Path, twin: Twin, valid: list[Sample]) -> None:
             start, end = (to_centre_frame(twin, name, poses[f])[:2, 3] * 100 for f in (0, -1))
             ax.plot(*start, "o", ms=3, color=f"C{k % 10}")
             ax.plot(*end, "s", ms=3, mfc="none", color=f"C{k % 10}")
-    for j, source in enumerate(_tcp_xy_cm(twin, None)):
-        ax.plot(source[:, 0], source[:, 1], "k--", lw=1.8, label="source demonstration" if j == 0 else None)
+    paths = [xy for source in sources.values() for xy in _tcp_xy_cm(source, None)]
+    for j, xy in enumerate(paths):
+        ax.plot(xy[:, 0], xy[:, 1], "k--", lw=1.8 if len(sources) == 1 else 1.0,
+                label=("source demonstration" if len(sources) == 1 else f"{len(sources)} source demonstrations")
+                if j == 0 else None)
     ax.plot([], [], "o", color="grey", ms=3, label="object start")
     ax.plot([], [], "s", mfc="none", color="grey", ms=3, label="object end")
     frame = "robot base" if twin.frame == "base" else "world"

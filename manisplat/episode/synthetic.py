@@ -162,6 +162,7 @@ def _box_poses(trajectory: SampleTrajectory, robot, t: np.ndarray, start_xy) -> 
 def write_sample_episode(
     out: str | Path, *, frames: int = 64, fps: float = 8.0, width: int = 160, height: int = 120, seed: int = 0,
     task: str = "pick_place", overwrite: bool = False, exact_depth: bool = True,
+    pick: tuple[float, float] = PICK_XY, camera_shift: tuple[float, float, float] = (0.0, 0.0, 0.0),
 ) -> Path:
     """Write the sample episode to ``out`` and return its path.
 
@@ -175,17 +176,23 @@ def write_sample_episode(
             reconstruction's checks against the robot model (extrinsic, tracking, slip) hold as on a
             good recording; False: one depth per triangle, off by several millimetres on the
             robot's long faces (for tests of the checks that must notice such depth).
+        pick: the box's start (x, y) m in the base frame (the arm picks it there).
+        camera_shift: the camera that takes the images sits this far (x, y, z m, base frame) from
+            where the episode says it is: a mount bumped after calibration (``gt.npz`` has the true one).
     """
     if frames < 8:
         raise ValueError(f"the sample needs at least 8 frames, got {frames}")
     duration = (frames - 1) / fps
-    trajectory = sample_trajectory(duration, task)
+    trajectory = sample_trajectory(duration, task, pick=pick)
     robot = builtin_piper()
     rng = np.random.default_rng(seed)
     eye = np.array([0.95, -0.62, 0.62]) + (rng.uniform(-0.05, 0.05, 3) if seed else 0.0)
     f = 0.85 * width
     K = np.array([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
-    camera = Camera(K, width, height, look_at(eye, (0.18, 0.0, 0.17)))
+    calibrated = Camera(K, width, height, look_at(eye, (0.18, 0.0, 0.17)))
+    shifted = np.eye(4)
+    shifted[:3, 3] = camera_shift
+    camera = Camera(K, width, height, shifted @ calibrated.T_world_cam)
     ground = GroundPlane((-0.4, 1.2, -0.9, 0.9), 0.05, ((178, 150, 112), (150, 124, 90)), TABLE_LABEL)
     labels = {0: "background", TABLE_LABEL: "table", BOX_LABEL: "object/box"}
     labels.update({i + 1: f"robot/{name}" for i, name in enumerate(robot.link_names)})
@@ -194,12 +201,12 @@ def write_sample_episode(
     t_frames = np.arange(frames) / fps
     q, g, phase = trajectory.at(t_frames)
     T_tcp = robot.tcp_pose(torch.tensor(q)).numpy()
-    T_box = _box_poses(trajectory, robot, t_frames, _script(duration, "pick_place")[2].position[:2])
+    T_box = _box_poses(trajectory, robot, t_frames, pick)
     links = robot.forward_kinematics(torch.tensor(q), torch.tensor(g)).numpy()  # [T, L, 4, 4]
 
     out = Path(out)
     with EpisodeWriter(
-        out, CameraInfo("ego", width, height, K, mount="base", T_mount_cam=camera.T_world_cam),
+        out, CameraInfo("ego", width, height, K, mount="base", T_mount_cam=calibrated.T_world_cam),
         RobotInfo(description="builtin:agilex_piper"), fps, source="simulation", depth_scale=1e-4,
         labels=labels, objects=["box"], extra_frame_columns=("a1", "a2", "a3", "a4", "a5", "a6", "a_gripper"),
         extra_meta={"task": TASKS[task], "generator": "manisplat.episode.synthetic"},

@@ -1,4 +1,5 @@
-"""manisplat-reconstruct: train the Gaussian scene graph of one episode and write the twin.
+"""manisplat-reconstruct: train the Gaussian scene graph of one episode, or of several episodes
+of one scene (:mod:`manisplat.reconstruct.fusion`), and write the twin.
 
 Exit status (:mod:`manisplat.exit_codes`): 0 done; 1 the training or the evaluation failed; 2 bad
 arguments or an episode that cannot be reconstructed (a clear message says why), an ``--out`` that
@@ -57,10 +58,16 @@ def build_parser() -> argparse.ArgumentParser:
         prog="manisplat-reconstruct",
         description="Reconstruct one episode as a Gaussian scene graph (static background, robot links driven "
                     "by forward kinematics, objects with per-frame poses), aligned with the task's Motion/Skill "
-                    "phases. Writes PLYs, object poses, phases, held-out renders, a pose plot and metrics.json.",
+                    "phases. Writes PLYs, object poses, phases, held-out renders, a pose plot and metrics.json. "
+                    "Several episodes of one scene (the same table, camera and objects; the objects elsewhere) "
+                    "make one twin: one background, robot and model per object, a source demonstration per "
+                    "episode; an episode of another scene is refused, named.",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("episode", type=Path, help="episode folder (docs/episode-format.md; format version 2: several arms in its world frame)")
+    p.add_argument("episodes", type=Path, nargs="+", metavar="EPISODE",
+                   help="episode folder (docs/episode-format.md; format version 2: several arms in its world frame); "
+                        "several, or a folder of episode folders, for one twin of them all (each needs depth and "
+                        "masks; one fixed camera)")
     p.add_argument("--out", type=Path, required=True,
                    help="output folder: created; must be new or empty unless --overwrite or --resume")
     p.add_argument("--overwrite", action="store_true",
@@ -132,6 +139,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        args.episodes = _episode_folders(args.episodes)
+        if len(args.episodes) > 1:
+            _check_fusable(args)
         prompt = _prompt(args)
         if not args.plan:
             _check_out(args)
@@ -139,6 +149,29 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(str(exc))
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="%(message)s")
     return _run(args, prompt)
+
+
+def _episode_folders(paths: list[Path]) -> list[Path]:
+    """The episodes named: a folder holding no episode.json but episode folders stands for them,
+    in name order (any other path is left for loading to judge)."""
+    out = []
+    for path in paths:
+        inner = sorted(p for p in path.iterdir() if (p / "episode.json").is_file()) \
+            if path.is_dir() and not (path / "episode.json").exists() else []
+        out += inner or [path]
+    if len(set(map(str, out))) != len(out):
+        raise ValueError("an episode is named twice")
+    return out
+
+
+def _check_fusable(args: argparse.Namespace) -> None:
+    """Refuse options a fused reconstruction of several episodes does not take."""
+    single = [flag for flag, on in (("--object-point", args.object_point), ("--object-box", args.object_box),
+                                    ("--no-masks", args.no_masks), ("--no-depth", args.no_depth),
+                                    ("--cameras", args.cameras)) if on]
+    if single:
+        raise ValueError(f"{', '.join(single)}: for one episode; several are reconstructed from each episode's depth "
+                         "and masks and its one fixed camera")
 
 
 def _check_out(args: argparse.Namespace) -> None:
@@ -158,15 +191,14 @@ def _run(args: argparse.Namespace, prompt: list[tuple[str, tuple | None, tuple |
 
     from manisplat.episode import EpisodeFormatError
     from manisplat.reconstruct.data import ReconstructionInputError, load_episode_data
-    from manisplat.reconstruct.masks import ObjectPrompt, complete_masks
     from manisplat.reconstruct.outputs import remove_outputs, write_evaluation, write_twin
-    from manisplat.reconstruct.pipeline import build
     from manisplat.reconstruct.plan import make_plan
     from manisplat.robot import RobotModelError
     from manisplat.splat import BackendUnavailable
 
     start = time.perf_counter()
     use_threads(args.threads)
+    device = iters = compiled = None
     if not args.plan:
         try:
             device = resolve_device(args.device, args.backend)
@@ -175,41 +207,20 @@ def _run(args: argparse.Namespace, prompt: list[tuple[str, tuple | None, tuple |
             return ExitCode.DEVICE
         iters = args.iters if args.iters is not None else default_iters(device)
         compiled = resolve_compile(args.compile, device.partition(":")[0], iters)
+    fused = None
     try:
-        reference, others = _cameras(args.episode, args.cameras)
-        data = load_episode_data(args.episode, robot=args.robot, camera=reference, use_depth=not args.no_depth,
-                                 use_masks=not args.no_masks, progress=not args.quiet)
-        views = {name: load_episode_data(args.episode, robot=args.robot, camera=name, use_depth=not args.no_depth,
-                                         use_masks=not args.no_masks, load_meshes=False, progress=not args.quiet)
-                 for name in others}
-        for view in views.values():
-            view.robot = data.robot  # one model (with its meshes) for every camera
-        masks_from_model = False
-        if data.masks is None:
-            links = [name for name in data.robot.link_names if data.robot.visuals.get(name)]
-            prompts = [ObjectPrompt(name, point=point, box=box) for name, point, box in prompt]
-            masks_from_model = complete_masks(data, links, prompts, progress=not args.quiet)
-        elif prompt:
-            print("error: the episode has masks; --object-point/--object-box are for episodes without "
-                  "(add --no-masks to segment anew)", file=sys.stderr)
-            return ExitCode.BAD_INPUT
-        plan = make_plan(data)
-        if args.plan:
-            print(plan.summary())
-            return ExitCode.OK
-        log.info("plan:\n%s", plan.summary())
-        log.info("training on %s (rasterizer backend %s), %d iterations%s; %s", device, args.backend, iters,
-                 "" if args.iters is not None else f" (the default on {device}; --iters to change)",
-                 "the iteration compiled by torch.compile (about 4 minutes on an H100, in the first 1 250 iterations)" if compiled
-                 else "the iteration eager (--compile to change)")
-        config = TrainConfig(
-            iters=iters, backend=args.backend, shadows=not args.no_shadows, densify=not args.no_densify,
-            refine_camera=args.refine_camera, exposure=not args.no_exposure, lambda_app=args.lambda_app, lambda_mask=args.lambda_mask,
-            lambda_pose=args.lambda_pose, seed=args.seed, device=device, compile=args.compile,
-        )
-        rec, alignments = build(data, plan, config, tau=args.tau, table_z=args.table_z,
-                                masks_from_model=masks_from_model, check_extrinsic=not args.keep_extrinsic,
-                                views=views, progress=not args.quiet)
+        if len(args.episodes) > 1:
+            if args.plan:
+                for path in args.episodes:
+                    print(f"{path}:\n{make_plan(load_episode_data(path, robot=args.robot)).summary()}")
+                return ExitCode.OK
+            fused = _build_fused(args, _config(args, device, iters, compiled))
+            rec, alignments = fused.reconstruction, fused.alignments
+        else:
+            built = _build_one(args, prompt, lambda: _config(args, device, iters, compiled))
+            if built is None:
+                return ExitCode.OK
+            rec, alignments = built
     except (ReconstructionInputError, EpisodeFormatError, RobotModelError, FileNotFoundError, NotImplementedError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return ExitCode.BAD_INPUT
@@ -246,10 +257,12 @@ def _run(args: argparse.Namespace, prompt: list[tuple[str, tuple | None, tuple |
         print(f"\ninterrupted at iteration {rec.step}; continue with --resume", file=sys.stderr)
         return ExitCode.INTERRUPTED
     rec.save_checkpoint(checkpoint)
-    write_twin(rec, alignments, args.out)
+    spans = fused.spans if fused is not None else None
+    write_twin(rec, alignments, args.out, spans)
     try:
         metrics = write_evaluation(rec, alignments, args.out, wall_s=time.perf_counter() - start,
-                                   ms_per_iter=1e3 * (train_end - train_start) / max(rec.step - trained_from, 1))
+                                   ms_per_iter=1e3 * (train_end - train_start) / max(rec.step - trained_from, 1),
+                                   spans=spans, camera=fused.camera.to_dict(spans) if fused is not None else None)
     except Exception as exc:  # the trained twin is on disk: report, keep it, fail
         log.debug("evaluation failed", exc_info=True)
         print(f"error: the twin is trained and written to {args.out} (twin.json/.pt, PLYs, object poses, phases, "
@@ -258,6 +271,67 @@ def _run(args: argparse.Namespace, prompt: list[tuple[str, tuple | None, tuple |
         return ExitCode.FAILED
     print(_summary(metrics, args.out))
     return ExitCode.OK
+
+
+def _config(args: argparse.Namespace, device: str, iters: int, compiled: str | None) -> TrainConfig:
+    log.info("training on %s (rasterizer backend %s), %d iterations%s; %s", device, args.backend, iters,
+             "" if args.iters is not None else f" (the default on {device}; --iters to change)",
+             "the iteration compiled by torch.compile (about 4 minutes on an H100, in the first 1 250 iterations)" if compiled
+             else "the iteration eager (--compile to change)")
+    return TrainConfig(
+        iters=iters, backend=args.backend, shadows=not args.no_shadows, densify=not args.no_densify,
+        refine_camera=args.refine_camera, exposure=not args.no_exposure, lambda_app=args.lambda_app,
+        lambda_mask=args.lambda_mask, lambda_pose=args.lambda_pose, seed=args.seed, device=device, compile=args.compile,
+    )
+
+
+def _build_one(args: argparse.Namespace, prompt, config):
+    """Load, plan and align one episode: (reconstruction, alignments), or None after ``--plan``
+    printed the plan. ``config``: makes the training configuration once the plan is logged."""
+    from manisplat.reconstruct.data import ReconstructionInputError, load_episode_data
+    from manisplat.reconstruct.masks import ObjectPrompt, complete_masks
+    from manisplat.reconstruct.pipeline import build
+    from manisplat.reconstruct.plan import make_plan
+
+    episode = args.episodes[0]
+    reference, others = _cameras(episode, args.cameras)
+    data = load_episode_data(episode, robot=args.robot, camera=reference, use_depth=not args.no_depth,
+                             use_masks=not args.no_masks, progress=not args.quiet)
+    views = {name: load_episode_data(episode, robot=args.robot, camera=name, use_depth=not args.no_depth,
+                                     use_masks=not args.no_masks, load_meshes=False, progress=not args.quiet)
+             for name in others}
+    for view in views.values():
+        view.robot = data.robot  # one model (with its meshes) for every camera
+    masks_from_model = False
+    if data.masks is None:
+        links = [name for name in data.robot.link_names if data.robot.visuals.get(name)]
+        prompts = [ObjectPrompt(name, point=point, box=box) for name, point, box in prompt]
+        masks_from_model = complete_masks(data, links, prompts, progress=not args.quiet)
+    elif prompt:
+        raise ReconstructionInputError("the episode has masks; --object-point/--object-box are for episodes "
+                                       "without (add --no-masks to segment anew)")
+    plan = make_plan(data)
+    if args.plan:
+        print(plan.summary())
+        return None
+    log.info("plan:\n%s", plan.summary())
+    return build(data, plan, config(), tau=args.tau, table_z=args.table_z, masks_from_model=masks_from_model,
+                 check_extrinsic=not args.keep_extrinsic, views=views, progress=not args.quiet)
+
+
+def _build_fused(args: argparse.Namespace, config: TrainConfig):
+    """Load, check, plan and align several episodes of one scene (:func:`~manisplat.reconstruct.pipeline.build_fused`)."""
+    from tqdm import tqdm
+
+    from manisplat.reconstruct.data import load_episode_data
+    from manisplat.reconstruct.pipeline import build_fused
+    from manisplat.reconstruct.plan import make_plan
+
+    datas = [load_episode_data(path, robot=args.robot) for path in
+             tqdm(args.episodes, desc="loading episodes", unit="episode", disable=args.quiet)]
+    plans = [make_plan(d) for d in datas]
+    log.info("plan of %s (the first of %d episodes):\n%s", args.episodes[0].name, len(datas), plans[0].summary())
+    return build_fused(datas, plans, config, tau=args.tau, check_extrinsic=not args.keep_extrinsic)
 
 
 def _prompt(args: argparse.Namespace) -> list[tuple[str, tuple | None, tuple | None]]:
@@ -351,10 +425,24 @@ def _summary(metrics: dict, out: Path) -> str:
         anchored = metrics.get("pose_anchored", {}).get(obj)
         if anchored:
             lines.append(f"pose error {obj}, start-anchored: {anchored['et_cm']:.2f} cm, {anchored['er_deg']:.2f} deg, "
-                         f"mean over the {anchored['moved_frames']} frames after it first moves; where it is left: "
+                         f"mean over the {anchored['moved_frames']:.0f} frames after it first moves; where it is left: "
                          f"{anchored['final']['et_cm']:.2f} cm, {anchored['final']['er_deg']:.2f} deg")
+    episodes = metrics.get("episodes")
+    if episodes:
+        lines.append(f"{len(episodes)} episodes, one twin; above: their means; each episode's in metrics.json "
+                     "episodes (held-out PSNR full / robot / object dB):")
+        lines += [f"  {name}: " + " / ".join(f"{e['psnr'][k]:.2f}" if e["psnr"].get(k) is not None else "-"
+                                             for k in regions) for name, e in episodes.items()]
+        for obj, err in metrics.get("pose_one_offset", {}).items():
+            lines.append(f"pose error {obj} with one constant offset for every episode: {err['et_cm']:.2f} cm, "
+                         f"{err['er_deg']:.2f} deg")
     camera = metrics.get("camera")
-    if camera:
+    if camera and episodes:
+        lines.append("camera extrinsic checked in every episode (metrics.json camera): "
+                     f"{sum(1 for e in camera['episodes'].values() if e['check'] and e['check']['applied'])} of "
+                     f"{len(camera['episodes'])} corrections trusted, the twin's camera their mean or, with fewer "
+                     "than half, as calibrated")
+    elif camera:
         if camera["applied"]:  # camera_refined.json differs from the episode's camera: the advice changes it
             lines.append(f"camera extrinsic corrected by {camera['rotation_deg']:.3f} +- "
                          f"{camera['sigma_rotation_deg']:.3f} deg, {camera['translation_mm']:.2f} +- "

@@ -140,14 +140,11 @@ def background_gaussians(data: EpisodeData, *, stride: int = 2, frames: list[int
                                    sh_degree=sh_degree)
 
 
-def object_gaussians(data: EpisodeData, label: int, frame: int = 0, *, stride: int = 1,
-                     sh_degree: int = 0, table_z: float = 0.0) -> tuple[GaussianSet, torch.Tensor]:
-    """Canonical Gaussians of one object from its masked depth in ``frame`` (or its
-    :func:`billboard_depth` without depth).
-
-    The canonical frame has the base's axes and its origin at the points' centroid. Returns the
-    set and ``T_base_obj`` [4, 4] of that frame (the object's pose at ``frame``).
-    """
+def object_points(data: EpisodeData, label: int, frame: int = 0, *, stride: int = 1,
+                  table_z: float = 0.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """What ``frame`` shows of one object: base-frame points [N, 3] float64 from its masked depth
+    (or its :func:`billboard_depth` without depth), their colours [N, 3] in [0, 1] and the pixel
+    spacing at each [N] (m)."""
     if data.masks is None:
         raise ValueError("object_gaussians needs the object's mask")
     keep = data.masks[frame] == label
@@ -155,12 +152,22 @@ def object_gaussians(data: EpisodeData, label: int, frame: int = 0, *, stride: i
     p, rows, cols = backproject(depth, data.K_opencv, torch.linalg.inv(data.viewmat.double()), keep, stride)
     if len(p) < 10:
         raise ValueError(f"object label {label}: only {len(p)} pixels with depth in frame {frame}")
-    center = p.double().mean(0)
+    spacing = depth[rows, cols] / float(data.K_opencv[0, 0]) * stride
+    return p.double(), data.image(frame)[rows, cols], spacing
+
+
+def object_gaussians(data: EpisodeData, label: int, frame: int = 0, *, stride: int = 1,
+                     sh_degree: int = 0, table_z: float = 0.0) -> tuple[GaussianSet, torch.Tensor]:
+    """Canonical Gaussians of one object from what ``frame`` shows of it (:func:`object_points`).
+
+    The canonical frame has the base's axes and its origin at the points' centroid. Returns the
+    set and ``T_base_obj`` [4, 4] of that frame (the object's pose at ``frame``).
+    """
+    p, colours, spacing = object_points(data, label, frame, stride=stride, table_z=table_z)
+    center = p.mean(0)
     T = torch.eye(4, dtype=torch.float64)
     T[:3, 3] = center
-    spacing = depth[rows, cols] / float(data.K_opencv[0, 0]) * stride
-    gs = GaussianSet.from_points((p.double() - center).float(), data.image(frame)[rows, cols], spacing, opacity=0.8,
-                                 sh_degree=sh_degree)
+    gs = GaussianSet.from_points((p - center).float(), colours, spacing, opacity=0.8, sh_degree=sh_degree)
     return gs, T
 
 

@@ -39,13 +39,13 @@ import torch
 
 from manisplat.align.phases import phase_of_frames
 from manisplat.reconstruct.data import EpisodeData, load_ground_truth
+from manisplat.reconstruct.fusion import EpisodeSpan, JoinedAlignment
 from manisplat.reconstruct.metrics import fit_constant_offset, pose_errors, psnr, ssim, start_anchored_errors
-from manisplat.reconstruct.pipeline import ObjectAlignment
 from manisplat.reconstruct.trainer import Reconstruction
 from manisplat.render.sheets import labelled_sheet
 from manisplat.robot.arms import ArmSet
 from manisplat.splat import save_ply
-from manisplat.twin import Phase, Twin
+from manisplat.twin import Demonstration, Phase, Twin
 from manisplat.twin.rig import TwinCamera
 from manisplat.twin.support import SupportMap, support_map
 
@@ -55,7 +55,7 @@ log = logging.getLogger(__name__)
 # What a run writes into --out (globs), removed by --overwrite; nothing else there is touched.
 OWNED_OUTPUTS = ("twin.json", "twin.pt", "background.ply", "robot_*.ply", "object_*.ply", "object_poses*.csv", "phases.csv", "renders",
                  "pose_plot.png", "metrics.json", "checkpoint.pt", "checkpoint.pt.tmp",
-                 "camera_refined.json", "exposure.csv")
+                 "camera_refined.json", "exposure.csv", "episodes")
 
 
 def remove_outputs(out: Path) -> int:
@@ -72,35 +72,43 @@ def remove_outputs(out: Path) -> int:
     return removed
 
 
-def write_twin(rec: Reconstruction, alignments: dict[str, ObjectAlignment], out: Path) -> None:
-    """The trained twin: every node's PLY, the object poses and the phases (no evaluation)."""
+def write_twin(rec: Reconstruction, alignments: dict, out: Path, spans: list[EpisodeSpan] | None = None) -> None:
+    """The trained twin: every node's PLY, the object poses and the phases (no evaluation); for
+    a fused recording (``spans``) the poses, phases and exposure per episode in ``episodes/<name>/``."""
     out.mkdir(parents=True, exist_ok=True)
     for node in rec.graph.nodes():
         save_ply(out / f"{node.name.replace('/', '_')}.ply", node.gaussians.ply_dict())
     evaluation = rec.evaluation_poses()
-    for name, poses in evaluation.items():
-        _write_poses(out / (f"object_poses_{name}.csv" if len(evaluation) > 1 else "object_poses.csv"),
-                     rec.data.t.cpu().numpy(), poses, alignments[name].pseudo.source)
-    _write_phases(out / "phases.csv", rec.data.t.cpu().numpy(), alignments)
-    twin_of(rec, alignments).save(out)
+    t = rec.data.t.cpu().numpy()
+    for span in spans or [EpisodeSpan("", Path(rec.data.path), 0, rec.data.n_frames)]:
+        folder = out / "episodes" / span.name if spans else out
+        folder.mkdir(parents=True, exist_ok=True)
+        frames = slice(span.start, span.end)
+        parts = {n: a.parts[spans.index(span)] if spans else a for n, a in alignments.items()}
+        for name, poses in evaluation.items():
+            _write_poses(folder / (f"object_poses_{name}.csv" if len(evaluation) > 1 else "object_poses.csv"),
+                         t[frames], poses[frames], parts[name].pseudo.source)
+        _write_phases(folder / "phases.csv", t[frames], parts)
+        if rec.exposure is not None:
+            _write_exposure(folder / "exposure.csv", rec, span.frames)
+    twin_of(rec, alignments, spans).save(out)
     if isinstance(rec.data.robot, ArmSet):
         log.info("several arms: camera_refined.json is not written (a calibration file holds one arm's camera); "
                  "the head camera's extrinsic as trained is in twin.json")
     else:
         (out / "camera_refined.json").write_text(json.dumps(camera_refined(rec), indent=1) + "\n")
-    if rec.exposure is not None:
-        _write_exposure(out / "exposure.csv", rec)
 
 
-def _write_exposure(path: Path, rec: Reconstruction) -> None:
-    """Per frame: whether it was held out and the learned per-channel gain (held-out frames':
-    interpolated between training neighbours)."""
+def _write_exposure(path: Path, rec: Reconstruction, frames: range) -> None:
+    """Per frame of ``frames`` (numbered from the first): whether it was held out and the learned
+    per-channel gain (held-out frames': interpolated between training neighbours)."""
     held_out = set(rec.plan.test_frames)
+    gains = rec.exposure.gains()
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["frame", "held_out", "gain_r", "gain_g", "gain_b"])
-        for f, gain in enumerate(rec.exposure.gains()):
-            w.writerow([f, int(f in held_out)] + [f"{g:.5f}" for g in gain])
+        for f in frames:
+            w.writerow([f - frames.start, int(f in held_out)] + [f"{g:.5f}" for g in gains[f]])
 
 
 def camera_refined(rec: Reconstruction) -> dict:
@@ -128,21 +136,38 @@ def camera_refined(rec: Reconstruction) -> dict:
             "correction": correction}
 
 
-def twin_of(rec: Reconstruction, alignments: dict[str, ObjectAlignment]) -> Twin:
+def twin_of(rec: Reconstruction, alignments: dict, spans: list[EpisodeSpan] | None = None) -> Twin:
     """The trained reconstruction as a :class:`~manisplat.twin.Twin` (evaluation poses per frame):
-    every arm, every camera trained (the reference first, with its extrinsic as trained)."""
+    every arm, every camera trained (the reference first, with its extrinsic as trained), and a
+    source demonstration per episode (``spans``: the episodes of a fused recording, None: one)."""
     d = rec.data
     T_base_cam = np.linalg.inv(rec.viewmat().detach().double().cpu().numpy())
     return Twin(
         graph=rec.graph, background_rgb=torch.sigmoid(rec.background_logit.detach()), robot=d.robot,
         arms=list(d.arms), cameras=[_twin_camera(view, T_base_cam if name == d.camera_name else None)
                                     for name, view in rec.views.items()],
-        labels=d.label_names, t=d.t.cpu().numpy(), q=d.q.cpu().numpy(), gripper=d.gripper.cpu().numpy(),
-        object_poses=rec.evaluation_poses(), pose_sources={k: list(a.pseudo.source) for k, a in alignments.items()},
-        phases={k: [Phase(s.kind, s.name, s.start, s.end) for s in a.segments] for k, a in alignments.items()},
-        fps=d.fps, episode=Path(d.path).name, backend=rec.config.backend, task=d.task,
-        support=measured_support(rec, T_base_cam), commands=d.commands,
+        labels=d.label_names, demonstrations=demonstrations_of(rec, alignments, spans),
+        backend=rec.config.backend, support=measured_support(rec, T_base_cam),
     )
+
+
+def demonstrations_of(rec: Reconstruction, alignments: dict, spans: list[EpisodeSpan] | None) -> list[Demonstration]:
+    """Each episode's demonstration: its frames' joints, trained object poses, pose sources,
+    phases and recorded commands."""
+    d, evaluation = rec.data, rec.evaluation_poses()
+    if spans is None:
+        spans = [EpisodeSpan(Path(d.path).name, Path(d.path), 0, d.n_frames, d.commands)]
+    demos = []
+    for k, span in enumerate(spans):
+        frames = slice(span.start, span.end)
+        parts = {name: a.parts[k] if isinstance(a, JoinedAlignment) else a for name, a in alignments.items()}
+        demos.append(Demonstration(
+            episode=span.name, fps=d.fps, task=d.task, t=d.t[frames].cpu().numpy(), q=d.q[frames].cpu().numpy(),
+            gripper=d.gripper[frames].cpu().numpy(), object_poses={n: p[frames] for n, p in evaluation.items()},
+            pose_sources={n: list(a.pseudo.source) for n, a in parts.items()},
+            phases={n: [Phase(s.kind, s.name, s.start, s.end) for s in a.segments] for n, a in parts.items()},
+            commands=span.commands))
+    return demos
 
 
 def _twin_camera(view: EpisodeData, T_frame_cam: np.ndarray | None = None) -> TwinCamera:
@@ -171,28 +196,79 @@ def measured_support(rec: Reconstruction, T_base_cam: np.ndarray) -> SupportMap 
     return support_map(d.depth[frames].cpu().numpy(), background.numpy(), d.K_opencv.cpu().numpy(), T_base_cam)
 
 
-def write_evaluation(rec: Reconstruction, alignments: dict[str, ObjectAlignment], out: Path, *, wall_s: float,
-                     ms_per_iter: float | None = None) -> dict:
+def write_evaluation(rec: Reconstruction, alignments: dict, out: Path, *, wall_s: float,
+                     ms_per_iter: float | None = None, spans: list[EpisodeSpan] | None = None,
+                     camera: dict | None = None) -> dict:
     """Held-out renders and sheets, the pose plot and ``metrics.json``; return the metrics dict.
-    ``wall_s``: the whole run (s); ``ms_per_iter``: training's time per iteration (ms)."""
+    ``wall_s``: the whole run (s); ``ms_per_iter``: training's time per iteration (ms). For a
+    fused recording (``spans``), the figures of each episode in ``episodes`` and their mean at the
+    top, the pose error also with one constant offset for every episode (``pose_one_offset``),
+    and ``camera`` (each episode's check and the camera agreed on)."""
     evaluation = rec.evaluation_poses()
     metrics = {"psnr": {}, "ssim": {}, "iters": rec.step, "wall_s": round(wall_s, 1), "plan": rec.plan.to_dict()}
     if ms_per_iter is not None:
         metrics["ms_per_iter"] = round(ms_per_iter, 1)
-    reference = rec.data.camera_name
-    per_camera = {name: _image_metrics(rec, evaluation, out, None if name == reference else name) for name in rec.views}
-    metrics.update(per_camera[reference])
-    if len(per_camera) > 1:
-        metrics["cameras"] = per_camera
-    if rec.extrinsic is not None:
-        metrics["camera"] = {k: v for k, v in rec.extrinsic.to_dict().items() if k != "T_correction"}
+    if spans:
+        metrics.update(_fused_metrics(rec, alignments, evaluation, out, spans))
+        metrics["plan"] = {k: v for k, v in metrics["plan"].items() if k != "test_frames"}
+        if camera is not None:
+            metrics["camera"] = camera
+    else:
+        reference = rec.data.camera_name
+        per_camera = {name: _image_metrics(rec, evaluation, out, None if name == reference else name) for name in rec.views}
+        metrics.update(per_camera[reference])
+        if len(per_camera) > 1:
+            metrics["cameras"] = per_camera
+        if rec.extrinsic is not None:
+            metrics["camera"] = {k: v for k, v in rec.extrinsic.to_dict().items() if k != "T_correction"}
+        gt = load_ground_truth(rec.data.path)  # the only place ground truth is read
+        if gt is not None:
+            metrics.update(_pose_metrics(rec.data.frame, evaluation, alignments, gt, rec.data.t.cpu().numpy(),
+                                         out / "pose_plot.png"))
     if rec.graph.shadows is not None:
         metrics["light"] = _light(rec.graph.shadows)
-    gt = load_ground_truth(rec.data.path)  # the only place ground truth is read
-    if gt is not None:
-        metrics.update(_pose_metrics(rec, evaluation, alignments, out, gt))
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
     return metrics
+
+
+def _fused_metrics(rec: Reconstruction, alignments: dict, evaluation: dict[str, np.ndarray], out: Path,
+                   spans: list[EpisodeSpan]) -> dict:
+    """Per episode: the held-out image scores and (with ground truth) the pose errors; their
+    means; the pose error with one constant offset over every episode (a start registered wrongly
+    in one episode shows there, where each episode's own offset would absorb it)."""
+    per_episode, ours_all, gt_all = {}, {}, {}
+    t = rec.data.t.cpu().numpy()
+    for k, span in enumerate(spans):
+        frames = slice(span.start, span.end)
+        scores = _image_metrics(rec, evaluation, out, frames=[f for f in rec.plan.test_frames if f in span.frames])
+        gt = load_ground_truth(span.path)  # the only place ground truth is read
+        if gt is not None:
+            mine = {n: e[frames] for n, e in evaluation.items()}
+            scores.update(_pose_metrics(rec.data.frame, mine, {n: a.parts[k] for n, a in alignments.items()}, gt,
+                                        t[frames], out / "pose_plot.png" if k == 0 else None))
+            for n, poses in mine.items():
+                key = f"T_{rec.data.frame}_{n}"
+                if key in gt:
+                    ours_all.setdefault(n, []).append(poses)
+                    gt_all.setdefault(n, []).append(gt[key])
+        per_episode[span.name] = scores
+    out_metrics = {"episodes": per_episode, **_mean_of(list(per_episode.values()))}
+    if ours_all:
+        out_metrics["pose_one_offset"] = {n: _rounded(pose_errors(np.concatenate(ours_all[n]), np.concatenate(gt_all[n])))
+                                          for n in ours_all}
+    return out_metrics
+
+
+def _mean_of(scores: list[dict]) -> dict:
+    """The mean over episodes of every number in their score dicts (nested alike; None skipped)."""
+    first = scores[0]
+    out = {}
+    for key, value in first.items():
+        if isinstance(value, dict):
+            out[key] = _mean_of([s[key] for s in scores if isinstance(s.get(key), dict)])
+        elif isinstance(value, (int, float)) and not isinstance(value, bool):
+            out[key] = _nanmean([s[key] for s in scores if isinstance(s.get(key), (int, float))])
+    return out
 
 
 def _write_poses(path: Path, t: np.ndarray, poses: np.ndarray, source: list[str]) -> None:
@@ -203,7 +279,7 @@ def _write_poses(path: Path, t: np.ndarray, poses: np.ndarray, source: list[str]
             w.writerow([i, f"{ti:.6f}", source[i]] + [repr(float(x)) for x in T.reshape(-1)])
 
 
-def _write_phases(path: Path, t: np.ndarray, alignments: dict[str, ObjectAlignment]) -> None:
+def _write_phases(path: Path, t: np.ndarray, alignments: dict) -> None:
     names = {obj: phase_of_frames(a.segments, len(t)) for obj, a in alignments.items()}
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
@@ -213,13 +289,14 @@ def _write_phases(path: Path, t: np.ndarray, alignments: dict[str, ObjectAlignme
 
 
 @torch.no_grad()
-def _image_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], out: Path, camera: str | None = None) -> dict:
+def _image_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], out: Path, camera: str | None = None,
+                   frames: list[int] | None = None) -> dict:
     """Held-out renders, sheets and scores of ``camera`` (None: the reference camera, in
     ``renders/test`` and ``renders/sheets``; another in ``renders/<camera>/``): ``psnr`` / ``ssim`` per region with the frame's exposure
     interpolated from its training neighbours, and ``psnr_colour_fitted`` / ``ssim_colour_fitted``
     with an affine colour transform fitted on the frame's own static pixels
     (:func:`colour_fitted`): what the twin gets right apart from a camera's exposure, which no
-    training frame can tell for a held-out one."""
+    training frame can tell for a held-out one. ``frames``: those held-out frames (default all)."""
     view = rec.view(camera)
     folder = out / "renders" if camera is None else out / "renders" / camera
     renders, sheets = folder / "test", folder / "sheets"
@@ -228,7 +305,7 @@ def _image_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], out: 
     keys = ("psnr", "ssim", "psnr_colour_fitted", "ssim_colour_fitted")
     scores = {k: {"full": [], "robot": [], "object": []} for k in keys}
     shadow = {"psnr": [], "psnr_without_shadows": [], "pixels": []}
-    for f in rec.plan.test_frames:
+    for f in rec.plan.test_frames if frames is None else frames:
         image = rec.render(f, evaluation, camera)[0].clamp(0, 1)
         target = view.image(f)
         rgb8 = (image.cpu().numpy() * 255 + 0.5).astype(np.uint8)
@@ -325,14 +402,15 @@ def _nanmean(values: list[float]) -> float | None:
     return round(float(np.mean(finite)), 4) if finite else None
 
 
-def _pose_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], alignments: dict[str, ObjectAlignment],
-                  out: Path, gt: dict[str, np.ndarray]) -> dict:
+def _pose_metrics(frame: str, evaluation: dict[str, np.ndarray], alignments: dict, gt: dict[str, np.ndarray],
+                  t: np.ndarray, plot: Path | None) -> dict:
     """Object pose errors of ours, of the pseudo ground truth alone and of the tracking-only
-    baseline, by both definitions (:mod:`manisplat.reconstruct.metrics`), against ``gt`` (gt.npz)."""
+    baseline, by both definitions (:mod:`manisplat.reconstruct.metrics`), against ``gt`` (gt.npz;
+    poses ``T_<frame>_<object>``), for the frames of ``t`` [T] s; the pose plot to ``plot``."""
     result: dict[str, dict] = {"pose": {}, "pose_anchored": {}, "pose_pseudo": {}, "pose_baseline": {}}
     plots = {}
     for name, ours in evaluation.items():
-        key = f"T_{rec.data.frame}_{name}"
+        key = f"T_{frame}_{name}"
         if key not in gt:
             continue
         alignment = alignments[name]
@@ -348,8 +426,8 @@ def _pose_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], alignm
         if base is not None:
             result["pose_baseline"][name] = _rounded(pose_errors(base, gt[key]))
         plots[name] = (ours, base, gt[key])
-    if plots:
-        _pose_plot(out / "pose_plot.png", rec.data.t.cpu().numpy(), plots)
+    if plots and plot is not None:
+        _pose_plot(plot, t, plots)
     return {k: v for k, v in result.items() if v}
 
 

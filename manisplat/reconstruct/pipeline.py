@@ -15,10 +15,14 @@ from manisplat.align.pseudo_gt import PseudoPoses, hybrid_pseudo_poses, make_tra
 from manisplat.align.tracking import ObjectView, TrackerSettings, visible_surface
 from manisplat.reconstruct.data import EpisodeData, ReconstructionInputError, retime
 from manisplat.reconstruct.extrinsic import refine_extrinsic
-from manisplat.reconstruct.init import background_gaussians, link_gaussians, object_gaussians
+from manisplat.reconstruct.fusion import (CameraConsensus, EpisodeSpan, JoinedAlignment, camera_consensus,
+                                          check_same_scene, join_alignments, joined, joined_plan, merged_model,
+                                          spans_of)
+from manisplat.reconstruct.init import background_gaussians, link_gaussians, object_gaussians, object_points
 from manisplat.reconstruct.masks import draw_view_masks, object_carrier, redraw_robot_masks
 from manisplat.reconstruct.plan import Plan
 from manisplat.reconstruct.poses import ObjectTrajectory
+from manisplat.reconstruct.register import register_start
 from manisplat.reconstruct.trainer import Reconstruction, TrainConfig
 from manisplat.scene import GaussianSet, SceneGraph
 from manisplat.scene.transforms import transform_gaussians
@@ -118,6 +122,100 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
     return rec, alignments
 
 
+@dataclass
+class FusedBuild:
+    """What :func:`build_fused` made: the trainable reconstruction of the joined recording, each
+    object's joined alignment, the episodes' frames and the camera they agreed on."""
+
+    reconstruction: Reconstruction
+    alignments: dict[str, JoinedAlignment]
+    spans: list[EpisodeSpan]
+    camera: CameraConsensus
+
+
+def build_fused(datas: list[EpisodeData], plans: list[Plan], config: TrainConfig, *, tau: float = DEFAULT_TAU,
+                robot_gaussians: int | None = None, check_extrinsic: bool = True) -> FusedBuild:
+    """One reconstruction of several episodes of one scene (:mod:`manisplat.reconstruct.fusion`):
+    the scene checked, the camera agreed on, each object's canonical model anchored in the first
+    episode and completed by the others' first frames, each episode aligned on its own, then the
+    episodes joined into one recording.
+
+    Raises:
+        SceneMismatch: an episode shows another scene or was seen by a moved camera (named).
+        ReconstructionInputError: an episode lacks depth or masks, or its first frame is held out.
+    """
+    check_same_scene(datas)
+    spans = spans_of(datas)
+    if any(p.objects and p.train_frames[0] != 0 for p in plans):
+        raise ReconstructionInputError("the first frame of every episode must be a training frame: it seeds the objects")
+    camera = camera_consensus(datas, plans, check=check_extrinsic)
+    viewmat = torch.linalg.inv(torch.as_tensor(camera.T_base_cam)).float()
+    for d in datas:
+        d.viewmat = viewmat.clone()
+    first, plan = datas[0], joined_plan(plans, spans)
+    if robot_gaussians is None:
+        W, H = first.size
+        robot_gaussians = int(min(max(W * H // 4, 2_000), 20_000))
+    objects, trajectories, alignments = {}, {}, {}
+    for obj in plan.objects:
+        starts, model = _object_starts(datas, spans, obj.label, sh_degree=config.sh_degree)
+        objects[obj.name] = model
+        model_points = model.params["means"].detach().double().numpy()
+        parts = []
+        for d, p, span, T_start in zip(datas, plans, spans, starts):
+            track, width, _ = object_carrier(d, T_start[:3, 3])
+            parts.append(align_object(d, obj.label, T_start, track, width, moves=obj.moves, tau=tau,
+                                      model_points=model_points,
+                                      observe=frozenset(p.test_frames)))
+        alignments[obj.name] = join_alignments(parts, spans)
+        trajectories[obj.name] = ObjectTrajectory(alignments[obj.name].pseudo.poses, alignments[obj.name].pseudo.source,
+                                                  static=not obj.moves, episode_starts=tuple(s.start for s in spans))
+    data = joined(datas)
+    # the first episode's first, middle and last training frames, then each other episode's first
+    # (the table its objects hid in the first); no held-out pixel seeds the background
+    seeds = sorted({plan.train_frames[0], plans[0].train_frames[len(plans[0].train_frames) // 2],
+                    plans[0].train_frames[-1], *(s.start for s in spans[1:])})
+    background = background_gaussians(data, frames=seeds, sh_degree=config.sh_degree)
+    links = link_gaussians(first.robot, plan.links, total=robot_gaussians, sh_degree=config.sh_degree)
+    for g in [*links.values(), *objects.values()]:
+        g.scene_scale = background.scene_scale
+    graph = SceneGraph(background, links, list(first.robot.link_names), objects)
+    rec = Reconstruction(data, plan, graph, trajectories, config)
+    log.info("fused %d episodes: %d frames (%d training, %d held out)", len(datas), data.n_frames,
+             len(plan.train_frames), len(plan.test_frames))
+    return FusedBuild(rec, alignments, spans, camera)
+
+
+def _object_starts(datas: list[EpisodeData], spans: list[EpisodeSpan], label: int, *,
+                   sh_degree: int = 0) -> tuple[list[np.ndarray], GaussianSet]:
+    """Each episode's ``T_base_obj`` [4, 4] at its first frame, in the canonical frame the first
+    episode's first frame anchors (:func:`~manisplat.reconstruct.init.object_gaussians`'s), and
+    the canonical Gaussians completed by the sides the others show
+    (:func:`~manisplat.reconstruct.fusion.merged_model`)."""
+    seen = [object_points(d, label, 0) for d in datas]
+    centre = seen[0][0].mean(0).numpy()
+    T0 = np.eye(4)
+    T0[:3, 3] = centre
+    starts = [T0]
+    points = [seen[0][0].numpy() - centre]
+    colours, spacings = [seen[0][1].numpy()], [seen[0][2].numpy()]
+    for (p, c, s), span in zip(seen[1:], spans[1:]):
+        reg = register_start(points[0], colours[0], p.numpy(), c.numpy())
+        log.info("%s: object label %d starts at (%.3f, %.3f, %.3f) m, turned %.1f deg from the first episode's "
+                 "(residual %.1f mm, next best turn %.1f mm)", span.name, label, *reg.T_base_obj[:3, 3],
+                 np.degrees(np.arctan2(reg.T_base_obj[1, 0], reg.T_base_obj[0, 0])), 1e3 * reg.residual_m,
+                 1e3 * reg.runner_up_m)
+        starts.append(reg.T_base_obj)
+        R, t = reg.T_base_obj[:3, :3], reg.T_base_obj[:3, 3]
+        points.append((p.numpy() - t) @ R)
+        colours.append(c.numpy())
+        spacings.append(s.numpy())
+    P, C, S = merged_model(points, colours, spacings)
+    model = GaussianSet.from_points(torch.as_tensor(P).float(), torch.as_tensor(C).float(),
+                                    torch.as_tensor(S).float(), opacity=0.8, sh_degree=sh_degree)
+    return starts, model
+
+
 def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.ndarray, width: np.ndarray, *,
                  moves: bool,
                  tau: float = DEFAULT_TAU, model: ObjectView | None = None,
@@ -194,4 +292,4 @@ def _draw_object_masks(data: EpisodeData, label: int, poses: np.ndarray, model: 
         data.masks[f][torch.from_numpy(visible) & (data.masks[f] == 0)] = label
 
 
-__all__ = ["ObjectAlignment", "align_object", "build", "object_view"]
+__all__ = ["FusedBuild", "ObjectAlignment", "align_object", "build", "build_fused", "object_view"]

@@ -32,20 +32,27 @@ class ObjectTrajectory(torch.nn.Module):
         pseudo: T_base_obj [T, 4, 4] (float64).
         source: per frame "static", "attached" or "tracked"; consecutive static frames share a twist.
         static: the object never moves: one twist for the whole episode.
+        episode_starts: the first frames of the episodes a fused recording joins
+            (:mod:`manisplat.reconstruct.fusion`): no twist is shared across one, and a held-out
+            frame's twist is interpolated within its own episode.
     """
 
-    def __init__(self, pseudo: np.ndarray, source: list[str], *, static: bool = False) -> None:
+    def __init__(self, pseudo: np.ndarray, source: list[str], *, static: bool = False,
+                 episode_starts: tuple[int, ...] = (0,)) -> None:
         super().__init__()
         T = len(pseudo)
         index, k = np.zeros(T, dtype=np.int64), -1
+        starts = set(episode_starts)
         for i in range(T):
-            shared = static or (i > 0 and source[i] == STATIC and source[i - 1] == STATIC)
+            shared = i not in starts and (static or (source[i] == STATIC and source[i - 1] == STATIC))
             if not (shared and k >= 0):
                 k += 1
             index[i] = k
         self.register_buffer("pseudo", torch.as_tensor(np.asarray(pseudo), dtype=torch.float64))
         self.register_buffer("index", torch.as_tensor(index))
         self._twist_of = index.tolist()  # frame -> twist on the host: looking one up reads nothing back from a GPU
+        #: per frame, the episode it belongs to (index into ``episode_starts``, sorted)
+        self._episode_of = np.searchsorted(np.array(sorted(starts | {0})), np.arange(T), side="right") - 1
         self.xi = torch.nn.Parameter(torch.zeros(k + 1, 6, dtype=torch.float64))
 
     @property
@@ -67,12 +74,14 @@ class ObjectTrajectory(torch.nn.Module):
     @torch.no_grad()
     def evaluation_poses(self, trained: list[int]) -> np.ndarray:
         """Poses [T, 4, 4] for every frame; frames whose own twist was never trained take the
-        twist interpolated (linearly, in time) between the nearest trained frames."""
+        twist interpolated (linearly, in time) between the nearest trained frames of its episode."""
         trained_twists = {self._twist_of[j] for j in trained}
-        anchors = sorted(trained)
         xi = self.xi.detach().cpu()[self.index.cpu()]  # [T, 6] (a copy), on the host: a per-frame loop
         for i in range(len(xi)):
-            if self._twist_of[i] in trained_twists or not anchors:
+            if self._twist_of[i] in trained_twists:
+                continue
+            anchors = [j for j in trained if self._episode_of[j] == self._episode_of[i]]
+            if not anchors:
                 continue
             left = max((j for j in anchors if j < i), default=None)
             right = min((j for j in anchors if j > i), default=None)

@@ -5,6 +5,6 @@
     >>> view = twin.render(q, gripper, {"box": T_base_box})  # rgb uint8, depth m, labels
 """
 
-from manisplat.twin.twin import Phase, Twin, TwinFormatError, TwinView
+from manisplat.twin.twin import Demonstration, Phase, Twin, TwinFormatError, TwinView
 
-__all__ = ["Phase", "Twin", "TwinFormatError", "TwinView"]
+__all__ = ["Demonstration", "Phase", "Twin", "TwinFormatError", "TwinView"]

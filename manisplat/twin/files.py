@@ -11,6 +11,9 @@ parameters, the light, the background colour, the recorded trajectory (``t`` [T]
 when the recording had depth the support height map (:mod:`manisplat.twin.support`), and when
 it had commands their press ``command_press`` [T, dof] rad (``twin.json``'s ``command_lead``, the
 lead: :mod:`manisplat.twin.commands`).
+A twin fused from several episodes keeps the first demonstration there and each other one in
+``twin.json``'s ``demonstrations`` (episode, fps, task, command lead, per-object pose sources and
+phases) and ``twin.pt``'s ``demonstration/<k>/...`` (k from 1: the same tensors).
 Version 1 folders (one arm, one camera, written before 2026-11-27) still load.
 """
 
@@ -30,7 +33,7 @@ from manisplat.scene.shadows import DirectionalShadows
 from manisplat.twin.commands import CommandRelation
 from manisplat.twin.rig import BASE_FRAME, TwinArm, TwinCamera, one_arm
 from manisplat.twin.support import SupportMap
-from manisplat.twin.twin import Phase, Twin, TwinFormatError
+from manisplat.twin.twin import Demonstration, Phase, Twin, TwinFormatError
 
 TWIN_JSON, TWIN_TENSORS = "twin.json", "twin.pt"
 FORMAT, VERSION = "manisplat-twin", 2
@@ -41,17 +44,15 @@ def save_twin(twin: Twin, folder: Path) -> None:
     """Write ``twin.json`` and ``twin.pt`` into ``folder`` (each to a temporary name, then renamed)."""
     folder.mkdir(parents=True, exist_ok=True)
     # host copies: a twin trained on a GPU loads anywhere with torch.load(..., weights_only=True)
-    tensors = {"background_rgb": twin.background_rgb.detach().cpu().clone(),
-               "t": torch.as_tensor(twin.t), "q": torch.as_tensor(twin.q), "gripper": torch.as_tensor(twin.gripper)}
-    if twin.commands is not None:
-        tensors["command_press"] = torch.as_tensor(twin.commands.press)
+    demos = list(twin.demonstrations.values())
+    tensors = {"background_rgb": twin.background_rgb.detach().cpu().clone(), **_demonstration_tensors(demos[0])}
+    for k, demo in enumerate(demos[1:], start=1):
+        tensors.update({f"demonstration/{k}/{key}": v for key, v in _demonstration_tensors(demo).items()})
     nodes = []
     for node in twin.graph.nodes():
         params = node.gaussians.params
         nodes.append({"name": node.name, "count": len(node.gaussians), "params": sorted(params)})
         tensors.update({f"node/{node.name}/{k}": v.detach().cpu().clone() for k, v in params.items()})
-    for name, poses in twin.object_poses.items():
-        tensors[f"object_poses/{name}"] = torch.as_tensor(poses)
     light = None
     if twin.graph.shadows is not None:
         sh = twin.graph.shadows
@@ -62,20 +63,47 @@ def save_twin(twin: Twin, folder: Path) -> None:
         support = {"origin": list(twin.support.origin), "cell": twin.support.cell}
         tensors["support/heights"] = torch.as_tensor(twin.support.heights)
     meta = {
-        "format": FORMAT, "version": VERSION, "episode": twin.episode, "fps": twin.fps, "task": twin.task,
+        "format": FORMAT, "version": VERSION, **_demonstration_meta(demos[0], twin.graph.objects),
         "frame": twin.frame, "arms": [arm.to_dict() for arm in twin.arms], "link_order": list(twin.graph.link_index),
         "cameras": [cam.to_dict() for cam in twin.cameras.values()],
         "labels": {str(k): v for k, v in sorted(twin.labels.items())},
         "nodes": nodes, "shadows": light, "support": support,
-        "command_lead": None if twin.commands is None else twin.commands.lead,
-        "objects": {name: {"pose_source": twin.pose_sources.get(name, []),
-                           "phases": [vars(p) for p in twin.phases.get(name, [])]}
-                    for name in twin.graph.objects},
     }
+    if len(demos) > 1:
+        meta["demonstrations"] = [_demonstration_meta(d, twin.graph.objects) for d in demos[1:]]
     buffer = io.BytesIO()
     torch.save(tensors, buffer)
     atomic_write_bytes(folder / TWIN_TENSORS, buffer.getvalue())
     atomic_write_bytes(folder / TWIN_JSON, (json.dumps(meta, indent=1) + "\n").encode())
+
+
+def _demonstration_tensors(demo: Demonstration) -> dict[str, torch.Tensor]:
+    out = {"t": torch.as_tensor(demo.t), "q": torch.as_tensor(demo.q), "gripper": torch.as_tensor(demo.gripper)}
+    if demo.commands is not None:
+        out["command_press"] = torch.as_tensor(demo.commands.press)
+    out.update({f"object_poses/{name}": torch.as_tensor(poses) for name, poses in demo.object_poses.items()})
+    return out
+
+
+def _demonstration_meta(demo: Demonstration, objects) -> dict:
+    return {"episode": demo.episode, "fps": demo.fps, "task": demo.task,
+            "command_lead": None if demo.commands is None else demo.commands.lead,
+            "objects": {name: {"pose_source": demo.pose_sources.get(name, []),
+                               "phases": [vars(p) for p in demo.phases.get(name, [])]} for name in objects}}
+
+
+def _demonstration(meta: dict, tensor, prefix: str = "") -> Demonstration:
+    """A demonstration from its ``twin.json`` entry and its tensors (under ``prefix``)."""
+    objects = meta["objects"]
+    commands = None
+    if meta.get("command_lead") is not None:  # twins of recordings without commands, or written before, have none
+        commands = CommandRelation(meta["command_lead"], tensor(f"{prefix}command_press").numpy())
+    return Demonstration(
+        episode=meta["episode"], fps=meta["fps"], task=meta.get("task"),
+        t=tensor(f"{prefix}t").numpy(), q=tensor(f"{prefix}q").numpy(), gripper=tensor(f"{prefix}gripper").numpy(),
+        object_poses={name: tensor(f"{prefix}object_poses/{name}").numpy() for name in objects},
+        pose_sources={name: o["pose_source"] for name, o in objects.items()},
+        phases={name: [Phase(**p) for p in o["phases"]] for name, o in objects.items()}, commands=commands)
 
 
 def load_twin(folder: Path, *, backend: str = "auto", device: torch.device | str = "cpu") -> Twin:
@@ -109,25 +137,18 @@ def load_twin(folder: Path, *, backend: str = "auto", device: torch.device | str
                                 resolution=light["resolution"], softness=light["softness"])
         sh.load_state_dict({k: tensor(f"shadows/{k}") for k in sh.state_dict()})
         graph.shadows = sh.to(device)
-    objects_meta = meta["objects"]
     support = None
     if meta.get("support") is not None:  # twins written before support maps have none
         support = SupportMap(tensor("support/heights").numpy(), tuple(meta["support"]["origin"]),
                              float(meta["support"]["cell"]))
-    commands = None
-    if meta.get("command_lead") is not None:  # twins of recordings without commands, or written before, have none
-        commands = CommandRelation(meta["command_lead"], tensor("command_press").numpy())
     try:
+        demonstrations = [_demonstration(meta, tensor)] + [_demonstration(d, tensor, f"demonstration/{k}/")
+                                                           for k, d in enumerate(meta.get("demonstrations", []), start=1)]
         return Twin(
             graph=graph, background_rgb=tensor("background_rgb"), robot=robot, arms=arms,
             cameras=[TwinCamera.from_dict(c) for c in meta["cameras"]],
             labels={int(k): v for k, v in meta["labels"].items()},
-            t=tensor("t").numpy(), q=tensor("q").numpy(), gripper=tensor("gripper").numpy(),
-            object_poses={name: tensor(f"object_poses/{name}").numpy() for name in objects_meta},
-            pose_sources={name: o["pose_source"] for name, o in objects_meta.items()},
-            phases={name: [Phase(**p) for p in o["phases"]] for name, o in objects_meta.items()},
-            fps=meta["fps"], episode=meta["episode"], backend=backend, task=meta.get("task"), support=support,
-            commands=commands,
+            demonstrations=demonstrations, backend=backend, support=support,
         )
     except ValueError as exc:  # arms, cameras or mounts that do not fit together
         raise TwinFormatError(f"{folder / TWIN_JSON}: {exc}") from exc
@@ -182,6 +203,8 @@ def read_meta(path: Path) -> dict:
         _require(path, arm, {"": ("name", "description", "model", "joint_names", "T_world_base")}, f"arms[{k}]")
     for k, cam in enumerate(meta["cameras"]):
         _require(path, cam, {"": ("name", "width", "height", "K", "mount", "T_mount_cam")}, f"cameras[{k}]")
+    for k, demo in enumerate(meta.get("demonstrations", [])):
+        _require(path, demo, {"": ("episode", "fps", "objects")}, f"demonstrations[{k}]")
     if not meta["arms"] or not meta["cameras"]:
         raise TwinFormatError(f"{path}: a twin needs at least one arm and one camera")
     return meta

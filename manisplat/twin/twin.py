@@ -4,6 +4,7 @@ the source episode's images. :mod:`manisplat.twin.files` writes and reads it as 
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping
@@ -46,9 +47,48 @@ class TwinView:
     labels: np.ndarray
 
 
+@dataclass(frozen=True)
+class Demonstration:
+    """One recorded demonstration the twin was trained on (its source episode's part of the twin).
+
+    Attributes:
+        episode: the source episode's folder name; fps, task: its own.
+        t, q, gripper: per frame: [T] s, [T, dof] rad (every arm's joints in arm order), [T] m
+            (one arm) or [T, A] m (per arm).
+        object_poses: name -> [T, 4, 4] float64 ``T_base_obj`` per frame (trained poses, in the
+            twin's frame; the objects' canonical frames are the twin's, shared by every demonstration).
+        pose_sources: name -> per frame "static", "attached" or "tracked".
+        phases: name -> the Motion/Skill segments of the demonstration for that object.
+        commands: how its commands led and pressed its joints (:class:`CommandRelation`, press
+            [T, dof]; None where it recorded no commands): augmentation commands new joints so.
+    """
+
+    episode: str
+    fps: float
+    t: np.ndarray
+    q: np.ndarray
+    gripper: np.ndarray
+    object_poses: dict[str, np.ndarray]
+    pose_sources: dict[str, list[str]]
+    phases: dict[str, list[Phase]]
+    task: str | None = None
+    commands: CommandRelation | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("t", "q", "gripper"):
+            object.__setattr__(self, name, np.asarray(getattr(self, name), np.float64))
+        object.__setattr__(self, "object_poses", {k: np.asarray(v, np.float64) for k, v in self.object_poses.items()})
+        object.__setattr__(self, "fps", float(self.fps))
+        if self.commands is not None and self.commands.press.shape != self.q.shape:
+            raise ValueError(f"{self.episode}: command press {self.commands.press.shape} does not match q {self.q.shape}")
+        bad = {k: v.shape for k, v in self.object_poses.items() if v.shape != (len(self.t), 4, 4)}
+        if bad:
+            raise ValueError(f"{self.episode}: object poses {bad} do not match its {len(self.t)} frames")
+
+
 class Twin:
     """A reconstructed scene: Gaussians of the background, the robot's links and the objects, the
-    light that casts the moving parts' shadows, the cameras, and the source demonstration.
+    light that casts the moving parts' shadows, the cameras, and the source demonstrations.
 
     Everything is in the twin's :attr:`frame`: one arm's base (``"base"``, a version 1 episode) or
     the episode's world (``"world"``, several arms or cameras); ``T_base_*`` names mean that frame.
@@ -61,24 +101,19 @@ class Twin:
         cameras: camera name -> :class:`TwinCamera`, the reference camera (fixed; the one the
             scene was anchored in and the renders default to) first.
         labels: mask value -> name ("background", "robot/<link>", "object/<name>", ...).
-        t, q, gripper: the source demonstration per frame: [T] s, [T, dof] rad (every arm's joints
-            in arm order), [T] m (one arm) or [T, A] m (per arm).
-        object_poses: name -> [T, 4, 4] float64 ``T_base_obj`` per frame (trained poses).
-        pose_sources: name -> per frame "static", "attached" or "tracked".
-        phases: name -> the Motion/Skill segments of the demonstration for that object.
-        task, episode (folder name), fps: the source episode's.
+        demonstrations: episode name -> :class:`Demonstration`, every one the twin was trained on
+            (one; several for a twin fused from several episodes of one scene), in order.
+        demonstration: the one :attr:`t`, :attr:`q`, :attr:`gripper`, :attr:`object_poses`,
+            :attr:`pose_sources`, :attr:`phases`, :attr:`fps`, :attr:`episode`, :attr:`task` and
+            :attr:`commands` are (the first; :meth:`source` gives the twin with another).
         support: the support surfaces' height map, measured from the recording's depth (None
             without depth): where objects can be set down.
-        commands: how the source's commands led and pressed its joints (:class:`CommandRelation`,
-            press [T, dof]; None where it recorded no commands): augmentation commands new joints so.
     """
 
     def __init__(self, *, graph: SceneGraph, background_rgb: torch.Tensor, robot: RobotModel | ArmSet,
-                 arms: list[TwinArm], cameras: list[TwinCamera], labels: dict[int, str], t: np.ndarray,
-                 q: np.ndarray, gripper: np.ndarray, object_poses: dict[str, np.ndarray],
-                 pose_sources: dict[str, list[str]], phases: dict[str, list[Phase]], fps: float, episode: str,
-                 task: str | None = None, backend: str = "auto", support: SupportMap | None = None,
-                 commands: CommandRelation | None = None) -> None:
+                 arms: list[TwinArm], cameras: list[TwinCamera], labels: dict[int, str],
+                 demonstrations: list[Demonstration], backend: str = "auto",
+                 support: SupportMap | None = None) -> None:
         if [a.name for a in arms] != list(_arm_names(robot)):
             raise ValueError(f"twin arms {[a.name for a in arms]} do not match the robot's {list(_arm_names(robot))}")
         if not cameras or not cameras[0].fixed:
@@ -86,20 +121,52 @@ class Twin:
         for cam in cameras:
             if not cam.fixed and cam.mount not in robot.link_names:
                 raise ValueError(f"camera {cam.name} rides on {cam.mount!r}, no link of {robot.name}")
+        if not demonstrations:
+            raise ValueError("a twin needs at least one source demonstration")
+        names = [d.episode for d in demonstrations]
+        if len(set(names)) != len(names):
+            raise ValueError(f"demonstrations with the same episode name: {names}")
+        for demo in demonstrations:
+            if set(demo.object_poses) != set(graph.objects):
+                raise ValueError(f"{demo.episode}: object poses for {sorted(demo.object_poses)}, the twin has "
+                                 f"objects {sorted(graph.objects)}")
         self.graph, self.background_rgb, self.robot = graph, background_rgb.float(), robot
         self.arms, self.cameras = list(arms), {cam.name: cam for cam in cameras}
         self.labels = dict(labels)
-        self.t, self.q, self.gripper = np.asarray(t, np.float64), np.asarray(q, np.float64), np.asarray(gripper, np.float64)
-        self.object_poses = {k: np.asarray(v, np.float64) for k, v in object_poses.items()}
-        self.pose_sources, self.phases = pose_sources, phases
-        self.fps, self.episode, self.backend = float(fps), episode, backend
-        self.task, self.support = task, support
-        self.commands = commands
-        if commands is not None and commands.press.shape != self.q.shape:
-            raise ValueError(f"command press {commands.press.shape} does not match q {self.q.shape}")
+        self.demonstrations = {d.episode: d for d in demonstrations}
+        self.demonstration = demonstrations[0]
+        self.backend, self.support = backend, support
         self.device = graph.device  # where it renders: the Gaussians' device
         self.background_rgb = self.background_rgb.to(self.device)
         self._node_labels = self._label_of_nodes()
+
+    # ------------------------------------------------------------------ the source demonstration
+    def source(self, episode: str) -> "Twin":
+        """The twin with ``episode``'s demonstration as its source (the same Gaussians, shared)."""
+        if episode not in self.demonstrations:
+            raise ValueError(f"the twin has no demonstration {episode!r}; it has {', '.join(self.demonstrations)}")
+        return self.with_demonstration(self.demonstrations[episode])
+
+    def with_demonstration(self, demonstration: Demonstration) -> "Twin":
+        """A shallow copy of the twin whose source is ``demonstration`` (e.g. one of
+        :attr:`demonstrations`, or one of them with other commands)."""
+        twin = copy.copy(self)
+        twin.demonstration = demonstration
+        return twin
+
+    t = property(lambda self: self.demonstration.t, doc="[T] s: the source demonstration's frame times")
+    q = property(lambda self: self.demonstration.q, doc="[T, dof] rad: its joints (every arm's, in arm order)")
+    gripper = property(lambda self: self.demonstration.gripper, doc="[T] or [T, A] m: its gripper openings")
+    object_poses = property(lambda self: self.demonstration.object_poses,
+                            doc="name -> [T, 4, 4] float64 T_base_obj per frame (trained poses)")
+    pose_sources = property(lambda self: self.demonstration.pose_sources,
+                            doc='name -> per frame "static", "attached" or "tracked"')
+    phases = property(lambda self: self.demonstration.phases, doc="name -> its Motion/Skill segments")
+    fps = property(lambda self: self.demonstration.fps)
+    episode = property(lambda self: self.demonstration.episode, doc="the source episode's folder name")
+    task = property(lambda self: self.demonstration.task)
+    commands = property(lambda self: self.demonstration.commands,
+                        doc="how the source's commands led and pressed its joints (None: not recorded)")
 
     # ------------------------------------------------------------------ the rig
     @property

@@ -4,7 +4,7 @@ next frame's joints where the source had none."""
 
 from __future__ import annotations
 
-import copy
+from dataclasses import replace
 
 import numpy as np
 
@@ -70,10 +70,9 @@ def test_a_skill_is_slowed_until_its_commands_too_keep_the_limits(twin):
     (pressing) pass the replay's checks."""
     targets = {k: ObjectTarget(o.T_rest, o.T_placed) for k, o in source_demo(twin).objects.items() if o.manipulated}
     calm = augment_trajectory(twin, targets, AugmentConfig())
-    pressing = copy.copy(twin)
     press = np.zeros_like(twin.q)
     press[:, 1] = 0.03 * (-1.0) ** np.arange(len(twin.q))
-    pressing.commands = CommandRelation(1.0, press)
+    pressing = twin.with_demonstration(replace(twin.demonstration, commands=CommandRelation(1.0, press)))
     traj = augment_trajectory(pressing, targets, AugmentConfig())
     own, pressed = calm.planner["skills"][0], traj.planner["skills"][0]
     assert own["name"] == "S_pick" and pressed["slowed"] > 1.1 * own["slowed"], (own, pressed)

@@ -6,6 +6,7 @@ and both enter the handover at the same frame; the box rides in each gripper in 
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -153,7 +154,7 @@ def test_a_new_place_presses_where_the_source_s_commands_pressed(twin_folder):
     press[place.start:place.end] = 0.01 * np.sin(np.linspace(0, np.pi, place.end - place.start)) ** 2
     pressed = np.zeros_like(twin.q)
     pressed[:, 6 + 1] = press  # the right arm's joint 2
-    twin.commands = CommandRelation(0.4, pressed)
+    twin = twin.with_demonstration(replace(twin.demonstration, commands=CommandRelation(0.4, pressed)))
     planner = BimanualPlanner(twin)
     traj = planner.run(planner.sample_targets(np.random.default_rng(SEED)), AugmentConfig(seed=SEED))
     right, source = traj.arms["right"], planner.arms["right"]

@@ -1,0 +1,171 @@
+"""One twin from 1, 5 and 20 demonstrations of one scene: its fidelity where it was recorded, and
+at new poses, where the simulator says what the new demonstrations look like (issue 34).
+
+    MANISPLAT_SIMENV=SIMENV/bin/python python -m benchmarks reconstruct_fusion [--counts 1,5,20]
+        [--iters 3000] [--demos 5] [--work DIR] [--out JSON]
+
+1. **Data** (generated, not committed): ``shared/tools/sim/gen_demos.py --source
+   shared/data/sim_pick_place_small --n 20 --seed-start 1 --place-range 0.02 0.02 0.4``: the
+   shared scene and camera, the box started anywhere within +-8 cm, +-8 cm, +-45 deg of the
+   sample's start and placed within +-2 cm of the mat's centre, turned up to 0.4 rad more.
+2. **Twins**: ``manisplat-reconstruct`` of the first 1, 5 and 20 of them (``--iters``, the same
+   for each), each in its own process: wall time, its peak resident memory, metrics.json (held-out
+   PSNR per region, the mean over episodes and episode_0001's; pose errors; the pose error with
+   one offset for every episode).
+3. **New poses**: ``manisplat-augment TWIN --sources episode_0001 --n DEMOS --seed 0`` from each
+   twin (the same source and samples: the same new demonstrations, up to the few tenths of a
+   millimetre the twins' poses of the source differ by), each executed by
+   ``execute_episode.py --render``; our images against the simulator's of the executed states:
+   PSNR per region (the simulator's masks), the object region's the figure issue 34 asks for.
+   A contact sheet shows one new demonstration: the simulator's render beside each twin's.
+
+Ground truth is read only by the scoring (metrics.json's pose errors, the simulator's renders).
+Writes ``benchmarks/results_reconstruct/reconstruct_fusion.json`` and
+``reconstruct_fusion_sheet.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks._harness import BENCH_DIR, MissingBenchmarkData, machine_info, shared_dir, simulator_python
+
+OWN_OPTIONS = True
+SOURCE = "episode_0001"
+PEAK_RSS = ("import resource, subprocess, sys; code = subprocess.run(sys.argv[1:]).returncode; "
+            "print('peak_rss_kb', resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss); sys.exit(code)")
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m benchmarks reconstruct_fusion", description=__doc__.splitlines()[0])
+    p.add_argument("--counts", default="1,5,20", help="episodes per twin (default 1,5,20)")
+    p.add_argument("--iters", type=int, default=3000, help="training iterations of every twin (default 3000)")
+    p.add_argument("--demos", type=int, default=5, help="new demonstrations rendered and executed per twin (default 5)")
+    p.add_argument("--work", type=Path, help="outputs (default a temporary folder; kept)")
+    p.add_argument("--out", type=Path, default=BENCH_DIR / "results_reconstruct" / "reconstruct_fusion.json")
+    args = p.parse_args(argv)
+    simenv = simulator_python()
+    counts = [int(c) for c in args.counts.split(",")]
+    work = (args.work or Path(tempfile.mkdtemp(prefix="reconstruct_fusion_"))).resolve()
+    started = time.perf_counter()
+    episodes = _demonstrations(simenv, work / "demos", max(counts))
+    twins = {}
+    for count in counts:
+        twins[count] = _twin(episodes[:count], work / f"twin_{count}", args.iters)
+        print(f"{count} episodes: {json.dumps({k: twins[count][k] for k in ('wall_s', 'peak_rss_mb', 'psnr')})}",
+              flush=True)
+    for count in counts:
+        twins[count]["new_poses"] = _new_poses(simenv, work / f"twin_{count}", work / f"aug_{count}", episodes[0],
+                                               args.demos)
+        print(f"{count} episodes, new poses: {json.dumps(twins[count]['new_poses']['mean'])}", flush=True)
+    sheet = args.out.with_name(args.out.stem + "_sheet.png")
+    _sheet(work, counts, sheet)
+    result = {"benchmark": "reconstruct_fusion", "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+              "command": "python -m benchmarks reconstruct_fusion " + " ".join(argv if argv is not None else sys.argv[1:]),
+              "machine": machine_info(), "work": str(work), "iters": args.iters,
+              "episodes": [e.name for e in episodes], "twins": {str(k): v for k, v in twins.items()},
+              "sheet": sheet.name, "wall_s": round(time.perf_counter() - started, 1)}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=1) + "\n")
+    print(f"wrote {args.out}")
+    return 0
+
+
+def _demonstrations(simenv: Path, out: Path, n: int) -> list[Path]:
+    """``n`` scripted demonstrations of the shared scene (made once; kept in ``out``)."""
+    found = sorted(p for p in out.glob("episode_*") if (p / "episode.json").exists()) if out.exists() else []
+    if len(found) < n:
+        tools = shared_dir() / "tools" / "sim"
+        cmd = [str(simenv), "gen_demos.py", "--source", str(shared_dir() / "data" / "sim_pick_place_small"),
+               "--out", str(out), "--n", str(n + 5), "--seed-start", "1", "--place-range", "0.02", "0.02", "0.4"]
+        subprocess.run(cmd, cwd=tools, check=True, stdout=subprocess.DEVNULL,
+                       env={**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "osmesa")})
+        found = sorted(p for p in out.glob("episode_*") if (p / "episode.json").exists())
+    if len(found) < n:
+        raise MissingBenchmarkData(f"gen_demos.py made {len(found)} demonstrations in {out}, {n} needed")
+    return found[:n]
+
+
+def _twin(episodes: list[Path], out: Path, iters: int) -> dict:
+    """Reconstruct ``episodes`` into ``out`` in a process of its own; its time, peak memory, figures."""
+    if not (out / "metrics.json").exists():
+        from benchmarks._degraded import robot_of
+
+        robot = robot_of(shared_dir() / "data" / "sim_pick_place_small")  # the demonstrations live elsewhere
+        cmd = [sys.executable, "-c", PEAK_RSS, sys.executable, "-m", "manisplat.reconstruct.cli",
+               *map(str, episodes), "--out", str(out), "--iters", str(iters), "--robot", robot, "--overwrite", "-q"]
+        t0 = time.perf_counter()
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        if proc.returncode != 0:
+            raise MissingBenchmarkData(f"manisplat-reconstruct failed on {len(episodes)} episodes: {proc.stderr[-800:]}")
+        peak = next(int(line.split()[1]) for line in proc.stdout.splitlines() if line.startswith("peak_rss_kb"))
+        (out / "bench_run.json").write_text(json.dumps({"wall_s": time.perf_counter() - t0, "peak_rss_kb": peak}))
+    run = json.loads((out / "bench_run.json").read_text())
+    m = json.loads((out / "metrics.json").read_text())
+    first = m["episodes"][SOURCE] if "episodes" in m else m
+    return {"episodes": len(episodes), "wall_s": round(run["wall_s"], 1), "peak_rss_mb": round(run["peak_rss_kb"] / 1024),
+            "ms_per_iter": m.get("ms_per_iter"), "psnr": m["psnr"], "psnr_colour_fitted": m.get("psnr_colour_fitted"),
+            "psnr_source_episode": first["psnr"], "pose": m.get("pose"), "pose_anchored": _anchored(m.get("pose_anchored")),
+            "pose_one_offset": m.get("pose_one_offset")}
+
+
+def _anchored(anchored: dict | None) -> dict | None:
+    return None if anchored is None else {k: {"et_cm": v["et_cm"], "er_deg": v["er_deg"], "final_et_cm": v["final"]["et_cm"]}
+                                          for k, v in anchored.items()}
+
+
+def _new_poses(simenv: Path, twin: Path, out: Path, parent: Path, demos: int) -> dict:
+    """``demos`` new demonstrations from ``twin`` (source episode_0001, seed 0), executed and
+    rendered by the simulator; our renders scored against its."""
+    from benchmarks.bench_augment_shared import render_scores
+    from manisplat.augment.cli import main as augment
+
+    if not (out / "augment_report.json").exists():
+        if augment([str(twin), "--n", str(demos), "--out", str(out), "--sources", SOURCE, "--seed", "0",
+                    "--overwrite", "-q"]) != 0:
+            raise MissingBenchmarkData(f"manisplat-augment failed on {twin}")
+    tools = shared_dir() / "tools" / "sim"
+    rows = {}
+    for path in sorted(out.glob("episode_*")):
+        sim = out / "sim_render" / path.name
+        report = sim / "physics.json"
+        if not report.exists():
+            subprocess.run([str(simenv), "execute_episode.py", str(path), "--parent", str(parent), "--render", str(sim),
+                            "--json", str(report)], cwd=tools, check=True, stdout=subprocess.DEVNULL,
+                           env={**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "osmesa")})
+        physics = json.loads(report.read_text())
+        rows[path.name] = {**render_scores(path, sim), "success_clean": physics["success_clean"],
+                           "final_pos_err_cm": physics["final_pos_err_cm"]}
+    keys = [k for k in next(iter(rows.values())) if k.startswith(("psnr_", "ssim_"))]
+    return {"demonstrations": rows, "mean": {k: round(float(np.mean([r[k] for r in rows.values()])), 3) for k in keys},
+            "success_clean": sum(r["success_clean"] for r in rows.values())}
+
+
+def _sheet(work: Path, counts: list[int], path: Path, demo: str = "episode_0000") -> None:
+    """Three frames of one new demonstration: the simulator's render, then each twin's, in columns."""
+    import cv2
+
+    simulator = sorted((work / f"aug_{counts[0]}" / "sim_render" / demo / "rgb").iterdir())
+    ours = {c: sorted((work / f"aug_{c}" / demo / "rgb").iterdir()) for c in counts}
+    n = min(len(simulator), *(len(v) for v in ours.values()))
+    rows = []
+    for i in (n // 4, n // 2, 3 * n // 4):
+        tiles = [cv2.imread(str(simulator[i]))] + [cv2.imread(str(ours[c][i])) for c in counts]
+        for tile, label in zip(tiles, ["simulator", *(f"twin of {c} episode{'s' * (c > 1)}" for c in counts)]):
+            cv2.putText(tile, f"{label}  frame {i}", (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1,
+                        cv2.LINE_AA)
+        rows.append(np.concatenate(tiles, axis=1))
+    cv2.imwrite(str(path), np.concatenate(rows, axis=0))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,100 @@
+"""Find an object's start in another episode: where the canonical model (points and colours in
+its own frame) lies among the points that episode's first frame shows of it.
+
+Objects start upright on the table, so the pose is searched in four degrees of freedom: a turn
+about the vertical and a translation. Each turn of a grid starts an ICP whose correspondences
+are nearest neighbours in position and colour together (colour weighed by
+:data:`COLOUR_WEIGHT_M`: a cylinder or a square box fits its own turns equally well in shape
+alone; its print does not). The start with the lowest residual wins.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+YAW_STEP_DEG = 10.0  # the grid of turns each ICP starts from
+COLOUR_WEIGHT_M = 0.02  # 1.0 of colour difference (RGB in [0, 1]) counts as 2 cm
+ICP_ITERATIONS = 30
+TRIM = 0.8  # each iteration fits the best-matched 80 % of the observed points (the rest: unseen sides)
+
+
+@dataclass(frozen=True)
+class Registration:
+    """``T_base_obj`` [4, 4] float64 and the trimmed RMS residual (m, position and weighed colour
+    together) of the best start; ``runner_up_m`` the best residual of a turn more than 30 deg away."""
+
+    T_base_obj: np.ndarray
+    residual_m: float
+    runner_up_m: float
+
+
+def register_start(model_points: np.ndarray, model_colours: np.ndarray, observed_points: np.ndarray,
+                   observed_colours: np.ndarray) -> Registration:
+    """The pose ``T_base_obj`` that puts the model (``model_points`` [N, 3] m in the object frame,
+    ``model_colours`` [N, 3] in [0, 1]) on the observation (``observed_points`` [M, 3] m in the base
+    frame, ``observed_colours`` [M, 3]): a turn about the base's z and a translation.
+
+    Raises:
+        ValueError: fewer than 10 points on either side, or values that are not finite.
+    """
+    for name, pts in (("model", model_points), ("observation", observed_points)):
+        if len(pts) < 10:
+            raise ValueError(f"register_start: the {name} has {len(pts)} points (at least 10 needed)")
+        if not np.isfinite(pts).all():
+            raise ValueError(f"register_start: the {name}'s points are not all finite")
+    model = np.hstack([np.asarray(model_points, np.float64), COLOUR_WEIGHT_M * np.asarray(model_colours, np.float64)])
+    tree = cKDTree(model)
+    observed = np.asarray(observed_points, np.float64)
+    colours = COLOUR_WEIGHT_M * np.asarray(observed_colours, np.float64)
+    centre = observed.mean(0)
+    results = []
+    for yaw in np.radians(np.arange(0.0, 360.0, YAW_STEP_DEG)):
+        # the observation in the object frame: x_obj = Rz(-yaw) (x_base - t), t starting at the centroids' offset
+        t0 = centre - _rz(yaw) @ model_points.mean(0)
+        results.append(_icp(tree, observed, colours, yaw, t0))
+    best = min(range(len(results)), key=lambda k: results[k][2])
+    yaw, t, residual = results[best]
+    far = [r[2] for r in results if abs(_wrap(r[0] - yaw)) > np.radians(30)]
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = _rz(yaw), t
+    return Registration(T, float(residual), float(min(far)) if far else float("inf"))
+
+
+def _icp(tree: cKDTree, observed: np.ndarray, colours: np.ndarray, yaw: float,
+         t: np.ndarray) -> tuple[float, np.ndarray, float]:
+    """Trimmed point-to-point ICP in (yaw, t) from a start; returns (yaw, t [3], trimmed RMS m)."""
+    for _ in range(ICP_ITERATIONS):
+        R = _rz(yaw)
+        local = (observed - t) @ R  # R^T (x - t), row-wise
+        dist, idx = tree.query(np.hstack([local, colours]))
+        keep = np.argsort(dist)[: max(10, int(TRIM * len(dist)))]
+        target = tree.data[idx[keep], :3]  # model points, object frame
+        source = observed[keep]  # base frame
+        # best yaw and t with source ~ Rz(yaw) target + t: a 2-D Procrustes in x, y; z by the mean
+        ms, mt = source.mean(0), target.mean(0)
+        a, b = target[:, :2] - mt[:2], source[:, :2] - ms[:2]
+        new_yaw = float(np.arctan2((a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]).sum(), (a * b).sum()))
+        new_t = ms - _rz(new_yaw) @ mt
+        step = abs(_wrap(new_yaw - yaw)) + float(np.linalg.norm(new_t - t))
+        yaw, t = new_yaw, new_t
+        if step < 1e-6:
+            break
+    local = (observed - t) @ _rz(yaw)
+    dist, _ = tree.query(np.hstack([local, colours]))
+    dist = np.sort(dist)[: max(10, int(TRIM * len(dist)))]
+    return yaw, t, float(np.sqrt(np.mean(dist ** 2)))
+
+
+def _rz(yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _wrap(angle: float) -> float:
+    return float((angle + np.pi) % (2 * np.pi) - np.pi)
+
+
+__all__ = ["Registration", "register_start"]
