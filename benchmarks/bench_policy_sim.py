@@ -77,6 +77,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--augment-speed", type=bounded(0.05, 1.0), default=1.0,
                    help="manisplat-augment --speed for B and D: fraction 0.05-1 of the joint limits (default 1.0, its own)")
     p.add_argument("--twin-iters", type=positive(int), help="reconstruction iterations (default 1000; --quick 300)")
+    p.add_argument("--twin-episodes", type=positive(int), default=1,
+                   help="demonstrations of the scene the twin is made of: the source and gen_demos.py ones (seeds 501-); "
+                        "augmentation still starts from the source alone (default 1)")
     p.add_argument("--work", type=Path, help="stage outputs, reused when present (default a new temporary folder)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_policy", help="JSON and plots")
     p.add_argument("--quick", action="store_true", help="a smoke run: 4 demonstrations, short training, 4 rollouts")
@@ -108,7 +111,8 @@ def main(argv: list[str] | None = None) -> int:
 
     stages = Stages(source=source, work=work, simenv=Path(simenv), tools=shared / "tools" / "sim",
                     object_range=OBJECT_RANGE, place_range=PLACE_RANGE, twin_iters=args.twin_iters or
-                    (300 if quick else 1000), image_size=args.image_size, augment_speed=args.augment_speed)
+                    (300 if quick else 1000), image_size=args.image_size, augment_speed=args.augment_speed,
+                    twin_episodes=args.twin_episodes)
     started = time.perf_counter()
     args.out.mkdir(parents=True, exist_ok=True)
     suffix = "_quick" if quick else ""

@@ -29,6 +29,7 @@ feed-forward, as the generator recorded every demonstration and as manisplat-rep
 grasps from the source's own start pose under ``"linear"`` missed under ``"hold"``); an arm that
 touches the table, mat or mug has failed by the success criterion, so the episode ends there."""
 ENV_TAG = "linear_stop"
+TWIN_DEMO_SEED = 501  # the twin's extra demonstrations: after the oracle's seeds, before the evaluation's (1000-)
 
 
 class Stages:
@@ -43,39 +44,65 @@ class Stages:
         image_size: (width, height) of the policy's view of the workspace (None: ``data.IMAGE_SIZE``).
         augment_speed: manisplat-augment's --speed (1.0, its default, keeps the folder names of
             earlier runs; another speed gets its own folders, policies and rollouts).
+        twin_episodes: demonstrations the twin is reconstructed from: the source, then
+            ``gen_demos.py`` demonstrations of its scene (seeds from :data:`TWIN_DEMO_SEED`, full
+            renders with depth and masks). Augmentation still starts from the source alone
+            (``--sources``): only the twin's appearance changes. Other than 1, it gets its own
+            folders, policies and rollouts.
     """
 
     def __init__(self, source: Path, work: Path, simenv: Path, tools: Path, object_range: tuple[float, ...],
                  place_range: tuple[float, ...], twin_iters: int, image_size: tuple[int, int] | None = None,
-                 augment_speed: float = 1.0) -> None:
+                 augment_speed: float = 1.0, twin_episodes: int = 1) -> None:
         self.source, self.work, self.simenv, self.tools = source, work, simenv, tools
         self.object_range, self.place_range, self.twin_iters = object_range, place_range, twin_iters
         self.data_report: dict[str, Any] = {}
         self.training_starts: dict[str, np.ndarray] = {}
         self.viewport: Viewport = workspace_viewport(source, max(object_range[:2]), image_size or IMAGE_SIZE)
         self.augment_speed = float(augment_speed)
-        self.speed_tag = "" if self.augment_speed == 1.0 else f"_speed{self.augment_speed:g}"
+        self.twin_episodes = int(twin_episodes)
+        #: B's and D's folders, policies and rollouts of another speed or twin: "", "_speed0.6", "_twin5", ...
+        self.variant_tag = ("" if self.augment_speed == 1.0 else f"_speed{self.augment_speed:g}") + \
+            ("" if self.twin_episodes == 1 else f"_twin{self.twin_episodes}")
 
     # ------------------------------------------------------------------ demonstrations
     def twin(self) -> Path:
-        out = self.work / "twin"
+        out = self.work / ("twin" if self.twin_episodes == 1 else f"twin_{self.twin_episodes}_episodes")
         if not (out / "twin.json").exists():
+            from benchmarks._degraded import robot_of
             from manisplat.reconstruct.cli import main as reconstruct
 
-            _log(f"reconstructing the twin of {self.source.name} ({self.twin_iters} iterations)")
+            episodes = [self.source, *self._twin_demos(self.twin_episodes - 1)]
+            _log(f"reconstructing the twin of {', '.join(e.name for e in episodes)} ({self.twin_iters} iterations)")
             start = time.perf_counter()
-            if reconstruct([str(self.source), "--out", str(out), "--iters", str(self.twin_iters), "-q",
-                            "--overwrite"]) != 0:
+            if reconstruct([*map(str, episodes), "--out", str(out), "--iters", str(self.twin_iters), "-q",
+                            "--robot", robot_of(self.source), "--overwrite"]) != 0:
                 raise RuntimeError("manisplat-reconstruct failed")
             self.data_report["twin_s"] = round(time.perf_counter() - start, 1)
         metrics = json.loads((out / "metrics.json").read_text())
         self.data_report["twin_held_out_psnr"] = metrics.get("psnr")
         return out
 
+    def _twin_demos(self, n: int) -> list[Path]:
+        """``n`` successful gen_demos.py demonstrations with depth and masks for the twin (seeds from
+        :data:`TWIN_DEMO_SEED`: no oracle or evaluation start)."""
+        if n == 0:
+            return []
+        root = self.work / "twin_demos"
+        if not (root / "demos.json").exists():
+            _log(f"gen_demos.py: {n + 2} seeds from {TWIN_DEMO_SEED} for the twin")
+            self._sim("gen_demos.py", "--source", str(self.source), "--out", str(root), "--n", str(n + 2),
+                      "--seed-start", str(TWIN_DEMO_SEED), "--object-range", *map(str, self._radians(self.object_range)),
+                      "--place-range", *map(str, self._radians(self.place_range)), "--jobs", "2")
+        made = [root / d["dir"] for d in json.loads((root / "demos.json").read_text())["demos"] if d["ok"]]
+        if len(made) < n:
+            raise RuntimeError(f"gen_demos.py made {len(made)} of the {n} demonstrations the twin needs ({root})")
+        return made[:n]
+
     def augmented(self, n: int) -> list[Path]:
         """n demonstrations of manisplat-augment (seed 0), made once per n (and speed) and kept in
-        ``augmented_<n>[_speed<s>]``."""
-        out = self.work / f"augmented_{n}{self.speed_tag}"
+        ``augmented_<n><variant tag>``."""
+        out = self.work / f"augmented_{n}{self.variant_tag}"
         if not (out / "augment_report.json").exists():
             from manisplat.augment.cli import main as augment
 
@@ -83,7 +110,7 @@ class Stages:
             _log(f"manisplat-augment: {n} demonstrations")
             start = time.perf_counter()
             augment([str(twin), "--n", str(n), "--out", str(out), "--workers", "2", "--seed", "0", "-q", "--overwrite",
-                     "--speed", str(self.augment_speed),
+                     "--speed", str(self.augment_speed), "--sources", self.source.name,
                      "--object-range", ",".join(map(str, self.object_range)),
                      "--target-range", ",".join(map(str, self.place_range))])
             self.data_report[f"augment_{n}_s"] = round(time.perf_counter() - start, 1)
@@ -126,7 +153,7 @@ class Stages:
     def sim_rendered(self, augmented: list[Path]) -> list[Path]:
         """The augmented demonstrations executed in the simulator with contact physics; each gets the
         simulator's renders of its own motion as rgb/ (everything else linked from the original)."""
-        renders, out = self.work / f"sim_render{self.speed_tag}", self.work / f"sim_rendered{self.speed_tag}"
+        renders, out = self.work / f"sim_render{self.variant_tag}", self.work / f"sim_rendered{self.variant_tag}"
         todo = [p for p in augmented if not (renders / f"{p.name}.json").exists()]
         if todo:
             _log(f"execute_episode.py --render: {len(todo)} augmented demonstrations")
@@ -174,8 +201,8 @@ class Stages:
         return Budget(steps=steps)
 
     def key(self, condition: str, n: int) -> str:
-        """The name of a condition's policy and rollouts: A, C50, B50, B50_speed0.6, ..."""
-        return condition if condition == "A" else f"{condition}{n}" + (self.speed_tag if condition in "BD" else "")
+        """The name of a condition's policy and rollouts: A, C50, B50, B50_speed0.6, B50_twin5, ..."""
+        return condition if condition == "A" else f"{condition}{n}" + (self.variant_tag if condition in "BD" else "")
 
     def condition(self, condition: str, n: int, steps: int, seeds: list[int], envs: int
                   ) -> tuple[dict[str, Any], list[Rollout]]:
