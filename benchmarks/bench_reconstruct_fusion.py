@@ -18,6 +18,9 @@ at new poses, where the simulator says what the new demonstrations look like (is
    ``execute_episode.py --render``; our images against the simulator's of the executed states:
    PSNR per region (the simulator's masks), the object region's the figure issue 34 asks for.
    A contact sheet shows one new demonstration: the simulator's render beside each twin's.
+4. **Registration** of each episode's first frame to the first's (what a fused reconstruction
+   starts each object from, :func:`manisplat.reconstruct.register.register_start`), against the
+   ground truth's relative pose: rotation (deg) and position (mm) errors per episode.
 
 Ground truth is read only by the scoring (metrics.json's pose errors, the simulator's renders).
 Writes ``benchmarks/results_reconstruct/reconstruct_fusion.json`` and
@@ -67,13 +70,16 @@ def main(argv: list[str] | None = None) -> int:
         twins[count]["new_poses"] = _new_poses(simenv, work / f"twin_{count}", work / f"aug_{count}", episodes[0],
                                                args.demos)
         print(f"{count} episodes, new poses: {json.dumps(twins[count]['new_poses']['mean'])}", flush=True)
+    registration = _registration(episodes)
+    print(f"registration: rotation error median {registration['rotation_deg_median']:.2f} deg, "
+          f"max {registration['rotation_deg_max']:.2f}", flush=True)
     sheet = args.out.with_name(args.out.stem + "_sheet.png")
     _sheet(work, counts, sheet)
     result = {"benchmark": "reconstruct_fusion", "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
               "command": "python -m benchmarks reconstruct_fusion " + " ".join(argv if argv is not None else sys.argv[1:]),
               "machine": machine_info(), "work": str(work), "iters": args.iters,
               "episodes": [e.name for e in episodes], "twins": {str(k): v for k, v in twins.items()},
-              "sheet": sheet.name, "wall_s": round(time.perf_counter() - started, 1)}
+              "registration": registration, "sheet": sheet.name, "wall_s": round(time.perf_counter() - started, 1)}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1) + "\n")
     print(f"wrote {args.out}")
@@ -148,6 +154,37 @@ def _new_poses(simenv: Path, twin: Path, out: Path, parent: Path, demos: int) ->
     keys = [k for k in next(iter(rows.values())) if k.startswith(("psnr_", "ssim_"))]
     return {"demonstrations": rows, "mean": {k: round(float(np.mean([r[k] for r in rows.values()])), 3) for k in keys},
             "success_clean": sum(r["success_clean"] for r in rows.values())}
+
+
+def _registration(episodes: list[Path]) -> dict:
+    """Each later episode's object start as registered to the first's, against the truth:
+    ``T_k = G_k G_0^-1 T_0`` with ``G`` the ground-truth pose at the first frame and ``T_0`` the
+    canonical frame (the first episode's points' centroid, the base's axes)."""
+    from benchmarks._degraded import robot_of
+    from manisplat.reconstruct.data import load_episode_data, load_ground_truth
+    from manisplat.reconstruct.init import object_points
+    from manisplat.reconstruct.register import register_start
+
+    robot = robot_of(shared_dir() / "data" / "sim_pick_place_small")
+    first = load_episode_data(episodes[0], robot=robot)
+    name, label = next((n, v) for v, n in first.labels.objects.items())
+    p0, c0, _ = object_points(first, label, 0)
+    T0 = np.eye(4)
+    T0[:3, 3] = p0.mean(0).numpy()
+    G0 = load_ground_truth(episodes[0])[f"T_base_{name}"][0]
+    rows = {}
+    for path in episodes[1:]:
+        p, c, _ = object_points(load_episode_data(path, robot=robot), label, 0)
+        found = register_start(p0.numpy() - T0[:3, 3], c0.numpy(), p.numpy(), c.numpy()).T_base_obj
+        truth = load_ground_truth(path)[f"T_base_{name}"][0] @ np.linalg.inv(G0) @ T0
+        cos = (np.trace(truth[:3, :3].T @ found[:3, :3]) - 1) / 2
+        rows[path.name] = {"rotation_deg": round(float(np.degrees(np.arccos(np.clip(cos, -1, 1)))), 3),
+                           "position_mm": round(float(1e3 * np.linalg.norm(truth[:3, 3] - found[:3, 3])), 2)}
+    rot = [r["rotation_deg"] for r in rows.values()]
+    pos = [r["position_mm"] for r in rows.values()]
+    return {"object": name, "episodes": rows, "rotation_deg_median": float(np.median(rot)),
+            "rotation_deg_max": float(max(rot)), "position_mm_median": float(np.median(pos)),
+            "position_mm_max": float(max(pos))}
 
 
 def _sheet(work: Path, counts: list[int], path: Path, demo: str = "episode_0000") -> None:

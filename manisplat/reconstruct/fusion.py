@@ -26,7 +26,7 @@ Memory grows with the frames joined (every image is kept, as for one episode: ab
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -159,6 +159,7 @@ def camera_consensus(datas: list[EpisodeData], plans: list[Plan], *, check: bool
         return CameraConsensus(T_recorded, [None] * len(datas), [None] * len(datas))
     checks = []
     for d, plan in zip(datas, plans):
+        log.info("%s: checking the camera against the robot's depth", Path(d.path).name)
         c = refine_extrinsic(d, plan.train_frames)
         checks.append(c)
         if c is not None and c.time_applied:
@@ -216,13 +217,21 @@ def merged_model(points: list[np.ndarray], colours: list[np.ndarray],
 
 def joined(datas: list[EpisodeData]) -> EpisodeData:
     """One recording of the episodes' frames in order: every per-frame tensor concatenated, the
-    rest (robot, camera, labels, commands, raw joints, path) the first episode's."""
+    rest (robot, camera, labels, commands, raw joints, path) the first episode's. Each episode's
+    tensors become views into the joined ones, field by field, so that no second copy of the
+    images outlives its field's concatenation (the peak: the recording plus its largest field)."""
     per_frame = ("rgb", "depth", "masks", "t", "q", "gripper", "link_poses", "link_quats", "tcp", "eval_masks")
     first = datas[0]
     out = {}
-    for f in fields(first):
-        if f.name in per_frame and getattr(first, f.name) is not None:
-            out[f.name] = torch.cat([getattr(d, f.name) for d in datas])
+    for name in per_frame:
+        if getattr(first, name) is None:
+            continue
+        out[name] = torch.cat([getattr(d, name) for d in datas])
+        start = 0
+        for d in datas:
+            n = d.n_frames
+            setattr(d, name, out[name][start:start + n])
+            start += n
     return replace(first, **out)
 
 

@@ -163,6 +163,7 @@ def build_fused(datas: list[EpisodeData], plans: list[Plan], config: TrainConfig
         model_points = model.params["means"].detach().double().numpy()
         parts = []
         for d, p, span, T_start in zip(datas, plans, spans, starts):
+            log.info("%s: aligning %s", span.name, obj.name)
             track, width, _ = object_carrier(d, T_start[:3, 3])
             parts.append(align_object(d, obj.label, T_start, track, width, moves=obj.moves, tau=tau,
                                       model_points=model_points,
@@ -192,7 +193,12 @@ def _object_starts(datas: list[EpisodeData], spans: list[EpisodeSpan], label: in
     episode's first frame anchors (:func:`~manisplat.reconstruct.init.object_gaussians`'s), and
     the canonical Gaussians completed by the sides the others show
     (:func:`~manisplat.reconstruct.fusion.merged_model`)."""
-    seen = [object_points(d, label, 0) for d in datas]
+    seen = []
+    for d, span in zip(datas, spans):
+        try:
+            seen.append(object_points(d, label, 0))
+        except ValueError as exc:
+            raise ReconstructionInputError(f"{span.name}: the first frame must show every object ({exc})") from exc
     centre = seen[0][0].mean(0).numpy()
     T0 = np.eye(4)
     T0[:3, 3] = centre

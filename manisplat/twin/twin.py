@@ -154,19 +154,53 @@ class Twin:
         twin.demonstration = demonstration
         return twin
 
-    t = property(lambda self: self.demonstration.t, doc="[T] s: the source demonstration's frame times")
-    q = property(lambda self: self.demonstration.q, doc="[T, dof] rad: its joints (every arm's, in arm order)")
-    gripper = property(lambda self: self.demonstration.gripper, doc="[T] or [T, A] m: its gripper openings")
-    object_poses = property(lambda self: self.demonstration.object_poses,
-                            doc="name -> [T, 4, 4] float64 T_base_obj per frame (trained poses)")
-    pose_sources = property(lambda self: self.demonstration.pose_sources,
-                            doc='name -> per frame "static", "attached" or "tracked"')
-    phases = property(lambda self: self.demonstration.phases, doc="name -> its Motion/Skill segments")
-    fps = property(lambda self: self.demonstration.fps)
-    episode = property(lambda self: self.demonstration.episode, doc="the source episode's folder name")
-    task = property(lambda self: self.demonstration.task)
-    commands = property(lambda self: self.demonstration.commands,
-                        doc="how the source's commands led and pressed its joints (None: not recorded)")
+    @property
+    def t(self) -> np.ndarray:
+        """[T] s: the source demonstration's frame times."""
+        return self.demonstration.t
+
+    @property
+    def q(self) -> np.ndarray:
+        """[T, dof] rad: its joints (every arm's, in arm order)."""
+        return self.demonstration.q
+
+    @property
+    def gripper(self) -> np.ndarray:
+        """[T] m (one arm) or [T, A] m: its gripper openings."""
+        return self.demonstration.gripper
+
+    @property
+    def object_poses(self) -> dict[str, np.ndarray]:
+        """name -> [T, 4, 4] float64 ``T_base_obj`` per frame (trained poses)."""
+        return self.demonstration.object_poses
+
+    @property
+    def pose_sources(self) -> dict[str, list[str]]:
+        """name -> per frame "static", "attached" or "tracked"."""
+        return self.demonstration.pose_sources
+
+    @property
+    def phases(self) -> dict[str, list[Phase]]:
+        """name -> its Motion/Skill segments."""
+        return self.demonstration.phases
+
+    @property
+    def fps(self) -> float:
+        return self.demonstration.fps
+
+    @property
+    def episode(self) -> str:
+        """The source episode's folder name."""
+        return self.demonstration.episode
+
+    @property
+    def task(self) -> str | None:
+        return self.demonstration.task
+
+    @property
+    def commands(self) -> CommandRelation | None:
+        """How the source's commands led and pressed its joints (None: not recorded)."""
+        return self.demonstration.commands
 
     # ------------------------------------------------------------------ the rig
     @property

@@ -91,6 +91,7 @@ def test_several_episodes_make_one_twin_with_every_demonstration(scene, tmp_path
     assert list(twin.demonstrations) == ["ep_a", "ep_b"] and twin.episode == "ep_a"
     b = twin.source("ep_b")
     assert b.episode == "ep_b" and len(b.q) == FRAMES and b.commands is not None
+    assert twin.episode == "ep_a" and b.graph is twin.graph  # another source, the same Gaussians
     assert np.linalg.norm(b.object_poses["box"][0][:2, 3] - twin.object_poses["box"][0][:2, 3] - [0.04, 0.03]) < 0.005
     assert [p.name for p in b.phases["box"]][:2] == ["M_approach", "S_pick"]
     for name in ("ep_a", "ep_b"):
@@ -131,3 +132,16 @@ def test_a_bumped_camera_is_found_and_named(scene, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "the camera moved between episodes" in err and "ep_bumped:" in err
     assert "ep_a:" not in err and "ep_b:" not in err
+
+
+def test_a_moved_table_is_another_scene(scene):
+    """The same episode with its static surfaces 3 cm further from the camera in the first frame."""
+    from manisplat.reconstruct.data import load_episode_data
+    from manisplat.reconstruct.fusion import SceneMismatch, check_same_scene
+
+    a, moved = load_episode_data(scene["a"]), load_episode_data(scene["a"])
+    check_same_scene([a, moved])  # the same scene
+    static = moved.region(0, moved.labels.static)
+    moved.depth[0][static] += 0.03
+    with pytest.raises(SceneMismatch, match=r"the static surfaces moved: 100 % of the static pixels"):
+        check_same_scene([a, moved])
