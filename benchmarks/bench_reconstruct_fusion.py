@@ -74,6 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     registration = _registration(episodes)
     print(f"registration: rotation error median {registration['rotation_deg_median']:.2f} deg, "
           f"max {registration['rotation_deg_max']:.2f}", flush=True)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
     sheet = args.out.with_name(args.out.stem + "_sheet.png")
     _sheet(work, counts, sheet)
     result = {"benchmark": "reconstruct_fusion", "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
