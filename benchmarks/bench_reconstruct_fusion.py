@@ -82,7 +82,6 @@ def main(argv: list[str] | None = None) -> int:
               "machine": machine_info(), "work": str(work), "iters": args.iters,
               "episodes": [e.name for e in episodes], "twins": {str(k): v for k, v in twins.items()},
               "registration": registration, "sheet": sheet.name, "wall_s": round(time.perf_counter() - started, 1)}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1) + "\n")
     print(f"wrote {args.out}")
     return 0
