@@ -127,11 +127,13 @@ def _load_twin(recon: Path) -> Twin:
         raise AugmentError(f"{exc} (run {reconstruct_command(recon)} first)") from exc
     if not twin.objects:
         raise AugmentError(f"{recon}: the reconstruction has no manipulated object to move")
-    for name in twin.objects:
-        if not twin.phases.get(name):
-            raise AugmentError(f"{recon}: object {name!r} has no Motion/Skill phases in twin.json")
-        if name not in twin.object_poses or len(twin.object_poses[name]) != twin.n_frames:
-            raise AugmentError(f"{recon}: object {name!r} has no pose per frame in twin.pt")
+    for demo in twin.demonstrations.values():
+        source = "" if len(twin.demonstrations) == 1 else f" (source {demo.episode})"
+        for name in twin.objects:
+            if not demo.phases.get(name):
+                raise AugmentError(f"{recon}: object {name!r} has no Motion/Skill phases in twin.json{source}")
+            if name not in demo.object_poses or len(demo.object_poses[name]) != len(demo.t):
+                raise AugmentError(f"{recon}: object {name!r} has no pose per frame in twin.pt{source}")
     if twin.commands is None:
         log.warning("%s keeps no recorded commands (the recording has none, or the twin was made before "
                     "2026-11-27): the new commands are the next frame's joints; %s keeps them where the "
@@ -149,10 +151,6 @@ def _sources(twin: Twin, args: argparse.Namespace) -> dict[str, Twin]:
         raise AugmentError(f"--sources {args.sources}: the twin's demonstrations are {', '.join(twin.demonstrations)}"
                            + (f" ({', '.join(unknown)} is none of them)" if unknown else " (name each once)"))
     sources = {name: twin.source(name) for name in names}
-    for name, source in sources.items():
-        missing = [obj for obj in source.objects if not source.phases.get(obj)]
-        if missing:
-            raise AugmentError(f"{args.recon}: source {name}: objects {missing} have no Motion/Skill phases")
     if len(sources) > 1:
         log.info("sources: %d demonstrations (%s), taken in turn", len(sources), ", ".join(sources))
     return sources

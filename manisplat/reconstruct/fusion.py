@@ -19,8 +19,9 @@ per-episode object trajectories, phases, exposure and held-out frames.
   episode's first frame is registered to it (:func:`~manisplat.reconstruct.register.register_start`)
   and adds the sides it shows. Each episode is then aligned (phases, pseudo poses) on its own.
 
-Memory grows with the frames joined (every image is kept, as for one episode: about 75 MB per
-150 frames at 320x240 with depth and masks); an iteration renders one frame, so its time does not.
+Memory grows with the frames joined (every image is kept once, as for one episode; each episode's
+tensors become views into the joined recording's); an iteration renders one frame, so its time
+does not.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from scipy.spatial import cKDTree
 
 from manisplat.align.phases import GripperEvents, Segment
 from manisplat.align.pseudo_gt import PseudoPoses
+from manisplat.geometry import make_transform, orthonormalize
 from manisplat.reconstruct.data import EpisodeData, ReconstructionInputError, retime
 from manisplat.reconstruct.extrinsic import ExtrinsicCorrection, pose_difference, refine_extrinsic
 from manisplat.reconstruct.plan import Plan
@@ -42,7 +44,7 @@ from manisplat.twin.commands import CommandRelation
 
 log = logging.getLogger(__name__)
 
-BUMP_DEG = 0.3  # an episode's camera this far (rotation) from the others' mean is a moved camera
+BUMP_DEG = 0.3  # an episode's camera this far (rotation) from where most episodes' is: a moved camera
 BUMP_MM = 3.0  # ... or this far (camera centre)
 SURFACE_MOVED_M = 0.02  # static surfaces whose depth differs by this much have moved
 SURFACE_MOVED_SHARE = 0.1  # ... over this share of the static pixels both episodes see
@@ -125,9 +127,7 @@ def _difference(a: EpisodeData, b: EpisodeData) -> str | None:
 def _surface_change(a: EpisodeData, b: EpisodeData) -> tuple[float, float]:
     """(median depth change m over the changed pixels, their share) of the static pixels both
     episodes' first frames see with depth."""
-    static_a = torch.isin(a.masks[0], torch.tensor(a.labels.static, dtype=torch.uint8))
-    static_b = torch.isin(b.masks[0], torch.tensor(b.labels.static, dtype=torch.uint8))
-    both = static_a & static_b & (a.depth[0] > 0) & (b.depth[0] > 0)
+    both = a.region(0, a.labels.static) & b.region(0, b.labels.static) & (a.depth[0] > 0) & (b.depth[0] > 0)
     if int(both.sum()) < 100:
         return 0.0, 0.0
     change = (a.depth[0][both] - b.depth[0][both]).abs().double()
@@ -192,12 +192,8 @@ def _distance(A: np.ndarray, B: np.ndarray) -> float:
 
 def _mean_pose(poses: list[np.ndarray]) -> np.ndarray:
     """The chordal mean of [4, 4] poses (rotation projected to SO(3), translation averaged)."""
-    R = np.mean([p[:3, :3] for p in poses], axis=0)
-    U, _, Vt = np.linalg.svd(R)
-    out = np.eye(4)
-    out[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-    out[:3, 3] = np.mean([p[:3, 3] for p in poses], axis=0)
-    return out
+    R = orthonormalize(torch.as_tensor(np.mean([p[:3, :3] for p in poses], axis=0)))
+    return make_transform(R, torch.as_tensor(np.mean([p[:3, 3] for p in poses], axis=0))).numpy()
 
 
 def merged_model(points: list[np.ndarray], colours: list[np.ndarray],

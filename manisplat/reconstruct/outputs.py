@@ -39,7 +39,7 @@ import torch
 
 from manisplat.align.phases import phase_of_frames
 from manisplat.reconstruct.data import EpisodeData, load_ground_truth
-from manisplat.reconstruct.fusion import EpisodeSpan, JoinedAlignment
+from manisplat.reconstruct.fusion import EpisodeSpan
 from manisplat.reconstruct.metrics import fit_constant_offset, pose_errors, psnr, ssim, start_anchored_errors
 from manisplat.reconstruct.trainer import Reconstruction
 from manisplat.render.sheets import labelled_sheet
@@ -80,11 +80,10 @@ def write_twin(rec: Reconstruction, alignments: dict, out: Path, spans: list[Epi
         save_ply(out / f"{node.name.replace('/', '_')}.ply", node.gaussians.ply_dict())
     evaluation = rec.evaluation_poses()
     t = rec.data.t.cpu().numpy()
-    for span in spans or [EpisodeSpan("", Path(rec.data.path), 0, rec.data.n_frames)]:
+    for span, parts in episode_alignments(rec, alignments, spans):
         folder = out / "episodes" / span.name if spans else out
         folder.mkdir(parents=True, exist_ok=True)
         frames = slice(span.start, span.end)
-        parts = {n: a.parts[spans.index(span)] if spans else a for n, a in alignments.items()}
         for name, poses in evaluation.items():
             _write_poses(folder / (f"object_poses_{name}.csv" if len(evaluation) > 1 else "object_poses.csv"),
                          t[frames], poses[frames], parts[name].pseudo.source)
@@ -151,16 +150,23 @@ def twin_of(rec: Reconstruction, alignments: dict, spans: list[EpisodeSpan] | No
     )
 
 
+def episode_alignments(rec: Reconstruction, alignments: dict,
+                       spans: list[EpisodeSpan] | None) -> list[tuple[EpisodeSpan, dict]]:
+    """(episode, object -> its alignment in that episode) for each episode: the recording's one
+    (``spans`` None) or each of a fused recording's (its part of each :class:`~manisplat.reconstruct.fusion.JoinedAlignment`)."""
+    if spans is None:
+        d = rec.data
+        return [(EpisodeSpan(Path(d.path).name, Path(d.path), 0, d.n_frames, d.commands), alignments)]
+    return [(span, {name: a.parts[k] for name, a in alignments.items()}) for k, span in enumerate(spans)]
+
+
 def demonstrations_of(rec: Reconstruction, alignments: dict, spans: list[EpisodeSpan] | None) -> list[Demonstration]:
     """Each episode's demonstration: its frames' joints, trained object poses, pose sources,
     phases and recorded commands."""
     d, evaluation = rec.data, rec.evaluation_poses()
-    if spans is None:
-        spans = [EpisodeSpan(Path(d.path).name, Path(d.path), 0, d.n_frames, d.commands)]
     demos = []
-    for k, span in enumerate(spans):
+    for span, parts in episode_alignments(rec, alignments, spans):
         frames = slice(span.start, span.end)
-        parts = {name: a.parts[k] if isinstance(a, JoinedAlignment) else a for name, a in alignments.items()}
         demos.append(Demonstration(
             episode=span.name, fps=d.fps, task=d.task, t=d.t[frames].cpu().numpy(), q=d.q[frames].cpu().numpy(),
             gripper=d.gripper[frames].cpu().numpy(), object_poses={n: p[frames] for n, p in evaluation.items()},
@@ -238,14 +244,14 @@ def _fused_metrics(rec: Reconstruction, alignments: dict, evaluation: dict[str, 
     in one episode shows there, where each episode's own offset would absorb it)."""
     per_episode, ours_all, gt_all = {}, {}, {}
     t = rec.data.t.cpu().numpy()
-    for k, span in enumerate(spans):
+    for k, (span, parts) in enumerate(episode_alignments(rec, alignments, spans)):
         frames = slice(span.start, span.end)
         scores = _image_metrics(rec, evaluation, out, frames=[f for f in rec.plan.test_frames if f in span.frames])
         gt = load_ground_truth(span.path)  # the only place ground truth is read
         if gt is not None:
             mine = {n: e[frames] for n, e in evaluation.items()}
-            scores.update(_pose_metrics(rec.data.frame, mine, {n: a.parts[k] for n, a in alignments.items()}, gt,
-                                        t[frames], out / "pose_plot.png" if k == 0 else None))
+            scores.update(_pose_metrics(rec.data.frame, mine, parts, gt, t[frames],
+                                        out / "pose_plot.png" if k == 0 else None))
             for n, poses in mine.items():
                 key = f"T_{rec.data.frame}_{n}"
                 if key in gt:

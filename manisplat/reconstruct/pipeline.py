@@ -65,8 +65,7 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
             kept in ``Reconstruction.extrinsic``.
     """
     if robot_gaussians is None:
-        W, H = data.size
-        robot_gaussians = int(min(max(W * H // 4, 2_000), 20_000))
+        robot_gaussians = default_robot_gaussians(data)
     if data.masks is None:
         raise ReconstructionInputError(f"{data.path}: no masks; draw them first (manisplat.reconstruct.masks)")
     if data.riding:
@@ -154,8 +153,7 @@ def build_fused(datas: list[EpisodeData], plans: list[Plan], config: TrainConfig
         d.viewmat = viewmat.clone()
     first, plan = datas[0], joined_plan(plans, spans)
     if robot_gaussians is None:
-        W, H = first.size
-        robot_gaussians = int(min(max(W * H // 4, 2_000), 20_000))
+        robot_gaussians = default_robot_gaussians(first)
     objects, trajectories, alignments = {}, {}, {}
     for obj in plan.objects:
         starts, model = _object_starts(datas, spans, obj.label, sh_degree=config.sh_degree)
@@ -174,8 +172,8 @@ def build_fused(datas: list[EpisodeData], plans: list[Plan], config: TrainConfig
     data = joined(datas)
     # the first episode's first, middle and last training frames, then each other episode's first
     # (the table its objects hid in the first); no held-out pixel seeds the background
-    seeds = sorted({plan.train_frames[0], plans[0].train_frames[len(plans[0].train_frames) // 2],
-                    plans[0].train_frames[-1], *(s.start for s in spans[1:])})
+    train = plans[0].train_frames
+    seeds = sorted({train[0], train[len(train) // 2], train[-1], *(s.start for s in spans[1:])})
     background = background_gaussians(data, frames=seeds, sh_degree=config.sh_degree)
     links = link_gaussians(first.robot, plan.links, total=robot_gaussians, sh_degree=config.sh_degree)
     for g in [*links.values(), *objects.values()]:
@@ -220,6 +218,13 @@ def _object_starts(datas: list[EpisodeData], spans: list[EpisodeSpan], label: in
     model = GaussianSet.from_points(torch.as_tensor(P).float(), torch.as_tensor(C).float(),
                                     torch.as_tensor(S).float(), opacity=0.8, sh_degree=sh_degree)
     return starts, model
+
+
+def default_robot_gaussians(data: EpisodeData) -> int:
+    """The links' Gaussian budget when none is given: a quarter of the image's pixels, 2 000 to
+    20 000 (more Gaussians than the robot has pixels add no detail)."""
+    W, H = data.size
+    return int(min(max(W * H // 4, 2_000), 20_000))
 
 
 def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.ndarray, width: np.ndarray, *,

@@ -76,11 +76,14 @@ class ObjectTrajectory(torch.nn.Module):
         """Poses [T, 4, 4] for every frame; frames whose own twist was never trained take the
         twist interpolated (linearly, in time) between the nearest trained frames of its episode."""
         trained_twists = {self._twist_of[j] for j in trained}
+        anchors_of: dict[int, list[int]] = {}  # episode -> its trained frames, in order
+        for j in sorted(trained):
+            anchors_of.setdefault(int(self._episode_of[j]), []).append(j)
         xi = self.xi.detach().cpu()[self.index.cpu()]  # [T, 6] (a copy), on the host: a per-frame loop
         for i in range(len(xi)):
             if self._twist_of[i] in trained_twists:
                 continue
-            anchors = [j for j in trained if self._episode_of[j] == self._episode_of[i]]
+            anchors = anchors_of.get(int(self._episode_of[i]))
             if not anchors:
                 continue
             left = max((j for j in anchors if j < i), default=None)
