@@ -38,6 +38,7 @@ from trimesh.ray.ray_pyembree import RayMeshIntersector
 
 from manisplat.geometry import pose_error, se3_exp
 from manisplat.reconstruct.data import EpisodeData, joints_at
+from manisplat.reconstruct.static_surface import world_region
 
 log = logging.getLogger(__name__)
 
@@ -53,12 +54,16 @@ MIN_TIME_OFFSET_S = 0.002
 #: the time offset is estimated only where the arm moves enough to tell it from the camera pose
 #: (condition number of the unit-diagonal normal equations with the offset)
 MAX_TIME_CONDITION = 1e8
+#: normal equations worse conditioned than this (unit diagonal) leave a direction of the pose free
+MAX_CONDITION = 1e10
 #: the residuals before and after are compared within this distance of the model (m): the first
 #: iteration's gate (later ones shrink with the residuals, and would flatter the refined pose)
 COMPARE_GATE = 0.02
 #: a fit that leaves more than this residual RMS (mm) does not describe the depth (stereo noise of
 #: an OAK is a few mm at 1.5 m): the model or the depth is wrong, and the correction means nothing
 MAX_RESIDUAL_MM = 5.0
+#: prefix of the static surface's parts among the links a riding camera is matched to
+SCENE = "scene/"
 _VELOCITY_STEP_S = 0.01  # central difference of the link poses for the surface velocity
 REPLACE_AFTER_S = 0.5e-3  # the meshes are placed anew when the offset moved this far (s)
 
@@ -84,6 +89,8 @@ class ExtrinsicCorrection:
         sigma_parts: the spreads the sigmas combine (in quadrature), each (deg, mm, s): "frames",
             the bootstrap over frames (noise); "links", the jackknife over links (a link's mesh or
             depth off in the same way in every frame).
+        spreads: the samples behind ``sigma_parts`` (:class:`Spread`), for what is computed from
+            the fitted pose (a base, :mod:`manisplat.reconstruct.rig_check`).
     """
 
     T_before: np.ndarray
@@ -103,6 +110,7 @@ class ExtrinsicCorrection:
     time_applied: bool = False
     T_fitted: np.ndarray | None = None
     sigma_parts: dict[str, tuple[float, float, float]] | None = None
+    spreads: dict[str, "Spread"] | None = None
 
     def to_dict(self) -> dict:
         return {"rotation_deg": self.rotation_deg, "translation_mm": self.translation_mm,
@@ -132,12 +140,15 @@ def pose_difference(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
 
 class _Group:
     """Measured robot points of one frame (camera frame) and the link meshes they belong to,
-    placed at the frame's time (``now``) and ``_VELOCITY_STEP_S`` before and after it."""
+    placed at the frame's time (``now``) and ``_VELOCITY_STEP_S`` before and after it.
+    ``carrier`` [4, 4]: the pose the fitted transform is relative to (the identity for a fixed
+    camera, the mount link's pose at the frame for a camera riding on it)."""
 
     def __init__(self, frame: int, link: str | None, points_cam: np.ndarray, w_depth: np.ndarray,
-                 meshes: list[trimesh.Trimesh], now: np.ndarray, before: np.ndarray, after: np.ndarray) -> None:
+                 meshes: list[trimesh.Trimesh], now: np.ndarray, before: np.ndarray, after: np.ndarray,
+                 carrier: np.ndarray) -> None:
         self.frame, self.link, self.p, self.w_depth = frame, link, points_cam, w_depth
-        self.meshes, self.now, self.before, self.after = meshes, now, before, after
+        self.meshes, self.now, self.before, self.after, self.carrier = meshes, now, before, after, carrier
         self.rays = self.p / np.linalg.norm(self.p, axis=1, keepdims=True)
 
     def _first_hits(self, T: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -164,10 +175,11 @@ class _Group:
         return np.isfinite(nearest), hit, normal, velocity
 
     def residuals(self, T: np.ndarray, gate: float, shift: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Point-to-plane residuals [N] (m) at camera pose ``T`` with the meshes moved ``shift`` s
-        along their velocity, whether each ray hit its link within ``gate`` of the plane [N], and
-        their Jacobian [N, 7] for ``T Exp(e)`` and a further time shift ``s``: (e, s) = (v, omega, s),
-        e in the camera frame, s in seconds."""
+        """Point-to-plane residuals [N] (m) at camera pose ``carrier T`` with the meshes moved
+        ``shift`` s along their velocity, whether each ray hit its link within ``gate`` of the plane
+        [N], and their Jacobian [N, 7] for ``T Exp(e)`` and a further time shift ``s``:
+        (e, s) = (v, omega, s), e in the camera frame, s in seconds."""
+        T = self.carrier @ T
         hits, hit, n, velocity = self._first_hits(T)
         R, t = T[:3, :3], T[:3, 3]
         r = np.einsum("ij,ij->i", n, self.p @ R.T + t - hit - shift * velocity)
@@ -212,11 +224,11 @@ def _link_meshes(data: EpisodeData) -> dict[str, trimesh.Trimesh]:
     return out
 
 
-def _robot_points(data: EpisodeData, frame: int, values: list[int], erode_px: int, max_points: int,
+def _robot_points(data: EpisodeData, frame: int, region: np.ndarray, erode_px: int, max_points: int,
                   rng: np.random.Generator) -> np.ndarray:
-    """[N, 3] camera-frame points of the frame's pixels labelled ``values`` with valid depth,
-    ``erode_px`` away from the mask's edge (stereo depth is unreliable there), at most ``max_points``."""
-    region = np.isin(data.masks[frame].numpy(), values).astype(np.uint8)
+    """[N, 3] camera-frame points of the frame's pixels in ``region`` [H, W] bool with valid depth,
+    ``erode_px`` away from the region's edge (stereo depth is unreliable there), at most ``max_points``."""
+    region = region.astype(np.uint8)
     if erode_px:
         region = cv2.erode(region, np.ones((2 * erode_px + 1, 2 * erode_px + 1), np.uint8))
     z = data.depth[frame].numpy().astype(np.float64)
@@ -239,25 +251,107 @@ class _Measured:
     w_depth: np.ndarray
 
 
-def _measurements(data: EpisodeData, frames: list[int], meshes: dict, erode_px: int, points_per_frame: int,
-                  rng: np.random.Generator) -> list[_Measured]:
-    """Each mask label naming a link is matched to that link's meshes; a robot label naming none
-    (one label for the whole arm) to all links together."""
+def _mask_regions(data: EpisodeData, meshes: dict, modelled: set[str]) -> dict[str | None, list[int]]:
+    """Link (of ``meshes``) -> the robot mask labels showing it. A label naming a link of the
+    robot (``modelled``) outside ``meshes`` (another arm's, when one arm is fitted) or a part
+    without a mesh (a wrist camera's housing) is left out where other labels name links; only
+    where no label names a link (one label for the whole arm) are they matched to every link
+    together (key None)."""
+    named = {value: link for value, link in data.labels.robot.items() if link in modelled}
+    if not named:
+        return {None: list(data.labels.robot)}
     by_link: dict[str | None, list[int]] = {}
-    for value, link in data.labels.robot.items():
-        by_link.setdefault(link if link in meshes else None, []).append(value)
-    share = points_per_frame / max(sum(len(v) for v in by_link.values()), 1)
+    for value, link in named.items():
+        if link in meshes:
+            by_link.setdefault(link, []).append(value)
+    return by_link
+
+
+def _drawn_regions(data: EpisodeData, frame: int, meshes: dict[str, trimesh.Trimesh], T: np.ndarray,
+                   stride: int = 2) -> dict[str, np.ndarray]:
+    """Link -> [H, W] bool: the pixels (every ``stride``-th row and column) whose ray from the
+    camera at ``T`` (its pose relative to the carrier, as fitted) meets that link first, the links
+    placed by the frame's forward kinematics: the robot's pixels of a camera without masks."""
+    names = list(data.robot.link_names)
+    poses = data.robot.forward_kinematics(data.q[frame].double(), data.gripper[frame].double()).numpy()
+    if data.riding:
+        T = poses[names.index(data.mount)] @ T
+    W, H = data.size
+    rows, cols = np.mgrid[0:H:stride, 0:W:stride]
+    K = data.K_opencv.numpy()
+    rays = np.stack([(cols.ravel() - K[0, 2]) / K[0, 0], (rows.ravel() - K[1, 2]) / K[1, 1], np.ones(cols.size)], 1)
+    directions = rays / np.linalg.norm(rays, axis=1, keepdims=True) @ T[:3, :3].T
+    nearest, owner = np.full(len(rays), np.inf), np.full(len(rays), -1)
+    links = list(meshes)
+    for k, link in enumerate(links):
+        P = poses[names.index(link)]
+        origins = np.broadcast_to((T[:3, 3] - P[:3, 3]) @ P[:3, :3], directions.shape)
+        local, ray, _ = meshes[link].ray.intersects_location(origins, directions @ P[:3, :3], multiple_hits=False)
+        distance = np.linalg.norm(local @ P[:3, :3].T + P[:3, 3] - T[:3, 3], axis=1)
+        closer = distance < nearest[ray]
+        nearest[ray[closer]], owner[ray[closer]] = distance[closer], k
+    out = {}
+    for k, link in enumerate(links):
+        region = np.zeros((H, W), bool)
+        region[rows.ravel()[owner == k], cols.ravel()[owner == k]] = True
+        if region.any():  # the grid's gaps closed: one region per link, eroded like a mask
+            out[link] = cv2.dilate(region.astype(np.uint8), np.ones((stride, stride), np.uint8),
+                                   anchor=(0, 0)).astype(bool)
+    return out
+
+
+def _measurements(data: EpisodeData, frames: list[int], meshes: dict, modelled: set[str], T0: np.ndarray,
+                  erode_px: int, points_per_frame: int, rng: np.random.Generator,
+                  surface: trimesh.Trimesh | None = None) -> list[_Measured]:
+    """Each mask label naming a link is matched to that link's meshes (:func:`_mask_regions`);
+    without masks, the pixels where the links are drawn at the recorded camera ``T0``
+    (:func:`_drawn_regions`) are, each to its link. With a static ``surface`` (a riding camera),
+    the pixels no link covers are matched to it, as many points again as the robot's, in the
+    quadrant of the world they show at ``T0`` (:data:`SCENE`)."""
+    robot_links = {name: mesh for name, mesh in meshes.items() if not name.startswith(SCENE)}
+    by_link = _mask_regions(data, robot_links, modelled) if data.masks is not None else None
+    # each label value (each drawn link) its share of the frame's points
+    share = points_per_frame / max(len(robot_links) if by_link is None else sum(map(len, by_link.values())), 1)
     out = []
     for f in frames:
-        for link, values in by_link.items():
-            p = _robot_points(data, f, values, erode_px, max(int(share * len(values)), 1), rng)
+        if by_link is None:
+            regions = {link: (region, 1) for link, region in _drawn_regions(data, f, robot_links, T0).items()}
+        else:
+            masks = data.masks[f].numpy()
+            regions = {link: (np.isin(masks, values), len(values)) for link, values in by_link.items()}
+        for link, (region, labels) in regions.items():
+            p = _robot_points(data, f, region, erode_px, max(int(share * labels), 1), rng)
             if len(p) >= 20:
                 out.append(_Measured(f, link, p, p[:, 2] ** -4.0))  # 1 / sigma_z^2 up to a constant
+        if surface is not None:
+            out += _scene_measurements(data, f, surface, T0, regions, erode_px, points_per_frame, rng)
     if out:
         z_ref = np.median(np.concatenate([m.points[:, 2] for m in out]))
         for m in out:  # relative to the median depth (dimensionless)
             m.w_depth = m.w_depth * z_ref ** 4
     return out
+
+
+def _scene_measurements(data: EpisodeData, frame: int, surface: trimesh.Trimesh, T0: np.ndarray, robot: dict,
+                        erode_px: int, count: int, rng: np.random.Generator) -> list[_Measured]:
+    """A riding camera's points of the static ``surface`` in ``frame``: its pixels with depth
+    ``erode_px`` away from every robot region (``robot``: link -> (region, labels)), at most
+    ``count``, split by the quadrant of the world they show at ``T0`` (one group each)."""
+    covered = np.zeros(data.depth.shape[1:], np.uint8)
+    for region, _ in robot.values():
+        covered |= region.astype(np.uint8)
+    if data.masks is not None and data.labels.objects:  # the objects move: not the static surface
+        covered |= np.isin(data.masks[frame].numpy(), list(data.labels.objects)).astype(np.uint8)
+    if erode_px:
+        covered = cv2.dilate(covered, np.ones((2 * erode_px + 1, 2 * erode_px + 1), np.uint8))
+    p = _robot_points(data, frame, covered == 0, erode_px, count, rng)
+    names = list(data.robot.link_names)
+    T_link = data.robot.forward_kinematics(data.q[frame].double(), data.gripper[frame].double()).numpy()[
+        names.index(data.mount)]
+    world = p @ (T_link @ T0)[:3, :3].T + (T_link @ T0)[:3, 3]
+    part = world_region(world, surface.bounds.mean(0))
+    return [_Measured(frame, f"{SCENE}{k}", p[part == k], p[part == k, 2] ** -4.0)
+            for k in range(4) if (part == k).sum() >= 20]
 
 
 def _groups(data: EpisodeData, measured: list[_Measured], meshes: dict[str, trimesh.Trimesh],
@@ -272,25 +366,44 @@ def _groups(data: EpisodeData, measured: list[_Measured], meshes: dict[str, trim
     poses = data.robot.forward_kinematics(torch.as_tensor(q), torch.as_tensor(gripper)).double().numpy()
     now, before, after = np.split(poses, 3)
     row = {f: k for k, f in enumerate(frames)}
+    mount = names.index(data.mount) if data.riding else None
     groups = []
     for m in measured:
-        links = [m.link] if m.link is not None else list(meshes)
-        i, k = [names.index(n) for n in links], row[m.frame]
-        groups.append(_Group(m.frame, m.link, m.points, m.w_depth, [meshes[n] for n in links], now[k, i],
-                             before[k, i], after[k, i]))
+        links = [m.link] if m.link is not None else [n for n in meshes if not n.startswith(SCENE)]
+        k = row[m.frame]
+        # a static surface stands in the world: its pose is the identity whenever it is seen
+        placed = [np.stack([np.eye(4)] * 3) if n.startswith(SCENE) else
+                  np.stack([now[k, names.index(n)], before[k, names.index(n)], after[k, names.index(n)]])
+                  for n in links]
+        carrier = now[k, mount] if mount is not None else np.eye(4)
+        groups.append(_Group(m.frame, m.link, m.points, m.w_depth, [meshes[n] for n in links],
+                             *(np.stack([p[j] for p in placed]) for j in range(3)), carrier))
     return groups
 
 
 def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 40, points_per_frame: int = 1500,
                      iterations: int = 20, bootstrap: int = 200, erode_px: int = 2, time_offset: bool = True,
-                     depth_weighting: bool = True, seed: int = 0) -> ExtrinsicCorrection | None:
+                     depth_weighting: bool = True, links: list[str] | None = None,
+                     surface: trimesh.Trimesh | None = None, seed: int = 0) -> ExtrinsicCorrection | None:
     """Align the robot's measured depth with its model over ``frames`` (training frames).
+
+    A fixed camera's pose in the robot's (world) frame is fitted; a camera riding on a link
+    (``data.riding``, a wrist camera) its ``T_mount_cam``, the link placed by forward kinematics
+    in every frame: it sees its own gripper's fingers and whatever other links come into view.
+    Without masks, a riding camera's robot pixels are where the links are drawn at its recorded
+    extrinsic.
 
     ``time_offset`` also estimates the camera/joint time offset where the arm moves enough to
     tell it (:data:`MAX_TIME_CONDITION`); it is applied (``time_applied``) when at least
-    :data:`MIN_TIME_OFFSET_S` and three times its bootstrap spread. ``depth_weighting`` False
-    weighs every depth point the same (the ablation in
-    ``benchmarks/bench_reconstruct_degraded_ablation.py``).
+    :data:`MIN_TIME_OFFSET_S` and three times its bootstrap spread (not for a riding camera,
+    whose own pose moves with the joints: its time is the fixed camera's). ``depth_weighting``
+    False weighs every depth point the same (the ablation in
+    ``benchmarks/bench_reconstruct_degraded_ablation.py``). ``links``: fit to these links only
+    (one arm of several, :mod:`manisplat.reconstruct.rig_check`); default every link with a mesh.
+    ``surface``: for a riding camera, the static scene in the world frame
+    (:func:`~manisplat.reconstruct.static_surface.static_surface`, measured by a checked fixed
+    camera): what the camera sees besides the robot is matched to it too; its quadrants count as
+    links in the jackknife.
 
     Returns None when the episode cannot say (no depth, no robot masks, fewer than
     :data:`MIN_POINTS` robot points, a degenerate geometry); otherwise the correction, with
@@ -300,13 +413,23 @@ def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 
     :data:`MAX_ROTATION_DEG` / :data:`MAX_TRANSLATION_MM`, or does not lower the residual (the
     recorded camera already fits).
     """
-    if data.depth is None or data.masks is None or not data.labels.robot:
+    if data.depth is None or (not data.riding and (data.masks is None or not data.labels.robot)):
         log.info("camera extrinsic: not checked (needs depth and robot masks)")
         return None
     rng = np.random.default_rng(seed)
     chosen = list(frames)[:: max(1, len(frames) // max_frames)][:max_frames]
-    meshes = _link_meshes(data)
-    measured = _measurements(data, chosen, meshes, erode_px, points_per_frame, rng)
+    modelled = _link_meshes(data)
+    unknown = sorted(set(links or ()) - set(modelled))
+    if unknown:
+        raise ValueError(f"links {unknown}: no such link with a mesh ({', '.join(modelled)})")
+    meshes = {name: mesh for name, mesh in modelled.items() if links is None or name in links}
+    T0 = data.T_mount_cam.double().numpy() if data.riding else np.linalg.inv(data.viewmat.double().numpy())
+    time_offset = time_offset and not data.riding
+    if surface is not None:
+        if not data.riding:
+            raise ValueError("a static surface checks a riding camera; a fixed one sees it from one place only")
+        meshes.update({f"{SCENE}{k}": surface for k in range(4)})
+    measured = _measurements(data, chosen, meshes, set(modelled), T0, erode_px, points_per_frame, rng, surface)
     if not depth_weighting:
         for m in measured:
             m.w_depth = np.ones_like(m.w_depth)
@@ -314,7 +437,6 @@ def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 
     if total < MIN_POINTS:
         log.warning("camera extrinsic: not checked (only %d robot depth points)", total)
         return None
-    T0 = np.linalg.inv(data.viewmat.double().numpy())
     T, offset = T0.copy(), 0.0
     groups, placed_at = _groups(data, measured, meshes, offset), offset
     gate = COMPARE_GATE
@@ -329,7 +451,7 @@ def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 
         if solve_time and _condition(H) > MAX_TIME_CONDITION:
             solve_time = False  # the arm hardly moves: the offset cannot be told apart from the camera
         k = 7 if solve_time else 6
-        if _condition(H[:k, :k]) > 1e10:
+        if _condition(H[:k, :k]) > MAX_CONDITION:
             log.warning("camera extrinsic: not checked (the robot's points do not constrain the camera; "
                         "condition number %.1e)", _condition(H[:k, :k]))
             return None
@@ -344,8 +466,8 @@ def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 
             break
     systems = _normal_equations(groups, T, gate, huber, offset - placed_at)
     k = 7 if solve_time else 6
-    by_frames = _bootstrap(T, _summed(systems, 0), k, bootstrap, rng)
-    by_links = _jackknife(T, _summed(systems, 1), k)
+    spreads = {"frames": _bootstrap(_summed(systems, 0), k, bootstrap, rng), "links": _jackknife(_summed(systems, 1), k)}
+    by_frames, by_links = _spread(T, spreads["frames"]), _spread(T, spreads["links"])
     # one label for the whole arm leaves no links to leave out: then the frames' spread alone (sigma_parts says so)
     sig_rot, sig_trans, sig_time = (math.hypot(a, 0.0 if math.isnan(b) else b) for a, b in zip(by_frames, by_links))
     rot, trans = pose_difference(T0, T)
@@ -355,12 +477,13 @@ def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 
     result = ExtrinsicCorrection(T0, T, rot, trans, sig_rot, sig_trans, offset if solve_time else None,
                                  sig_time if solve_time else None, 1000 * rms_before, 1000 * rms_after,
                                  total, len(chosen), T_fitted=T.copy(),
-                                 sigma_parts={"frames": by_frames, "links": by_links})
+                                 sigma_parts={"frames": by_frames, "links": by_links},
+                                 spreads={name: v for name, v in spreads.items() if v is not None})
     if solve_time:
         result.time_applied = (abs(offset) >= max(MIN_TIME_OFFSET_S, 3 * sig_time) and abs(offset) <= MAX_TIME_OFFSET_S)
-    refusal = _refusal(rot, trans, sig_rot, sig_trans, rms_before, rms_after)
-    if refusal is not None:
-        result.reason, keeps_time, warn = refusal
+    refused = refusal(rot, trans, sig_rot, sig_trans, rms_before, rms_after)
+    if refused is not None:
+        result.reason, keeps_time, warn = refused
         result.applied, result.time_applied = False, result.time_applied and keeps_time
         result.T_after = T0.copy()
         if warn:
@@ -383,11 +506,11 @@ def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 
     return result
 
 
-def _refusal(rot: float, trans: float, sig_rot: float, sig_trans: float, rms_before: float,
-             rms_after: float) -> tuple[str, bool, bool] | None:
-    """Why a fitted correction (deg, mm, its 1-sigma; residual RMS before and after in m) is not
-    applied, whether a certain time offset still is, and whether that deserves a warning; None
-    when it is applied."""
+def refusal(rot: float, trans: float, sig_rot: float, sig_trans: float, rms_before: float,
+            rms_after: float, subject: str = "the camera") -> tuple[str, bool, bool] | None:
+    """Why a fitted correction of ``subject`` (deg, mm, its 1-sigma; residual RMS before and after
+    in m) is not applied, whether a certain time offset still is, and whether that deserves a
+    warning; None when it is applied."""
     if 1000 * rms_after > MAX_RESIDUAL_MM:
         return (f"the robot's depth does not fit its model (residual RMS {1000 * rms_before:.2f} -> "
                 f"{1000 * rms_after:.2f} mm, at most {MAX_RESIDUAL_MM} mm expected): the extrinsic cannot be checked "
@@ -396,16 +519,16 @@ def _refusal(rot: float, trans: float, sig_rot: float, sig_trans: float, rms_bef
         return (f"the correction ({rot:.2f} deg, {trans:.1f} mm) is larger than {MAX_ROTATION_DEG} deg / "
                 f"{MAX_TRANSLATION_MM} mm: recalibrate (manisplat-calibrate) or check the robot description", False, True)
     if rms_after >= rms_before:
-        return (f"the robot's depth fits the recorded camera (residual RMS {1000 * rms_before:.2f} mm; the fit's "
+        return (f"the robot's depth fits {subject} as recorded (residual RMS {1000 * rms_before:.2f} mm; the fit's "
                 f"{rot:.3f} deg, {trans:.2f} mm does not lower it)", False, False)
     if sig_rot > MAX_SIGMA_ROTATION_DEG or sig_trans > MAX_SIGMA_TRANSLATION_MM:
-        return (f"the robot's depth cannot pin the camera down: the correction's 1-sigma is {sig_rot:.3f} deg, "
+        return (f"the robot's depth cannot pin {subject} down: the correction's 1-sigma is {sig_rot:.3f} deg, "
                 f"{sig_trans:.2f} mm, more than {MAX_SIGMA_ROTATION_DEG} deg / {MAX_SIGMA_TRANSLATION_MM} mm (as "
                 "uncertain as a hand calibration); the episode's calibration is kept: more of the arm in view, nearer "
                 "the camera, or a calibration (manisplat-calibrate) decides it", False, True)
     if rot < 2 * sig_rot and trans < 2 * sig_trans:  # a certain time offset still re-pairs the joints
         return (f"the correction ({rot:.3f} deg, {trans:.2f} mm) is within its own 2-sigma ({2 * sig_rot:.3f} deg, "
-                f"{2 * sig_trans:.2f} mm): the recorded camera agrees with the robot's depth", True, False)
+                f"{2 * sig_trans:.2f} mm): {subject} as recorded agrees with the robot's depth", True, False)
     return None
 
 
@@ -424,50 +547,59 @@ def _robust_rms(r: np.ndarray) -> float:
     return float(np.sqrt(np.mean(inl ** 2)))
 
 
-def _bootstrap(T: np.ndarray, systems: list[tuple[np.ndarray, np.ndarray]], k: int, n: int,
-               rng: np.random.Generator) -> tuple[float, float, float]:
-    """1-sigma spread (deg, mm, s) of the one-step solutions of the first ``k`` parameters with
-    the frames' normal equations ``systems`` resampled with replacement (the time's NaN when ``k`` is 6)."""
+@dataclass
+class Spread:
+    """Samples of the fit's error: pose steps [n, k] (se(3) twist in the camera frame, then the time
+    offset) whose root mean square times ``sqrt(scale)`` is the 1-sigma spread."""
+
+    steps: np.ndarray
+    scale: float
+
+
+def _bootstrap(systems: list[tuple[np.ndarray, np.ndarray]], k: int, n: int, rng: np.random.Generator) -> Spread:
+    """The one-step solutions of the first ``k`` parameters with the frames' normal equations
+    ``systems`` resampled with replacement (a resample that leaves a direction unconstrained, as
+    the fit itself would refuse, is drawn again)."""
     Hs = np.stack([H[:k, :k] for H, _ in systems])
     gs = np.stack([g[:k] for _, g in systems])
     steps = []
     for _ in range(n):
         pick = rng.integers(0, len(systems), len(systems))
-        try:
-            steps.append(-np.linalg.solve(Hs[pick].sum(0), gs[pick].sum(0)))
-        except np.linalg.LinAlgError:
+        H = Hs[pick].sum(0)
+        if _condition(H) > MAX_CONDITION:
             continue
-    return _spread(T, steps, k, 1.0)
+        steps.append(-np.linalg.solve(H, gs[pick].sum(0)))
+    return Spread(np.array(steps).reshape(-1, k), 1.0)
 
 
-def _jackknife(T: np.ndarray, systems: list[tuple[np.ndarray, np.ndarray]], k: int) -> tuple[float, float, float]:
-    """1-sigma jackknife spread (deg, mm, s) of the one-step solutions with each link's normal
-    equations ``systems`` left out in turn: what one link's systematic error (its mesh against the
-    real link, its depth) moves the solution by. NaN with fewer than 3 links."""
+def _jackknife(systems: list[tuple[np.ndarray, np.ndarray]], k: int) -> Spread | None:
+    """The one-step solutions with each link's normal equations ``systems`` left out in turn,
+    centred: what one link's systematic error (its mesh against the real link, its depth) moves
+    the solution by. None with fewer than 3 links."""
     if len(systems) < 3:
-        return math.nan, math.nan, math.nan
+        return None
     H, g = sum(h for h, _ in systems), sum(v for _, v in systems)
     steps = []
     for H_link, g_link in systems:
         try:
             steps.append(-np.linalg.solve((H - H_link)[:k, :k], (g - g_link)[:k]))
         except np.linalg.LinAlgError:
-            return math.nan, math.nan, math.nan
-    n = len(steps)
-    mean = np.mean(steps, axis=0)
-    return _spread(T, [step - mean for step in steps], k, n - 1.0)
+            return None
+    steps = np.array(steps)
+    return Spread(steps - steps.mean(0), len(steps) - 1.0)
 
 
-def _spread(T: np.ndarray, steps: list[np.ndarray], k: int, scale: float) -> tuple[float, float, float]:
-    """sqrt(scale) x the RMS size (deg, mm, s) of the pose steps ``steps`` [k] applied to ``T``:
-    the spread of a 3-vector's length about 0 (the time's NaN when ``k`` is 6, all NaN without steps)."""
-    if not steps:
+def _spread(T: np.ndarray, spread: Spread | None) -> tuple[float, float, float]:
+    """The 1-sigma size (deg, mm, s) of ``spread``'s pose steps applied to ``T``: the spread of a
+    3-vector's length about 0 (the time's NaN without one, all NaN without steps)."""
+    if spread is None or not len(spread.steps):
         return math.nan, math.nan, math.nan
+    steps, scale = spread.steps, spread.scale
     angles, shifts = zip(*(pose_difference(T, T @ se3_exp(torch.as_tensor(step[:6])).numpy()) for step in steps))
-    times = [step[6] for step in steps] if k == 7 else [math.nan]
+    times = steps[:, 6] if steps.shape[1] == 7 else [math.nan]
     rms = lambda x: float(np.sqrt(scale * np.mean(np.square(x))))  # noqa: E731
     return rms(angles), rms(shifts), rms(times)
 
 
-__all__ = ["ExtrinsicCorrection", "MAX_ROTATION_DEG", "MAX_TIME_OFFSET_S", "MAX_TRANSLATION_MM", "pose_difference",
-           "refine_extrinsic"]
+__all__ = ["ExtrinsicCorrection", "MAX_ROTATION_DEG", "MAX_TIME_OFFSET_S", "MAX_TRANSLATION_MM", "SCENE", "Spread",
+           "pose_difference", "refine_extrinsic"]

@@ -12,7 +12,9 @@
 * ``metrics.json``: ``psnr`` / ``ssim`` ({"full", "robot", "object"}; the same with the held-out
   frame's colour fitted on its static pixels: ``psnr_colour_fitted``, ``ssim_colour_fitted``), ``pose`` and
   ``pose_baseline`` ({object: {"et_cm", "er_deg"}}) when ground truth exists, ``wall_s``,
-  ``iters``, ``plan``, ``camera`` (the extrinsic correction, when checked); with shadows learned,
+  ``iters``, ``plan``, ``camera`` (the extrinsic correction, when checked), ``rig`` (several arms
+  or riding cameras: each other arm's base and each riding camera's ``T_mount_cam`` as checked,
+  :mod:`manisplat.reconstruct.rig_check`); with shadows learned,
   ``light`` (the direction towards it in the base frame, its elevation and azimuth in deg, the
   per-channel strength) and ``shadow``: PSNR over the held-out frames' background pixels the
   learned shadows darken by more than :data:`SHADOWED` (``psnr``), the same pixels rendered
@@ -227,6 +229,8 @@ def write_evaluation(rec: Reconstruction, alignments: dict, out: Path, *, wall_s
             metrics["cameras"] = per_camera
         if rec.extrinsic is not None:
             metrics["camera"] = {k: v for k, v in rec.extrinsic.to_dict().items() if k != "T_correction"}
+        if rec.rig is not None:
+            metrics["rig"] = rec.rig.to_dict()
         gt = load_ground_truth(rec.data.path)  # the only place ground truth is read
         if gt is not None:
             metrics.update(_pose_metrics(rec.data.frame, evaluation, alignments, gt, rec.data.t.cpu().numpy(),

@@ -13,16 +13,16 @@ import torch
 from manisplat.align.phases import DEFAULT_TAU, GripperEvents, Segment, gripper_events, segment_phases
 from manisplat.align.pseudo_gt import PseudoPoses, hybrid_pseudo_poses, make_tracker, tracked_baseline
 from manisplat.align.tracking import ObjectView, TrackerSettings, visible_surface
-from manisplat.reconstruct.data import EpisodeData, ReconstructionInputError, retime
-from manisplat.reconstruct.extrinsic import refine_extrinsic
+from manisplat.reconstruct.data import EpisodeData, ReconstructionInputError
 from manisplat.reconstruct.fusion import (CameraConsensus, EpisodeSpan, JoinedAlignment, camera_consensus,
                                           check_same_scene, join_alignments, joined, joined_plan, merged_model,
                                           spans_of)
 from manisplat.reconstruct.init import background_gaussians, link_gaussians, object_gaussians, object_points
-from manisplat.reconstruct.masks import draw_view_masks, object_carrier, redraw_robot_masks
+from manisplat.reconstruct.masks import draw_view_masks, object_carrier
 from manisplat.reconstruct.plan import Plan
 from manisplat.reconstruct.poses import ObjectTrajectory
 from manisplat.reconstruct.register import register_start
+from manisplat.reconstruct.rig_check import check_rig
 from manisplat.reconstruct.trainer import Reconstruction, TrainConfig
 from manisplat.scene import GaussianSet, SceneGraph
 from manisplat.scene.transforms import transform_gaussians
@@ -62,7 +62,10 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
             (:mod:`manisplat.reconstruct.extrinsic`) and use the corrected ``T_base_cam`` and
             camera/joint time offset for everything after (``data.viewmat`` is replaced, the
             joints re-paired by :func:`~manisplat.reconstruct.data.retime`); the correction is
-            kept in ``Reconstruction.extrinsic``.
+            kept in ``Reconstruction.extrinsic``. With several arms, each arm's base is checked
+            against the first's and with riding cameras, each one's ``T_mount_cam`` against the
+            robot and the static scene (:mod:`manisplat.reconstruct.rig_check`); what they say
+            is kept in ``Reconstruction.rig``.
     """
     if robot_gaussians is None:
         robot_gaussians = default_robot_gaussians(data)
@@ -74,14 +77,8 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
     train = plan.train_frames
     if plan.objects and train[0] != 0:
         raise ReconstructionInputError("the first frame must be a training frame: it seeds the objects")
-    correction = refine_extrinsic(data, train) if check_extrinsic else None
-    if correction is not None and correction.applied:
-        data.viewmat = torch.linalg.inv(torch.as_tensor(correction.T_after)).float()
-    if correction is not None and correction.time_applied:
-        retime(data, data.time_offset_s + correction.time_offset_s)
-    if correction is not None and (correction.applied or correction.time_applied) and \
-            data.mask_source.startswith("drawn robot"):
-        redraw_robot_masks(data, progress=False)  # drawn with the camera and timing just corrected
+    views = views or {}
+    rig = check_rig(data, views, train) if check_extrinsic else None
     # no pixel of a held-out frame reaches the Gaussians: the first, middle and last training frames seed them
     background = background_gaussians(data, frames=sorted({train[0], train[len(train) // 2], train[-1]}),
                                       sh_degree=config.sh_degree, table_z=table_z)
@@ -108,7 +105,7 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
     for g in [*links.values(), *objects.values()]:
         g.scene_scale = background.scene_scale
     graph = SceneGraph(background, links, list(data.robot.link_names), objects)
-    for name, view in (views or {}).items():
+    for name, view in views.items():
         if view.masks is None:
             labels = {label: obj for label, obj in data.labels.objects.items()}
             drawn = [data.labels.robot[v] for v in sorted(data.labels.robot) if data.robot.visuals.get(data.labels.robot[v])]
@@ -117,7 +114,8 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
                              if obj in objects}, data.label_names, progress=progress)
             log.info("camera %s: masks drawn (robot at each frame's FK, objects at their pseudo poses)", name)
     rec = Reconstruction(data, plan, graph, trajectories, config, views=views)
-    rec.extrinsic = correction
+    rec.extrinsic = None if rig is None else rig.camera
+    rec.rig = rig if rig is not None and (rig.bases or rig.riding) else None
     return rec, alignments
 
 

@@ -24,6 +24,7 @@ from manisplat.reconstruct.config import TrainConfig, resolve_compile, resolve_d
 from manisplat.reconstruct.data import EpisodeData
 from manisplat.reconstruct.exposure import FrameExposure
 from manisplat.reconstruct.extrinsic import ExtrinsicCorrection
+from manisplat.reconstruct.rig_check import RigCheck
 from manisplat.reconstruct.loss import frame_loss
 from manisplat.reconstruct.metrics import psnr
 from manisplat.reconstruct.plan import Plan
@@ -81,6 +82,9 @@ class Reconstruction:
                           if config.exposure else None)
         #: what the robot's depth said about the camera extrinsic (set by the pipeline; None: not checked)
         self.extrinsic: ExtrinsicCorrection | None = None
+        #: what the robots' depth said about the other arms' bases and the riding cameras (None: one
+        #: arm and one camera, or not checked)
+        self.rig: RigCheck | None = None
         self.scene_scale = graph.background.scene_scale if graph.background is not None else 1.0
         self.strategies = {
             node.name: DefaultStrategy(

@@ -78,7 +78,7 @@ def test_a_calibrated_camera_is_left_where_it_is(sample):
     lower the residual, so the recorded camera stays, exactly, and no advice follows."""
     c = _refined(sample)
     assert c.rotation_deg < 0.05 and c.translation_mm < 0.5
-    assert not c.applied and "fits the recorded camera" in c.reason
+    assert not c.applied and "fits the camera as recorded" in c.reason
     assert (c.T_after == c.T_before).all()
 
 
