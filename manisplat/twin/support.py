@@ -14,6 +14,15 @@ well inside that surface's edge. On the shared pick-and-place, boxes let go with
 centre 2 cm inside it stayed. :meth:`SupportMap.edge_drop` measures how far the surface falls
 away from the highest one under a footprint within a margin of its centre; augmentation
 discards placements where it falls by more than :data:`MAX_STEP`.
+
+A stereo camera's depth scatters by millimetres at a metre, and the median over frames does not
+remove what is the same in every frame: from a camera 1.1 m to the side of the workspace (the oak
+preset of shared/tools/degrade), 220 of 419 spots on the open table and the mats measured as on an
+edge (the cells' scatter, 1.1 mm, spanned by the 5th and 95th percentiles), against 45 from the
+same scene's exact depth. A map whose cells scatter more than :data:`NOISY_CELL` about their
+neighbours is therefore smoothed by a median over :data:`SMOOTH_CELLS` x :data:`SMOOTH_CELLS`
+cells, which keeps steps: 2 spots taken for edges that are not, 6 of the 45 edges missed. A map
+of exact depth is left as it is.
 """
 
 from __future__ import annotations
@@ -27,6 +36,8 @@ MAX_STEP = 0.0025  # m: a larger height difference under an object is a step it 
 REACH = 1.0  # m: the map covers base-frame x, y within this (a PiPER reaches 0.63 m)
 MIN_KNOWN = 0.5  # fraction of the footprint's cells that must have been seen to judge it
 EDGE_MARGIN = 0.015  # m: the centre of a set-down object must be this far inside its support's edge
+NOISY_CELL = 0.0005  # m: a map whose cells scatter more than this about their neighbours' median is smoothed
+SMOOTH_CELLS = 5  # the smoothing median's window, in cells a side
 
 
 @dataclass(frozen=True)
@@ -107,4 +118,26 @@ def support_map(depth: np.ndarray, background: np.ndarray, K: np.ndarray, T_base
     cells, starts = np.unique(flat, return_index=True)
     heights = np.full(nx * ny, np.nan, np.float32)
     heights[cells] = [np.median(chunk) for chunk in np.split(heights_sorted, starts[1:])]
-    return SupportMap(heights.reshape(ny, nx), (float(origin[0]), float(origin[1])), cell)
+    heights = heights.reshape(ny, nx)
+    if cell_scatter(heights) > NOISY_CELL:
+        heights = np.where(np.isfinite(heights), nan_median_filter(heights, SMOOTH_CELLS), np.nan).astype(np.float32)
+    return SupportMap(heights, (float(origin[0]), float(origin[1])), cell)
+
+
+def nan_median_filter(heights: np.ndarray, size: int) -> np.ndarray:
+    """Each cell's median [Ny, Nx] over the ``size`` x ``size`` cells around it, unseen (NaN)
+    cells left out (NaN where all are)."""
+    half = size // 2
+    padded = np.pad(heights.astype(np.float64), half, constant_values=np.nan)
+    windows = np.lib.stride_tricks.sliding_window_view(padded, (size, size)).reshape(*heights.shape, -1)
+    out = np.full(heights.shape, np.nan)
+    seen = np.isfinite(windows).any(-1)
+    out[seen] = np.nanmedian(windows[seen], axis=-1)
+    return out
+
+
+def cell_scatter(heights: np.ndarray) -> float:
+    """Robust spread (m, 1.4826 x the median absolute deviation) of the seen cells about the
+    median of their 3 x 3 neighbourhood: the map's noise, steps aside. 0 with no cell seen."""
+    residual = (heights - nan_median_filter(heights, 3))[np.isfinite(heights)]
+    return float(1.4826 * np.median(np.abs(residual))) if len(residual) else 0.0
