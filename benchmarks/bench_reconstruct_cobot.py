@@ -49,12 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         for sample in args.samples.split(","):
-            source = shared / "data" / sample
-            episode = Path(tmp) / sample
-            if episode_main(["import-act", str(source / "episode_0.hdf5"), "--calib",
-                             str(source / "episode_0.calib.json"), "--out", str(episode)]) != 0:
-                raise RuntimeError(f"{sample}: import failed")
-            prompts = add_ground_truth(episode, source)
+            episode, prompts = imported_sample(shared, sample, Path(tmp))
             for setting, cameras in SETTINGS.items():
                 out = Path(tmp) / f"{sample}_{len(cameras)}"
                 rows.append(reconstruct(episode, out, cameras, prompts, args.iters) | {"sample": sample, "setting": setting})
@@ -66,6 +61,16 @@ def main(argv: list[str] | None = None) -> int:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1, default=float) + "\n")
     return 0
+
+
+def imported_sample(shared: Path, sample: str, folder: Path) -> tuple[Path, dict[str, tuple[float, float]]]:
+    """The shared Cobot Magic ``sample`` imported into ``folder`` as the user does, with its truth
+    where evaluation reads it (:func:`add_ground_truth`), and each manipulated object's prompt."""
+    source, episode = shared / "data" / sample, folder / sample
+    if episode_main(["import-act", str(source / "episode_0.hdf5"), "--calib", str(source / "episode_0.calib.json"),
+                     "--out", str(episode)]) != 0:
+        raise RuntimeError(f"{sample}: import failed")
+    return episode, add_ground_truth(episode, source)
 
 
 def reconstruct(episode: Path, out: Path, cameras: tuple[str, ...], prompts: dict[str, tuple[float, float]],

@@ -26,8 +26,7 @@ import numpy as np
 import torch
 
 from benchmarks._harness import BENCH_DIR, shared_dir
-from benchmarks.bench_reconstruct_cobot import add_ground_truth
-from manisplat.episode.cli import main as episode_main
+from benchmarks.bench_reconstruct_cobot import imported_sample
 from manisplat.geometry import se3_exp
 from manisplat.reconstruct.data import load_episode_data
 from manisplat.reconstruct.extrinsic import pose_difference, refine_extrinsic
@@ -53,12 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.disable(logging.WARNING)
     with tempfile.TemporaryDirectory() as tmp:
         for sample in args.samples.split(","):
-            source = shared / "data" / sample
-            episode = Path(tmp) / sample
-            if episode_main(["import-act", str(source / "episode_0.hdf5"), "--calib",
-                             str(source / "episode_0.calib.json"), "--out", str(episode)]) != 0:
-                raise RuntimeError(f"{sample}: import failed")
-            prompts = add_ground_truth(episode, source)
+            episode, prompts = imported_sample(shared, sample, Path(tmp))
             for seed in (int(s) for s in args.seeds.split(",")):
                 rows.append({"sample": sample, "seed": seed, **check_once(episode, prompts, seed)})
                 print(json.dumps({k: v for k, v in rows[-1].items() if k != "items"}
