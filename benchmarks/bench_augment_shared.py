@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import tempfile
 from pathlib import Path
@@ -29,6 +30,7 @@ import numpy as np
 import torch
 
 from benchmarks._harness import BenchContext, MissingBenchmarkData
+from manisplat.twin import Twin
 
 THREADED = False
 FIDELITY_DEMOS = 5
@@ -104,7 +106,13 @@ def _execute(simenv: Path, episode: Path, parent: Path, ctx: BenchContext, rende
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def _physics(simenv: Path, episodes: list[Path], parent: Path, ctx: BenchContext) -> dict[str, Any]:
+def _physics(simenv: Path, episodes: list[Path], parent: Path, ctx: BenchContext,
+             source: Twin | None = None, work: Path | None = None) -> dict[str, Any]:
+    """Each new demonstration executed in ``parent``'s scene; with ``source`` (the twin, its source
+    demonstration the active one) its objects' poses first put in the simulator's object frame
+    (:func:`in_simulator_frame`, copies under ``work``)."""
+    if source is not None:
+        episodes = [in_simulator_frame(p, source, parent, work / p.name) for p in episodes]
     results = [_execute(simenv, p, parent, ctx) for p in episodes]
     pos = np.array([r["final_pos_err_cm"] for r in results])
     rot = np.array([r["final_rot_err_deg"] for r in results])
@@ -115,6 +123,30 @@ def _physics(simenv: Path, episodes: list[Path], parent: Path, ctx: BenchContext
             "physics_success_rate": sum(r["success_clean"] for r in results) / max(len(results), 1),
             "final_pos_err_cm_median": float(np.median(pos)), "final_pos_err_cm_max": float(pos.max()),
             "final_rot_err_deg_median": float(np.median(rot)), "failures": failures}
+
+
+def in_simulator_frame(episode: Path, source: Twin, parent: Path, out: Path) -> Path:
+    """A copy of what ``execute_episode.py`` reads of a new demonstration (``frames.csv``,
+    ``episode.json``, ``augmentation.json``) with each object's start and end in the simulator's
+    object frame: moved by the same rigid motion the demonstration moved the twin's object by from
+    where the twin's source demonstration (``source``, the twin with it active) starts it (``T_sim = T_new T_twin_source^-1 G_source``, ``G_source`` the
+    ground truth at the source's first frame, read here only to set the simulator up). The twin's
+    object frame keeps the base's axes at the object's first-frame centroid; the simulator's turns
+    with the object and sits at its geometric centre: without this, a source object turned by 20
+    deg is promised 20 deg off."""
+    from manisplat.augment.frames import to_centre_frame
+    from manisplat.reconstruct.data import load_ground_truth
+
+    gt = load_ground_truth(parent)
+    out.mkdir(parents=True, exist_ok=True)
+    for name in ("frames.csv", "episode.json"):
+        shutil.copy(episode / name, out / name)
+    augmentation = json.loads((episode / "augmentation.json").read_text())
+    for name, poses in augmentation["objects"].items():
+        X = np.linalg.inv(to_centre_frame(source, name, source.object_poses[name][0])) @ gt[f"T_base_{name}"][0]
+        augmentation["objects"][name] = {k: (np.asarray(v) @ X).tolist() for k, v in poses.items()}
+    (out / "augmentation.json").write_text(json.dumps(augmentation))
+    return out
 
 
 def render_scores(path: Path, sim: Path) -> dict[str, float]:

@@ -2,8 +2,9 @@
 viewpoint of the development set (``benchmarks/_viewpoints.py``; its oak-preset copy, seed 1): a
 twin (``manisplat-reconstruct --iters 1000``), ``manisplat-augment --n N --seed 0`` from it, and
 every new demonstration executed with contact physics in the scene its episode was generated in
-(``execute_episode.py``, ``$MANISPLAT_SIMENV``): validity with reasons, physics success, where
-the object was left against the demonstration's promise.
+(``execute_episode.py``, ``$MANISPLAT_SIMENV``; the objects' poses put in the simulator's object
+frame first, :func:`benchmarks.bench_augment_shared.in_simulator_frame`): validity with reasons,
+physics success, where the object was left against the demonstration's promise.
 
 ``python -m benchmarks augment_viewpoints [--viewpoints NAME,...] [--n 20] [--out FILE]``
 """
@@ -23,6 +24,7 @@ from benchmarks._harness import BENCH_DIR, BenchContext, MissingBenchmarkData, s
 from benchmarks._viewpoints import clean_episodes, select
 from benchmarks.bench_augment_shared import _physics
 from benchmarks.bench_camera_check import degraded_copy
+from manisplat.twin import Twin
 
 OWN_OPTIONS = True
 DEFAULT_VIEWPOINTS = "front_near,right,high,behind_right,front_left_high"
@@ -56,7 +58,8 @@ def main(argv: list[str] | None = None) -> int:
             row = {"viewpoint": v.name, "object": v.obj, "requested": report["requested"], "valid": report["valid"],
                    "reasons": report["reasons"], "physics_n": 0, "physics_success_clean": 0}
             if demos:  # a twin whose every draw was refused leaves nothing to execute
-                row.update(_physics(Path(simenv), demos, clean, ctx))
+                row.update(_physics(Path(simenv), demos, clean, ctx, Twin.load(twin),
+                                    Path(tmp) / f"{v.name}_sim_input"))
             rows.append(row)
             print(json.dumps(row, default=float), flush=True)
     n = sum(r["physics_n"] for r in rows)

@@ -16,7 +16,7 @@ at new poses, where the simulator says what the new demonstrations look like (is
    twin (the same source and samples: the same new demonstrations, up to the few tenths of a
    millimetre the twins' poses of the source differ by), each executed by
    ``execute_episode.py --render``, the object started and aimed in the simulator's own frame
-   (:func:`_in_simulator_frame`); our images against the simulator's of the executed states:
+   (:func:`benchmarks.bench_augment_shared.in_simulator_frame`); our images against the simulator's of the executed states:
    PSNR per region (the simulator's masks), the object region's the figure issue 34 asks for.
    A contact sheet shows one new demonstration: the simulator's render beside each twin's.
 4. **Registration** of each episode's first frame to the first's (what a fused reconstruction
@@ -133,20 +133,22 @@ def _anchored(anchored: dict | None) -> dict | None:
 def _new_poses(simenv: Path, twin: Path, out: Path, parent: Path, demos: int) -> dict:
     """``demos`` new demonstrations from ``twin`` (source episode_0001, seed 0), executed and
     rendered by the simulator; our renders scored against its."""
-    from benchmarks.bench_augment_shared import render_scores
+    from benchmarks.bench_augment_shared import in_simulator_frame, render_scores
     from manisplat.augment.cli import main as augment
+    from manisplat.twin import Twin
 
     if not (out / "augment_report.json").exists():
         if augment([str(twin), "--n", str(demos), "--out", str(out), "--sources", SOURCE, "--seed", "0",
                     "--overwrite", "-q"]) != 0:
             raise MissingBenchmarkData(f"manisplat-augment failed on {twin}")
     tools = shared_dir() / "tools" / "sim"
+    source = Twin.load(twin).source(SOURCE)
     rows = {}
     for path in sorted(out.glob("episode_*")):
         sim = out / "sim_render" / path.name
         report = sim / "physics.json"
         if not report.exists():
-            moved = _in_simulator_frame(path, twin, parent, out / "sim_input" / path.name)
+            moved = in_simulator_frame(path, source, parent, out / "sim_input" / path.name)
             subprocess.run([str(simenv), "execute_episode.py", str(moved), "--parent", str(parent), "--render", str(sim),
                             "--json", str(report)], cwd=tools, check=True, stdout=subprocess.DEVNULL,
                            env={**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "osmesa")})
@@ -156,32 +158,6 @@ def _new_poses(simenv: Path, twin: Path, out: Path, parent: Path, demos: int) ->
     keys = [k for k in next(iter(rows.values())) if k.startswith(("psnr_", "ssim_"))]
     return {"demonstrations": rows, "mean": {k: round(float(np.mean([r[k] for r in rows.values()])), 3) for k in keys},
             "success_clean": sum(r["success_clean"] for r in rows.values())}
-
-
-def _in_simulator_frame(episode: Path, twin: Path, parent: Path, out: Path) -> Path:
-    """A copy of what ``execute_episode.py`` reads of a new demonstration (``frames.csv``,
-    ``episode.json``, ``augmentation.json``) with each object's start and end in the simulator's
-    object frame: moved by the same rigid motion the demonstration moved the twin's object by from
-    where the source starts it (``T_sim = T_new T_twin_source^-1 G_source``, ``G_source`` the
-    ground truth at the source's first frame, read here only to set the simulator up). The twin's
-    object frame keeps the first episode's axes; the simulator's turns with the object."""
-    import shutil
-
-    from manisplat.augment.frames import to_centre_frame
-    from manisplat.reconstruct.data import load_ground_truth
-    from manisplat.twin import Twin
-
-    source = Twin.load(twin).source(SOURCE)
-    gt = load_ground_truth(parent)
-    out.mkdir(parents=True, exist_ok=True)
-    for name in ("frames.csv", "episode.json"):
-        shutil.copy(episode / name, out / name)
-    augmentation = json.loads((episode / "augmentation.json").read_text())
-    for name, poses in augmentation["objects"].items():
-        X = np.linalg.inv(to_centre_frame(source, name, source.object_poses[name][0])) @ gt[f"T_base_{name}"][0]
-        augmentation["objects"][name] = {k: (np.asarray(v) @ X).tolist() for k, v in poses.items()}
-    (out / "augmentation.json").write_text(json.dumps(augmentation))
-    return out
 
 
 def _registration(episodes: list[Path]) -> dict:

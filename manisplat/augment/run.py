@@ -26,6 +26,7 @@ from manisplat.augment.writer import write_demonstration
 from manisplat.episode.fsio import atomic_write_bytes
 from manisplat.robot.arms import ArmSet
 from manisplat.twin import Twin, TwinFormatError
+from manisplat.twin.support import MAX_STEP
 
 log = logging.getLogger("manisplat.augment")
 PLOT = "tcp_paths.png"
@@ -140,6 +141,10 @@ def _load_twin(recon: Path) -> Twin:
                     "recording has commands", recon, reconstruct_command(recon))
     else:
         log.info("commands: the source's, led by %.2f of a frame, skills pressing as it did", twin.commands.lead)
+    if twin.support is not None and twin.support.smallest_edge() > MAX_STEP:
+        log.warning("the recording's depth comes in steps of %.1f mm where the table is seen: a step under %.1f mm "
+                    "(a plate's rim) cannot be told from them, so placements are refused only on larger ones",
+                    1e3 * twin.support.resolution, 1e3 * twin.support.smallest_edge())
     return twin
 
 

@@ -317,10 +317,11 @@ class Augmenter:
                 if T is None:
                     continue
                 drop = support.edge_drop(footprint @ T[:2, :3].T + T[:2, 3])
-                if drop is not None and drop > max_step:
+                if drop is not None and drop > support.smallest_edge(max_step):
                     raise Rejected("unstable_support", f"{name} at its new {which[2:]} pose would rest on the edge of a "
                                                        f"surface: it falls away {drop * 1e3:.1f} mm (more than "
-                                                       f"{max_step * 1e3:g} mm) near the object's centre")
+                                                       f"{support.smallest_edge(max_step) * 1e3:g} mm) near the "
+                                                       "object's centre")
 
     def _motion(self, name, q_a, q_b, v_a, v_b, width, plan, s_mid, vl, al, config, *, seed, timings, attempts) -> dict:
         world, held = self._world_at(plan, s_mid)

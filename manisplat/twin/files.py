@@ -60,7 +60,8 @@ def save_twin(twin: Twin, folder: Path) -> None:
         tensors.update({f"shadows/{k}": v.detach().cpu().clone() for k, v in sh.state_dict().items()})
     support = None
     if twin.support is not None:
-        support = {"origin": list(twin.support.origin), "cell": twin.support.cell}
+        support = {"origin": list(twin.support.origin), "cell": twin.support.cell,
+                   "resolution": twin.support.resolution}
         tensors["support/heights"] = torch.as_tensor(twin.support.heights)
     meta = {
         "format": FORMAT, "version": VERSION, **_demonstration_meta(demos[0], twin.graph.objects),
@@ -140,7 +141,7 @@ def load_twin(folder: Path, *, backend: str = "auto", device: torch.device | str
     support = None
     if meta.get("support") is not None:  # twins written before support maps have none
         support = SupportMap(tensor("support/heights").numpy(), tuple(meta["support"]["origin"]),
-                             float(meta["support"]["cell"]))
+                             float(meta["support"]["cell"]), float(meta["support"].get("resolution", 0.0)))
     try:
         demonstrations = [_demonstration(meta, tensor)] + [_demonstration(d, tensor, f"demonstration/{k}/")
                                                            for k, d in enumerate(meta.get("demonstrations", []), start=1)]

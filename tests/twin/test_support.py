@@ -102,3 +102,29 @@ def test_stereo_noise_that_every_frame_shares_is_not_taken_for_edges():
     assert noisy_map.edge_drop(square((cx, cy))) < MAX_STEP
     for inside in (0.01, 0.0):  # a corner just on the plate (centre 1.5 cm outside) may be missed now
         assert noisy_map.edge_drop(square((cx, cy - radius + inside))) > MAX_STEP, inside
+
+
+def test_depth_in_steps_sets_the_smallest_edge_and_continuous_depth_does_not():
+    """A stereo camera's depth in 1/8 pixel disparity steps (4 mm at 0.6 m here): a flat
+    table then measures as terraces one step apart, which are not taken for edges; the same scene
+    in exact depth keeps the 2.5 mm threshold and finds the plate's rim. (The camera leans 10
+    deg: a table exactly square to it would take one depth value, the plate another, and nothing
+    would tell those two from two steps of the depth.)"""
+    T = camera_above()
+    lean = np.eye(4)
+    lean[1:3, 1:3] = [[np.cos(0.17), -np.sin(0.17)], [np.sin(0.17), np.cos(0.17)]]
+    T = T @ lean
+    exact = table_with_plate(T)
+    f_b = 150.0 * 0.075  # focal length (px) x baseline (m): steps of z^2 / (f b) / 8
+    stepped = f_b / (np.round(f_b / exact * 8) / 8)
+    frames = np.repeat(stepped[None], 3, axis=0)
+    stepped_map = support_map(frames, np.ones_like(frames, dtype=bool), K, T)
+    expected = 0.6 ** 2 / f_b / 8
+    assert stepped_map.resolution == pytest.approx(expected, rel=0.15)
+    assert stepped_map.smallest_edge() == pytest.approx(1.5 * stepped_map.resolution)
+    table = [stepped_map.edge_drop(square((x, y))) for x in (0.20, 0.30, 0.40) for y in (-0.12, -0.08)]
+    assert max(table) < stepped_map.smallest_edge(), table
+    exact_map = support_map(np.repeat(exact[None], 3, axis=0), np.ones((3, H, W), dtype=bool), K, T)
+    assert exact_map.smallest_edge() == MAX_STEP
+    cx, cy, radius, _ = PLATE
+    assert exact_map.edge_drop(square((cx, cy - radius))) > exact_map.smallest_edge()
