@@ -16,20 +16,18 @@ away from the highest one under a footprint within a margin of its centre; augme
 discards placements where it falls by more than :data:`MAX_STEP`.
 
 A stereo camera's depth scatters by millimetres at a metre, and the median over frames does not
-remove what is the same in every frame: from a camera 1.1 m to the side of the workspace (the oak
-preset of shared/tools/degrade), 220 of 419 spots on the open table and the mats measured as on an
-edge (the cells' scatter, 1.1 mm, spanned by the 5th and 95th percentiles), against 45 from the
-same scene's exact depth. A map whose cells scatter more than :data:`NOISY_CELL` about their
-neighbours is therefore smoothed by a median over :data:`SMOOTH_CELLS` x :data:`SMOOTH_CELLS`
-cells, which keeps steps: 2 spots taken for edges that are not, 6 of the 45 edges missed. A map
-of exact depth is left as it is.
+remove what is the same in every frame. A map whose cells scatter more than :data:`NOISY_CELL`
+about their neighbours is therefore smoothed by a median over :data:`SMOOTH_CELLS` x
+:data:`SMOOTH_CELLS` cells, which keeps steps; a map of exact depth is left as it is.
 
 A stereo camera's depth also comes in steps: its disparity in 1/8 pixel, so about 7 mm at 1.07 m
 for the oak preset's 320x240 camera. Seen from above, a flat table becomes terraces one step
 apart, each edge as high as the plate whose rim tips a box: no smoothing tells them apart. The
 map keeps its ``resolution``, the height one depth step makes where its background is seen
 (:func:`depth_step`), and a step smaller than :data:`RESOLVED_STEPS` of them is not taken for an
-edge (:meth:`SupportMap.smallest_edge`).
+edge (:meth:`SupportMap.smallest_edge`). Measured ad hoc from a camera 1.1 m to the side of the
+workspace (the oak preset of shared/tools/degrade): of 376 spots exact depth judges flat, 220 were
+taken for edges, none with both changes; of its 43 edges, 35 are then too low to be seen.
 """
 
 from __future__ import annotations
