@@ -25,7 +25,7 @@ from manisplat.robot.arms import ArmSet
 from manisplat.twin import Phase, Twin
 from manisplat.twin.commands import CommandRelation
 from manisplat.twin.rig import TwinArm
-from manisplat.twin.support import EDGE_MARGIN, SupportMap
+from manisplat.twin.support import EDGE_MARGIN, MAX_STEP, SupportMap
 
 
 @dataclass(frozen=True)
@@ -68,6 +68,10 @@ class BaseFrameSupport:
     def edge_drop(self, footprint_xy: np.ndarray, margin: float = EDGE_MARGIN) -> float | None:
         """:meth:`SupportMap.edge_drop` of a base-frame footprint [N, 2] (m)."""
         return self.support.edge_drop(self._world_xy(footprint_xy), margin)
+
+    def smallest_edge(self, max_step: float = MAX_STEP) -> float:
+        """:meth:`SupportMap.smallest_edge` (heights do not depend on the frame's x, y)."""
+        return self.support.smallest_edge(max_step)
 
 
 @dataclass(eq=False)
