@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from benchmarks._harness import BENCH_DIR, shared_dir
+from benchmarks.bench_policy_sim import _seeds
 from benchmarks.bench_reconstruct_cobot import imported_sample
 from manisplat.geometry import se3_exp
 from manisplat.reconstruct.data import load_episode_data
@@ -43,7 +44,7 @@ ERROR_DEG, ERROR_MM = 0.3, 3.0
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks rig_check", description=__doc__.splitlines()[0])
     p.add_argument("--samples", default=",".join(SAMPLES), help=f"shared samples (default {','.join(SAMPLES)})")
-    p.add_argument("--seeds", default="1,2,3,4,5", help="calibration error seeds (default 1,2,3,4,5)")
+    p.add_argument("--seeds", type=_seeds, default="1,2,3,4,5", help="calibration error seeds (default 1,2,3,4,5)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_calib" / "rig_check.json")
     args = p.parse_args(argv)
     shared = shared_dir()
@@ -53,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for sample in args.samples.split(","):
             episode, prompts = imported_sample(shared, sample, Path(tmp))
-            for seed in (int(s) for s in args.seeds.split(",")):
+            for seed in args.seeds:
                 rows.append({"sample": sample, "seed": seed, **check_once(episode, prompts, seed)})
                 print(json.dumps({k: v for k, v in rows[-1].items() if k != "items"}
                                  | {name: item["after"] for name, item in rows[-1]["items"].items()}), flush=True)

@@ -267,15 +267,23 @@ def _mask_regions(data: EpisodeData, meshes: dict, modelled: set[str]) -> dict[s
     return by_link
 
 
-def _drawn_regions(data: EpisodeData, frame: int, meshes: dict[str, trimesh.Trimesh], T: np.ndarray,
+def _link_poses(data: EpisodeData, frame: int) -> np.ndarray:
+    """[L, 4, 4] float64 every link's pose at the frame's joints (order ``robot.link_names``)."""
+    return data.robot.forward_kinematics(data.q[frame].double(), data.gripper[frame].double()).numpy()
+
+
+def _camera_pose(data: EpisodeData, poses: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """[4, 4] the camera's pose for ``T`` (its pose relative to the carrier, as fitted) with the
+    links at ``poses`` (:func:`_link_poses`): on its mount link for a riding camera."""
+    return poses[list(data.robot.link_names).index(data.mount)] @ T if data.riding else T
+
+
+def _drawn_regions(data: EpisodeData, poses: np.ndarray, meshes: dict[str, trimesh.Trimesh], T: np.ndarray,
                    stride: int = 2) -> dict[str, np.ndarray]:
     """Link -> [H, W] bool: the pixels (every ``stride``-th row and column) whose ray from the
-    camera at ``T`` (its pose relative to the carrier, as fitted) meets that link first, the links
-    placed by the frame's forward kinematics: the robot's pixels of a camera without masks."""
+    camera at ``T`` (world frame) meets that link first, the links at ``poses`` (the frame's
+    :func:`_link_poses`): the robot's pixels of a camera without masks."""
     names = list(data.robot.link_names)
-    poses = data.robot.forward_kinematics(data.q[frame].double(), data.gripper[frame].double()).numpy()
-    if data.riding:
-        T = poses[names.index(data.mount)] @ T
     W, H = data.size
     rows, cols = np.mgrid[0:H:stride, 0:W:stride]
     K = data.K_opencv.numpy()
@@ -314,8 +322,11 @@ def _measurements(data: EpisodeData, frames: list[int], meshes: dict, modelled: 
     share = points_per_frame / max(len(robot_links) if by_link is None else sum(map(len, by_link.values())), 1)
     out = []
     for f in frames:
+        if by_link is None or surface is not None:  # the camera where the recorded extrinsic puts it
+            poses = _link_poses(data, f)
+            T_cam = _camera_pose(data, poses, T0)
         if by_link is None:
-            regions = {link: (region, 1) for link, region in _drawn_regions(data, f, robot_links, T0).items()}
+            regions = {link: (region, 1) for link, region in _drawn_regions(data, poses, robot_links, T_cam).items()}
         else:
             masks = data.masks[f].numpy()
             regions = {link: (np.isin(masks, values), len(values)) for link, values in by_link.items()}
@@ -324,7 +335,7 @@ def _measurements(data: EpisodeData, frames: list[int], meshes: dict, modelled: 
             if len(p) >= 20:
                 out.append(_Measured(f, link, p, p[:, 2] ** -4.0))  # 1 / sigma_z^2 up to a constant
         if surface is not None:
-            out += _scene_measurements(data, f, surface, T0, regions, erode_px, points_per_frame, rng)
+            out += _scene_measurements(data, f, surface, T_cam, regions, erode_px, points_per_frame, rng)
     if out:
         z_ref = np.median(np.concatenate([m.points[:, 2] for m in out]))
         for m in out:  # relative to the median depth (dimensionless)
@@ -332,11 +343,12 @@ def _measurements(data: EpisodeData, frames: list[int], meshes: dict, modelled: 
     return out
 
 
-def _scene_measurements(data: EpisodeData, frame: int, surface: trimesh.Trimesh, T0: np.ndarray, robot: dict,
+def _scene_measurements(data: EpisodeData, frame: int, surface: trimesh.Trimesh, T_cam: np.ndarray, robot: dict,
                         erode_px: int, count: int, rng: np.random.Generator) -> list[_Measured]:
     """A riding camera's points of the static ``surface`` in ``frame``: its pixels with depth
     ``erode_px`` away from every robot region (``robot``: link -> (region, labels)), at most
-    ``count``, split by the quadrant of the world they show at ``T0`` (one group each)."""
+    ``count``, split by the quadrant of the world they show with the camera at ``T_cam`` (world
+    frame; one group each)."""
     covered = np.zeros(data.depth.shape[1:], np.uint8)
     for region, _ in robot.values():
         covered |= region.astype(np.uint8)
@@ -345,10 +357,7 @@ def _scene_measurements(data: EpisodeData, frame: int, surface: trimesh.Trimesh,
     if erode_px:
         covered = cv2.dilate(covered, np.ones((2 * erode_px + 1, 2 * erode_px + 1), np.uint8))
     p = _robot_points(data, frame, covered == 0, erode_px, count, rng)
-    names = list(data.robot.link_names)
-    T_link = data.robot.forward_kinematics(data.q[frame].double(), data.gripper[frame].double()).numpy()[
-        names.index(data.mount)]
-    world = p @ (T_link @ T0)[:3, :3].T + (T_link @ T0)[:3, 3]
+    world = p @ T_cam[:3, :3].T + T_cam[:3, 3]
     part = world_region(world, surface.bounds.mean(0))
     return [_Measured(frame, f"{SCENE}{k}", p[part == k], p[part == k, 2] ** -4.0)
             for k in range(4) if (part == k).sum() >= 20]
@@ -396,7 +405,7 @@ def refine_extrinsic(data: EpisodeData, frames: list[int], *, max_frames: int = 
     ``time_offset`` also estimates the camera/joint time offset where the arm moves enough to
     tell it (:data:`MAX_TIME_CONDITION`); it is applied (``time_applied``) when at least
     :data:`MIN_TIME_OFFSET_S` and three times its bootstrap spread (not for a riding camera,
-    whose own pose moves with the joints: its time is the fixed camera's). ``depth_weighting``
+    whose own pose moves with the joints: its recorded latency stands). ``depth_weighting``
     False weighs every depth point the same (the ablation in
     ``benchmarks/bench_reconstruct_degraded_ablation.py``). ``links``: fit to these links only
     (one arm of several, :mod:`manisplat.reconstruct.rig_check`); default every link with a mesh.
@@ -559,7 +568,7 @@ class Spread:
 def _bootstrap(systems: list[tuple[np.ndarray, np.ndarray]], k: int, n: int, rng: np.random.Generator) -> Spread:
     """The one-step solutions of the first ``k`` parameters with the frames' normal equations
     ``systems`` resampled with replacement (a resample that leaves a direction unconstrained, as
-    the fit itself would refuse, is drawn again)."""
+    the fit itself would refuse, is left out)."""
     Hs = np.stack([H[:k, :k] for H, _ in systems])
     gs = np.stack([g[:k] for _, g in systems])
     steps = []
