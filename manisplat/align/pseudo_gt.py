@@ -12,7 +12,9 @@
   before, so a small tilt gained in the hand (a slip) is undone at the release. Both are bounded
   (:data:`MAX_CENTRING`, :data:`MAX_SETTLE_DEG`): a larger correction means the assumption does
   not hold (an object grasped by a handle, a deliberate re-orientation), and the prior keeps the
-  rigid grasp. On the shared pick-and-place they take the pseudo poses' error where the object
+  rigid grasp. The centring needs both extremes the pads touch in the model: its extent along
+  the closing axis must match the opening where the pads stopped (:func:`centring_offset`).
+  On the shared pick-and-place they take the pseudo poses' error where the object
   is left from 0.55 cm / 1.28 deg to 0.33 cm / 1.07 deg (start-anchored;
   benchmarks/results_reconstruct/pseudo_gt.json).
 * Where an object is let go, the frames' depth says where it came to rest: once the pads have
@@ -62,6 +64,7 @@ class PseudoPoses:
 
 
 MAX_CENTRING = 0.015  # m: a larger offset between the pads' centre and the object's is not a squeeze
+CENTRING_WIDTH_TOLERANCE = 0.004  # m: the model's extent along the closing axis against the pads' opening
 MAX_SETTLE_DEG = 10.0  # a larger tilt at the release is a deliberate re-orientation, not a slip
 MAX_REST_SHIFT = 0.01  # m: a larger shift of where an object was let go is not a slip or a drop
 MIN_REST_POINTS = 100  # fewer surface points after a release than this, and the prior stands
@@ -78,15 +81,16 @@ def kinematic_prior(T_start: np.ndarray, tcp: np.ndarray, events: list[GripperEv
     with the TCP until the release, where it stays. Returns (poses [T, 4, 4], held [T] bool).
 
     Args:
-        model_points: the object's surface points [M, 3] (object frame): with them a grasp
-            centres the object between the pads (module doc).
+        model_points: the object's surface points [M, 3] (object frame): with them and ``width``
+            a grasp centres the object between the pads (module doc, :func:`centring_offset`).
         up: the object-frame direction [3] that points up while it rests (default: the one
             that points up at ``T_start``); with ``model_points`` a release settles it back.
         width: the gripper opening [T] (m). With it a grasp closes over the frames until the
             opening stops shrinking (:func:`close_end`): the object rests meanwhile, pushed along
             the closing axis only by the pad that reaches it (:func:`pad_push`), and is held
-            from the frame the pads stopped, centred at the TCP of that frame. Without it the
-            object is held (and centred) from the grasp frame.
+            from the frame the pads stopped, centred at the TCP of that frame when the model
+            shows both sides the pads touch. Without it the object is held from the grasp frame,
+            as seen (no opening: nothing to check a centring against).
     """
     T = len(tcp)
     closes = {e.grasp: close_end(width, e.grasp, e.release) if width is not None else e.grasp for e in events}
@@ -100,8 +104,8 @@ def kinematic_prior(T_start: np.ndarray, tcp: np.ndarray, events: list[GripperEv
         if f in closes:
             rest, closed_at = current, closes[f]
             offset, axis = 0.0, tcp[closed_at][:3, 1]
-            if model_points is not None and f > 0:  # at 0 it was held already: centred then
-                offset = centring_offset(current, tcp[closed_at], model_points)
+            if model_points is not None and width is not None and f > 0:  # at 0 it was held already
+                offset = centring_offset(current, tcp[closed_at], model_points, float(width[closed_at]))
         if closed_at is not None:
             closing = f < closed_at  # the pads have not stopped (only with ``width``)
             current = rest.copy()
@@ -143,11 +147,17 @@ def pad_push(offset: float, extra_opening: float) -> float:
     return float(np.sign(offset) * max(abs(offset) - remaining, 0.0))
 
 
-def centring_offset(T_obj: np.ndarray, T_tcp: np.ndarray, model_points: np.ndarray) -> float:
+def centring_offset(T_obj: np.ndarray, T_tcp: np.ndarray, model_points: np.ndarray, opening: float) -> float:
     """How far (m) the object's centre lies from the pads' midplane along the TCP's closing axis
     (y): the middle of the model points' extent along that axis (1st-99th percentiles, robust to
-    stray points). 0 when it exceeds :data:`MAX_CENTRING` (the pads hold a part away from the
-    centre: a handle, a long object's end; the grasp is kept as seen).
+    stray points), where the pads stopped ``opening`` (m) apart. 0 (the grasp kept as seen) when
+    the offset exceeds :data:`MAX_CENTRING` (the pads hold a part away from the centre: a
+    handle, a long object's end) or when the extent differs from the opening by more than
+    :data:`CENTRING_WIDTH_TOLERANCE`: the pads touch the object's two extremes along the axis,
+    so a model that spans less than the opening shows one side only (a can seen from the side,
+    its near half; from 1 m its far rim lost at the silhouette), and its middle is off by half
+    of what is hidden (5-10 mm on the viewpoint set of benchmarks/_viewpoints.py, against a true
+    offset of 0.1-2.4 mm); one that spans more is noise or not what the pads hold.
 
     Measured along the closing axis itself: the pads touch the object's extremes along it, and
     a box seen from one side spans its full width there; the middle of a bounding box in the
@@ -156,6 +166,8 @@ def centring_offset(T_obj: np.ndarray, T_tcp: np.ndarray, model_points: np.ndarr
     axis = T_tcp[:3, 1]
     along = (model_points @ T_obj[:3, :3].T + T_obj[:3, 3] - T_tcp[:3, 3]) @ axis
     low, high = np.percentile(along, [1, 99])
+    if abs((high - low) - opening) > CENTRING_WIDTH_TOLERANCE:
+        return 0.0
     offset = float((low + high) / 2)
     return offset if abs(offset) <= MAX_CENTRING else 0.0
 

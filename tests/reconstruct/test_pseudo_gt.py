@@ -159,15 +159,31 @@ def box_points(size=(0.04, 0.04, 0.05), n=12):
 
 def test_grasp_centres_the_object_between_the_pads():
     tcp = tcp_track()
+    width = np.full(60, 0.04)  # the pads stopped on the box's 4 cm
     start = np.eye(4)
     start[:3, 3] = tcp[20, :3, 3] + [0.0, 0.004, 0.0]  # 4 mm off the pads' centre along TCP y
-    poses, _ = kinematic_prior(start, tcp, [GripperEvents(20, None)], model_points=box_points())
+    poses, _ = kinematic_prior(start, tcp, [GripperEvents(20, None)], model_points=box_points(), width=width)
     assert np.allclose(poses[19], start)  # at rest until the grasp
     assert np.allclose(poses[20:, :3, 3], tcp[20:, :3, 3], atol=1e-9)  # centred, then carried
     far = start.copy()
     far[1, 3] += 0.03  # 3.4 cm off: not between the pads, no centring
-    poses, _ = kinematic_prior(far, tcp, [GripperEvents(20, None)], model_points=box_points())
+    poses, _ = kinematic_prior(far, tcp, [GripperEvents(20, None)], model_points=box_points(), width=width)
     assert np.allclose(poses[20], far)
+
+
+def test_no_centring_from_a_model_that_shows_one_side_the_pads_touch():
+    """The box seen from its +y side only (its -y half hidden, as a camera looking along the
+    closing axis sees it): the middle of what is seen is 1 cm off the box's centre, and the
+    grasp is kept as seen; without the opening nothing checks the model, and it is kept too."""
+    tcp = tcp_track()
+    start = np.eye(4)
+    start[:3, 3] = tcp[20, :3, 3] + [0.0, 0.004, 0.0]
+    near_half = box_points()[box_points()[:, 1] >= 0]
+    poses, _ = kinematic_prior(start, tcp, [GripperEvents(20, None)], model_points=near_half,
+                               width=np.full(60, 0.04))
+    assert np.allclose(poses[20:, :3, 3], tcp[20:, :3, 3] + [0.0, 0.004, 0.0], atol=1e-9)
+    poses, _ = kinematic_prior(start, tcp, [GripperEvents(20, None)], model_points=box_points())
+    assert np.allclose(poses[20:, :3, 3], tcp[20:, :3, 3] + [0.0, 0.004, 0.0], atol=1e-9)
 
 
 def test_the_object_rests_while_the_pads_close_and_is_held_centred_once_they_stop():
