@@ -40,6 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--iters", type=int, default=1000, help="the twins' training iterations (default 1000)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_augment" / "augment_viewpoints.json")
     args = p.parse_args(argv)
+    options = sys.argv[1:] if argv is None else argv  # as run, for the result's command
     simenv = os.environ.get("MANISPLAT_SIMENV")
     if not simenv:
         raise MissingBenchmarkData("set MANISPLAT_SIMENV to a mujoco venv's python: the physics check needs it")
@@ -64,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
             print(json.dumps(row, default=float), flush=True)
     n = sum(r["physics_n"] for r in rows)
     result = {"benchmark": "augment_viewpoints",
-              "command": "python -m benchmarks augment_viewpoints " + " ".join(argv or sys.argv[1:]),
+              "command": "python -m benchmarks augment_viewpoints " + " ".join(options),
               "summary": {"scenes": len(rows), "demonstrations": n,
                           "physics_success_clean": sum(r["physics_success_clean"] for r in rows),
                           "physics_success_rate": sum(r["physics_success_clean"] for r in rows) / max(n, 1)},

@@ -147,6 +147,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=2, help="episodes checked at once (one process each)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_reconstruct" / "camera_check.json")
     args = p.parse_args(argv)
+    options = sys.argv[1:] if argv is None else argv  # as run, for the result's command
     viewpoints = args.viewpoints
     conditions = args.conditions.split(",")
     if unknown := [c for c in conditions if c not in CONDITIONS]:
@@ -164,7 +165,7 @@ def main(argv: list[str] | None = None) -> int:
         rows = list(pool.map(_run_one, tasks))
     for r, task in zip(rows, tasks):
         r["condition"] = next(c for c in conditions if f"/{c}/" in task[0])
-    result = {"benchmark": "camera_check", "command": "python -m benchmarks camera_check " + " ".join(argv or sys.argv[1:]),
+    result = {"benchmark": "camera_check", "command": "python -m benchmarks camera_check " + " ".join(options),
               "summary": {c: summary([r for r in rows if r["condition"] == c]) for c in conditions},
               "rows": rows, "wall_s": round(time.perf_counter() - t0, 1)}
     for r in rows:

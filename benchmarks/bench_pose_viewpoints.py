@@ -67,6 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=2, help="episodes at once (one process each, one thread)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_reconstruct" / "pose_viewpoints.json")
     args = p.parse_args(argv)
+    options = sys.argv[1:] if argv is None else argv  # as run, for the result's command
     ctx = BenchContext(threads=1, quick=False, shared=shared_dir(), out_dir=args.out.parent)
     tasks = []
     for v, clean in zip(args.viewpoints, clean_episodes(ctx, args.viewpoints)):
@@ -77,9 +78,10 @@ def main(argv: list[str] | None = None) -> int:
     with ProcessPoolExecutor(args.workers) as pool:
         rows = list(pool.map(_run_one, tasks))
     for r in rows:
-        print(f"{r['viewpoint']:16s} oak{r['degrade_seed']} {r['object']:4s} start-anchored {r['anchored_et_cm']:.2f} cm "
-              f"(worst frame {r['anchored_et_max_cm']:.2f}, where left {r['final_et_cm']:.2f}), fitted {r['fitted_et_cm']:.2f} cm")
-    result = {"benchmark": "pose_viewpoints", "command": "python -m benchmarks pose_viewpoints " + " ".join(argv or sys.argv[1:]),
+        print(f"{r['viewpoint']:16s} oak{r['degrade_seed']} {r['object']:4s} start-anchored "
+              f"{r['anchored_et_cm']:.2f} cm (worst frame {r['anchored_et_max_cm']:.2f}, where left "
+              f"{r['final_et_cm']:.2f}), fitted {r['fitted_et_cm']:.2f} cm")
+    result = {"benchmark": "pose_viewpoints", "command": "python -m benchmarks pose_viewpoints " + " ".join(options),
               "summary": summary(rows), "rows": rows, "wall_s": round(time.perf_counter() - t0, 1)}
     print(json.dumps(result["summary"], indent=1))
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -38,6 +38,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--iters", type=int, default=3000, help="training iterations (default 3000, the CPU default)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_reconstruct" / "reconstruct_viewpoints.json")
     args = p.parse_args(argv)
+    options = sys.argv[1:] if argv is None else argv  # as run, for the result's command
     viewpoints = args.viewpoints
     ctx = BenchContext(threads=2, quick=False, shared=shared_dir(), out_dir=args.out.parent)
     logging.disable(logging.WARNING)
@@ -58,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
                    "p90": float(np.percentile([r[k] for r in rows if r.get(k) is not None], 90))}
                for k in keys if any(r.get(k) is not None for r in rows)}
     result = {"benchmark": "reconstruct_viewpoints",
-              "command": "python -m benchmarks reconstruct_viewpoints " + " ".join(argv or sys.argv[1:]),
+              "command": "python -m benchmarks reconstruct_viewpoints " + " ".join(options),
               "threads": "torch's default (the machine's cores)", "summary": summary, "rows": rows,
               "wall_s": round(time.perf_counter() - t0, 1)}
     args.out.parent.mkdir(parents=True, exist_ok=True)
