@@ -75,3 +75,12 @@ def select(names: str) -> list[Viewpoint]:
     if unknown := [n for n in names.split(",") if n not in by_name]:
         raise argparse.ArgumentTypeError(f"unknown viewpoints {unknown}; choose from {', '.join(by_name)}")
     return [by_name[n] for n in names.split(",")]
+
+
+def add_set_options(parser: argparse.ArgumentParser, workers_help: str) -> None:
+    """``--viewpoints`` (default: all), ``--seeds`` (the degrade seeds, default
+    :data:`DEGRADE_SEEDS`) and ``--workers`` (default 2), as the benchmarks over the whole set take
+    them."""
+    parser.add_argument("--viewpoints", type=select, default=",".join(v.name for v in VIEWPOINTS))
+    parser.add_argument("--seeds", default=",".join(map(str, DEGRADE_SEEDS)), help="degrade seeds (default 1,2,3)")
+    parser.add_argument("--workers", type=int, default=2, help=workers_help)

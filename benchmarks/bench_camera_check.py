@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks._harness import BENCH_DIR, BenchContext, MissingBenchmarkData, shared_dir
-from benchmarks._viewpoints import DEGRADE_SEEDS, VIEWPOINTS, clean_episodes, root, select
+from benchmarks._viewpoints import add_set_options, clean_episodes, root
 
 OWN_OPTIONS = True
 #: condition -> degrade_episode.py's effects (the seed draws the calibration error's axis)
@@ -142,9 +142,7 @@ def _run_one(task: tuple[str, float, str, list[int], str, int, str]) -> dict:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks camera_check", description=__doc__.splitlines()[0])
     p.add_argument("--conditions", default="oak", help=f"comma-separated, of {', '.join(CONDITIONS)} (default oak)")
-    p.add_argument("--viewpoints", type=select, default=",".join(v.name for v in VIEWPOINTS))
-    p.add_argument("--seeds", default=",".join(map(str, DEGRADE_SEEDS)), help="degrade seeds (default 1,2,3)")
-    p.add_argument("--workers", type=int, default=2, help="episodes checked at once (one process each)")
+    add_set_options(p, "episodes checked at once (one process each)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_reconstruct" / "camera_check.json")
     args = p.parse_args(argv)
     options = sys.argv[1:] if argv is None else argv  # as run, for the result's command

@@ -25,7 +25,7 @@ import numpy as np
 
 from benchmarks._degraded import reconstruct, robot_of
 from benchmarks._harness import BENCH_DIR, BenchContext, shared_dir
-from benchmarks._viewpoints import DEGRADE_SEEDS, VIEWPOINTS, clean_episodes, select
+from benchmarks._viewpoints import add_set_options, clean_episodes
 from benchmarks.bench_camera_check import degraded_copy
 
 OWN_OPTIONS = True
@@ -62,9 +62,7 @@ def summary(rows: list[dict]) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks pose_viewpoints", description=__doc__.splitlines()[0])
-    p.add_argument("--viewpoints", type=select, default=",".join(v.name for v in VIEWPOINTS))
-    p.add_argument("--seeds", default=",".join(map(str, DEGRADE_SEEDS)), help="degrade seeds (default 1,2,3)")
-    p.add_argument("--workers", type=int, default=2, help="episodes at once (one process each, one thread)")
+    add_set_options(p, "episodes at once (one process each, one thread)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_reconstruct" / "pose_viewpoints.json")
     args = p.parse_args(argv)
     options = sys.argv[1:] if argv is None else argv  # as run, for the result's command
