@@ -42,7 +42,7 @@ from typing import Callable
 import numpy as np
 
 from manisplat.align.phases import GripperEvents, Segment
-from manisplat.align.surface_fit import SurfaceModel
+from manisplat.align.surface_fit import MAX_VIEW_CHANGE_DEG, ModelViews, SurfaceModel
 from manisplat.align.tracking import ObjectView, TrackerSettings, track_object
 
 log = logging.getLogger(__name__)
@@ -200,7 +200,8 @@ def open_end(width: np.ndarray, release: int, end: int, *, tolerance: float = 2e
 
 def follow_slip(poses: np.ndarray, events: list[GripperEvents], surface: Callable[[int], np.ndarray | None],
                 model_points: np.ndarray, tcp: np.ndarray, width: np.ndarray | None = None,
-                observe: frozenset[int] = frozenset(), keep: np.ndarray | None = None) -> list[np.ndarray]:
+                observe: frozenset[int] = frozenset(), keep: np.ndarray | None = None,
+                views: ModelViews | None = None) -> list[np.ndarray]:
     """Shift ``poses`` [T, 4, 4] (in place) over each held stretch, from the frame the pads stopped
     closing to the release, by the object's slip in the hand that the frames' depth shows.
 
@@ -209,7 +210,8 @@ def follow_slip(poses: np.ndarray, events: list[GripperEvents], surface: Callabl
     in the TCP's frame (``tcp`` [T, 4, 4]), are smoothed by a running median over
     2 :data:`SLIP_WINDOW` + 1 fitted frames and interpolated between them (held-out frames,
     ``observe``, and frames that ``keep`` [T] bool marks, e.g. tracked poses, are not fitted; the
-    held-out ones are shifted). A stretch takes its slip only when the depth misfit of its fitted
+    held-out ones are shifted; nor are frames that see the object from elsewhere than its model
+    was seen from, ``views``). A stretch takes its slip only when the depth misfit of its fitted
     frames drops clearly (:data:`SLIP_EVIDENCE_RATIO`, :data:`SLIP_EVIDENCE_M`); the object then
     rests, until the next grasp, shifted as it was let go. Returns each taken slip where its
     stretch ended [3] (m, TCP frame)."""
@@ -218,9 +220,12 @@ def follow_slip(poses: np.ndarray, events: list[GripperEvents], surface: Callabl
     for e in events:
         first = close_end(width, e.grasp, e.release) if width is not None else e.grasp
         end = e.release if e.release is not None else T
-        fitted, shifts, surfaces, sparse = [], [], [], 0
+        fitted, shifts, surfaces, sparse, unseen = [], [], [], 0, 0
         for f in range(first, end):
             if f in observe or (keep is not None and keep[f]):
+                continue
+            if views is not None and not views.sees(poses[f]):
+                unseen += 1
                 continue
             if (X := surface(f)) is None or len(X) < MIN_SLIP_POINTS:
                 sparse += 1
@@ -231,7 +236,11 @@ def follow_slip(poses: np.ndarray, events: list[GripperEvents], surface: Callabl
                 shifts.append(tcp[f, :3, :3].T @ shift)
                 surfaces.append(X)
         if len(fitted) < 2 * SLIP_WINDOW + 1:
-            if sparse > (end - first) // 2:
+            if unseen > (end - first) // 2:
+                log.info("grasp at frame %d: slip in the hand not checked: %d of %d held frames see the object from "
+                         "more than %.0f deg away from where its model was seen (surface the model lacks); the rigid "
+                         "grasp stands", e.grasp, unseen, end - first, MAX_VIEW_CHANGE_DEG)
+            elif sparse > (end - first) // 2:
                 log.info("grasp at frame %d: slip in the hand not checked: the object shows fewer than %d depth "
                          "points in %d of %d held frames (small in the image, or hidden by the gripper); the rigid "
                          "grasp stands", e.grasp, MIN_SLIP_POINTS, sparse, end - first)
@@ -268,11 +277,12 @@ def follow_slip(poses: np.ndarray, events: list[GripperEvents], surface: Callabl
 
 def settle_at_rest(poses: np.ndarray, events: list[GripperEvents], surface: Callable[[int], np.ndarray | None],
                    model_points: np.ndarray, width: np.ndarray | None = None,
-                   observe: frozenset[int] = frozenset()) -> list[np.ndarray]:
+                   observe: frozenset[int] = frozenset(), views: ModelViews | None = None) -> list[np.ndarray]:
     """Shift ``poses`` [T, 4, 4] (in place) from each release to the next grasp by where the
     frames' depth says the object rests (:meth:`SurfaceModel.fit_shift` over the frames after the pads opened;
     ``surface(f)``: the object's visible surface [M, 3] in frame f, or None without depth).
-    Held-out frames (``observe``) are shifted but not fitted. Returns the shifts applied."""
+    Held-out frames (``observe``) are shifted but not fitted, nor are frames that see the object
+    from elsewhere than its model was seen from (``views``). Returns the shifts applied."""
     T, shifts, model = len(poses), [], SurfaceModel(model_points)
     grasps = sorted(e.grasp for e in events)
     for e in events:
@@ -280,7 +290,13 @@ def settle_at_rest(poses: np.ndarray, events: list[GripperEvents], surface: Call
             continue
         end = min([g for g in grasps if g > e.release], default=T)
         first = open_end(width, e.release, end) if width is not None else e.release
-        fitted = [(f, X) for f in range(first, end) if f not in observe and (X := surface(f)) is not None]
+        seen = [f for f in range(first, end) if f not in observe and (views is None or views.sees(poses[f]))]
+        if first < end and not seen:
+            log.info("release at frame %d: where it rests not fitted: the camera sees it there from more than %.0f deg "
+                     "away from where its model was seen (surface the model lacks); the prior stands", e.release,
+                     MAX_VIEW_CHANGE_DEG)
+            continue
+        fitted = [(f, X) for f in seen if (X := surface(f)) is not None]
         if sum(len(X) for _, X in fitted) < MIN_REST_POINTS:
             continue
         shift, before, after = model.fit_shift([X for _, X in fitted], [poses[f] for f, _ in fitted])
@@ -306,6 +322,7 @@ def hybrid_pseudo_poses(
     width: np.ndarray | None = None,
     surface: Callable[[int], np.ndarray | None] | None = None,
     slip_from_depth: bool = True,
+    views: ModelViews | None = None,
 ) -> PseudoPoses:
     """Pseudo poses for every frame from the phases.
 
@@ -323,6 +340,8 @@ def hybrid_pseudo_poses(
         surface: frame -> the object's visible surface [M, 3] (base frame; None without depth):
             with ``model_points``, where a released object rests (:func:`settle_at_rest`) and,
             with ``slip_from_depth``, how it slipped in the hand while held (:func:`follow_slip`).
+        views: where ``model_points`` were seen from: frames that see the object from elsewhere
+            are not fitted (:class:`~manisplat.align.surface_fit.ModelViews`).
     """
     T = len(tcp)
     poses = np.zeros((T, 4, 4))
@@ -352,8 +371,9 @@ def hybrid_pseudo_poses(
     shifts, slips = [], []
     if surface is not None and model_points is not None:
         if slip_from_depth:
-            slips = follow_slip(poses, events, surface, model_points, tcp, width, observe, keep=from_tracking)
-        shifts = settle_at_rest(poses, events, surface, model_points, width, observe)
+            slips = follow_slip(poses, events, surface, model_points, tcp, width, observe, keep=from_tracking,
+                                views=views)
+        shifts = settle_at_rest(poses, events, surface, model_points, width, observe, views=views)
     return PseudoPoses(poses, source, from_tracking, shifts, slips)
 
 

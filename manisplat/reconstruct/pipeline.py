@@ -12,6 +12,7 @@ import torch
 
 from manisplat.align.phases import DEFAULT_TAU, GripperEvents, Segment, gripper_events, segment_phases
 from manisplat.align.pseudo_gt import PseudoPoses, hybrid_pseudo_poses, make_tracker, tracked_baseline
+from manisplat.align.surface_fit import ModelViews
 from manisplat.align.tracking import ObjectView, TrackerSettings, visible_surface
 from manisplat.reconstruct.data import EpisodeData, ReconstructionInputError
 from manisplat.reconstruct.fusion import (CameraConsensus, EpisodeSpan, JoinedAlignment, camera_consensus,
@@ -157,12 +158,13 @@ def build_fused(datas: list[EpisodeData], plans: list[Plan], config: TrainConfig
         starts, model = _object_starts(datas, spans, obj.label, sh_degree=config.sh_degree)
         objects[obj.name] = model
         model_points = model.params["means"].detach().double().numpy()
+        views = ModelViews.of(camera.T_base_cam[:3, 3], starts)  # the model: every episode's first frame
         parts = []
         for d, p, span, T_start in zip(datas, plans, spans, starts):
             log.info("%s: aligning %s", span.name, obj.name)
             track, width, _ = object_carrier(d, T_start[:3, 3])
             parts.append(align_object(d, obj.label, T_start, track, width, moves=obj.moves, tau=tau,
-                                      model_points=model_points,
+                                      model_points=model_points, views=views,
                                       observe=frozenset(p.test_frames)))
         alignments[obj.name] = join_alignments(parts, spans)
         trajectories[obj.name] = ObjectTrajectory(alignments[obj.name].pseudo.poses, alignments[obj.name].pseudo.source,
@@ -231,7 +233,7 @@ def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.nda
                  masks_from_model: bool = False, model_points: np.ndarray | None = None,
                  settings: TrackerSettings = TrackerSettings(),
                  observe: frozenset[int] = frozenset(), rest_from_depth: bool = True,
-                 slip_from_depth: bool = True) -> ObjectAlignment:
+                 slip_from_depth: bool = True, views: ModelViews | None = None) -> ObjectAlignment:
     """Phases, hybrid pseudo poses and (for moving objects) the tracking-only baseline, with the
     tool track that handles the object: ``tcp`` [T, 4, 4] T_base_tcp and the gripper ``width`` [T] m
     (one arm's, or :func:`~manisplat.reconstruct.masks.object_carrier`'s through handovers).
@@ -244,7 +246,9 @@ def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.nda
     anything learning from them. ``rest_from_depth``: with ``model_points`` and depth, a released
     object is placed where the depth says it rests
     (:func:`~manisplat.align.pseudo_gt.settle_at_rest`); with it and ``slip_from_depth``, a held one
-    follows its slip in the hand (:func:`~manisplat.align.pseudo_gt.follow_slip`).
+    follows its slip in the hand (:func:`~manisplat.align.pseudo_gt.follow_slip`), from the frames
+    that see it from near where ``model_points`` were seen (``views``; default: this episode's
+    first frame, ``T_start``).
     """
     events = gripper_events(width)
     segments = segment_phases(tcp[:, :3, 3], width, T_start[:3, 3], tau=tau)
@@ -270,9 +274,11 @@ def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.nda
             return None
         return visible_surface((data.masks[f] == label).numpy(), data.depth[f].numpy(), K, T_base_cam)
 
+    if views is None:
+        views = ModelViews.of(T_base_cam[:3, 3], [T_start])
     pseudo = hybrid_pseudo_poses(segments, T_start, tcp, events, tracker, model_points, observe,
                                  width=width, surface=surface,
-                                 slip_from_depth=slip_from_depth)
+                                 slip_from_depth=slip_from_depth, views=views)
     baseline = tracked_baseline(tracker, data.n_frames, T_start)
     return ObjectAlignment(segments, events, pseudo, baseline)
 

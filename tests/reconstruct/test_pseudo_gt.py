@@ -11,7 +11,7 @@ import torch
 from manisplat.align.phases import GripperEvents, Segment
 from manisplat.align.pseudo_gt import (ATTACHED, MAX_REST_SHIFT, STATIC, TRACKED, close_end, follow_slip,
                                       hybrid_pseudo_poses, kinematic_prior, open_end, pad_push, settle_at_rest)
-from manisplat.align.surface_fit import SurfaceModel
+from manisplat.align.surface_fit import MAX_VIEW_CHANGE_DEG, ModelViews, SurfaceModel
 from manisplat.align.tracking import DepthEvidence, TrackerSettings, track_object
 from manisplat.geometry import so3_exp
 
@@ -306,6 +306,39 @@ def test_settle_at_rest_moves_the_frames_after_the_release_and_learns_nothing_fr
     far = lambda f: visible_box_surface(poses[f] @ _translation([MAX_REST_SHIFT * 0.9] * 3), seed=f)  # noqa: E731
     kept = poses.copy()
     assert settle_at_rest(kept, [GripperEvents(5, 18)], far, model, width) == [] and np.allclose(kept, poses)
+
+
+def test_model_views_see_an_object_turned_less_than_the_limit():
+    camera = np.array([1.0, 0.0, 0.5])
+    T = np.eye(4)
+    views = ModelViews.of(camera, [T])
+    turned = lambda deg: so3_exp(torch.tensor([0.0, 0.0, np.radians(deg)], dtype=torch.float64)).numpy()  # noqa: E731
+    assert views.sees(T) and views.sees(np.block([[turned(MAX_VIEW_CHANGE_DEG - 5), np.zeros((3, 1))], [0, 0, 0, 1]]))
+    assert not views.sees(np.block([[turned(MAX_VIEW_CHANGE_DEG + 5), np.zeros((3, 1))], [0, 0, 0, 1]]))
+    both = ModelViews.of(camera, [T, np.block([[turned(60.0), np.zeros((3, 1))], [0, 0, 0, 1]])])
+    assert both.sees(np.block([[turned(60.0 + MAX_VIEW_CHANGE_DEG - 5), np.zeros((3, 1))], [0, 0, 0, 1]]))
+
+
+def test_no_rest_fit_from_frames_that_see_the_object_from_elsewhere_than_its_model():
+    """The frames after the release see the box from 60 deg away from where its model was seen:
+    their depth is not fitted and the prior stands; seen from where the model was, it is."""
+    model = box_points(n=41)
+    T = 30
+    poses = np.repeat(np.eye(4)[None], T, axis=0)
+    poses[:, :3, 3] = [0.3, 0.1, 0.025]
+    width = np.full(T, 0.07)
+    width[18:21] = [0.045, 0.055, 0.065]
+    surface = lambda f: visible_box_surface(poses[f] @ _translation([0.001, 0.002, -0.002]), seed=f)  # noqa: E731
+    camera = poses[0, :3, 3] + [0.6, 0.0, 0.5]
+    turned = poses[0].copy()
+    turned[:3, :3] = so3_exp(torch.tensor([0.0, 0.0, np.radians(60.0)], dtype=torch.float64)).numpy()
+    kept = poses.copy()
+    assert settle_at_rest(kept, [GripperEvents(5, 18)], surface, model, width,
+                          views=ModelViews.of(camera, [turned])) == [] and np.allclose(kept, poses)
+    settled = poses.copy()
+    shifts = settle_at_rest(settled, [GripperEvents(5, 18)], surface, model, width,
+                            views=ModelViews.of(camera, [poses[0]]))
+    assert len(shifts) == 1 and np.linalg.norm(shifts[0] - [0.001, 0.002, -0.002]) < 3e-4
 
 
 def carried_box(T=50, grasp=10, release=40):
