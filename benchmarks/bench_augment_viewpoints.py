@@ -65,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
             print(json.dumps(row, default=float), flush=True)
     n = sum(r["physics_n"] for r in rows)
     result = {"benchmark": "augment_viewpoints",
-              "command": "python -m benchmarks augment_viewpoints " + " ".join(options),
+              "command": " ".join(["python -m benchmarks augment_viewpoints", *options]),
               "summary": {"scenes": len(rows), "demonstrations": n,
                           "physics_success_clean": sum(r["physics_success_clean"] for r in rows),
                           "physics_success_rate": sum(r["physics_success_clean"] for r in rows) / max(n, 1)},

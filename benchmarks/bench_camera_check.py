@@ -163,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
         rows = list(pool.map(_run_one, tasks))
     for r, task in zip(rows, tasks):
         r["condition"] = next(c for c in conditions if f"/{c}/" in task[0])
-    result = {"benchmark": "camera_check", "command": "python -m benchmarks camera_check " + " ".join(options),
+    result = {"benchmark": "camera_check", "command": " ".join(["python -m benchmarks camera_check", *options]),
               "summary": {c: summary([r for r in rows if r["condition"] == c]) for c in conditions},
               "rows": rows, "wall_s": round(time.perf_counter() - t0, 1)}
     for r in rows:

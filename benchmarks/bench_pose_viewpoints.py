@@ -79,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{r['viewpoint']:16s} oak{r['degrade_seed']} {r['object']:4s} start-anchored "
               f"{r['anchored_et_cm']:.2f} cm (worst frame {r['anchored_et_max_cm']:.2f}, where left "
               f"{r['final_et_cm']:.2f}), fitted {r['fitted_et_cm']:.2f} cm")
-    result = {"benchmark": "pose_viewpoints", "command": "python -m benchmarks pose_viewpoints " + " ".join(options),
+    result = {"benchmark": "pose_viewpoints", "command": " ".join(["python -m benchmarks pose_viewpoints", *options]),
               "summary": summary(rows), "rows": rows, "wall_s": round(time.perf_counter() - t0, 1)}
     print(json.dumps(result["summary"], indent=1))
     args.out.parent.mkdir(parents=True, exist_ok=True)

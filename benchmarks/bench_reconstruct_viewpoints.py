@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
                    "p90": float(np.percentile([r[k] for r in rows if r.get(k) is not None], 90))}
                for k in keys if any(r.get(k) is not None for r in rows)}
     result = {"benchmark": "reconstruct_viewpoints",
-              "command": "python -m benchmarks reconstruct_viewpoints " + " ".join(options),
+              "command": " ".join(["python -m benchmarks reconstruct_viewpoints", *options]),
               "threads": "torch's default (the machine's cores)", "summary": summary, "rows": rows,
               "wall_s": round(time.perf_counter() - t0, 1)}
     args.out.parent.mkdir(parents=True, exist_ok=True)
