@@ -23,7 +23,6 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._degraded import reconstruct, robot_of
 from benchmarks._harness import BENCH_DIR, BenchContext, shared_dir
 from benchmarks._viewpoints import add_set_options, clean_episodes
 from benchmarks.bench_camera_check import degraded_copy
@@ -34,6 +33,8 @@ KEYS = ("anchored_et_cm", "anchored_er_deg", "anchored_et_max_cm", "final_et_cm"
 
 def pose_row(episode: Path) -> dict:
     """The object's pseudo-pose errors of one ``manisplat-reconstruct --iters 1`` run."""
+    from benchmarks._degraded import reconstruct, robot_of  # torch and the pipeline: not for --help
+
     logging.disable(logging.WARNING)
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
