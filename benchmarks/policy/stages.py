@@ -49,11 +49,13 @@ class Stages:
             renders with depth and masks). Augmentation still starts from the source alone
             (``--sources``): only the twin's appearance changes. Other than 1, it gets its own
             folders, policies and rollouts.
+        symmetry: manisplat-augment's --symmetry items ("box=4"): grasps on the face nearest the
+            source's wrist; any gets its own folders, policies and rollouts.
     """
 
     def __init__(self, source: Path, work: Path, simenv: Path, tools: Path, object_range: tuple[float, ...],
                  place_range: tuple[float, ...], twin_iters: int, image_size: tuple[int, int] | None = None,
-                 augment_speed: float = 1.0, twin_episodes: int = 1) -> None:
+                 augment_speed: float = 1.0, twin_episodes: int = 1, symmetry: tuple[str, ...] = ()) -> None:
         self.source, self.work, self.simenv, self.tools = source, work, simenv, tools
         self.object_range, self.place_range, self.twin_iters = object_range, place_range, twin_iters
         self.data_report: dict[str, Any] = {}
@@ -63,7 +65,9 @@ class Stages:
         self.twin_episodes = int(twin_episodes)
         #: B's and D's folders, policies and rollouts of another speed or twin: "", "_speed0.6", "_twin5", ...
         self.variant_tag = ("" if self.augment_speed == 1.0 else f"_speed{self.augment_speed:g}") + \
-            ("" if self.twin_episodes == 1 else f"_twin{self.twin_episodes}")
+            ("" if self.twin_episodes == 1 else f"_twin{self.twin_episodes}") + \
+            "".join(f"_sym-{item.replace('=', '')}" for item in symmetry)
+        self.symmetry = tuple(symmetry)
 
     # ------------------------------------------------------------------ demonstrations
     def twin(self) -> Path:
@@ -112,7 +116,8 @@ class Stages:
             augment([str(twin), "--n", str(n), "--out", str(out), "--workers", "2", "--seed", "0", "-q", "--overwrite",
                      "--speed", str(self.augment_speed), "--sources", self.source.name,
                      "--object-range", ",".join(map(str, self.object_range)),
-                     "--target-range", ",".join(map(str, self.place_range))])
+                     "--target-range", ",".join(map(str, self.place_range)),
+                     *(f"--symmetry={item}" for item in self.symmetry)])
             self.data_report[f"augment_{n}_s"] = round(time.perf_counter() - start, 1)
         report = json.loads((out / "augment_report.json").read_text())
         self.data_report[f"augment_{n}"] = {k: report[k] for k in ("requested", "drawn", "valid", "reasons")}

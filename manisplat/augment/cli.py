@@ -83,6 +83,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sources", default="all", metavar="all|EPISODE,...",
                    help="the source demonstrations of a twin of several episodes: all (the default), or those named; "
                         "sample k starts from the k-th of them in turn, and the report names each one's source")
+    p.add_argument("--symmetry", action="append", default=[], metavar="OBJECT=ORDER|round",
+                   help="OBJECT looks the same turned by 360/ORDER deg about the vertical (a square box: 4; a "
+                        "rectangular one: 2) or by any angle (round: a can); its new grasps take the face that keeps "
+                        "the wrist nearest the source's, and where it is left may differ from the place pose by "
+                        "such a turn (repeatable; default: none, every grasp turns with its object)")
     p.add_argument("--poses", type=Path, metavar="FILE",
                    help="exact object poses per demonstration instead of sampling (see below; --n is ignored)")
     p.add_argument("--max-samples", type=positive(int),
@@ -108,6 +113,11 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.speed > 1.0:
         parser.error(f"--speed must be in (0, 1]; got {args.speed}")
+    try:
+        from manisplat.augment.symmetry import parse_symmetries
+        args.symmetries = parse_symmetries(args.symmetry)
+    except ValueError as exc:
+        parser.error(f"--symmetry: {exc}")
     if any(v < 0 for v in (*args.object_range, *args.target_range, *args.handover_range)):
         parser.error("--object-range, --target-range and --handover-range take non-negative half-widths")
     try:

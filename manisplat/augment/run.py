@@ -20,6 +20,7 @@ from tqdm import tqdm
 from manisplat.augment.bimanual import BimanualPlanner, BimanualTrajectory
 from manisplat.augment.cli import REPORT, load_poses_file
 from manisplat.augment.frames import from_centre_frame, to_centre_frame
+from manisplat.augment.symmetry import Symmetry
 from manisplat.augment.trajectory import (AugmentConfig, NewTrajectory, ObjectTarget, Rejected, augment_trajectory,
                                           sample_targets)
 from manisplat.augment.writer import write_demonstration
@@ -61,7 +62,8 @@ def run_augmentation(args: argparse.Namespace) -> dict:
     if args.overwrite:
         _remove_earlier(args.out)
     args.out.mkdir(parents=True, exist_ok=True)
-    config = AugmentConfig(speed=args.speed, planner_timeout_s=args.planner_timeout, seed=args.seed)
+    config = AugmentConfig(speed=args.speed, planner_timeout_s=args.planner_timeout, seed=args.seed,
+                           symmetries=_symmetries(twin, args.symmetries))
     planners = {name: _arms_planner(source, args) for name, source in sources.items()}
     explicit = _explicit_targets(args.poses, twin) if args.poses else None
     wanted = len(explicit) if explicit is not None else args.n
@@ -159,6 +161,18 @@ def _sources(twin: Twin, args: argparse.Namespace) -> dict[str, Twin]:
     if len(sources) > 1:
         log.info("sources: %d demonstrations (%s), taken in turn", len(sources), ", ".join(sources))
     return sources
+
+
+def _symmetries(twin: Twin, symmetries: dict[str, Symmetry]) -> dict[str, Symmetry]:
+    """``--symmetry``, checked against the twin's objects and logged."""
+    unknown = sorted(set(symmetries) - set(twin.objects))
+    if unknown:
+        raise AugmentError(f"--symmetry names {', '.join(unknown)}; the twin's objects are {', '.join(twin.objects)}")
+    for name, symmetry in symmetries.items():
+        turns = "any turn" if symmetry.order is None else f"turns of {360 / symmetry.order:g} deg"
+        log.info("%s: the same shape after %s about the vertical: grasped on the face nearest the source's wrist",
+                 name, turns)
+    return symmetries
 
 
 def _arms_planner(twin: Twin, args: argparse.Namespace) -> BimanualPlanner | None:
@@ -266,6 +280,7 @@ def _report(twin: Twin, args: argparse.Namespace, samples: list[Sample], wanted:
         "ranges": {"object": args.object_range, "target": args.target_range, "units": "m, m, deg",
                    **({"handover": args.handover_range, "handover_units": "m, m, m"} if handover else {})},
         "speed": args.speed, "workers": args.workers,
+        "symmetry": {name: "round" if sym.order is None else sym.order for name, sym in args.symmetries.items()},
         "skill_error_max": {"mm": max(skill_mm, default=0.0), "deg": max(skill_deg, default=0.0)},
         "motions": {"planned": len(motions), "by_method": dict(Counter(r["method"] for r in motions)),
                     "joined_at_rest": sum(r.get("joined") == "at rest" for r in motions)},

@@ -49,6 +49,7 @@ from manisplat.augment.planning import RESOLUTION, path_free, plan_path
 from manisplat.augment.sampling import ObjectTarget, sample_targets
 from manisplat.augment.skills import SkillResult, SourceSpline, solve_skill
 from manisplat.augment.source import SourceDemo, SourceError, source_demo
+from manisplat.augment.symmetry import Symmetry, axis_point, wrist_keeping_turn
 from manisplat.augment.timing import REST, TimedMotion, TimingError, time_motion
 from manisplat.augment.validation import check_all, dense_collision, skill_relative_errors, within_limits
 from manisplat.twin.support import MAX_STEP
@@ -78,6 +79,8 @@ class AugmentConfig:
             no support map).
         min_slow: skill name -> the least uniform slow-down it is solved at (1: its recorded
             pace); a handover skill is played by both arms at one pace.
+        symmetries: object name -> its shape's symmetry about the vertical: its skills grasp
+            the face that keeps the wrist nearest the source's (:mod:`.symmetry`).
     """
 
     speed: float = 1.0
@@ -89,6 +92,7 @@ class AugmentConfig:
     headroom: float = 0.95
     max_support_step: float = MAX_STEP
     min_slow: dict[str, float] = field(default_factory=dict)
+    symmetries: dict[str, Symmetry] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not (0 < self.speed <= 1):
@@ -173,7 +177,15 @@ class Augmenter:
         self.kin.lower, self.kin.upper = lo, hi
 
     # ------------------------------------------------------------------ objects over source time
-    def _object_plan(self, targets: dict[str, ObjectTarget]) -> dict[str, dict]:
+    def _object_plan(self, targets: dict[str, ObjectTarget], symmetries: dict[str, Symmetry]) -> dict[str, dict]:
+        """Per object: where it starts and is left ("T_start", "T_place"), the source poses its
+        skills move from ("T_src_start", "T_src_place") and its grasp offset "G", the last three
+        turned by the symmetry turn of its pick ("turn_deg"); "T_place" by the place's turn too.
+        Symmetries of objects this arm's source does not hold are ignored (another arm's)."""
+        unknown = set(targets) - set(self.src.objects)
+        if unknown:
+            raise ValueError(f"targets for unknown objects {sorted(unknown)}; the twin's objects are "
+                             f"{list(self.src.objects)}")
         plan = {}
         for name, obj in self.src.objects.items():
             tgt = targets.get(name)
@@ -184,11 +196,29 @@ class Augmenter:
                 T_place = tgt.T_place
             else:
                 T_place = obj.T_placed
-            plan[name] = {"T_start": T_start, "T_place": T_place, "src": obj}
-        unknown = set(targets) - set(self.src.objects)
-        if unknown:
-            raise ValueError(f"targets for unknown objects {sorted(unknown)}; the twin's objects are {list(self.src.objects)}")
+            S = place_turn = np.eye(4)
+            symmetry = symmetries.get(name)
+            if symmetry is not None and obj.G is not None:
+                axis = self.symmetry_axis(name)
+                S = wrist_keeping_turn(symmetry, obj.T_rest, T_start, axis)
+                if T_place is not None:
+                    place_turn = wrist_keeping_turn(symmetry, obj.T_placed, T_place, axis)
+                    T_place = T_place @ place_turn @ np.linalg.inv(S)
+            unturn = np.linalg.inv(S)
+            plan[name] = {"T_start": T_start, "T_place": T_place, "src": obj,
+                          "T_src_start": obj.T_rest @ unturn,
+                          "T_src_place": None if obj.T_placed is None else obj.T_placed @ unturn,
+                          "G": None if obj.G is None else obj.G @ unturn,
+                          "turn_deg": (_turn_deg(T_start, S), _turn_deg(T_place, place_turn))
+                          if symmetry is not None else None}
         return plan
+
+    def symmetry_axis(self, name: str) -> np.ndarray:
+        """A point [3] (object frame, m) of the vertical axis a symmetric ``name`` turns about
+        (:func:`~manisplat.augment.symmetry.axis_point`; its source pose at the grasp says where up is)."""
+        obj = self.src.objects[name]
+        up = obj.T_rest[2, :3]  # the base's z in the object frame
+        return axis_point(np.linalg.inv(obj.G), self.scene.object_box[name][1], up)
 
     def _world_at(self, plan: dict, s: float) -> tuple[dict, str | None]:
         """Objects on the table at source time ``s`` (name -> pose) and the one held, if any."""
@@ -207,7 +237,7 @@ class Augmenter:
     def run(self, targets: dict[str, ObjectTarget], config: AugmentConfig) -> NewTrajectory:
         timings = {"ik_s": 0.0, "planning_s": 0.0, "timing_s": 0.0, "validation_s": 0.0}
         src, kin = self.src, self.kin
-        plan = self._object_plan(targets)
+        plan = self._object_plan(targets, config.symmetries)
         tol_pos, tol_rot = config.ik_position_tol, config.ik_rotation_tol
 
         # objects placed where other things are
@@ -220,11 +250,10 @@ class Augmenter:
         transforms = []
         for i, spec in enumerate(src.skills):
             p = plan[spec.object]
-            obj = p["src"]
             if spec.relative_to == "place":
-                T_new, T_src = p["T_place"], obj.T_placed
+                T_new, T_src = p["T_place"], p["T_src_place"]
             else:
-                T_new, T_src = p["T_start"], obj.T_rest
+                T_new, T_src = p["T_start"], p["T_src_start"]
             D = T_new @ np.linalg.inv(T_src)
             transforms.append((D, T_new, T_src))
             skills.append(solve_skill(kin, self.spline, spec.first, spec.last, D, dt=self.dt, vlim=self.vlim,
@@ -325,7 +354,7 @@ class Augmenter:
 
     def _motion(self, name, q_a, q_b, v_a, v_b, width, plan, s_mid, vl, al, config, *, seed, timings, attempts) -> dict:
         world, held = self._world_at(plan, s_mid)
-        G = plan[held]["src"].G if held is not None else None
+        G = plan[held]["G"] if held is not None else None
         state = _State(world, held, G)
         state.apply(self.scene)
         t0 = time.perf_counter()
@@ -432,7 +461,7 @@ class Augmenter:
     def _settle(self, q_end, v_end, width, plan, s, config, timings, attempts) -> dict:
         q_stop = self._stop_point(q_end, v_end)
         world, held = self._world_at(plan, s)
-        state = _State(world, held, plan[held]["src"].G if held else None)
+        state = _State(world, held, plan[held]["G"] if held else None)
         state.apply(self.scene)
         t0 = time.perf_counter()
         try:
@@ -488,7 +517,7 @@ class Augmenter:
                         allowed = set(self.skill_allowed[i])
                         if held is not None:
                             allowed |= {self.scene.pair_index[_pair(self.scene, f"held:{held}", "table")]}
-                        st = _State(world, held, plan[held]["src"].G if held else None, frozenset(allowed),
+                        st = _State(world, held, plan[held]["G"] if held else None, frozenset(allowed),
                                     spec.object)
                         prev_key = key
                     qs.append(res.q[j])
@@ -521,7 +550,7 @@ class Augmenter:
             for f in range(T):
                 world, held = self._world_at(plan, svals[f]) if p is not None else ({}, None)
                 if held == name:
-                    rows[f] = tcp_all[f] @ p["src"].G
+                    rows[f] = tcp_all[f] @ p["G"]
                 elif p is not None and name in world:
                     rows[f] = world[name]
                 else:
@@ -565,6 +594,8 @@ class Augmenter:
                               for s, r in zip(self.src.skills, skills)],
                    "times_s": {k: round(v, 5) for k, v in timings.items()},
                    "commands": {"lead_frames": round(self.commands.lead, 4), "press": self.commands.recorded},
+                   "symmetry_turns_deg": {name: {"pick": p["turn_deg"][0], "place": p["turn_deg"][1]}
+                                          for name, p in plan.items() if p["turn_deg"] is not None},
                    "convention": self.convention_note}
         return NewTrajectory(t=t, q=q, gripper=gripper, action_q=action_q, action_gripper=action_gripper,
                              object_poses=object_poses, segments=segments, objects=objects, validation=validation,
@@ -572,6 +603,14 @@ class Augmenter:
 
 
 # ---------------------------------------------------------------------- helpers
+def _turn_deg(T: np.ndarray | None, S: np.ndarray) -> float:
+    """The turn about the vertical (deg, rounded) of the object-frame turn ``S`` [4, 4] of an object at ``T``."""
+    if T is None:
+        return 0.0
+    R = T[:3, :3] @ S[:3, :3] @ T[:3, :3].T
+    return round(math.degrees(math.atan2(R[1, 0], R[0, 0])), 3)
+
+
 def _pair(scene: SceneCollision, a: str, b: str) -> tuple[int, int]:
     ids = {scene.gm.geometryObjects[i].name: i for i in range(len(scene.gm.geometryObjects))}
     x, y = ids[a], ids[b]
