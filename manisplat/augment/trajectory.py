@@ -19,7 +19,10 @@ the arm brakes along the skill's last velocity to rest, the path is planned agai
 rest, and it speeds up into the next skill along the mirror of braking (the planner record's
 ``joined``: "at speed" or "at rest").
 A demonstration whose last skill ends moving gets an extra Motion, "M_settle", that brings the
-arm to rest along its direction of travel (so the last commanded frame is at rest).
+arm to rest along its direction of travel (so the last commanded frame is at rest). The first and
+last motions keep the source's still frames (:func:`.source.still_frames`): the arm rests at its
+first joints as long as the source did before it moved, and at its last ones as long as it did
+after (``planner["still_frames"]``).
 
 Conventions of :class:`NewTrajectory`:
 * frames at ``t = k / fps`` of the parent; ``action_q`` the commands, in the relation the
@@ -81,6 +84,9 @@ class AugmentConfig:
             pace); a handover skill is played by both arms at one pace.
         symmetries: object name -> its shape's symmetry about the vertical: its skills grasp
             the face that keeps the wrist nearest the source's (:mod:`.symmetry`).
+        still_frames: frames the arm holds still before its first motion and after its last
+            (None: the source's own, :meth:`.source.SourceDemo.still_frames`); several arms
+            share the fewest of theirs.
     """
 
     speed: float = 1.0
@@ -93,6 +99,7 @@ class AugmentConfig:
     max_support_step: float = MAX_STEP
     min_slow: dict[str, float] = field(default_factory=dict)
     symmetries: dict[str, Symmetry] = field(default_factory=dict)
+    still_frames: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
         if not (0 < self.speed <= 1):
@@ -177,7 +184,8 @@ class Augmenter:
         self.kin.lower, self.kin.upper = lo, hi
 
     # ------------------------------------------------------------------ objects over source time
-    def _object_plan(self, targets: dict[str, ObjectTarget], symmetries: dict[str, Symmetry]) -> dict[str, dict]:
+    def _object_plan(self, targets: dict[str, ObjectTarget],
+                     symmetries: dict[str, Symmetry] | None = None) -> dict[str, dict]:
         """Per object: where it starts and is left ("T_start", "T_place"), the source poses its
         skills move from ("T_src_start", "T_src_place") and its grasp offset "G", the last three
         turned by the symmetry turn of its pick ("turn_deg"); "T_place" by the place's turn too.
@@ -197,7 +205,7 @@ class Augmenter:
             else:
                 T_place = obj.T_placed
             S = place_turn = np.eye(4)
-            symmetry = symmetries.get(name)
+            symmetry = (symmetries or {}).get(name)
             if symmetry is not None and obj.G is not None:
                 axis = self.symmetry_axis(name)
                 S = wrist_keeping_turn(symmetry, obj.T_rest, T_start, axis)
@@ -297,9 +305,29 @@ class Augmenter:
         if pieces[-1]["kind"] == "skill" and np.abs(v_end).max() > REST_SPEED:  # a motion ends at rest
             width = float(pieces[-1]["result"].gripper[-1])
             pieces.append(self._settle(last_q[-1], v_end, width, plan, float(src.n_frames - 1), config, timings, attempts))
+        still = self._hold_still(pieces, config.still_frames or self.src.still_frames())
 
         # 3. assemble frames
-        return self._assemble(pieces, skills, transforms, plan, config, timings, attempts)
+        trajectory = self._assemble(pieces, skills, transforms, plan, config, timings, attempts)
+        trajectory.planner["still_frames"] = still
+        return trajectory
+
+    @staticmethod
+    def _hold_still(pieces: list[dict], still: tuple[int, int]) -> dict[str, int]:
+        """``still`` (start, end) frames added to the first and last motions, which start and end
+        at rest: the arm holds its first joints that many frames before it moves, and its last
+        ones after. Returns {"start": frames, "end": frames} as added."""
+        start, end = still
+        added = {"start": 0, "end": 0}
+        if pieces[0]["kind"] == "motion" and start:
+            q = pieces[0]["q"]
+            pieces[0]["q"] = np.concatenate([np.repeat(q[:1], start, axis=0), q])
+            added["start"] = start
+        if pieces[-1]["kind"] == "motion" and end:
+            q = pieces[-1]["q"]
+            pieces[-1]["q"] = np.concatenate([q, np.repeat(q[-1:], end, axis=0)])
+            added["end"] = end
+        return added
 
     def _check_placements(self, plan: dict) -> None:
         """A moved object must not overlap other objects, obstacles or the background."""
