@@ -203,3 +203,18 @@ def test_a_twin_without_recorded_commands_is_named_with_how_to_keep_them(recon, 
     assert len(warned) == 1 and "manisplat-reconstruct" in warned[0]
     frames = Episode.open(tmp_path / "aug" / "episode_0000").frames
     np.testing.assert_allclose(frames.actions[:-1, :6], frames.q[1:], atol=1e-12)
+
+
+def test_symmetry_is_checked_and_recorded(recon, tmp_path, capsys):
+    """--symmetry: a malformed item is a usage error, an object the twin lacks a named bad input,
+    and a declared one reaches the report and every episode's planner record."""
+    with pytest.raises(SystemExit) as exc:
+        main([str(recon), "--n", "1", "--out", str(tmp_path / "a"), "--symmetry", "box=square"])
+    assert exc.value.code == 2 and "--symmetry" in capsys.readouterr().err
+    assert main([str(recon), "--n", "1", "--out", str(tmp_path / "b"), "-q", "--symmetry", "mug=4"]) == 2
+    assert "--symmetry names mug; the twin's objects are box" in capsys.readouterr().err
+    out = tmp_path / "c"
+    assert main([str(recon), "--n", "1", "--out", str(out), "-q", "--seed", "3", "--symmetry", "box=4"]) == 0
+    assert json.loads((out / "augment_report.json").read_text())["symmetry"] == {"box": 4}
+    record = json.loads((out / "episode_0000" / "augmentation.json").read_text())
+    assert set(record["planner"]["symmetry_turns_deg"]["box"]) == {"pick", "place"}
