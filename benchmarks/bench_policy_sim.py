@@ -83,6 +83,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--symmetry", action="append", default=[], metavar="OBJECT=ORDER|round",
                    help="manisplat-augment --symmetry for B and D (e.g. box=4: the 4 x 4 cm box's grasps on the face "
                         "nearest the source's wrist; default none)")
+    p.add_argument("--train-seed", type=int, default=0,
+                   help="the policies' training seed (default 0): other seeds measure how much one run varies")
     p.add_argument("--work", type=Path, help="stage outputs, reused when present (default a new temporary folder)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_policy", help="JSON and plots")
     p.add_argument("--quick", action="store_true", help="a smoke run: 4 demonstrations, short training, 4 rollouts")
@@ -115,7 +117,8 @@ def main(argv: list[str] | None = None) -> int:
     stages = Stages(source=source, work=work, simenv=Path(simenv), tools=shared / "tools" / "sim",
                     object_range=OBJECT_RANGE, place_range=PLACE_RANGE, twin_iters=args.twin_iters or
                     (300 if quick else 1000), image_size=args.image_size, augment_speed=args.augment_speed,
-                    twin_episodes=args.twin_episodes, symmetry=tuple(args.symmetry))
+                    twin_episodes=args.twin_episodes, symmetry=tuple(args.symmetry),
+                    train_seed=args.train_seed)
     started = time.perf_counter()
     args.out.mkdir(parents=True, exist_ok=True)
     suffix = "_quick" if quick else ""

@@ -51,11 +51,14 @@ class Stages:
             folders, policies and rollouts.
         symmetry: manisplat-augment's --symmetry items ("box=4"): grasps on the face nearest the
             source's wrist; any gets its own folders, policies and rollouts.
+        train_seed: the policy's training seed (initial weights, batches); other than 0, its
+            policies and rollouts get their own names (the demonstrations are the same).
     """
 
     def __init__(self, source: Path, work: Path, simenv: Path, tools: Path, object_range: tuple[float, ...],
                  place_range: tuple[float, ...], twin_iters: int, image_size: tuple[int, int] | None = None,
-                 augment_speed: float = 1.0, twin_episodes: int = 1, symmetry: tuple[str, ...] = ()) -> None:
+                 augment_speed: float = 1.0, twin_episodes: int = 1, symmetry: tuple[str, ...] = (),
+                 train_seed: int = 0) -> None:
         self.source, self.work, self.simenv, self.tools = source, work, simenv, tools
         self.object_range, self.place_range, self.twin_iters = object_range, place_range, twin_iters
         self.data_report: dict[str, Any] = {}
@@ -68,6 +71,7 @@ class Stages:
             ("" if self.twin_episodes == 1 else f"_twin{self.twin_episodes}") + \
             "".join(f"_sym-{item.replace('=', '')}" for item in symmetry)
         self.symmetry = tuple(symmetry)
+        self.train_seed = int(train_seed)
 
     # ------------------------------------------------------------------ demonstrations
     def twin(self) -> Path:
@@ -201,13 +205,14 @@ class Stages:
         return [self.source, *self.sim_rendered(self.augmented(n))]
 
     # ------------------------------------------------------------------ policies
-    @staticmethod
-    def budget_of(steps: int) -> Budget:
-        return Budget(steps=steps)
+    def budget_of(self, steps: int) -> Budget:
+        return Budget(steps=steps, seed=self.train_seed)
 
     def key(self, condition: str, n: int) -> str:
-        """The name of a condition's policy and rollouts: A, C50, B50, B50_speed0.6, B50_twin5, ..."""
-        return condition if condition == "A" else f"{condition}{n}" + (self.variant_tag if condition in "BD" else "")
+        """The name of a condition's policy and rollouts: A, C50, B50, B50_speed0.6, B50_twin5,
+        C50_trainseed1, ..."""
+        name = condition if condition == "A" else f"{condition}{n}" + (self.variant_tag if condition in "BD" else "")
+        return name + (f"_trainseed{self.train_seed}" if self.train_seed else "")
 
     def condition(self, condition: str, n: int, steps: int, seeds: list[int], envs: int
                   ) -> tuple[dict[str, Any], list[Rollout]]:

@@ -39,7 +39,7 @@ from manisplat.augment.handover import (HANDOVER_RANGE, HANDOVER_SKILL, Handover
                                         moved_handover, output_frame, skill_segment)
 from manisplat.augment.sampling import ObjectTarget, sample_targets
 from manisplat.augment.source import SourceError
-from manisplat.augment.trajectory import AugmentConfig, NewTrajectory, augment_trajectory, augmenter_for
+from manisplat.augment.trajectory import AugmentConfig, NewTrajectory, augment_trajectory
 from manisplat.robot.hulls import convex, link_hulls
 
 MIN_ARM_CLEARANCE_M = 0.005
@@ -263,10 +263,7 @@ class BimanualPlanner:
         return out
 
     def run(self, targets: dict[str, dict[str, ObjectTarget]], config: AugmentConfig) -> BimanualTrajectory:
-        """Plan every arm, put them on one timeline and check them against each other. The arms
-        hold still at the start and end as long as all of their sources did."""
-        sources = [augmenter_for(arm).src.still_frames() for arm in self.arms.values()]
-        config = replace(config, still_frames=(min(s[0] for s in sources), min(s[1] for s in sources)))
+        """Plan every arm, put them on one timeline and check them against each other."""
         planned = {}
         for name, arm in self.arms.items():
             try:

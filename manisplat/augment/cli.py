@@ -26,8 +26,7 @@ what it does, per demonstration: sample a new start pose for each manipulated ob
   --poses; move each Skill segment rigidly with its object (T_tcp' = T_new inv(T_src) T_tcp) and
   solve it by IK frame by frame (an object declared --symmetry is grasped on the face nearest the
   source's wrist); re-plan every Motion segment collision-free in joint space and time it under
-  the joint velocity/acceleration limits x --speed, the arm resting at its ends as long as the
-  source's did; validate (limits, collisions
+  the joint velocity/acceleration limits x --speed; validate (limits, collisions
   along the densely sampled path, IK residuals, continuity, skill-relative poses); render RGB,
   depth and label masks from the twin; write an episode (docs/episode-format.md, source
   augmentation) with augmentation.json. Invalid samples are discarded and counted by reason.

@@ -12,16 +12,10 @@ Roles of its skills: the one holding the grasp is the "pick" (relative to ``T_re
 holding the release the "place" (relative to ``T_placed``), any other is relative to ``T_rest``
 before the release and ``T_placed`` after it ("reach"). Skills of different objects must not
 overlap in time.
-
-The source's still frames (:func:`still_frames`): how long it holds the arm still before it first
-moves and after it last moves (a person's reaction before a teleoperated demonstration starts).
-A new demonstration keeps them: a policy sees the scene at rest before the arm's first move tells
-it where the arm is going.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -30,10 +24,6 @@ import torch
 from manisplat.align.phases import gripper_events
 from manisplat.geometry import orthonormalize
 from manisplat.twin.commands import CommandRelation
-
-
-STILL_RAD = math.radians(0.5)  # joints within this of the first (last) frame's count as still
-STILL_GRIPPER_M = 0.001        # and the gripper within this
 
 
 class SourceError(ValueError):
@@ -77,12 +67,6 @@ class SourceDemo:
     objects: dict[str, ObjectSource]
     object_poses: dict[str, np.ndarray] = field(default_factory=dict)
     commands: CommandRelation | None = None  # how its commands led and pressed its joints, if recorded
-
-    def still_frames(self) -> tuple[int, int]:
-        """Frames the source holds still at its start (before its first skill) and at its end
-        (after its last skill): :func:`still_frames`."""
-        start, end = still_frames(self.q, self.gripper)
-        return min(start, self.skills[0].first), min(end, self.n_frames - 1 - self.skills[-1].last)
 
     @property
     def n_frames(self) -> int:
@@ -143,19 +127,6 @@ def source_demo(twin) -> SourceDemo:
         raise SourceError("the demonstration has no Skill phase")
     return SourceDemo(float(twin.fps), q, gripper, tcp, skills, objects,
                       {k: np.asarray(v, np.float64) for k, v in twin.object_poses.items()}, twin.commands)
-
-
-def still_frames(q: np.ndarray, gripper: np.ndarray) -> tuple[int, int]:
-    """How many frames of ``q`` [T, dof] (rad) and ``gripper`` [T] (m) after the first stay within
-    ``STILL_RAD`` / ``STILL_GRIPPER_M`` of it, and how many before the last stay within them of
-    the last (0 each when the next frame already moves; T - 1 each when nothing moves)."""
-    def still(order: np.ndarray) -> int:
-        moved = (np.abs(q[order] - q[order[0]]).max(axis=1) > STILL_RAD) | \
-                (np.abs(gripper[order] - gripper[order[0]]) > STILL_GRIPPER_M)
-        return int(np.argmax(moved)) - 1 if moved.any() else len(order) - 1
-
-    frames = np.arange(len(q))
-    return still(frames), still(frames[::-1])
 
 
 def rigid(T: np.ndarray) -> np.ndarray:

@@ -19,10 +19,7 @@ the arm brakes along the skill's last velocity to rest, the path is planned agai
 rest, and it speeds up into the next skill along the mirror of braking (the planner record's
 ``joined``: "at speed" or "at rest").
 A demonstration whose last skill ends moving gets an extra Motion, "M_settle", that brings the
-arm to rest along its direction of travel (so the last commanded frame is at rest). The first and
-last motions keep the source's still frames (:func:`.source.still_frames`): the arm rests at its
-first joints as long as the source did before it moved, and at its last ones as long as it did
-after (``planner["still_frames"]``).
+arm to rest along its direction of travel (so the last commanded frame is at rest).
 
 Conventions of :class:`NewTrajectory`:
 * frames at ``t = k / fps`` of the parent; ``action_q`` the commands, in the relation the
@@ -84,9 +81,6 @@ class AugmentConfig:
             pace); a handover skill is played by both arms at one pace.
         symmetries: object name -> its shape's symmetry about the vertical: its skills grasp
             the face that keeps the wrist nearest the source's (:mod:`.symmetry`).
-        still_frames: frames the arm holds still before its first motion and after its last
-            (None: the source's own, :meth:`.source.SourceDemo.still_frames`); several arms
-            share the fewest of theirs.
     """
 
     speed: float = 1.0
@@ -99,7 +93,6 @@ class AugmentConfig:
     max_support_step: float = MAX_STEP
     min_slow: dict[str, float] = field(default_factory=dict)
     symmetries: dict[str, Symmetry] = field(default_factory=dict)
-    still_frames: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
         if not (0 < self.speed <= 1):
@@ -305,29 +298,9 @@ class Augmenter:
         if pieces[-1]["kind"] == "skill" and np.abs(v_end).max() > REST_SPEED:  # a motion ends at rest
             width = float(pieces[-1]["result"].gripper[-1])
             pieces.append(self._settle(last_q[-1], v_end, width, plan, float(src.n_frames - 1), config, timings, attempts))
-        still = self._hold_still(pieces, config.still_frames or self.src.still_frames())
 
         # 3. assemble frames
-        trajectory = self._assemble(pieces, skills, transforms, plan, config, timings, attempts)
-        trajectory.planner["still_frames"] = still
-        return trajectory
-
-    @staticmethod
-    def _hold_still(pieces: list[dict], still: tuple[int, int]) -> dict[str, int]:
-        """``still`` (start, end) frames added to the first and last motions, which start and end
-        at rest: the arm holds its first joints that many frames before it moves, and its last
-        ones after. Returns {"start": frames, "end": frames} as added."""
-        start, end = still
-        added = {"start": 0, "end": 0}
-        if pieces[0]["kind"] == "motion" and start:
-            q = pieces[0]["q"]
-            pieces[0]["q"] = np.concatenate([np.repeat(q[:1], start, axis=0), q])
-            added["start"] = start
-        if pieces[-1]["kind"] == "motion" and end:
-            q = pieces[-1]["q"]
-            pieces[-1]["q"] = np.concatenate([q, np.repeat(q[-1:], end, axis=0)])
-            added["end"] = end
-        return added
+        return self._assemble(pieces, skills, transforms, plan, config, timings, attempts)
 
     def _check_placements(self, plan: dict) -> None:
         """A moved object must not overlap other objects, obstacles or the background."""

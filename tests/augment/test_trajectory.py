@@ -12,7 +12,7 @@ from scipy.interpolate import CubicSpline
 
 from manisplat.augment.collision import BoxObstacle
 from manisplat.augment.sampling import perturb
-from manisplat.augment.source import source_demo, still_frames
+from manisplat.augment.source import source_demo
 from manisplat.augment.trajectory import (AugmentConfig, ObjectTarget, Rejected, augment_trajectory, augmenter_for,
                                           sample_targets)
 from manisplat.drivers.piper.trajectory import ReplayLimits, Trajectory, check_trajectory, trajectory_figures
@@ -277,31 +277,3 @@ def test_an_object_set_down_across_a_step_is_rejected(twin):
                 augment_trajectory(twin, _source_targets(twin), AugmentConfig())
     finally:
         twin.support = flat
-
-
-def test_still_frames_count_the_rest_before_the_first_move_and_after_the_last():
-    q = np.zeros((20, 6))
-    q[6:15, 0] = np.linspace(0.0, 1.0, 9)  # at 0 up to frame 6, moving from 7, at 1.0 from 14
-    q[14:, 0] = 1.0
-    q[3, 1] = math.radians(0.3)  # noise under the threshold does not end the rest
-    gripper = np.full(20, 0.07)
-    assert still_frames(q, gripper) == (6, 5)
-    gripper[2] = 0.05  # the gripper moving ends it too
-    assert still_frames(q, gripper)[0] == 1
-    assert still_frames(np.zeros((4, 6)), np.zeros(4)) == (3, 3)
-
-
-def test_a_new_demonstration_holds_still_at_its_ends_as_the_source_did(twin):
-    """Still frames (here given: the built-in sample moves at once) are held at q[0] before the
-    first motion and at the last joints after the last; the rest of the demonstration is unchanged."""
-    src = source_demo(twin)
-    assert src.still_frames() == (0, 0)
-    plain = augment_trajectory(twin, _source_targets(twin), AugmentConfig())
-    still = augment_trajectory(twin, _source_targets(twin), AugmentConfig(still_frames=(6, 4)))
-    assert still.planner["still_frames"] == {"start": 6, "end": 4} and len(still.q) == len(plain.q) + 10
-    assert np.array_equal(still.q[:7], np.repeat(src.q[:1], 7, axis=0))
-    assert np.array_equal(still.q[-5:], np.repeat(plain.q[-1:], 5, axis=0))
-    assert np.array_equal(still.q[6:-4], plain.q)
-    assert np.array_equal(still.action_gripper[:7], np.full(7, plain.action_gripper[0]))
-    first_skill = next(s for s in still.segments if s["kind"] == "skill")
-    assert first_skill["frames"][0] == next(s for s in plain.segments if s["kind"] == "skill")["frames"][0] + 6
