@@ -23,7 +23,6 @@ import argparse
 import json
 import logging
 import math
-import os
 import sys
 import tempfile
 import time
@@ -31,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._harness import BENCH_DIR, BenchContext, MissingBenchmarkData, shared_dir
+from benchmarks._harness import BENCH_DIR, BenchContext, shared_dir, simulator_python
 
 OWN_OPTIONS = True
 SCENES = (("box", "4"), ("can", "round"))  # object, its symmetry
@@ -48,9 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_augment" / "augment_symmetry.json")
     args = p.parse_args(argv)
     options = sys.argv[1:] if argv is None else argv
-    simenv = os.environ.get("MANISPLAT_SIMENV")
-    if not simenv:
-        raise MissingBenchmarkData("set MANISPLAT_SIMENV to a mujoco venv's python: the episodes and physics need it")
+    simenv = simulator_python()  # the episodes and the physics need it
     ctx = BenchContext(threads=2, quick=False, shared=shared_dir(), out_dir=args.out.parent)
     logging.disable(logging.WARNING)
     rows, t0 = [], time.perf_counter()
@@ -62,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
             for declared in ((), (f"{obj}={symmetry}",)):
                 row = {"object": obj, "episode": episode.name, "symmetry": declared[0] if declared else "none",
                        "plan": _plan(twin, obj, declared, args.n_plan, args.yaw),
-                       **_physics_row(twin, episode, declared, args, ctx, Path(tmp) / f"{obj}_{len(declared)}")}
+                       **_physics_row(twin, episode, declared, args, ctx, simenv, Path(tmp) / f"{obj}_{len(declared)}")}
                 rows.append(row)
                 print(json.dumps(row, default=float), flush=True)
     result = {"benchmark": "augment_symmetry", "command": " ".join(["python -m benchmarks augment_symmetry", *options]),
@@ -130,7 +127,7 @@ def _spread(values: list[float]) -> dict:
 
 
 def _physics_row(twin_dir: Path, episode: Path, declared: tuple[str, ...], args: argparse.Namespace,
-                 ctx: BenchContext, work: Path) -> dict:
+                 ctx: BenchContext, simenv: Path, work: Path) -> dict:
     from benchmarks.bench_augment_shared import _physics
     from manisplat.augment.cli import main as augment
     from manisplat.twin import Twin
@@ -143,8 +140,7 @@ def _physics_row(twin_dir: Path, episode: Path, declared: tuple[str, ...], args:
     demos = sorted(d for d in out.iterdir() if d.name.startswith("episode_"))
     row = {"written": report["valid"], "drawn": report["drawn"], "physics_n": 0, "physics_success_clean": 0}
     if demos:
-        row.update(_physics(Path(os.environ["MANISPLAT_SIMENV"]), demos, episode, ctx, Twin.load(twin_dir),
-                            work / "sim_input"))
+        row.update(_physics(simenv, demos, episode, ctx, Twin.load(twin_dir), work / "sim_input"))
     return row
 
 
