@@ -22,9 +22,7 @@ from pathlib import Path
 
 from benchmarks._harness import BENCH_DIR, BenchContext, MissingBenchmarkData, shared_dir
 from benchmarks._viewpoints import clean_episodes, select
-from benchmarks.bench_augment_shared import _physics
 from benchmarks.bench_camera_check import degraded_copy
-from manisplat.twin import Twin
 
 OWN_OPTIONS = True
 DEFAULT_VIEWPOINTS = "front_near,right,high,behind_right,front_left_high"
@@ -41,6 +39,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_augment" / "augment_viewpoints.json")
     args = p.parse_args(argv)
     options = sys.argv[1:] if argv is None else argv  # as run, for the result's command
+    from benchmarks.bench_augment_shared import _physics  # after the arguments: --help stays quick
+    from manisplat.twin import Twin
+
     simenv = os.environ.get("MANISPLAT_SIMENV")
     if not simenv:
         raise MissingBenchmarkData("set MANISPLAT_SIMENV to a mujoco venv's python: the physics check needs it")

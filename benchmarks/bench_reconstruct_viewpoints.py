@@ -20,11 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._degraded import reconstruct, robot_of, row
 from benchmarks._harness import BENCH_DIR, BenchContext, shared_dir
 from benchmarks._viewpoints import clean_episodes, select
 from benchmarks.bench_camera_check import degraded_copy
-from manisplat.episode import Episode
 
 OWN_OPTIONS = True
 #: the 320x240 viewpoints (a 640x480 run takes about four times as long on 2 cores)
@@ -39,6 +37,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_reconstruct" / "reconstruct_viewpoints.json")
     args = p.parse_args(argv)
     options = sys.argv[1:] if argv is None else argv  # as run, for the result's command
+    from benchmarks._degraded import reconstruct, robot_of, row  # after the arguments: --help stays quick
+    from manisplat.episode import Episode
+
     viewpoints = args.viewpoints
     ctx = BenchContext(threads=2, quick=False, shared=shared_dir(), out_dir=args.out.parent)
     logging.disable(logging.WARNING)

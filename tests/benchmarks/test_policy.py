@@ -154,3 +154,23 @@ def test_another_augmentation_speed_gets_its_own_folders_and_policies(tmp_path):
     assert made[0.6].augmented(2)[0].parent.name == "augmented_2_speed0.6"
     assert [made[1.0].key(c, 50) for c in "ABCD"] == ["A", "B50", "C50", "D50"]
     assert [made[0.6].key(c, 50) for c in "ABCD"] == ["A", "B50_speed0.6", "C50", "D50_speed0.6"]
+
+
+def test_a_declared_symmetry_and_another_training_seed_get_their_own_names(tmp_path):
+    """--symmetry changes B's and D's demonstrations (their own folders and policies); --train-seed
+    changes every condition's policy (trained with that seed) but no demonstrations."""
+    from manisplat.episode.synthetic import write_sample_episode
+
+    from benchmarks.policy.stages import Stages
+
+    source = write_sample_episode(tmp_path / "sample", frames=8, width=160, height=120)
+
+    def stages(**kw) -> Stages:
+        return Stages(source, tmp_path / "work", tmp_path / "python", tmp_path / "tools", (0.05, 0.05, 30.0),
+                      (0.02, 0.02, 30.0), 10, **kw)
+
+    symmetric, seeded = stages(symmetry=("box=4",)), stages(train_seed=1)
+    assert [symmetric.key(c, 50) for c in "ABCD"] == ["A", "B50_sym-box4", "C50", "D50_sym-box4"]
+    assert [seeded.key(c, 50) for c in "ABCD"] == ["A_trainseed1", "B50_trainseed1", "C50_trainseed1",
+                                                   "D50_trainseed1"]
+    assert seeded.budget_of(9000).seed == 1 and symmetric.budget_of(9000).seed == 0
