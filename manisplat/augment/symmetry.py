@@ -15,8 +15,8 @@ The object's start pose is kept exactly; where it is left differs from the place
 a symmetry turn (the same shape, its texture turned), and that is the pose the episode reports.
 
 The shape's symmetry is declared, not detected: from one camera a twin's object holds the sides
-that camera saw, and a half-seen box is not square (measured on the viewpoint set's twins: a
-rotated copy of the footprint matched no better at 90 deg than at 45).
+that camera saw, and a half-seen box is not square (docs/augment.md: its footprint, turned, can
+match itself worse at 90 deg than at 45).
 """
 
 from __future__ import annotations
