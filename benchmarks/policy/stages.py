@@ -66,7 +66,7 @@ class Stages:
         self.viewport: Viewport = workspace_viewport(source, max(object_range[:2]), image_size or IMAGE_SIZE)
         self.augment_speed = float(augment_speed)
         self.twin_episodes = int(twin_episodes)
-        #: B's and D's folders, policies and rollouts of another speed or twin: "", "_speed0.6", "_twin5", ...
+        #: B's and D's folders, policies and rollouts of another speed, twin or symmetry: "", "_speed0.6", "_twin5", ...
         self.variant_tag = ("" if self.augment_speed == 1.0 else f"_speed{self.augment_speed:g}") + \
             ("" if self.twin_episodes == 1 else f"_twin{self.twin_episodes}") + \
             "".join(f"_sym-{item.replace('=', '')}" for item in symmetry)

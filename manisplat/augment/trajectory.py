@@ -216,7 +216,7 @@ class Augmenter:
 
     def symmetry_axis(self, name: str) -> np.ndarray:
         """A point [3] (object frame, m) of the vertical axis a symmetric ``name`` turns about
-        (:func:`~manisplat.augment.symmetry.axis_point`; its source pose at the grasp says where up is)."""
+        (:func:`~manisplat.augment.symmetry.axis_point`; its source start pose says where up is)."""
         obj = self.src.objects[name]
         up = obj.T_rest[2, :3]  # the base's z in the object frame
         return axis_point(np.linalg.inv(obj.G), self.scene.object_box[name][1], up)
