@@ -22,7 +22,7 @@ class Budget:
 
     9000 steps of 32 frames are 48 passes over the 6000 frames of 50 demonstrations: with 3000
     (16 passes) the policy did the task from 25 of 50 evaluation starts with the simulator's own
-    50 demonstrations, with 9000 from 42 (docs/benchmarks.md)."""
+    50 demonstrations, with 9000 from 42 (31 with training seed 1; docs/benchmarks.md)."""
 
     steps: int = 9000
     batch: int = 32
