@@ -87,7 +87,7 @@ def _reconstruct(episode: Path, out: Path, iters: int) -> Path:
 
 def _plan(twin_dir: Path, obj: str, declared: tuple[str, ...], n: int, yaw_deg: float) -> dict:
     """Validity and the grasp's turn seen from the arm over ``n`` planned samples (seeds 0..n-1)."""
-    from manisplat.augment.symmetry import parse_symmetries
+    from manisplat.augment.symmetry import parse_symmetries, yaw_of
     from manisplat.augment.trajectory import AugmentConfig, Rejected, augment_trajectory, augmenter_for, sample_targets
     from manisplat.twin import Twin
 
@@ -111,7 +111,7 @@ def _plan(twin_dir: Path, obj: str, declared: tuple[str, ...], n: int, yaw_deg: 
         D = np.array(pick["T"])
         a_src, a_new = src.objects[obj].T_rest @ axis, targets[obj].T_start @ axis
         azimuth = math.atan2(a_new[1], a_new[0]) - math.atan2(a_src[1], a_src[0])
-        turn = math.atan2(D[1, 0], D[0, 0]) - azimuth
+        turn = yaw_of(D[:3, :3]) - azimuth
         turns.append(abs(math.degrees(math.atan2(math.sin(turn), math.cos(turn)))))
         q6.append(abs(math.degrees(traj.q[pick["frames"][1], 5] - src.q[spec.last, 5])))
     return {"samples": n, "valid": n - sum(reasons.values()), "reasons": reasons,

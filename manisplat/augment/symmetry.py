@@ -77,7 +77,7 @@ def vertical_turn(point: np.ndarray, angle: float) -> np.ndarray:
     return T
 
 
-def _yaw(R: np.ndarray) -> float:
+def yaw_of(R: np.ndarray) -> float:
     """The turn about the vertical (rad) of rotation ``R`` [3, 3] (its x axis' heading)."""
     return math.atan2(R[1, 0], R[0, 0])
 
@@ -115,7 +115,7 @@ def wrist_keeping_turn(symmetry: Symmetry, T_src: np.ndarray, T_new: np.ndarray,
     """
     p_src = T_src[:3, :3] @ axis + T_src[:3, 3]
     p_new = T_new[:3, :3] @ axis + T_new[:3, 3]
-    object_turn = _yaw(T_new[:3, :3] @ T_src[:3, :3].T)
+    object_turn = yaw_of(T_new[:3, :3] @ T_src[:3, :3].T)
     azimuth_change = math.atan2(p_new[1], p_new[0]) - math.atan2(p_src[1], p_src[0])
     angle = symmetry.nearest_turn(_wrap(azimuth_change - object_turn))
     return np.linalg.inv(T_new) @ vertical_turn(p_new, angle) @ T_new

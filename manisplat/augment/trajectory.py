@@ -49,7 +49,7 @@ from manisplat.augment.planning import RESOLUTION, path_free, plan_path
 from manisplat.augment.sampling import ObjectTarget, sample_targets
 from manisplat.augment.skills import SkillResult, SourceSpline, solve_skill
 from manisplat.augment.source import SourceDemo, SourceError, source_demo
-from manisplat.augment.symmetry import Symmetry, axis_point, wrist_keeping_turn
+from manisplat.augment.symmetry import Symmetry, axis_point, wrist_keeping_turn, yaw_of
 from manisplat.augment.timing import REST, TimedMotion, TimingError, time_motion
 from manisplat.augment.validation import check_all, dense_collision, skill_relative_errors, within_limits
 from manisplat.twin.support import MAX_STEP
@@ -608,8 +608,7 @@ def _turn_deg(T: np.ndarray | None, S: np.ndarray) -> float:
     """The turn about the vertical (deg, rounded) of the object-frame turn ``S`` [4, 4] of an object at ``T``."""
     if T is None:
         return 0.0
-    R = T[:3, :3] @ S[:3, :3] @ T[:3, :3].T
-    return round(math.degrees(math.atan2(R[1, 0], R[0, 0])), 3)
+    return round(math.degrees(yaw_of(T[:3, :3] @ S[:3, :3] @ T[:3, :3].T)), 3)
 
 
 def _pair(scene: SceneCollision, a: str, b: str) -> tuple[int, int]:

@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 import pytest
+import torch
 
 from manisplat.augment.sampling import perturb
 from manisplat.augment.source import source_demo
@@ -84,7 +85,7 @@ def test_a_symmetric_object_is_grasped_on_the_face_nearest_the_source_wrist(twin
     # carried rigidly: one grasp offset over the transfer
     transfer = next(s for s in turned.segments if s["name"] == "M_transfer")
     f0, f1 = transfer["frames"]
-    tcp = twin.robot.tcp_pose(__import__("torch").as_tensor(turned.q[f0:f1 + 1])).numpy()
+    tcp = twin.robot.tcp_pose(torch.as_tensor(turned.q[f0:f1 + 1])).numpy()
     grasp = np.linalg.inv(tcp) @ poses[f0:f1 + 1]
     assert np.allclose(grasp, grasp[0], atol=1e-9)
     # left at the place pose turned by a quarter turn about the vertical through the grasp axis
