@@ -35,7 +35,7 @@ from manisplat.drivers.replay import EpisodeCamera
 from manisplat.episode import Episode, validate
 from manisplat.episode.infos import ArmInfo, CameraInfo
 from manisplat.recorder.clock import SystemClock
-from manisplat.recorder.replaycam import ReplayCamera
+from manisplat.recorder.replaycam import ReplayCamera, ReplayEpoch
 from manisplat.recorder.rig import RigArm, RigCamera, RigRecorder
 from manisplat.recorder.config import RecorderConfig
 from manisplat.recorder.simrig import SimRig
@@ -66,10 +66,10 @@ def run(ctx: BenchContext) -> list[dict[str, Any]]:
             sims[name] = SimRig(clock, motion="wave", keep_states=False)
             arm = PiperArm(sims[name].open_bus(), read_only=True, own_bus=True)
             arms.append(RigArm(name, arm, ArmInfo(name=name)))
-        rig_cameras = []
+        rig_cameras, epoch = [], ReplayEpoch()  # started together, as manisplat-record's replays
         for name, (mount, late) in CAMERAS.items():
             cameras[name] = ReplayCamera(lambda: EpisodeCamera(source), clock, loop=True, preload=True,
-                                         stamp_latency_s=late)
+                                         stamp_latency_s=late, epoch=epoch)
             cam = cameras[name]
             info = CameraInfo(name, cam.width, cam.height, cam.K, mount=mount)
             rig_cameras.append(RigCamera(name, cam, info, latency_s=late))

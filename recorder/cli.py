@@ -28,6 +28,7 @@ if TYPE_CHECKING:
     from manisplat.drivers.base import Camera
     from manisplat.drivers.piper import PiperArm
     from manisplat.recorder.clock import Clock
+    from manisplat.recorder.replaycam import ReplayEpoch
     from manisplat.recorder.rig import RigRecorder
     from manisplat.recorder.result import EpisodeResult, Status
     from manisplat.recorder.session import Recorder
@@ -230,11 +231,11 @@ def open_devices(args: argparse.Namespace, clock: Clock, stop: threading.Event) 
     return dev
 
 
-def open_camera(args: argparse.Namespace, spec: str, clock: Clock, stop: threading.Event, name: str | None = None
-                ) -> tuple[Camera, bool, float | None, str]:
+def open_camera(args: argparse.Namespace, spec: str, clock: Clock, stop: threading.Event, name: str | None = None,
+                epoch: ReplayEpoch | None = None) -> tuple[Camera, bool, float | None, str]:
     """Open the camera ``spec`` names (``oak``, ``oak:<id>``, ``replay:PATH``; a replayed episode
-    with several cameras replays the one called ``name``) with the options' size, rate, depth and
-    loop; returns it, whether its depth is recorded, its nominal rate and a description. An OAK streams depth only with --depth; a replay's depth is recorded when it
+    with several cameras replays the one called ``name``, starting with the rig's other replays
+    that share ``epoch``) with the options' size, rate, depth and loop; returns it, whether its depth is recorded, its nominal rate and a description. An OAK streams depth only with --depth; a replay's depth is recorded when it
     has any, unless --no-depth. A replay that is not a recording, or lacks the depth or size
     asked for, is a ReplayInputError."""
     if spec == "oak" or spec.startswith("oak:"):
@@ -250,7 +251,8 @@ def open_camera(args: argparse.Namespace, spec: str, clock: Clock, stop: threadi
     from manisplat.recorder.replaycam import ReplayCamera, ReplayInputError, open_replay_source
 
     path = Path(spec[len("replay:"):])
-    camera = ReplayCamera(open_replay_source(path, name), clock, loop=args.loop, fps=args.fps, stop=stop)
+    camera = ReplayCamera(open_replay_source(path, name), clock, loop=args.loop, fps=args.fps, stop=stop, epoch=epoch,
+                          timeline=path.resolve())
     if args.size is not None and args.size != (camera.width, camera.height):
         camera.close()
         raise ReplayInputError(f"--size {args.size[0]}x{args.size[1]} does not match the replayed recording "

@@ -8,6 +8,11 @@ Timing model (all s): the frame recorded at ``t_src`` is exposed at
 stamped ``t_exp + stamp_latency_s``: 0 for a camera that stamps the middle of the exposure
 exactly (depthai), something else to play a camera whose stamps are late by a latency the
 recorder must correct (``--latency-ms``). With ``loop`` the stream repeats with its own period.
+
+Several replayed cameras of one rig share a :class:`ReplayEpoch`: ``t_start`` is then the clock
+when the first of them asked for a frame, whichever reader thread starts first, so a camera whose
+thread starts late on a loaded machine is not shifted against the others (and the frames of one
+recording keep their recorded offsets: ``t_src0`` is that recording's first frame delivered).
 """
 
 from __future__ import annotations
@@ -17,7 +22,7 @@ import logging
 import math
 import threading
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Hashable
 
 import numpy as np
 
@@ -27,6 +32,25 @@ from manisplat.recorder.clock import Clock, RealDeadline
 log = logging.getLogger(__name__)
 
 MAX_PRELOAD_BYTES = 4 << 30
+
+
+class ReplayEpoch:
+    """The start shared by several replayed streams (module docstring): the clock time ``t_start``
+    (s) fixed by the first stream to ask for a frame, and per source timeline (a recording) the
+    source time ``t_src0`` (s) of the first frame asked for on it."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._t_start: float | None = None
+        self._t_src0: dict[Hashable, float] = {}
+
+    def fix(self, timeline: Hashable, t_src: float, t_start: float) -> tuple[float, float]:
+        """``(t_src0, t_start)`` for a stream on ``timeline`` whose first frame, at source time
+        ``t_src``, would start at clock time ``t_start`` on its own; the first call fixes them."""
+        with self._lock:
+            if self._t_start is None:
+                self._t_start = t_start
+            return self._t_src0.setdefault(timeline, t_src), self._t_start
 
 
 class ReplayCamera:
@@ -43,13 +67,16 @@ class ReplayCamera:
         delivery_delay_s: exposure-to-host delay, s; stamp_latency_s: stamp minus true
             mid-exposure time, s (module docstring).
         stop: an event that makes a waiting :meth:`read` return None.
+        epoch: the start shared with the rig's other replayed cameras (None: its own);
+        timeline: which recording's timeline its source times are on, within ``epoch``.
 
     ``has_depth`` says whether the stream's frames carry depth (its first frame is read at once).
     """
 
     def __init__(self, open_source: Callable[[], Camera], clock: Clock, *, loop: bool = False, fps: float | None = None,
                  preload: bool = False, delivery_delay_s: float = 0.03, stamp_latency_s: float = 0.0,
-                 stop: threading.Event | None = None) -> None:
+                 stop: threading.Event | None = None, epoch: ReplayEpoch | None = None,
+                 timeline: Hashable = None) -> None:
         if fps is not None and not fps > 0:
             raise ValueError(f"fps must be > 0, got {fps}")
         self._open = open_source
@@ -58,6 +85,7 @@ class ReplayCamera:
         self.delivery_delay_s = float(delivery_delay_s)
         self.stamp_latency_s = float(stamp_latency_s)
         self.stop = stop if stop is not None else threading.Event()
+        self.epoch, self.timeline = epoch, timeline
         self._source = open_source()
         self.width, self.height = self._source.width, self._source.height
         self.K = np.asarray(self._source.K, dtype=np.float64)
@@ -170,7 +198,9 @@ class ReplayCamera:
             if f is None:
                 return None
             if self._t_src0 is None:
-                self._t_src0, self._t_start = f.t, self.clock.monotonic() + self.delivery_delay_s
+                t_start = self.clock.monotonic() + self.delivery_delay_s
+                self._t_src0, self._t_start = (f.t, t_start) if self.epoch is None else \
+                    self.epoch.fix(self.timeline, f.t, t_start)
                 self._max_seq = f.seq
             if self._laps == 0:
                 self._last_src_t = f.t

@@ -21,7 +21,7 @@ from manisplat.episode.infos import ArmInfo, CameraInfo, mount_problem, name_pro
 from manisplat.recorder.clock import Clock
 from manisplat.recorder.config import RecorderConfig
 from manisplat.recorder.layout import opencv_dist
-from manisplat.recorder.replaycam import ReplayInputError
+from manisplat.recorder.replaycam import ReplayEpoch, ReplayInputError
 from manisplat.recorder.result import EpisodeResult
 from manisplat.recorder.rig import RigArm, RigCamera, RigRecorder
 
@@ -192,8 +192,9 @@ def open_rig(args: argparse.Namespace, clock: Clock, stop: threading.Event) -> R
                 arm = PiperArm.open(channel, args.interface, read_only=True)
                 dev.info[f"arm {name}"] = f"PiPER on {args.interface} {channel}"
             dev.arms.append(RigArm(name, arm, arm_infos[name]))
+        epoch = ReplayEpoch()  # replayed cameras start together, however late their reader threads start
         for name, spec in specs.items():
-            dev.cameras.append(_open_camera(args, name, spec, places[name], clock, stop, dev))
+            dev.cameras.append(_open_camera(args, name, spec, places[name], clock, stop, dev, epoch))
     except BaseException:
         dev.close()
         raise
@@ -201,10 +202,10 @@ def open_rig(args: argparse.Namespace, clock: Clock, stop: threading.Event) -> R
 
 
 def _open_camera(args: argparse.Namespace, name: str, spec: str, place: _Placement, clock: Clock,
-                 stop: threading.Event, dev: RigDevices) -> RigCamera:
+                 stop: threading.Event, dev: RigDevices, epoch: ReplayEpoch) -> RigCamera:
     from manisplat.recorder.cli import open_camera
 
-    camera, depth, nominal_fps, info = open_camera(args, spec, clock, stop, name)
+    camera, depth, nominal_fps, info = open_camera(args, spec, clock, stop, name, epoch)
     dev.info[f"camera {name}"] = info
     if dev.nominal_fps is None:
         dev.nominal_fps = nominal_fps
