@@ -30,19 +30,19 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, Iterator
 
 import cv2
 import h5py
 import numpy as np
 
 from benchmarks._harness import BENCH_DIR, shared_dir, simulator_python
+from benchmarks._simulator import SimJob, run_sim_jobs, sim_tools
 from benchmarks.bench_reconstruct_cobot import CAMERAS, add_ground_truth, reconstruct
-from manisplat.augment.bimanual import BimanualPlanner, BimanualTrajectory
-from manisplat.augment.cli import main as augment_main
-from manisplat.augment.trajectory import AugmentConfig, Rejected
-from manisplat.episode import Episode
-from manisplat.episode.cli import main as episode_main
-from manisplat.twin import Twin
+
+if TYPE_CHECKING:  # the planner and the twin load torch and the robot model: not for --help
+    from manisplat.augment.bimanual import BimanualTrajectory
+    from manisplat.twin import Twin
 
 OWN_OPTIONS = True
 
@@ -58,6 +58,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--work", type=Path, help="stage outputs, reused when present (default a temporary folder)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_augment" / "augment_cobot.json")
     args = p.parse_args(argv)
+    from manisplat.augment.cli import main as augment_main
+    from manisplat.episode.cli import main as episode_main
+    from manisplat.twin import Twin
+
     simenv = simulator_python()
     work = (args.work or Path(tempfile.mkdtemp(prefix="augment_cobot_"))).resolve()
     work.mkdir(parents=True, exist_ok=True)
@@ -150,32 +154,17 @@ def new_objects(source: Path, twin: Twin, new: dict[str, np.ndarray]) -> dict:
 def execute_all(simenv: Path, source: Path, twin: Twin, episodes: list[Path], act: Path, out: Path,
                 render_check: int) -> list[dict]:
     """execute_bimanual.py on every exported demonstration, two at a time; its JSON per demonstration."""
-    tools = shared_dir() / "tools" / "sim"
-    out.mkdir(parents=True, exist_ok=True)
-    running: list[tuple[Path, subprocess.Popen]] = []
-    results = []
-    jobs = list(enumerate(episodes))
-    while jobs or running:
-        while jobs and len(running) < 2:
-            k, ep = jobs.pop(0)
-            report = out / f"episode_{k}.json"
-            if report.exists():
-                continue
+    def jobs() -> Iterator[SimJob]:
+        for k, ep in enumerate(episodes):
             spec = out / f"episode_{k}.objects.json"
+            spec.parent.mkdir(parents=True, exist_ok=True)
             spec.write_text(json.dumps(new_objects(source, twin, dict(np.load(ep / "object_poses.npz")))))
-            command = [str(simenv), "execute_bimanual.py", str(act / f"episode_{k}.hdf5"), "--objects", str(spec),
-                       "--json", str(report.with_suffix(".part"))]
-            if k < render_check:
-                command += ["--render", str(out / f"render_{k}")]
-            running.append((report, subprocess.Popen(command, cwd=tools, stdout=subprocess.DEVNULL,
-                                                     env={**os.environ, "MUJOCO_GL": "osmesa"})))
-        if running:
-            report, proc = running.pop(0)
-            proc.wait()  # exit 2: the task's self-checks failed, which the JSON says
-            report.with_suffix(".part").rename(report)
-    for k, ep in enumerate(episodes):
-        results.append(json.loads((out / f"episode_{k}.json").read_text()) | {"episode": ep.name})
-    return results
+            render = ("--render", str(out / f"render_{k}")) if k < render_check else ()
+            yield SimJob("execute_bimanual.py", (str(act / f"episode_{k}.hdf5"), "--objects", str(spec), *render),
+                         out / f"episode_{k}.json")
+
+    run_sim_jobs(simenv, jobs(), ok_codes=(0, 2))
+    return [json.loads((out / f"episode_{k}.json").read_text()) | {"episode": ep.name} for k, ep in enumerate(episodes)]
 
 
 def summarise_physics(physics: list[dict]) -> dict:
@@ -195,7 +184,7 @@ def generated_source(simenv: Path, sample: Path, seed: int, out: Path) -> Path:
     if not (out / "episode_0.hdf5").exists():
         task = json.loads((sample / "episode_0.objects.json").read_text())["task"]
         subprocess.run([str(simenv), "gen_bimanual.py", "--task", task, "--seed", str(seed), "--out", str(out)],
-                       cwd=shared_dir() / "tools" / "sim", check=False, stdout=subprocess.DEVNULL,
+                       cwd=sim_tools(), check=False, stdout=subprocess.DEVNULL,
                        env={**os.environ, "MUJOCO_GL": "osmesa"})
         if not (out / "episode_0.hdf5").exists():
             raise RuntimeError(f"gen_bimanual.py --task {task} --seed {seed} wrote no episode")
@@ -206,6 +195,9 @@ def plan_and_execute(simenv: Path, source: Path, twin: Twin, n: int, out: Path, 
     """``n`` demonstrations planned as manisplat-augment plans them (its default ranges, samples
     ``seed * 1000003 + k``; not rendered), their commands written as the ACT export writes them
     (``/action``: each arm's ``a1..a6, a_gripper``) and executed by execute_bimanual.py."""
+    from manisplat.augment.bimanual import BimanualPlanner
+    from manisplat.augment.trajectory import AugmentConfig, Rejected
+
     planner, config = BimanualPlanner(twin), AugmentConfig(seed=seed)
     valid: list[BimanualTrajectory] = []
     reasons: dict[str, int] = {}
@@ -217,25 +209,18 @@ def plan_and_execute(simenv: Path, source: Path, twin: Twin, n: int, out: Path, 
             valid.append(planner.run(planner.sample_targets(rng), config))
         except Rejected as exc:
             reasons[exc.reason] = reasons.get(exc.reason, 0) + 1
-    out.mkdir(parents=True, exist_ok=True)
-    tools = shared_dir() / "tools" / "sim"
-    running: list[tuple[Path, subprocess.Popen]] = []
-    for k, traj in enumerate(valid):
-        name = f"planned_{k:04d}"
-        report = out / f"{name}.json"
-        if not report.exists():
+    def jobs() -> Iterator[SimJob]:
+        for k, traj in enumerate(valid):
+            name = f"planned_{k:04d}"
+            out.mkdir(parents=True, exist_ok=True)
             with h5py.File(out / f"{name}.hdf5", "w") as f:
                 f.create_dataset("action", data=np.concatenate(
                     [np.column_stack([traj.arms[a].action_q, traj.arms[a].action_gripper]) for a in twin.arm_names], 1))
             (out / f"{name}.objects.json").write_text(json.dumps(new_objects(source, twin, traj.object_poses)))
-            running.append((report, subprocess.Popen(
-                [str(simenv), "execute_bimanual.py", str(out / f"{name}.hdf5"), "--objects", str(out / f"{name}.objects.json"),
-                 "--fps", str(twin.fps), "--json", str(report.with_suffix(".part"))], cwd=tools,
-                stdout=subprocess.DEVNULL, env={**os.environ, "MUJOCO_GL": "osmesa"})))
-        while len(running) >= 2 or (running and k == len(valid) - 1):
-            done, proc = running.pop(0)
-            proc.wait()  # exit 2: the task's self-checks failed, which the JSON says
-            done.with_suffix(".part").rename(done)
+            yield SimJob("execute_bimanual.py", (str(out / f"{name}.hdf5"), "--objects", str(out / f"{name}.objects.json"),
+                                                 "--fps", str(twin.fps)), out / f"{name}.json")
+
+    run_sim_jobs(simenv, jobs(), ok_codes=(0, 2))
     physics = [json.loads((out / f"planned_{k:04d}.json").read_text()) | {"episode": f"planned_{k:04d}"}
                for k in range(len(valid))]
     return {"plan": {"requested": n, "drawn": drawn, "valid": len(valid), "reasons": reasons, "seed": seed,
@@ -247,6 +232,8 @@ def score_renders(episode: Path, render: Path, source: Path) -> dict:
     """PSNR (dB) per camera and region of the twin's images of a new demonstration against the
     simulator's renders of its executed states (the simulator's masks say which pixels are robot
     and which are a manipulated object)."""
+    from manisplat.episode import Episode
+
     gt = np.load(source / "episode_0.gt.npz")
     names = gt["label_names"].tolist()
     objects = [k for k, o in json.loads((source / "episode_0.objects.json").read_text())["objects"].items()

@@ -22,8 +22,6 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import os
-import subprocess
 import sys
 import tempfile
 import time
@@ -33,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks._harness import BENCH_DIR, MissingBenchmarkData, machine_info, shared_dir, simulator_python
+from benchmarks._simulator import SimJob, run_sim_jobs
 
 OWN_OPTIONS = True
 MODES = ("recorded", "next_frame")
@@ -104,22 +103,17 @@ def _plan(twin, n: int) -> dict:
 
 
 def _execute_all(simenv: Path, parent: Path, trajectories: list, out: Path) -> list[dict]:
-    """execute_episode.py on each demonstration's commands, two at a time; its JSON per demonstration."""
-    tools = shared_dir() / "tools" / "sim"
-    running: list[subprocess.Popen] = []
-    reports = []
+    """execute_episode.py on each demonstration's commands, two at a time; its JSON per
+    demonstration (the commands are written afresh, so are their reports)."""
+    jobs = []
     for k, traj in enumerate(trajectories):
         folder = out / f"demo_{k:04d}"
         folder.mkdir(parents=True, exist_ok=True)
         _write_commands(folder, traj)
-        report = folder / "physics.json"
-        reports.append(report)
-        running.append(subprocess.Popen([str(simenv), "execute_episode.py", str(folder), "--parent", str(parent),
-                                         "--json", str(report)], cwd=tools, stdout=subprocess.DEVNULL,
-                                        env={**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "osmesa")}))
-        while len(running) >= 2 or (running and k == len(trajectories) - 1):
-            running.pop(0).wait()
-    return [json.loads(r.read_text()) for r in reports]
+        (folder / "physics.json").unlink(missing_ok=True)
+        jobs.append(SimJob("execute_episode.py", (str(folder), "--parent", str(parent)), folder / "physics.json"))
+    run_sim_jobs(simenv, jobs)
+    return [json.loads(job.report.read_text()) for job in jobs]
 
 
 def _write_commands(folder: Path, traj) -> None:

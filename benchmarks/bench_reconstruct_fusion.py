@@ -42,6 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks._harness import BENCH_DIR, MissingBenchmarkData, machine_info, shared_dir, simulator_python
+from benchmarks._simulator import SimJob, run_sim_jobs, sim_tools
 
 OWN_OPTIONS = True
 SOURCE = "episode_0001"
@@ -91,10 +92,9 @@ def _demonstrations(simenv: Path, out: Path, n: int) -> list[Path]:
     """``n`` scripted demonstrations of the shared scene (made once; kept in ``out``)."""
     found = sorted(p for p in out.glob("episode_*") if (p / "episode.json").exists()) if out.exists() else []
     if len(found) < n:
-        tools = shared_dir() / "tools" / "sim"
         cmd = [str(simenv), "gen_demos.py", "--source", str(shared_dir() / "data" / "sim_pick_place_small"),
                "--out", str(out), "--n", str(n + 5), "--seed-start", "1", "--place-range", "0.02", "0.02", "0.4"]
-        subprocess.run(cmd, cwd=tools, check=True, stdout=subprocess.DEVNULL,
+        subprocess.run(cmd, cwd=sim_tools(), check=True, stdout=subprocess.DEVNULL,
                        env={**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "osmesa")})
         found = sorted(p for p in out.glob("episode_*") if (p / "episode.json").exists())
     if len(found) < n:
@@ -141,18 +141,16 @@ def _new_poses(simenv: Path, twin: Path, out: Path, parent: Path, demos: int) ->
         if augment([str(twin), "--n", str(demos), "--out", str(out), "--sources", SOURCE, "--seed", "0",
                     "--overwrite", "-q"]) != 0:
             raise MissingBenchmarkData(f"manisplat-augment failed on {twin}")
-    tools = shared_dir() / "tools" / "sim"
     source = Twin.load(twin).source(SOURCE)
+    episodes = sorted(out.glob("episode_*"))
+    jobs = [SimJob("execute_episode.py", (str(in_simulator_frame(path, source, parent, out / "sim_input" / path.name)),
+                                          "--parent", str(parent), "--render", str(out / "sim_render" / path.name)),
+                   out / "sim_render" / path.name / "physics.json") for path in episodes]
+    run_sim_jobs(simenv, jobs)
     rows = {}
-    for path in sorted(out.glob("episode_*")):
+    for path, job in zip(episodes, jobs):
         sim = out / "sim_render" / path.name
-        report = sim / "physics.json"
-        if not report.exists():
-            moved = in_simulator_frame(path, source, parent, out / "sim_input" / path.name)
-            subprocess.run([str(simenv), "execute_episode.py", str(moved), "--parent", str(parent), "--render", str(sim),
-                            "--json", str(report)], cwd=tools, check=True, stdout=subprocess.DEVNULL,
-                           env={**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "osmesa")})
-        physics = json.loads(report.read_text())
+        physics = json.loads(job.report.read_text())
         rows[path.name] = {**render_scores(path, sim), "success_clean": physics["success_clean"],
                            "final_pos_err_cm": physics["final_pos_err_cm"]}
     keys = [k for k in next(iter(rows.values())) if k.startswith(("psnr_", "ssim_"))]

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from benchmarks._simulator import SimJob, run_sim_jobs
 from benchmarks.policy.data import IMAGE_SIZE, Viewport, episode_folders, load_demonstrations, workspace_viewport
 from benchmarks.policy.rollout import Rollout, evaluate, wilson_interval
 from benchmarks.policy.sim_env import SimEnv
@@ -163,21 +164,11 @@ class Stages:
         """The augmented demonstrations executed in the simulator with contact physics; each gets the
         simulator's renders of its own motion as rgb/ (everything else linked from the original)."""
         renders, out = self.work / f"sim_render{self.variant_tag}", self.work / f"sim_rendered{self.variant_tag}"
-        todo = [p for p in augmented if not (renders / f"{p.name}.json").exists()]
-        if todo:
-            _log(f"execute_episode.py --render: {len(todo)} augmented demonstrations")
-        running: list[tuple[Path, subprocess.Popen]] = []
-        for path in todo + [None] * 2:
-            if path is not None:
-                (renders / path.name).mkdir(parents=True, exist_ok=True)
-                running.append((path, self._sim_process("execute_episode.py", str(path), "--parent", str(self.source),
-                                                        "--render", str(renders / path.name),
-                                                        "--json", str(renders / f"{path.name}.json.part"))))
-            while running and (len(running) >= 2 or path is None):
-                done, proc = running.pop(0)
-                if proc.wait() != 0:
-                    raise RuntimeError(f"execute_episode.py failed on {done}")
-                (renders / f"{done.name}.json.part").rename(renders / f"{done.name}.json")
+        jobs = [SimJob("execute_episode.py", (str(path), "--parent", str(self.source), "--render", str(renders / path.name)),
+                       renders / f"{path.name}.json") for path in augmented]
+        if todo := sum(not job.report.exists() for job in jobs):
+            _log(f"execute_episode.py --render: {todo} augmented demonstrations")
+        run_sim_jobs(self.simenv, jobs, tools=self.tools)
         results, folders = [], []
         for path in augmented:
             results.append(json.loads((renders / f"{path.name}.json").read_text()))
