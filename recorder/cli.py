@@ -235,9 +235,10 @@ def open_camera(args: argparse.Namespace, spec: str, clock: Clock, stop: threadi
                 epoch: ReplayEpoch | None = None) -> tuple[Camera, bool, float | None, str]:
     """Open the camera ``spec`` names (``oak``, ``oak:<id>``, ``replay:PATH``; a replayed episode
     with several cameras replays the one called ``name``, starting with the rig's other replays
-    that share ``epoch``) with the options' size, rate, depth and loop; returns it, whether its depth is recorded, its nominal rate and a description. An OAK streams depth only with --depth; a replay's depth is recorded when it
-    has any, unless --no-depth. A replay that is not a recording, or lacks the depth or size
-    asked for, is a ReplayInputError."""
+    that share ``epoch``) with the options' size, rate, depth and loop; returns it, whether its
+    depth is recorded, its nominal rate and a description. An OAK streams depth only with --depth;
+    a replay's depth is recorded when it has any, unless --no-depth. A replay that is not a
+    recording, or lacks the depth or size asked for, is a ReplayInputError."""
     if spec == "oak" or spec.startswith("oak:"):
         from manisplat.drivers.oak import OakCamera, OakConfig
 
