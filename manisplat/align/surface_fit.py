@@ -3,6 +3,14 @@ mean distance (misfit), and the one shift of position that aligns the two (trans
 and where the model was seen from (:class:`ModelViews`): a frame that sees the object from
 elsewhere shows surface the model lacks.
 
+The shift's fit pairs a seen point with its nearest model point only where their surfaces face
+the same way (normals within :data:`NORMAL_AGREEMENT_DEG`), and weighs the distance along the
+model's normal fully, along its surface by :data:`TANGENT_WEIGHT` (point-to-plane ICP, after Chen
+& Medioni, with the normal test of Rusinkiewicz & Levoy's compatibility rejection). Matched to
+the nearest point alone, a seen side the model lacks (a face turned towards the camera, the rim
+the first view lost at its silhouette) pulls the model sideways to its edge: on the oak viewpoint
+set, fitted from the object's true pose after its release, 2-14 mm, against 1-4 mm this way.
+
 The pseudo ground truth uses it where the object rests after a release and where it slips in the
 hand (:mod:`manisplat.align.pseudo_gt`); the keypoint tracker, to let a tracked pose override the
 gripper's prior only when the depth agrees (:class:`manisplat.align.tracking.DepthEvidence`).
@@ -15,6 +23,10 @@ from dataclasses import dataclass
 import numpy as np
 
 MAX_VIEW_CHANGE_DEG = 35.0  # farther from every view the model was seen from, a frame is not fitted (ModelViews)
+NORMAL_AGREEMENT_DEG = 30.0  # a seen point and its nearest model point pair up when their normals agree this well
+TANGENT_WEIGHT = 0.1  # the share of the distance along the surface in the shift's fit (1: point-to-point)
+MODEL_NORMAL_NEIGHBOURS = 10  # points whose plane gives a model point's normal
+SURFACE_NORMAL_NEIGHBOURS = 20  # ... a seen point's (depth is noisier than the model, made of it)
 
 
 class SurfaceModel:
@@ -28,6 +40,7 @@ class SurfaceModel:
         self.points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         self.cap = float(cap)
         self._tree = cKDTree(self.points)
+        self.normals = point_normals(self.points, MODEL_NORMAL_NEIGHBOURS)
 
     def match(self, surfaces: list[np.ndarray], poses: list[np.ndarray],
               shift: np.ndarray | None = None) -> tuple[np.ndarray, float]:
@@ -53,20 +66,59 @@ class SurfaceModel:
     def fit_shift(self, surfaces: list[np.ndarray], poses: list[np.ndarray], *,
                   iterations: int = 30) -> tuple[np.ndarray, float, float]:
         """One shift of position (m, base frame) [3] that aligns the model at ``poses`` [4, 4]
-        with the ``surfaces`` [M_k, 3] (base frame) of several frames. Returns (shift, misfit
-        before, misfit after) (m)."""
+        with the ``surfaces`` [M_k, 3] (base frame) of several frames (module docstring). Returns
+        (shift, misfit before, misfit after) (m): the mean distance the fit minimises (along the
+        normal, and :data:`TANGENT_WEIGHT` of it along the surface), a point without a partner of
+        its orientation within the cap counting the cap."""
+        surface_normals = [point_normals(X, SURFACE_NORMAL_NEIGHBOURS) for X in surfaces]
         shift = np.zeros(3)
-        residuals, before = self.match(surfaces, poses, shift)
+        normal_eq, rhs, before = self._shift_system(surfaces, surface_normals, poses, shift)
         after = before
         for _ in range(iterations):
-            if len(residuals) == 0:
+            if not normal_eq.any():
                 break
-            step = residuals.mean(0)
+            step = np.linalg.solve(normal_eq, rhs)
             shift = shift + step
-            residuals, after = self.match(surfaces, poses, shift)
+            normal_eq, rhs, after = self._shift_system(surfaces, surface_normals, poses, shift)
             if np.linalg.norm(step) < 1e-5:
                 break
         return shift, before, after
+
+    def _shift_system(self, surfaces: list[np.ndarray], surface_normals: list[np.ndarray], poses: list[np.ndarray],
+                      shift: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """The normal equations [3, 3], [3] of one step of :meth:`fit_shift` from ``shift``, and its misfit (m)."""
+        normal_eq, rhs, distances = np.zeros((3, 3)), np.zeros(3), []
+        agree = np.cos(np.radians(NORMAL_AGREEMENT_DEG))
+        w = TANGENT_WEIGHT
+        for X, N, T in zip(surfaces, surface_normals, poses):
+            local = (X - T[:3, 3] - shift) @ T[:3, :3]
+            d, idx = self._tree.query(local, distance_upper_bound=self.cap)
+            near = np.flatnonzero(np.isfinite(d))
+            n = self.normals[idx[near]] @ T[:3, :3].T
+            paired = near[np.abs(np.einsum("ij,ij->i", n, N[near])) >= agree]
+            n = n[np.isin(near, paired)]
+            r = X[paired] - (self.points[idx[paired]] @ T[:3, :3].T + T[:3, 3] + shift)
+            along = np.einsum("ij,ij->i", n, r)
+            normal_eq += n.T @ n + w * len(r) * np.eye(3)
+            rhs += n.T @ along + w * r.sum(0)
+            blended = np.sqrt((along ** 2 + w * (r ** 2).sum(1)) / (1 + w))
+            distances += [np.minimum(blended, self.cap), np.full(len(X) - len(r), self.cap)]
+        spread = np.concatenate(distances) if distances else np.zeros(0)
+        return normal_eq, rhs, float(spread.mean()) if len(spread) else self.cap
+
+
+def point_normals(points: np.ndarray, neighbours: int) -> np.ndarray:
+    """Unit normals [M, 3] (sign arbitrary) of the points [M, 3]: the direction of least spread of
+    each point's ``neighbours`` nearest (zero where there are fewer than 3 points)."""
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(points) < 3:
+        return np.zeros_like(points)
+    _, idx = cKDTree(points).query(points, k=min(neighbours, len(points)))
+    patch = points[idx] - points[idx].mean(axis=1, keepdims=True)
+    _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", patch, patch))
+    return vectors[:, :, 0]
 
 
 @dataclass(frozen=True)
