@@ -281,6 +281,22 @@ def test_the_shift_fit_finds_where_the_object_came_to_rest():
     assert after < 0.5 * before
 
 
+def test_a_side_the_model_lacks_does_not_pull_the_shift_fit_to_its_edge():
+    """The model is what the first view saw (top, +x and -y faces); after the release the camera
+    sees the top, +x and the +y face instead, which the model lacks. At the true pose the fit must
+    stay put: matched to the nearest model point alone, the +y face's points pull the model towards
+    +y and down, onto the edge of the top (1.4 mm here)."""
+    model = box_points(n=41)
+    seen_first = (model[:, 2] > 0.0249) | (model[:, 0] > 0.0199) | (model[:, 1] < -0.0199)
+    rest = np.eye(4)
+    rest[:3, 3] = [0.3, 0.1, 0.025]
+    turned_view = visible_box_surface(rest, seed=5)
+    on_minus_y = np.abs(turned_view[:, 1] - rest[1, 3] + 0.02) < 1e-9
+    turned_view[on_minus_y, 1] += 0.04  # the -y face's points moved onto the +y face
+    shift, before, after = SurfaceModel(model[seen_first]).fit_shift([turned_view], [rest])
+    assert np.linalg.norm(shift) < 3e-4 and after <= before + 1e-6
+
+
 def test_settle_at_rest_moves_the_frames_after_the_release_and_learns_nothing_from_held_out_ones():
     model = box_points(n=41)
     T = 30
