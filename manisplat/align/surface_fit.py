@@ -8,8 +8,9 @@ the same way (normals within :data:`NORMAL_AGREEMENT_DEG`), and weighs the dista
 model's normal fully, along its surface by :data:`TANGENT_WEIGHT` (point-to-plane ICP, after Chen
 & Medioni, with the normal test of Rusinkiewicz & Levoy's compatibility rejection). Matched to
 the nearest point alone, a seen side the model lacks (a face turned towards the camera, the rim
-the first view lost at its silhouette) pulls the model sideways to its edge: on the oak viewpoint
-set, fitted from the object's true pose after its release, 2-14 mm, against 1-4 mm this way.
+the first view lost at its silhouette) pulls the model sideways to its edge: on four scenes of the
+oak viewpoint set, fitted from the object's true pose after its release, 2.4-13.6 mm, against
+1.9-4.0 mm this way.
 
 The pseudo ground truth uses it where the object rests after a release and where it slips in the
 hand (:mod:`manisplat.align.pseudo_gt`); the keypoint tracker, to let a tracked pose override the
