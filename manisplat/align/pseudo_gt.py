@@ -257,8 +257,8 @@ def follow_slip(poses: np.ndarray, events: list[GripperEvents], surface: Callabl
             in_hand[keep[first:end]] = 0.0  # a tracked pose is the tracker's own
         slipped = poses[first:end].copy()
         slipped[:, :3, 3] += np.einsum("nij,nj->ni", tcp[first:end, :3, :3], in_hand)
-        rigid = model.fit_misfit(surfaces, [poses[f] for f in fitted])
-        taken = model.fit_misfit(surfaces, [slipped[f - first] for f in fitted])
+        rigid = model.misfit(surfaces, [poses[f] for f in fitted])
+        taken = model.misfit(surfaces, [slipped[f - first] for f in fitted])
         if not (taken < SLIP_EVIDENCE_RATIO * rigid and rigid - taken > SLIP_EVIDENCE_M):
             log.info("grasp at frame %d: the depth shows no clear slip in the hand (misfit %.2f -> %.2f mm); "
                      "the rigid grasp stands", e.grasp, 1000 * rigid, 1000 * taken)

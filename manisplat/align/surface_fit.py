@@ -64,12 +64,6 @@ class SurfaceModel:
         the frames' ``poses`` [4, 4]."""
         return self.match(surfaces, poses)[1]
 
-    def fit_misfit(self, surfaces: list[np.ndarray], poses: list[np.ndarray]) -> float:
-        """The misfit :meth:`fit_shift` minimises (m) of the surfaces [M_k, 3] (base frame) and the
-        model at the frames' ``poses`` [4, 4]."""
-        normals = [point_normals(X, SURFACE_NORMAL_NEIGHBOURS) for X in surfaces]
-        return self._shift_system(surfaces, normals, poses, np.zeros(3))[2]
-
     def fit_shift(self, surfaces: list[np.ndarray], poses: list[np.ndarray], *,
                   iterations: int = 30) -> tuple[np.ndarray, float, float]:
         """One shift of position (m, base frame) [3] that aligns the model at ``poses`` [4, 4]
