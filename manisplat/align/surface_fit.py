@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-MAX_VIEW_CHANGE_DEG = 35.0  # farther from every view the model was seen from, a frame is not fitted (ModelViews)
+MAX_VIEW_CHANGE_DEG = 50.0  # farther from every view the model was seen from, a frame is not fitted (ModelViews)
 NORMAL_AGREEMENT_DEG = 30.0  # a seen point and its nearest model point pair up when their normals agree this well
 TANGENT_WEIGHT = 0.1  # the share of the distance along the surface in the shift's fit (1: point-to-point)
 MODEL_NORMAL_NEIGHBOURS = 10  # points whose plane gives a model point's normal
@@ -128,12 +128,12 @@ class ModelViews:
     unit directions [K, 3] (object frame) from the object to it in the frames the model was made
     of. A frame that sees the object from more than :data:`MAX_VIEW_CHANGE_DEG` away from all of
     them sees surface the model lacks (the side the object turned towards the camera as it was
-    carried across the image, the rim the first view lost at its silhouette), and a fit matches
-    those points to the model's nearest edge: on the oak viewpoint set (benchmarks/_viewpoints.py)
-    the fit of where an object came to rest, started at its true pose, moved it 5-14 mm sideways.
-    On the shared and test-set episodes (views 14-39 deg from the model's while held, median) it
-    leaves out only the frames of one turned box (55 deg by the end), whose slip it then takes from
-    the frames within the limit."""
+    carried across the image, the rim the first view lost at its silhouette), so much that even
+    the fit that pairs only surfaces facing the same way (:meth:`SurfaceModel.fit_shift`) is pulled
+    off. 50 deg: on the oak viewpoint set (benchmarks/_viewpoints.py) it is where the 90th
+    percentile of the start-anchored error is lowest of 35, 50 and no limit (0.343 cm against 0.350
+    and more). On the shared and test-set episodes (views 14-39 deg from the model's while held,
+    median) it leaves out only the frames of one turned box (55 deg by the end)."""
 
     camera: np.ndarray
     directions: np.ndarray
