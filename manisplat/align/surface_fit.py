@@ -96,8 +96,8 @@ class SurfaceModel:
             d, idx = self._tree.query(local, distance_upper_bound=self.cap)
             near = np.flatnonzero(np.isfinite(d))
             n = self.normals[idx[near]] @ T[:3, :3].T
-            paired = near[np.abs(np.einsum("ij,ij->i", n, N[near])) >= agree]
-            n = n[np.isin(near, paired)]
+            facing = np.abs(np.einsum("ij,ij->i", n, N[near])) >= agree
+            paired, n = near[facing], n[facing]
             r = X[paired] - (self.points[idx[paired]] @ T[:3, :3].T + T[:3, 3] + shift)
             along = np.einsum("ij,ij->i", n, r)
             normal_eq += n.T @ n + w * len(r) * np.eye(3)
