@@ -20,8 +20,13 @@ gripper's prior only when the depth agrees (:class:`manisplat.align.tracking.Dep
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 MAX_VIEW_CHANGE_DEG = 50.0  # farther from every view the model was seen from, a frame is not fitted (ModelViews)
 NORMAL_AGREEMENT_DEG = 30.0  # a seen point and its nearest model point pair up when their normals agree this well
@@ -41,7 +46,12 @@ class SurfaceModel:
         self.points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         self.cap = float(cap)
         self._tree = cKDTree(self.points)
-        self.normals = point_normals(self.points, MODEL_NORMAL_NEIGHBOURS)
+
+    @cached_property
+    def normals(self) -> np.ndarray:
+        """Unit normals [M, 3] of the model points (sign arbitrary; :func:`point_normals`), made
+        when :meth:`fit_shift` first needs them: the tracker's depth check uses the misfit only."""
+        return point_normals(self.points, MODEL_NORMAL_NEIGHBOURS, self._tree)
 
     def match(self, surfaces: list[np.ndarray], poses: list[np.ndarray],
               shift: np.ndarray | None = None) -> tuple[np.ndarray, float]:
@@ -108,15 +118,16 @@ class SurfaceModel:
         return normal_eq, rhs, float(spread.mean()) if len(spread) else self.cap
 
 
-def point_normals(points: np.ndarray, neighbours: int) -> np.ndarray:
+def point_normals(points: np.ndarray, neighbours: int, tree: cKDTree | None = None) -> np.ndarray:
     """Unit normals [M, 3] (sign arbitrary) of the points [M, 3]: the direction of least spread of
-    each point's ``neighbours`` nearest (zero where there are fewer than 3 points)."""
+    each point's ``neighbours`` nearest (zero where there are fewer than 3 points); ``tree``: a
+    cKDTree of ``points`` already built."""
     from scipy.spatial import cKDTree
 
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(points) < 3:
         return np.zeros_like(points)
-    _, idx = cKDTree(points).query(points, k=min(neighbours, len(points)))
+    _, idx = (tree or cKDTree(points)).query(points, k=min(neighbours, len(points)))
     patch = points[idx] - points[idx].mean(axis=1, keepdims=True)
     _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", patch, patch))
     return vectors[:, :, 0]
