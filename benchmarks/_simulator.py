@@ -32,13 +32,19 @@ def sim_tools() -> Path:
     return shared_dir() / "tools" / "sim"
 
 
+def sim_env() -> dict[str, str]:
+    """The environment the tools run in: this one, with ``MUJOCO_GL=osmesa`` unless it is set
+    (``egl`` where a GPU driver or Mesa's EGL is installed)."""
+    return {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "osmesa")}
+
+
 def run_sim_jobs(simenv: Path, jobs: Iterable[SimJob], *, workers: int = 2, ok_codes: tuple[int, ...] = (0,),
                  tools: Path | None = None) -> None:
     """Run every job whose report does not exist yet, ``workers`` at a time (MuJoCo on the
     machine's cores), with ``MUJOCO_GL=osmesa`` unless set. A tool that exits with a code outside
     ``ok_codes`` (``execute_bimanual.py``: 2 when the task's own checks fail, which its report says)
     stops the run with a RuntimeError naming it; the jobs still running are killed."""
-    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "osmesa")}
+    env = sim_env()
     cwd = tools or sim_tools()
     running: list[tuple[SimJob, subprocess.Popen]] = []
 

@@ -157,12 +157,12 @@ def execute_all(simenv: Path, source: Path, twin: Twin, episodes: list[Path], ac
     def jobs() -> Iterator[SimJob]:
         for k, ep in enumerate(episodes):
             spec = out / f"episode_{k}.objects.json"
-            spec.parent.mkdir(parents=True, exist_ok=True)
             spec.write_text(json.dumps(new_objects(source, twin, dict(np.load(ep / "object_poses.npz")))))
             render = ("--render", str(out / f"render_{k}")) if k < render_check else ()
             yield SimJob("execute_bimanual.py", (str(act / f"episode_{k}.hdf5"), "--objects", str(spec), *render),
                          out / f"episode_{k}.json")
 
+    out.mkdir(parents=True, exist_ok=True)
     run_sim_jobs(simenv, jobs(), ok_codes=(0, 2))
     return [json.loads((out / f"episode_{k}.json").read_text()) | {"episode": ep.name} for k, ep in enumerate(episodes)]
 
@@ -212,7 +212,6 @@ def plan_and_execute(simenv: Path, source: Path, twin: Twin, n: int, out: Path, 
     def jobs() -> Iterator[SimJob]:
         for k, traj in enumerate(valid):
             name = f"planned_{k:04d}"
-            out.mkdir(parents=True, exist_ok=True)
             with h5py.File(out / f"{name}.hdf5", "w") as f:
                 f.create_dataset("action", data=np.concatenate(
                     [np.column_stack([traj.arms[a].action_q, traj.arms[a].action_gripper]) for a in twin.arm_names], 1))
@@ -220,6 +219,7 @@ def plan_and_execute(simenv: Path, source: Path, twin: Twin, n: int, out: Path, 
             yield SimJob("execute_bimanual.py", (str(out / f"{name}.hdf5"), "--objects", str(out / f"{name}.objects.json"),
                                                  "--fps", str(twin.fps)), out / f"{name}.json")
 
+    out.mkdir(parents=True, exist_ok=True)
     run_sim_jobs(simenv, jobs(), ok_codes=(0, 2))
     physics = [json.loads((out / f"planned_{k:04d}.json").read_text()) | {"episode": f"planned_{k:04d}"}
                for k in range(len(valid))]

@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from benchmarks._harness import BenchContext, MissingBenchmarkData
+from benchmarks._simulator import sim_env
 from manisplat.twin import Twin
 
 THREADED = False
@@ -99,8 +100,7 @@ def _execute(simenv: Path, episode: Path, parent: Path, ctx: BenchContext, rende
     cmd = [str(simenv), "execute_episode.py", str(episode), "--parent", str(parent)]
     if render is not None:
         cmd += ["--render", str(render)]
-    gl = os.environ.get("MUJOCO_GL", "osmesa")  # egl where a GPU driver or Mesa's EGL is installed
-    proc = subprocess.run(cmd, cwd=tools, capture_output=True, text=True, env={**os.environ, "MUJOCO_GL": gl})
+    proc = subprocess.run(cmd, cwd=tools, capture_output=True, text=True, env=sim_env())
     if proc.returncode != 0:
         raise MissingBenchmarkData(f"execute_episode.py failed on {episode}: {proc.stderr[-500:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])

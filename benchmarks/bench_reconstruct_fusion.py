@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 import tempfile
@@ -42,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks._harness import BENCH_DIR, MissingBenchmarkData, machine_info, shared_dir, simulator_python
-from benchmarks._simulator import SimJob, run_sim_jobs, sim_tools
+from benchmarks._simulator import SimJob, run_sim_jobs, sim_env, sim_tools
 
 OWN_OPTIONS = True
 SOURCE = "episode_0001"
@@ -95,7 +94,7 @@ def _demonstrations(simenv: Path, out: Path, n: int) -> list[Path]:
         cmd = [str(simenv), "gen_demos.py", "--source", str(shared_dir() / "data" / "sim_pick_place_small"),
                "--out", str(out), "--n", str(n + 5), "--seed-start", "1", "--place-range", "0.02", "0.02", "0.4"]
         subprocess.run(cmd, cwd=sim_tools(), check=True, stdout=subprocess.DEVNULL,
-                       env={**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "osmesa")})
+                       env=sim_env())
         found = sorted(p for p in out.glob("episode_*") if (p / "episode.json").exists())
     if len(found) < n:
         raise MissingBenchmarkData(f"gen_demos.py made {len(found)} demonstrations in {out}, {n} needed")

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-import os
 import pickle
 import struct
 import subprocess
 import sys
 from pathlib import Path
 from typing import Any
+
+from benchmarks._simulator import sim_env
 
 SERVER = Path(__file__).with_name("env_server.py")
 
@@ -28,7 +29,7 @@ class SimEnv:
     """
 
     def __init__(self, simenv: Path, tools: Path, source: Path, **options: Any) -> None:
-        env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "osmesa"), "OMP_NUM_THREADS": "1"}
+        env = {**sim_env(), "OMP_NUM_THREADS": "1"}
         self._process = subprocess.Popen([str(simenv), str(SERVER), str(tools)], stdin=subprocess.PIPE,
                                          stdout=subprocess.PIPE, stderr=sys.stderr, env=env)
         self.info = self.call("open", str(source), options)

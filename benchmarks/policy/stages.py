@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from benchmarks._simulator import SimJob, run_sim_jobs
+from benchmarks._simulator import SimJob, run_sim_jobs, sim_env
 from benchmarks.policy.data import IMAGE_SIZE, Viewport, episode_folders, load_demonstrations, workspace_viewport
 from benchmarks.policy.rollout import Rollout, evaluate, wilson_interval
 from benchmarks.policy.sim_env import SimEnv
@@ -270,8 +270,7 @@ class Stages:
         return ranges[0], ranges[1], float(np.radians(ranges[2]))
 
     def _sim_process(self, script: str, *args: str) -> subprocess.Popen:
-        env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "osmesa")}
-        return subprocess.Popen([str(self.simenv), script, *args], cwd=self.tools, env=env,
+        return subprocess.Popen([str(self.simenv), script, *args], cwd=self.tools, env=sim_env(),
                                 stdout=subprocess.DEVNULL, stderr=sys.stderr)
 
     def _sim(self, script: str, *args: str) -> None:
