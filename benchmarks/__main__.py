@@ -10,7 +10,7 @@ import importlib
 import sys
 from pathlib import Path
 
-from benchmarks._harness import BENCH_DIR, MissingBenchmarkData, list_benchmarks, run_benchmark
+from benchmarks._harness import BENCH_DIR, MissingBenchmarkData, list_benchmarks, run_benchmark, takes_own_options
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -54,10 +54,9 @@ def main(argv: list[str] | None = None) -> int:
 
 def _own_main(name: str):
     """The ``main(argv)`` of benchmark ``name`` when it takes options of its own, else None."""
-    if name.startswith("-") or not (BENCH_DIR / f"bench_{name}.py").exists():
+    if name.startswith("-") or not (BENCH_DIR / f"bench_{name}.py").exists() or not takes_own_options(name):
         return None
-    module = importlib.import_module(f"benchmarks.bench_{name}")
-    return module.main if getattr(module, "OWN_OPTIONS", False) else None
+    return importlib.import_module(f"benchmarks.bench_{name}").main
 
 
 if __name__ == "__main__":

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ast
 import datetime as _dt
 import importlib
 import json
@@ -92,13 +93,22 @@ def time_call(fn: Callable[[], Any], *, repeat: int = 20, warmup: int = 3, min_t
 
 
 def list_benchmarks() -> dict[str, str]:
-    """Benchmark name -> first docstring line, for every ``bench_*.py`` module."""
+    """Benchmark name -> first docstring line, for every ``bench_*.py`` module (read from its
+    source: listing them imports none, nor torch)."""
     found = {}
     for path in sorted(BENCH_DIR.glob("bench_*.py")):
-        name = path.stem.removeprefix("bench_")
-        module = importlib.import_module(f"benchmarks.{path.stem}")
-        found[name] = (module.__doc__ or "").strip().splitlines()[0] if module.__doc__ else ""
+        doc = ast.get_docstring(ast.parse(path.read_text()))
+        found[path.stem.removeprefix("bench_")] = doc.strip().splitlines()[0] if doc else ""
     return found
+
+
+def takes_own_options(name: str) -> bool:
+    """Whether benchmark ``name`` declares ``OWN_OPTIONS = True`` (its own ``main(argv)``), read
+    from its source so that ``python -m benchmarks NAME --help`` imports nothing heavy."""
+    for node in ast.parse((BENCH_DIR / f"bench_{name}.py").read_text()).body:
+        if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "OWN_OPTIONS" for t in node.targets):
+            return isinstance(node.value, ast.Constant) and node.value.value is True
+    return False
 
 
 def machine_info() -> dict[str, Any]:
