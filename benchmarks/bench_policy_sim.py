@@ -76,6 +76,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="the policy's view of the workspace, WIDTHxHEIGHT (default 160x120: benchmarks.policy.data)")
     p.add_argument("--augment-speed", type=bounded(0.05, 1.0), default=1.0,
                    help="manisplat-augment --speed for B and D: fraction 0.05-1 of the joint limits (default 1.0, its own)")
+    p.add_argument("--augment-profile", choices=("time-optimal", "smooth"), default="time-optimal",
+                   help="manisplat-augment --profile for B and D: how re-planned motions are timed (default time-optimal)")
     p.add_argument("--twin-iters", type=positive(int), help="reconstruction iterations (default 1000; --quick 300)")
     p.add_argument("--twin-episodes", type=positive(int), default=1,
                    help="demonstrations of the scene the twin is made of: the source and gen_demos.py ones (seeds 501-); "
@@ -117,6 +119,7 @@ def main(argv: list[str] | None = None) -> int:
     stages = Stages(source=source, work=work, simenv=Path(simenv), tools=shared / "tools" / "sim",
                     object_range=OBJECT_RANGE, place_range=PLACE_RANGE, twin_iters=args.twin_iters or
                     (300 if quick else 1000), image_size=args.image_size, augment_speed=args.augment_speed,
+                    augment_profile=args.augment_profile,
                     twin_episodes=args.twin_episodes, symmetry=tuple(args.symmetry),
                     train_seed=args.train_seed)
     started = time.perf_counter()

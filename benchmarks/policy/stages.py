@@ -58,7 +58,7 @@ class Stages:
 
     def __init__(self, source: Path, work: Path, simenv: Path, tools: Path, object_range: tuple[float, ...],
                  place_range: tuple[float, ...], twin_iters: int, image_size: tuple[int, int] | None = None,
-                 augment_speed: float = 1.0, twin_episodes: int = 1, symmetry: tuple[str, ...] = (),
+                 augment_speed: float = 1.0, augment_profile: str = "time-optimal", twin_episodes: int = 1, symmetry: tuple[str, ...] = (),
                  train_seed: int = 0) -> None:
         self.source, self.work, self.simenv, self.tools = source, work, simenv, tools
         self.object_range, self.place_range, self.twin_iters = object_range, place_range, twin_iters
@@ -66,9 +66,11 @@ class Stages:
         self.training_starts: dict[str, np.ndarray] = {}
         self.viewport: Viewport = workspace_viewport(source, max(object_range[:2]), image_size or IMAGE_SIZE)
         self.augment_speed = float(augment_speed)
+        self.augment_profile = augment_profile
         self.twin_episodes = int(twin_episodes)
         #: B's and D's folders, policies and rollouts of another speed, twin or symmetry: "", "_speed0.6", "_twin5", ...
         self.variant_tag = ("" if self.augment_speed == 1.0 else f"_speed{self.augment_speed:g}") + \
+            ("" if augment_profile == "time-optimal" else f"_{augment_profile}") + \
             ("" if self.twin_episodes == 1 else f"_twin{self.twin_episodes}") + \
             "".join(f"_sym-{item.replace('=', '')}" for item in symmetry)
         self.symmetry = tuple(symmetry)
@@ -119,7 +121,7 @@ class Stages:
             _log(f"manisplat-augment: {n} demonstrations")
             start = time.perf_counter()
             augment([str(twin), "--n", str(n), "--out", str(out), "--workers", "2", "--seed", "0", "-q", "--overwrite",
-                     "--speed", str(self.augment_speed), "--sources", self.source.name,
+                     "--speed", str(self.augment_speed), "--profile", self.augment_profile, "--sources", self.source.name,
                      "--object-range", ",".join(map(str, self.object_range)),
                      "--target-range", ",".join(map(str, self.place_range)),
                      *(f"--symmetry={item}" for item in self.symmetry)])

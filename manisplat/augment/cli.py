@@ -96,6 +96,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--speed", type=positive(), default=1.0,
                    help="fraction (0-1] of the joint velocity/acceleration limits for re-planned motions "
                         "(default %(default)s)")
+    p.add_argument("--profile", choices=("time-optimal", "smooth"), default="time-optimal",
+                   help="how re-planned motions are timed: time-optimal (toppra: full acceleration at once) or "
+                        "smooth (a quintic: speed rises and falls as a bell, as a teleoperated motion does; "
+                        "longer) (default %(default)s)")
     p.add_argument("--planner-timeout", type=positive(), default=1.0,
                    help="seconds the planner may spend on one motion before the sample is given up (default %(default)s)")
     p.add_argument("--workers", type=positive(int), default=1,

@@ -50,7 +50,7 @@ from manisplat.augment.sampling import ObjectTarget, sample_targets
 from manisplat.augment.skills import SkillResult, SourceSpline, solve_skill
 from manisplat.augment.source import SourceDemo, SourceError, source_demo
 from manisplat.augment.symmetry import Symmetry, axis_point, wrist_keeping_turn, yaw_of
-from manisplat.augment.timing import REST, TimedMotion, TimingError, time_motion
+from manisplat.augment.timing import PROFILES, REST, TimedMotion, TimingError, time_motion
 from manisplat.augment.validation import check_all, dense_collision, skill_relative_errors, within_limits
 from manisplat.twin.support import MAX_STEP
 
@@ -67,6 +67,8 @@ class AugmentConfig:
 
     Attributes:
         speed: fraction of the joint velocity/acceleration limits for re-planned motions (0, 1].
+        profile: how re-planned motions are timed (:data:`~manisplat.augment.timing.PROFILES`):
+            "time-optimal" (toppra) or "smooth" (a quintic, bell-shaped speed).
         planner_timeout_s: RRT-Connect's time limit per motion.
         ik_position_tol, ik_rotation_tol: the largest IK residual accepted (m, rad).
         seed: seeds the planner (with the segment index).
@@ -84,6 +86,7 @@ class AugmentConfig:
     """
 
     speed: float = 1.0
+    profile: str = "time-optimal"
     planner_timeout_s: float = 1.0
     ik_position_tol: float = 1e-4
     ik_rotation_tol: float = 1.75e-4
@@ -97,6 +100,8 @@ class AugmentConfig:
     def __post_init__(self) -> None:
         if not (0 < self.speed <= 1):
             raise ValueError(f"speed must be in (0, 1], got {self.speed}")
+        if self.profile not in PROFILES:
+            raise ValueError(f"profile must be one of {PROFILES}, got {self.profile!r}")
         if not self.planner_timeout_s > 0:
             raise ValueError(f"planner_timeout_s must be > 0, got {self.planner_timeout_s}")
         if not (self.ik_position_tol > 0 and self.ik_rotation_tol > 0):
@@ -414,7 +419,7 @@ class Augmenter:
         err = ""
         for wps, lim_v, lim_a in options:
             try:
-                return time_motion(wps, v_a, v_b, vlim=lim_v, alim=lim_a, dt=self.dt), ""
+                return time_motion(wps, v_a, v_b, vlim=lim_v, alim=lim_a, dt=self.dt, profile=config.profile), ""
             except TimingError as exc:
                 err = str(exc)
         return None, err
@@ -448,9 +453,11 @@ class Augmenter:
                 raise TimingError(err)
             parts = [middle.q]
             if moving_a:
-                parts.insert(0, time_motion(np.stack([q_a, rest_a]), v_a, zero, vlim=lim_v, alim=lim_a, dt=self.dt).q[:-1])
+                parts.insert(0, time_motion(np.stack([q_a, rest_a]), v_a, zero, vlim=lim_v, alim=lim_a, dt=self.dt,
+                                              profile=config.profile).q[:-1])
             if moving_b:
-                parts.append(time_motion(np.stack([rest_b, q_b]), zero, v_b, vlim=lim_v, alim=lim_a, dt=self.dt).q[1:])
+                parts.append(time_motion(np.stack([rest_b, q_b]), zero, v_b, vlim=lim_v, alim=lim_a, dt=self.dt,
+                                         profile=config.profile).q[1:])
         except TimingError as exc:
             raise Rejected("timing", f"{name}: no time-parametrization within the limits ({why}; and through rest: "
                                      f"{exc})") from exc
@@ -467,7 +474,8 @@ class Augmenter:
         t0 = time.perf_counter()
         try:
             timed = time_motion(np.stack([q_end, q_stop]), v_end, np.zeros_like(v_end),
-                                vlim=self.vlim * config.headroom, alim=self.alim * config.headroom, dt=self.dt)
+                                vlim=self.vlim * config.headroom, alim=self.alim * config.headroom, dt=self.dt,
+                                profile=config.profile)
         except TimingError as exc:
             raise Rejected("timing", f"M_settle: {exc}") from exc
         timings["timing_s"] += time.perf_counter() - t0
@@ -588,8 +596,9 @@ class Augmenter:
         planner = {"libraries": {"kinematics_ik": "pinocchio (pin) Levenberg-Marquardt, warm-started",
                                  "collision": "coal via pinocchio GeometryModel",
                                  "planner": "straight joint line, else OMPL RRTConnect + PathSimplifier.simplifyMax",
-                                 "timing": "toppra (TOPPRA, ParametrizeConstAccel)"},
-                   "speed": config.speed, "seed": config.seed, "segments": attempts,
+                                 "timing": "toppra (TOPPRA, ParametrizeConstAccel)" if config.profile == "time-optimal"
+                                 else "quintic time scaling within the limits (toppra's spline path)"},
+                   "speed": config.speed, "profile": config.profile, "seed": config.seed, "segments": attempts,
                    "skills": [{"name": s.name, "object": s.object, "slowed": round(float(r.slow), 4),
                                "ik_iterations": r.ik_iterations, "ik_restarts": r.ik_restarts}
                               for s, r in zip(self.src.skills, skills)],
