@@ -45,6 +45,8 @@ class Stages:
         image_size: (width, height) of the policy's view of the workspace (None: ``data.IMAGE_SIZE``).
         augment_speed: manisplat-augment's --speed (1.0, its default, keeps the folder names of
             earlier runs; another speed gets its own folders, policies and rollouts).
+        augment_profile: manisplat-augment's --profile ("time-optimal", its default, keeps the
+            folder names of earlier runs; "smooth" gets its own).
         twin_episodes: demonstrations the twin is reconstructed from: the source, then
             ``gen_demos.py`` demonstrations of its scene (seeds from :data:`TWIN_DEMO_SEED`, full
             renders with depth and masks). Augmentation still starts from the source alone

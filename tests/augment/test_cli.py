@@ -41,6 +41,7 @@ def test_writes_valid_episodes_with_their_augmentation_record(augmented, recon):
     assert code == 0
     report = json.loads((out / "augment_report.json").read_text())
     assert report["written"] == 2 and report["valid"] == 2 and 0 < report["validity_rate"] <= 1
+    assert report["profile"] == "time-optimal"
     motions = [r for n in ("episode_0000", "episode_0001")
                for r in json.loads((out / n / "augmentation.json").read_text())["planner"]["segments"]]
     assert report["motions"]["planned"] == len(motions) > 0
@@ -180,7 +181,7 @@ def test_the_report_counts_how_the_motions_were_planned():
                                       {"method": "stop along the last velocity"})),
                Sample(2, 2, {}, None, reason="collision")]
     args = SimpleNamespace(recon="twin", seed=0, object_range=(0.08, 0.08, 45), target_range=(0.05, 0.05, 45),
-                           speed=1.0, workers=1, symmetries={})
+                           speed=1.0, profile="time-optimal", workers=1, symmetries={})
     report = _report(SimpleNamespace(episode="ep"), args, samples, 2, {})
     assert report["motions"] == {"planned": 4, "joined_at_rest": 2,
                                  "by_method": {"straight": 1, "rrtconnect": 2, "stop along the last velocity": 1}}

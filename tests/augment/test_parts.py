@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 import torch
 
 from manisplat.augment.kinematics import PinRobot
@@ -49,14 +50,15 @@ def test_targets_stay_in_their_ranges_and_follow_the_seed(twin):
     assert np.array_equal(again.T_start, draws[7].T_start) and np.array_equal(again.T_place, draws[7].T_place)
 
 
-def test_timed_motions_keep_the_limits_and_the_boundary_velocities():
+@pytest.mark.parametrize("profile", ["time-optimal", "smooth"])
+def test_timed_motions_keep_the_limits_and_the_boundary_velocities(profile):
     robot = builtin_piper()
     vlim, alim, dt = robot.velocity_limits * 0.95, robot.acceleration_limits * 0.95, 1 / 16
     a = np.array([0.0, 1.0, -1.0, 0.0, 0.3, 0.0])
     b = np.array([0.6, 1.4, -0.8, 0.2, 0.0, 0.3])
     v0 = np.array([0.3, 0.2, -0.1, 0.0, 0.0, 0.0])
     v1 = np.array([0.0, -0.3, 0.1, 0.0, 0.1, 0.0])
-    timed = time_motion(np.stack([a, b]), v0, v1, vlim=vlim, alim=alim, dt=dt)
+    timed = time_motion(np.stack([a, b]), v0, v1, vlim=vlim, alim=alim, dt=dt, profile=profile)
     q = timed.q
     assert np.allclose(q[0], a) and np.allclose(q[-1], b)
     assert timed.duration == (len(q) - 1) * dt and timed.duration >= timed.optimal - 1e-9
@@ -87,3 +89,33 @@ def test_the_centre_frame_follows_the_objects_gaussians(twin):
     np.testing.assert_array_equal(after[:3, :3], np.eye(3))
     pose = twin.object_poses["box"][0]
     np.testing.assert_allclose(from_centre_frame(twin, "box", to_centre_frame(twin, "box", pose)), pose, atol=1e-12)
+
+
+def test_a_smooth_motion_between_rests_is_the_minimum_jerk_profile_over_the_fewest_frames():
+    robot = builtin_piper()
+    vlim, alim, dt = robot.velocity_limits * 0.95, robot.acceleration_limits * 0.95, 1 / 16
+    a = np.array([0.0, 1.0, -1.0, 0.0, 0.3, 0.0])
+    b = np.array([0.9, 1.6, -0.4, 0.5, -0.2, 1.2])
+    zero = np.zeros(6)
+    smooth = time_motion(np.stack([a, b]), zero, zero, vlim=vlim, alim=alim, dt=dt, profile="smooth")
+    fast = time_motion(np.stack([a, b]), zero, zero, vlim=vlim, alim=alim, dt=dt)
+    n = len(smooth.q) - 1
+    tau = np.arange(n + 1) / n
+    minimum_jerk = 10 * tau ** 3 - 15 * tau ** 4 + 6 * tau ** 5
+    assert np.abs(smooth.q - (a + minimum_jerk[:, None] * (b - a))).max() < 1e-6
+    # the fewest frames: peak speed 1.875 and peak acceleration 5.77 x (distance / duration)
+    def within(frames: int) -> bool:
+        duration = frames * dt
+        return bool((1.875 * np.abs(b - a) / duration <= vlim).all()
+                    and (10 / np.sqrt(3) * np.abs(b - a) / duration ** 2 <= alim).all())
+    assert within(n) and not within(n - 1)
+    # it starts gently where the time-optimal profile leaves at full acceleration, and takes longer
+    first_step = lambda q: np.abs(q[1] - q[0]).max()  # noqa: E731
+    assert first_step(smooth.q) < 0.2 * first_step(fast.q)
+    assert n > len(fast.q) - 1
+
+
+def test_an_unknown_timing_profile_is_refused():
+    with pytest.raises(ValueError, match="profile"):
+        time_motion(np.stack([np.zeros(6), np.ones(6)]), np.zeros(6), np.zeros(6), vlim=np.ones(6), alim=np.ones(6),
+                    dt=0.1, profile="fast")

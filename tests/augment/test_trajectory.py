@@ -109,12 +109,13 @@ def test_a_shifted_object_moves_the_skills_by_exactly_its_transform(twin):
     assert np.allclose(traj.objects["box"]["T_start"], T_start, atol=1e-12)
 
 
-def test_trajectories_pass_the_replay_checks_at_speed_one(twin):
+@pytest.mark.parametrize("profile", ["time-optimal", "smooth"])
+def test_trajectories_pass_the_replay_checks_at_speed_one(twin, profile):
     for seed in range(4):
         targets = sample_targets(twin, np.random.default_rng(seed), (0.04, 0.04, math.radians(30)),
                                  (0.03, 0.03, math.radians(30)))
         try:
-            traj = augment_trajectory(twin, targets, AugmentConfig(seed=seed))
+            traj = augment_trajectory(twin, targets, AugmentConfig(seed=seed, profile=profile))
         except Rejected as exc:
             assert exc.reason == "ik_unreachable", exc
             continue
@@ -124,6 +125,7 @@ def test_trajectories_pass_the_replay_checks_at_speed_one(twin):
         assert set(np.unique(traj.action_gripper)) <= {0.0, 0.07}
         assert np.allclose(traj.action_q[:-1], traj.q[1:])
         assert traj.q.shape == (len(traj.t), 6) and traj.validation["collision_free"]
+        assert traj.planner["profile"] == profile
         # frames inside the joint limits
         robot = builtin_piper(with_geometry=False)
         assert np.all(traj.q >= robot.lower - 1e-9) and np.all(traj.q <= robot.upper + 1e-9)
