@@ -23,17 +23,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from benchmarks._harness import BENCH_DIR, shared_dir
 from benchmarks.bench_policy_sim import _seeds
-from benchmarks.bench_reconstruct_cobot import imported_sample
-from manisplat.geometry import se3_exp
-from manisplat.reconstruct.data import load_episode_data
-from manisplat.reconstruct.extrinsic import pose_difference, refine_extrinsic
-from manisplat.reconstruct.masks import ObjectPrompt, complete_masks
-from manisplat.reconstruct.plan import make_plan
-from manisplat.reconstruct.rig_check import check_rig
 
 OWN_OPTIONS = True
 SAMPLES = ("cobot_dual_small", "cobot_handover_small")
@@ -47,6 +39,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seeds", type=_seeds, default="1,2,3,4,5", help="calibration error seeds (default 1,2,3,4,5)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_calib" / "rig_check.json")
     args = p.parse_args(argv)
+    from benchmarks.bench_reconstruct_cobot import imported_sample  # the pipeline: after --help
+
     shared = shared_dir()
     rows = []
     t0 = time.perf_counter()
@@ -72,6 +66,10 @@ def main(argv: list[str] | None = None) -> int:
 
 def _error(rng: np.random.Generator) -> np.ndarray:
     """[4, 4] a rotation of ERROR_DEG about a random axis and a translation of ERROR_MM along another."""
+    import torch
+
+    from manisplat.geometry import se3_exp
+
     axis, direction = rng.normal(size=3), rng.normal(size=3)
     twist = np.concatenate([np.zeros(3), axis / np.linalg.norm(axis) * np.radians(ERROR_DEG)])
     E = se3_exp(torch.as_tensor(twist)).numpy()
@@ -81,6 +79,12 @@ def _error(rng: np.random.Generator) -> np.ndarray:
 
 def check_once(episode: Path, prompts: dict[str, tuple[float, float]], seed: int) -> dict:
     """The calibration put off (seed), checked as the reconstruction checks it, scored."""
+    from manisplat.reconstruct.data import load_episode_data
+    from manisplat.reconstruct.extrinsic import refine_extrinsic
+    from manisplat.reconstruct.masks import ObjectPrompt, complete_masks
+    from manisplat.reconstruct.plan import make_plan
+    from manisplat.reconstruct.rig_check import check_rig
+
     meta_path = episode / "episode.json"
     original = meta_path.read_text()
     meta = json.loads(original)
@@ -118,6 +122,8 @@ def check_once(episode: Path, prompts: dict[str, tuple[float, float]], seed: int
 def _scored(T_true: np.ndarray, c) -> dict | None:
     """Errors (deg, mm) against the truth before, after and as fitted; the reported 1-sigma;
     whether the fitted error lies within the reported 2-sigma."""
+    from manisplat.reconstruct.extrinsic import pose_difference
+
     if c is None:
         return None
     before, after, fitted = (pose_difference(T_true, T) for T in (c.T_before, c.T_after, c.T_fitted))
