@@ -68,7 +68,10 @@ class AugmentConfig:
     Attributes:
         speed: fraction of the joint velocity/acceleration limits for re-planned motions (0, 1].
         profile: how re-planned motions are timed (:data:`~manisplat.augment.timing.PROFILES`):
-            "time-optimal" (toppra) or "smooth" (a quintic, bell-shaped speed).
+            "time-optimal" (toppra) or "smooth" (a quintic, bell-shaped speed); braking to rest
+            along a skill's velocity and speeding up into the next (a motion joined at rest,
+            ``M_settle``) stay time-optimal: a quintic with zero acceleration at the skill needs
+            a longer way to stop than the braking point leaves.
         planner_timeout_s: RRT-Connect's time limit per motion.
         ik_position_tol, ik_rotation_tol: the largest IK residual accepted (m, rad).
         seed: seeds the planner (with the segment index).
@@ -453,11 +456,9 @@ class Augmenter:
                 raise TimingError(err)
             parts = [middle.q]
             if moving_a:
-                parts.insert(0, time_motion(np.stack([q_a, rest_a]), v_a, zero, vlim=lim_v, alim=lim_a, dt=self.dt,
-                                              profile=config.profile).q[:-1])
+                parts.insert(0, time_motion(np.stack([q_a, rest_a]), v_a, zero, vlim=lim_v, alim=lim_a, dt=self.dt).q[:-1])
             if moving_b:
-                parts.append(time_motion(np.stack([rest_b, q_b]), zero, v_b, vlim=lim_v, alim=lim_a, dt=self.dt,
-                                         profile=config.profile).q[1:])
+                parts.append(time_motion(np.stack([rest_b, q_b]), zero, v_b, vlim=lim_v, alim=lim_a, dt=self.dt).q[1:])
         except TimingError as exc:
             raise Rejected("timing", f"{name}: no time-parametrization within the limits ({why}; and through rest: "
                                      f"{exc})") from exc
@@ -474,8 +475,7 @@ class Augmenter:
         t0 = time.perf_counter()
         try:
             timed = time_motion(np.stack([q_end, q_stop]), v_end, np.zeros_like(v_end),
-                                vlim=self.vlim * config.headroom, alim=self.alim * config.headroom, dt=self.dt,
-                                profile=config.profile)
+                                vlim=self.vlim * config.headroom, alim=self.alim * config.headroom, dt=self.dt)
         except TimingError as exc:
             raise Rejected("timing", f"M_settle: {exc}") from exc
         timings["timing_s"] += time.perf_counter() - t0
