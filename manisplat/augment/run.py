@@ -141,8 +141,13 @@ def _load_twin(recon: Path) -> Twin:
         log.warning("%s keeps no recorded commands (the recording has none, or the twin was made before "
                     "2026-11-27): the new commands are the next frame's joints; %s keeps them where the "
                     "recording has commands", recon, reconstruct_command(recon))
+    elif twin.commands.gripper is None:
+        log.warning("%s keeps no recorded gripper commands (made before 2026-11-28): the new gripper commands "
+                    "are open or closed from the grasp to the release, not the source's; %s keeps them",
+                    recon, reconstruct_command(recon))
     else:
-        log.info("commands: the source's, led by %.2f of a frame, skills pressing as it did", twin.commands.lead)
+        log.info("commands: the source's, led by %.2f of a frame, skills pressing and the gripper commanded "
+                 "as it did", twin.commands.lead)
     if twin.support is not None and twin.support.smallest_edge() > MAX_STEP:
         log.warning("the recording's depth comes in steps of %.1f mm where the table is seen: a step under %.1f mm "
                     "(a plate's rim) cannot be told from them, so placements are refused only on larger ones",

@@ -25,8 +25,9 @@ Conventions of :class:`NewTrajectory`:
 * frames at ``t = k / fps`` of the parent; ``action_q`` the commands, in the relation the
   source's commands had to its joints (:mod:`.commands`: every frame led by the source's lead,
   skills pressing as the source did; the next frame's joints where it recorded no commands),
-  ``action_gripper`` 0.07 (open) or 0.0 (closed) from the source's gripper events (closed from
-  the grasp to the release);
+  ``action_gripper`` the source's recorded gripper command at the source time a frame plays
+  (a motion: the middle of the source's frames it replaces); where none was recorded 0.07 (open)
+  or 0.0 (closed) from the source's gripper events (closed from the grasp to the release);
 * skill frames carry the source's gripper signal (interpolated when slowed); motions hold the
   gripper of the frame before them (the first motion: the source's frame 0).
 """
@@ -627,6 +628,11 @@ def _pair(scene: SceneCollision, a: str, b: str) -> tuple[int, int]:
 
 
 def _command(src: SourceDemo, s: float) -> float:
+    """The gripper command at source time ``s`` (frames): what the source commanded there
+    (interpolated) where it was recorded, else open or closed by its grasp and release events."""
+    recorded = src.commands.gripper if src.commands is not None else None
+    if recorded is not None:
+        return float(np.interp(s, np.arange(len(recorded), dtype=np.float64), recorded[:, 0]))
     for obj in src.objects.values():
         if obj.grasp is not None and s >= obj.grasp and (obj.release is None or s < obj.release):
             return GRIPPER_CLOSED

@@ -426,13 +426,14 @@ def retime(data: EpisodeData, offset_s: float) -> None:
 
 def recorded_commands(episode: Episode) -> CommandRelation | None:
     """How ``frames.csv``'s commands ``a1..a6`` relate to its joints ``q`` (every arm's, in arm
-    order; both as recorded at each frame): their lead and press. None where an arm records no
-    commands."""
+    order; both as recorded at each frame): their lead and press, with the commanded ``a_gripper``
+    of every arm. None where an arm records no commands."""
     tables = [episode.arm_frames(name) for name in episode.arms]
     if any(table.actions is None for table in tables):
         return None
     return command_relation(np.concatenate([table.q for table in tables], axis=1),
-                            np.concatenate([table.actions[:, :6] for table in tables], axis=1))
+                            np.concatenate([table.actions[:, :6] for table in tables], axis=1),
+                            np.stack([table.actions[:, 6] for table in tables], axis=1))
 
 
 def load_ground_truth(path: str | Path) -> dict[str, np.ndarray] | None:

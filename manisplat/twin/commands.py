@@ -10,6 +10,10 @@ recorded joints, both as ``frames.csv`` has them at each frame) are split in two
   commands ``led(q, lead) = (1 - lead) q[k] + lead q[k+1]`` (a mix of two frames: its
   accelerations never exceed the joints');
 * the **press**, what is left at each frame: ``commands - led(q, lead)`` [T, dof] rad.
+
+The gripper's commands are kept as recorded (``gripper`` [T, arms] m): a leader's fingers close
+and open ahead of the follower's, over several frames, and a new demonstration that plays a skill
+at source time ``s`` commands what the source commanded at ``s``.
 """
 
 from __future__ import annotations
@@ -25,10 +29,12 @@ MOVING = 1e-4
 @dataclass
 class CommandRelation:
     """A recording's commands as its joints led by ``lead`` (fraction of a frame) plus ``press``
-    [T, dof] rad per frame."""
+    [T, dof] rad per frame, and its gripper commands ``gripper`` [T, arms] m (None: not kept, a
+    twin written before 2026-11-28)."""
 
     lead: float
     press: np.ndarray
+    gripper: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.lead = float(self.lead)
@@ -36,15 +42,22 @@ class CommandRelation:
         if not (0.0 <= self.lead <= 1.0) or self.press.ndim != 2 or not np.isfinite(self.press).all():
             raise ValueError(f"command relation: lead {self.lead} outside [0, 1] or press of shape "
                              f"{self.press.shape} not [T, dof] and finite")
+        if self.gripper is not None:
+            gripper = np.asarray(self.gripper, np.float64)
+            self.gripper = gripper[:, None] if gripper.ndim == 1 else gripper
+            if self.gripper.ndim != 2 or len(self.gripper) != len(self.press) or not np.isfinite(self.gripper).all():
+                raise ValueError(f"command relation: gripper commands of shape {gripper.shape} not [T, arms] "
+                                 f"(T = {len(self.press)}) and finite")
 
 
-def command_relation(q: np.ndarray, commands: np.ndarray) -> CommandRelation:
-    """The lead and press of ``commands`` [T, dof] against joints ``q`` [T, dof] (rad, per frame)."""
+def command_relation(q: np.ndarray, commands: np.ndarray, gripper: np.ndarray | None = None) -> CommandRelation:
+    """The lead and press of ``commands`` [T, dof] against joints ``q`` [T, dof] (rad, per frame),
+    with the gripper commands ``gripper`` [T, arms] m kept as they are."""
     q, commands = np.asarray(q, np.float64), np.asarray(commands, np.float64)
     if q.shape != commands.shape:
         raise ValueError(f"commands {commands.shape} and joints {q.shape} differ in shape")
     lead = command_lead(q, commands - q)
-    return CommandRelation(lead, commands - led(q, lead))
+    return CommandRelation(lead, commands - led(q, lead), gripper)
 
 
 def command_lead(q: np.ndarray, offset: np.ndarray) -> float:

@@ -10,7 +10,7 @@ parameters, the light, the background colour, the recorded trajectory (``t`` [T]
 [T, dof] rad, ``gripper`` [T] or [T, A] m, object poses ``T_<frame>_obj`` [T, 4, 4] float64),
 when the recording had depth the support height map (:mod:`manisplat.twin.support`), and when
 it had commands their press ``command_press`` [T, dof] rad (``twin.json``'s ``command_lead``, the
-lead: :mod:`manisplat.twin.commands`).
+lead: :mod:`manisplat.twin.commands`) and the gripper commands ``command_gripper`` [T, arms] m.
 A twin fused from several episodes keeps the first demonstration there and each other one in
 ``twin.json``'s ``demonstrations`` (episode, fps, task, command lead, per-object pose sources and
 phases) and ``twin.pt``'s ``demonstration/<k>/...`` (k from 1: the same tensors).
@@ -82,6 +82,8 @@ def _demonstration_tensors(demo: Demonstration) -> dict[str, torch.Tensor]:
     out = {"t": torch.as_tensor(demo.t), "q": torch.as_tensor(demo.q), "gripper": torch.as_tensor(demo.gripper)}
     if demo.commands is not None:
         out["command_press"] = torch.as_tensor(demo.commands.press)
+        if demo.commands.gripper is not None:
+            out["command_gripper"] = torch.as_tensor(demo.commands.gripper)
     out.update({f"object_poses/{name}": torch.as_tensor(poses) for name, poses in demo.object_poses.items()})
     return out
 
@@ -98,7 +100,9 @@ def _demonstration(meta: dict, tensor, prefix: str = "") -> Demonstration:
     objects = meta["objects"]
     commands = None
     if meta.get("command_lead") is not None:  # twins of recordings without commands, or written before, have none
-        commands = CommandRelation(meta["command_lead"], tensor(f"{prefix}command_press").numpy())
+        gripper = tensor(f"{prefix}command_gripper", None)  # twins written before 2026-11-28 have none
+        commands = CommandRelation(meta["command_lead"], tensor(f"{prefix}command_press").numpy(),
+                                   None if gripper is None else gripper.numpy())
     return Demonstration(
         episode=meta["episode"], fps=meta["fps"], task=meta.get("task"),
         t=tensor(f"{prefix}t").numpy(), q=tensor(f"{prefix}q").numpy(), gripper=tensor(f"{prefix}gripper").numpy(),
@@ -120,8 +124,11 @@ def load_twin(folder: Path, *, backend: str = "auto", device: torch.device | str
         raise TwinFormatError(f"{tensors_path}: unreadable, damaged or not written by manisplat-reconstruct "
                               f"({type(exc).__name__}: {first})") from exc
 
-    def tensor(key: str) -> torch.Tensor:
+    def tensor(key: str, *default: None) -> torch.Tensor | None:
+        """The tensor ``key``; without it ``default`` where one is given, else a TwinFormatError."""
         if key not in tensors:
+            if default:
+                return default[0]
             raise TwinFormatError(f"{tensors_path}: no tensor {key!r}")
         return tensors[key]
 

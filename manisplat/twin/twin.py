@@ -263,11 +263,14 @@ class Twin:
                 for k, name in enumerate(self.arm_names)}
 
     def arm_commands(self) -> dict[str, CommandRelation | None]:
-        """Arm name -> its part of :attr:`commands` (press [T, dof_arm]; None for every arm without it)."""
+        """Arm name -> its part of :attr:`commands` (press [T, dof_arm], gripper [T, 1]; None for
+        every arm without it)."""
         if self.commands is None or not isinstance(self.robot, ArmSet):
             return {name: self.commands for name in self.arm_names}
-        return {name: CommandRelation(self.commands.lead, self.robot.arm_q(self.commands.press, name).numpy())
-                for name in self.arm_names}
+        gripper = self.commands.gripper
+        return {name: CommandRelation(self.commands.lead, self.robot.arm_q(self.commands.press, name).numpy(),
+                                      None if gripper is None else gripper[:, [k]])
+                for k, name in enumerate(self.arm_names)}
 
     def joint_state(self, arms: Mapping[str, tuple[np.ndarray, float]]) -> tuple[np.ndarray, np.ndarray | float]:
         """(q [dof], gripper) as :meth:`render` takes them, from each arm's (q [dof_arm], gripper m)."""

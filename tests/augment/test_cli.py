@@ -12,6 +12,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+import torch
 import pytest
 
 from manisplat.augment.cli import main, summary
@@ -219,3 +220,19 @@ def test_symmetry_is_checked_and_recorded(recon, tmp_path, capsys):
     assert json.loads((out / "augment_report.json").read_text())["symmetry"] == {"box": 4}
     record = json.loads((out / "episode_0000" / "augmentation.json").read_text())
     assert set(record["planner"]["symmetry_turns_deg"]["box"]) == {"pick", "place"}
+
+
+def test_a_twin_without_recorded_gripper_commands_says_its_gripper_commands_are_open_or_closed(recon, tmp_path,
+                                                                                                caplog):
+    """A twin made before it kept the gripper's commands: open/closed commands, and a warning."""
+    old = tmp_path / "old_twin"
+    shutil.copytree(recon, old)
+    tensors = torch.load(old / "twin.pt", weights_only=True)
+    assert tensors.pop("command_gripper") is not None
+    torch.save(tensors, old / "twin.pt")
+    with caplog.at_level(logging.WARNING, logger="manisplat.augment"):
+        assert main([str(old), "--n", "1", "--out", str(tmp_path / "aug"), "-q"]) == 0
+    warned = [r.getMessage() for r in caplog.records if "no recorded gripper commands" in r.getMessage()]
+    assert len(warned) == 1 and "manisplat-reconstruct" in warned[0]
+    frames = Episode.open(tmp_path / "aug" / "episode_0000").frames
+    assert set(np.unique(frames.actions[:, 6])) == {0.0, 0.07}

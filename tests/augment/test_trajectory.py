@@ -4,6 +4,7 @@ the limits the replay enforces, unreachable targets and obstacles handled, deter
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -17,6 +18,7 @@ from manisplat.augment.trajectory import (AugmentConfig, ObjectTarget, Rejected,
                                           sample_targets)
 from manisplat.drivers.piper.trajectory import ReplayLimits, Trajectory, check_trajectory, trajectory_figures
 from manisplat.robot import builtin_piper
+from manisplat.twin.commands import CommandRelation
 
 TOL_M, TOL_RAD = 1e-4, math.radians(0.01)
 
@@ -71,9 +73,12 @@ def test_zero_perturbation_reproduces_the_source_skills(twin):
         dp, dr = _pose_errors(new, src)
         assert dp.max() <= TOL_M and dr.max() <= TOL_RAD, (seg["name"], dp.max(), dr.max())
         assert np.allclose(np.array(seg["T"]), np.eye(4), atol=1e-12)
-        # the gripper signal is the source's (at its ends, exactly)
+        # the gripper signal is the source's (at its ends, exactly), and so are its commands
         assert traj.gripper[f0] == pytest.approx(twin.gripper[s0], abs=1e-9)
         assert traj.gripper[f1] == pytest.approx(twin.gripper[s1], abs=1e-9)
+        played = np.linspace(s0, s1, f1 - f0 + 1)  # source frames, slowed uniformly where a limit asked
+        np.testing.assert_allclose(traj.action_gripper[f0:f1 + 1],
+                                   np.interp(played, np.arange(len(twin.t)), twin.commands.gripper[:, 0]), atol=1e-9)
     # starts and ends where the source does
     assert np.allclose(traj.q[0], twin.q[0]) and traj.t[0] == 0
     assert np.allclose(np.diff(traj.t), 1 / twin.fps)
@@ -122,7 +127,7 @@ def test_trajectories_pass_the_replay_checks_at_speed_one(twin, profile):
         problems, figures = _replay_problems(traj)
         assert problems == []
         assert figures["peak_velocity_of_limit"] <= 1 and figures["peak_acceleration_of_limit"] <= 1
-        assert set(np.unique(traj.action_gripper)) <= {0.0, 0.07}
+        assert ((traj.action_gripper >= 0.0) & (traj.action_gripper <= 0.07)).all()
         assert np.allclose(traj.action_q[:-1], traj.q[1:])
         assert traj.q.shape == (len(traj.t), 6) and traj.validation["collision_free"]
         assert traj.planner["profile"] == profile
@@ -279,3 +284,17 @@ def test_an_object_set_down_across_a_step_is_rejected(twin):
                 augment_trajectory(twin, _source_targets(twin), AugmentConfig())
     finally:
         twin.support = flat
+
+
+def test_the_gripper_commands_are_the_sources_where_recorded_else_open_or_closed(twin):
+    """The sample's recorded gripper commands close over several frames, ahead of its fingers; a
+    twin without them commands open (0.07) or closed (0) from the grasp to the release."""
+    recorded = augment_trajectory(twin, _source_targets(twin), AugmentConfig())
+    ramp = (recorded.action_gripper > 1e-6) & (recorded.action_gripper < 0.07 - 1e-6)
+    assert ramp.sum() >= 3
+    demo = twin.demonstration
+    without = twin.with_demonstration(replace(demo, commands=CommandRelation(demo.commands.lead, demo.commands.press)))
+    binary = augment_trajectory(without, _source_targets(without), AugmentConfig())
+    assert set(np.unique(binary.action_gripper)) == {0.0, 0.07}
+    closing = np.flatnonzero(binary.action_gripper == 0.0)[0]
+    assert recorded.action_gripper[closing - 1] < 0.07  # the recorded commands start closing earlier

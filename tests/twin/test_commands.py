@@ -51,3 +51,7 @@ def test_bad_relations_are_refused():
         CommandRelation(1.5, np.zeros((5, 6)))
     with pytest.raises(ValueError, match="finite"):
         CommandRelation(0.5, np.full((5, 6), np.nan))
+    with pytest.raises(ValueError, match="gripper commands of shape"):
+        CommandRelation(0.5, np.zeros((5, 6)), np.zeros(4))
+    with pytest.raises(ValueError, match="gripper commands"):
+        CommandRelation(0.5, np.zeros((5, 6)), np.full(5, np.inf))

@@ -132,11 +132,12 @@ def test_the_support_map_travels_with_the_twin(trained):
 
 def test_the_source_s_commands_travel_with_the_twin_as_its_joints_led_and_pressed(trained):
     """frames.csv's commands, as recorded against its joints (not the twin's retimed joints),
-    given back by the lead and press the twin loads."""
+    given back by the lead and press the twin loads; its gripper commands as they are."""
     _, out, episode = trained
     frames = episode.frames
     commands = Twin.load(out).commands
     np.testing.assert_allclose(led(frames.q, commands.lead) + commands.press, frames.actions[:, :6], atol=1e-12)
+    np.testing.assert_array_equal(commands.gripper, frames.actions[:, 6:7])
 
 
 def test_a_twin_written_in_version_1_still_loads_and_renders_the_same(trained, tmp_path):
