@@ -62,8 +62,8 @@ def run_augmentation(args: argparse.Namespace) -> dict:
     if args.overwrite:
         _remove_earlier(args.out)
     args.out.mkdir(parents=True, exist_ok=True)
-    config = AugmentConfig(speed=args.speed, profile=args.profile, planner_timeout_s=args.planner_timeout, seed=args.seed,
-                           symmetries=_symmetries(twin, args.symmetries))
+    config = AugmentConfig(speed=args.speed, profile=args.profile, planner_timeout_s=args.planner_timeout,
+                           seed=args.seed, symmetries=_symmetries(twin, args.symmetries))
     planners = {name: _arms_planner(source, args) for name, source in sources.items()}
     explicit = _explicit_targets(args.poses, twin) if args.poses else None
     wanted = len(explicit) if explicit is not None else args.n

@@ -16,9 +16,10 @@ frames exactly, so every frame falls on the parent's clock with the boundary vel
 Profile ``"smooth"``: the same path, its joint-space length run through as a quintic in time
 (Flash & Hogan's minimum-jerk profile between rests; with moving ends, the quintic that leaves
 and arrives at the skills' speeds with zero acceleration along the path) over the fewest whole
-frames at which every joint keeps its velocity and acceleration limits. It starts and stops gently where the time-optimal profile
-jumps to its full acceleration: the bell-shaped speed of a teleoperated or scripted motion, and
-longer (a rest-to-rest minimum-jerk motion peaks at 1.875x its mean speed).
+frames at which every joint keeps its velocity and acceleration limits. It starts and stops
+gently where the time-optimal profile jumps to its full acceleration: the bell-shaped speed of a
+teleoperated or scripted motion, and longer (a rest-to-rest minimum-jerk motion peaks at 1.875x
+its mean speed).
 """
 
 from __future__ import annotations

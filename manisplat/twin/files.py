@@ -100,7 +100,7 @@ def _demonstration(meta: dict, tensor, prefix: str = "") -> Demonstration:
     objects = meta["objects"]
     commands = None
     if meta.get("command_lead") is not None:  # twins of recordings without commands, or written before, have none
-        gripper = tensor(f"{prefix}command_gripper", None)  # twins written before 2026-11-28 have none
+        gripper = tensor(f"{prefix}command_gripper", required=False)  # twins written before 2026-11-28 have none
         commands = CommandRelation(meta["command_lead"], tensor(f"{prefix}command_press").numpy(),
                                    None if gripper is None else gripper.numpy())
     return Demonstration(
@@ -124,11 +124,11 @@ def load_twin(folder: Path, *, backend: str = "auto", device: torch.device | str
         raise TwinFormatError(f"{tensors_path}: unreadable, damaged or not written by manisplat-reconstruct "
                               f"({type(exc).__name__}: {first})") from exc
 
-    def tensor(key: str, *default: None) -> torch.Tensor | None:
-        """The tensor ``key``; without it ``default`` where one is given, else a TwinFormatError."""
+    def tensor(key: str, required: bool = True) -> torch.Tensor | None:
+        """The tensor ``key``; without it None where it is not ``required``, else a TwinFormatError."""
         if key not in tensors:
-            if default:
-                return default[0]
+            if not required:
+                return None
             raise TwinFormatError(f"{tensors_path}: no tensor {key!r}")
         return tensors[key]
 
