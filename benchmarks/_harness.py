@@ -106,7 +106,8 @@ def takes_own_options(name: str) -> bool:
     """Whether benchmark ``name`` declares ``OWN_OPTIONS = True`` (its own ``main(argv)``), read
     from its source so that ``python -m benchmarks NAME --help`` imports nothing heavy."""
     for node in ast.parse((BENCH_DIR / f"bench_{name}.py").read_text()).body:
-        if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "OWN_OPTIONS" for t in node.targets):
+        names = [t.id for t in node.targets if isinstance(t, ast.Name)] if isinstance(node, ast.Assign) else []
+        if "OWN_OPTIONS" in names:
             return isinstance(node.value, ast.Constant) and node.value.value is True
     return False
 

@@ -77,7 +77,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--augment-speed", type=bounded(0.05, 1.0), default=1.0,
                    help="manisplat-augment --speed for B and D: fraction 0.05-1 of the joint limits (default 1.0, its own)")
     p.add_argument("--augment-profile", choices=("time-optimal", "smooth"), default="time-optimal",
-                   help="manisplat-augment --profile for B and D: how re-planned motions are timed (default time-optimal)")
+                   help="manisplat-augment --profile for B and D: how re-planned motions are timed "
+                        "(default time-optimal)")
     p.add_argument("--twin-iters", type=positive(int), help="reconstruction iterations (default 1000; --quick 300)")
     p.add_argument("--twin-episodes", type=positive(int), default=1,
                    help="demonstrations of the scene the twin is made of: the source and gen_demos.py ones (seeds 501-); "

@@ -60,8 +60,8 @@ class Stages:
 
     def __init__(self, source: Path, work: Path, simenv: Path, tools: Path, object_range: tuple[float, ...],
                  place_range: tuple[float, ...], twin_iters: int, image_size: tuple[int, int] | None = None,
-                 augment_speed: float = 1.0, augment_profile: str = "time-optimal", twin_episodes: int = 1, symmetry: tuple[str, ...] = (),
-                 train_seed: int = 0) -> None:
+                 augment_speed: float = 1.0, augment_profile: str = "time-optimal", twin_episodes: int = 1,
+                 symmetry: tuple[str, ...] = (), train_seed: int = 0) -> None:
         self.source, self.work, self.simenv, self.tools = source, work, simenv, tools
         self.object_range, self.place_range, self.twin_iters = object_range, place_range, twin_iters
         self.data_report: dict[str, Any] = {}
@@ -123,7 +123,8 @@ class Stages:
             _log(f"manisplat-augment: {n} demonstrations")
             start = time.perf_counter()
             augment([str(twin), "--n", str(n), "--out", str(out), "--workers", "2", "--seed", "0", "-q", "--overwrite",
-                     "--speed", str(self.augment_speed), "--profile", self.augment_profile, "--sources", self.source.name,
+                     "--speed", str(self.augment_speed), "--profile", self.augment_profile,
+                     "--sources", self.source.name,
                      "--object-range", ",".join(map(str, self.object_range)),
                      "--target-range", ",".join(map(str, self.place_range)),
                      *(f"--symmetry={item}" for item in self.symmetry)])
