@@ -7,7 +7,8 @@ the training frames as ``manisplat-reconstruct`` runs it (no training).
 [--workers 2] [--out FILE]``
 
 Per episode: the extrinsic's true error before and after the check (rotation deg, camera centre
-mm, against the truth degrade_episode.py wrote beside the copy), the correction and its reported
+mm, against the truth degrade_episode.py wrote beside the copy; and what it moves the workspace's
+points by, :func:`workspace_error_mm`), the correction and its reported
 1-sigma, whether the truth lies within the reported 2-sigma (``covered``: after-error <= 2 sigma
 in rotation and in translation), whether the check applied its correction or kept the
 calibration (and why). Conditions, to tell the causes apart: ``oak`` (the preset: every effect),
@@ -29,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks._harness import BENCH_DIR, BenchContext, MissingBenchmarkData, shared_dir
-from benchmarks._viewpoints import add_set_options, clean_episodes, root
+from benchmarks._viewpoints import TARGET, add_set_options, clean_episodes, root
 
 OWN_OPTIONS = True
 #: condition -> degrade_episode.py's effects (the seed draws the calibration error's axis)
@@ -51,6 +52,24 @@ def degraded_copy(ctx: BenchContext, clean: Path, condition: str, seed: int) -> 
         if proc.returncode != 0:
             raise MissingBenchmarkData(f"degrade_episode.py failed for {dst.name}: {proc.stderr[-800:]}")
     return dst, np.asarray(json.loads(truth.read_text())["T_mount_cam_true"], dtype=np.float64)
+
+
+#: the workspace whose points an extrinsic error moves: a 5 x 5 x 5 grid over TARGET +-0.2 m
+#: sideways and 0-0.3 m above the table (base frame, m), where the objects and the gripper are
+WORKSPACE = np.stack(np.meshgrid(np.linspace(TARGET[0] - 0.2, TARGET[0] + 0.2, 5),
+                                 np.linspace(TARGET[1] - 0.2, TARGET[1] + 0.2, 5),
+                                 np.linspace(0.0, 0.3, 5), indexing="ij"), -1).reshape(-1, 3)
+
+
+def workspace_error_mm(T_true: np.ndarray, T_est: np.ndarray) -> tuple[float, float]:
+    """RMS and largest displacement (mm) of the :data:`WORKSPACE` points that the camera-to-base
+    ``T_est`` [4, 4] puts where ``T_true`` has them: what an extrinsic error does to what the camera
+    measures there. A camera far from the workspace can move along a direction (turning about the
+    workspace while sliding sideways) that moves its centre by millimetres and these points by
+    a tenth of that; the camera centre's error alone does not say what the error costs."""
+    in_camera = (WORKSPACE - T_true[:3, 3]) @ T_true[:3, :3]
+    moved = np.linalg.norm(in_camera @ T_est[:3, :3].T + T_est[:3, 3] - WORKSPACE, axis=1)
+    return 1e3 * float(np.sqrt(np.mean(moved ** 2))), 1e3 * float(moved.max())
 
 
 def check_row(episode: Path, T_true: np.ndarray) -> dict:
@@ -75,6 +94,8 @@ def check_row(episode: Path, T_true: np.ndarray) -> dict:
         "error_before_deg": before[0], "error_before_mm": before[1],
         "error_after_deg": after[0], "error_after_mm": after[1],
         "fit_error_deg": fitted[0], "fit_error_mm": fitted[1],
+        "workspace_before_mm": workspace_error_mm(T_true, c.T_before),
+        "workspace_after_mm": workspace_error_mm(T_true, c.T_after),
         "correction_deg": c.rotation_deg, "correction_mm": c.translation_mm,
         "sigma_deg": c.sigma_rotation_deg, "sigma_mm": c.sigma_translation_mm,
         # the fit's own error (applied or not) against its reported 2-sigma
@@ -94,8 +115,8 @@ def summary(rows: list[dict]) -> dict:
                  "kept": sum(not r["applied"] for r in checked),
                  "covered_fraction": float(np.mean([r["covered"] for r in checked])) if checked else None}
     for key in ("error_before_deg", "error_before_mm", "error_after_deg", "error_after_mm", "fit_error_deg",
-                "fit_error_mm"):
-        values = np.array([r[key] for r in checked])
+                "fit_error_mm", "workspace_before_mm", "workspace_after_mm"):
+        values = np.array([r[key][0] if key.startswith("workspace") else r[key] for r in checked])
         if len(values):
             out[key] = {"median": float(np.median(values)), "p90": float(np.percentile(values, 90)),
                         "max": float(values.max())}
@@ -170,7 +191,8 @@ def main(argv: list[str] | None = None) -> int:
         if r.get("checked"):
             print(f"{r['condition']:9s} {r['episode']:28s} {r['distance_m']:.2f} m  before {r['error_before_deg']:.3f} deg "
                   f"{r['error_before_mm']:.2f} mm -> fit {r['fit_error_deg']:.3f} deg {r['fit_error_mm']:.2f} mm "
-                  f"(+- {r['sigma_deg']:.3f} / {r['sigma_mm']:.2f}) {'applied' if r['applied'] else 'KEPT'} "
+                  f"(+- {r['sigma_deg']:.3f} / {r['sigma_mm']:.2f}), workspace {r['workspace_after_mm'][0]:.2f} mm "
+                  f"{'applied' if r['applied'] else 'KEPT'} "
                   f"{'covered' if r['covered'] else 'NOT covered'}")
     print(json.dumps(result["summary"], indent=1))
     args.out.parent.mkdir(parents=True, exist_ok=True)
