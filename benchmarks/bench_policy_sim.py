@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks._harness import BENCH_DIR, MissingBenchmarkData, machine_info, shared_dir
+from manisplat.augment.timing import PROFILES
 from manisplat.cli_args import bounded, positive
 
 OWN_OPTIONS = True  # python -m benchmarks policy_sim [options] calls main()
@@ -76,9 +77,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="the policy's view of the workspace, WIDTHxHEIGHT (default 160x120: benchmarks.policy.data)")
     p.add_argument("--augment-speed", type=bounded(0.05, 1.0), default=1.0,
                    help="manisplat-augment --speed for B and D: fraction 0.05-1 of the joint limits (default 1.0, its own)")
-    p.add_argument("--augment-profile", choices=("time-optimal", "smooth"), default="time-optimal",
+    p.add_argument("--augment-profile", choices=PROFILES, default=PROFILES[0],
                    help="manisplat-augment --profile for B and D: how re-planned motions are timed "
-                        "(default time-optimal)")
+                        "(default %(default)s)")
     p.add_argument("--twin-iters", type=positive(int), help="reconstruction iterations (default 1000; --quick 300)")
     p.add_argument("--twin-episodes", type=positive(int), default=1,
                    help="demonstrations of the scene the twin is made of: the source and gen_demos.py ones (seeds 501-); "

@@ -12,6 +12,7 @@ import math
 import sys
 from pathlib import Path
 
+from manisplat.augment.timing import PROFILES
 from manisplat.cli_args import add_version, finite_numbers, positive
 from manisplat.exit_codes import ExitCode, exit_status_help
 from manisplat.output_folder import check_output_folder
@@ -96,7 +97,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--speed", type=positive(), default=1.0,
                    help="fraction (0-1] of the joint velocity/acceleration limits for re-planned motions "
                         "(default %(default)s)")
-    p.add_argument("--profile", choices=("time-optimal", "smooth"), default="time-optimal",
+    p.add_argument("--profile", choices=PROFILES, default=PROFILES[0],
                    help="how re-planned motions are timed: time-optimal (toppra: full acceleration at once) or "
                         "smooth (a quintic: speed rises and falls as a bell, as a teleoperated motion does; "
                         "longer) (default %(default)s)")

@@ -29,14 +29,11 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import toppra
-import toppra.algorithm as algo
-import toppra.constraint as constraint
 
 logging.getLogger("toppra").setLevel(logging.ERROR)
 
 REST = 1e-6  # rad/s: a boundary slower than this is at rest
-PROFILES = ("time-optimal", "smooth")
+PROFILES = ("time-optimal", "smooth")  # how a motion is timed (module docstring); the first is the default
 SMOOTH_MAX_STRETCH = 6.0  # a smooth motion may take up to this many times the time-optimal duration
 
 
@@ -77,6 +74,11 @@ def time_motion(waypoints: np.ndarray, v_start: np.ndarray, v_end: np.ndarray, *
 
 
 def _time(waypoints, v_start, v_end, vlim, alim, dt, scale, min_frames, profile) -> TimedMotion:
+    # toppra (with scipy) takes about 0.8 s to import: here, so that the CLI reads PROFILES quickly
+    import toppra
+    import toppra.algorithm as algo
+    import toppra.constraint as constraint
+
     rest0 = np.abs(v_start).max() < REST
     rest1 = np.abs(v_end).max() < REST
     if len(waypoints) == 2 and np.abs(waypoints[1] - waypoints[0]).max() < 1e-9 and rest0 and rest1:
