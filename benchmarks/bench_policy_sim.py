@@ -36,7 +36,7 @@ from typing import Any
 
 from benchmarks._harness import BENCH_DIR, MissingBenchmarkData, machine_info, shared_dir
 from manisplat.augment.timing import PROFILES
-from manisplat.cli_args import bounded, positive
+from manisplat.cli_args import bounded, finite_numbers, positive
 
 OWN_OPTIONS = True  # python -m benchmarks policy_sim [options] calls main()
 OBJECT_RANGE = (0.08, 0.08, 45.0)  # m, m, deg: policy_env's reset(seed) ranges
@@ -80,6 +80,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--augment-profile", choices=PROFILES, default=PROFILES[0],
                    help="manisplat-augment --profile for B and D: how re-planned motions are timed "
                         "(default %(default)s)")
+    p.add_argument("--augment-object-range", type=finite_numbers((3,)), metavar="X,Y,DEG",
+                   help="manisplat-augment --object-range for B and D: half-ranges (m, m, deg) of the augmented "
+                        "objects' starts (default the evaluation's, 0.08,0.08,45); wider covers the evaluation "
+                        "range's edges from both sides")
     p.add_argument("--twin-iters", type=positive(int), help="reconstruction iterations (default 1000; --quick 300)")
     p.add_argument("--twin-episodes", type=positive(int), default=1,
                    help="demonstrations of the scene the twin is made of: the source and gen_demos.py ones (seeds 501-); "
@@ -121,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
     stages = Stages(source=source, work=work, simenv=Path(simenv), tools=shared / "tools" / "sim",
                     object_range=OBJECT_RANGE, place_range=PLACE_RANGE, twin_iters=args.twin_iters or
                     (300 if quick else 1000), image_size=args.image_size, augment_speed=args.augment_speed,
-                    augment_profile=args.augment_profile,
+                    augment_profile=args.augment_profile, augment_object_range=args.augment_object_range,
                     twin_episodes=args.twin_episodes, symmetry=tuple(args.symmetry),
                     train_seed=args.train_seed)
     started = time.perf_counter()
@@ -155,7 +159,8 @@ def _write(args: argparse.Namespace, argv: list[str] | None, stages: Any, source
         "benchmark": "policy_sim", "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "quick": args.quick,
         "command": "python -m benchmarks policy_sim " + " ".join(argv if argv is not None else sys.argv[1:]),
         "machine": machine_info(), "source": str(source), "eval_seeds": eval_seeds,
-        "ranges": {"object_m_m_deg": OBJECT_RANGE, "place_m_m_deg": PLACE_RANGE},
+        "ranges": {"object_m_m_deg": OBJECT_RANGE, "place_m_m_deg": PLACE_RANGE,
+                   "augmented_object_m_m_deg": stages.augment_object_range},
         "budget": stages.budget_of(steps).__dict__, "viewport": stages.viewport.__dict__, "env_options": ENV_OPTIONS, "rows": rows, "data": stages.data_report,
         "rollouts": {k: [{"seed": r.seed, "phase": r.phase, **{f: r.result[f] for f in (
             "success", "object_start", "dist_to_mat_m", "tilt_deg", "lifted_m", "steps", "failed")}} for r in v]

@@ -47,6 +47,8 @@ class Stages:
             earlier runs; another speed gets its own folders, policies and rollouts).
         augment_profile: manisplat-augment's --profile ("time-optimal", its default, keeps the
             folder names of earlier runs; "smooth" gets its own).
+        augment_object_range: (x m, y m, yaw deg) half-ranges of the augmented objects' starts
+            (None: ``object_range``, the evaluation's; another gets its own folders).
         twin_episodes: demonstrations the twin is reconstructed from: the source, then
             ``gen_demos.py`` demonstrations of its scene (seeds from :data:`TWIN_DEMO_SEED`, full
             renders with depth and masks). Augmentation still starts from the source alone
@@ -60,7 +62,8 @@ class Stages:
 
     def __init__(self, source: Path, work: Path, simenv: Path, tools: Path, object_range: tuple[float, ...],
                  place_range: tuple[float, ...], twin_iters: int, image_size: tuple[int, int] | None = None,
-                 augment_speed: float = 1.0, augment_profile: str = "time-optimal", twin_episodes: int = 1,
+                 augment_speed: float = 1.0, augment_profile: str = "time-optimal",
+                 augment_object_range: tuple[float, ...] | None = None, twin_episodes: int = 1,
                  symmetry: tuple[str, ...] = (), train_seed: int = 0) -> None:
         self.source, self.work, self.simenv, self.tools = source, work, simenv, tools
         self.object_range, self.place_range, self.twin_iters = object_range, place_range, twin_iters
@@ -69,10 +72,13 @@ class Stages:
         self.viewport: Viewport = workspace_viewport(source, max(object_range[:2]), image_size or IMAGE_SIZE)
         self.augment_speed = float(augment_speed)
         self.augment_profile = augment_profile
+        self.augment_object_range = tuple(object_range if augment_object_range is None else augment_object_range)
         self.twin_episodes = int(twin_episodes)
         #: B's and D's folders, policies and rollouts of another speed, twin or symmetry: "", "_speed0.6", "_twin5", ...
         self.variant_tag = ("" if self.augment_speed == 1.0 else f"_speed{self.augment_speed:g}") + \
             ("" if augment_profile == "time-optimal" else f"_{augment_profile}") + \
+            ("" if self.augment_object_range == tuple(object_range) else
+             "_range{:g}x{:g}x{:g}".format(*self.augment_object_range)) + \
             ("" if self.twin_episodes == 1 else f"_twin{self.twin_episodes}") + \
             "".join(f"_sym-{item.replace('=', '')}" for item in symmetry)
         self.symmetry = tuple(symmetry)
@@ -125,7 +131,7 @@ class Stages:
             augment([str(twin), "--n", str(n), "--out", str(out), "--workers", "2", "--seed", "0", "-q", "--overwrite",
                      "--speed", str(self.augment_speed), "--profile", self.augment_profile,
                      "--sources", self.source.name,
-                     "--object-range", ",".join(map(str, self.object_range)),
+                     "--object-range", ",".join(map(str, self.augment_object_range)),
                      "--target-range", ",".join(map(str, self.place_range)),
                      *(f"--symmetry={item}" for item in self.symmetry)])
             self.data_report[f"augment_{n}_s"] = round(time.perf_counter() - start, 1)

@@ -156,9 +156,10 @@ def test_another_augmentation_speed_gets_its_own_folders_and_policies(tmp_path):
     assert [made[0.6].key(c, 50) for c in "ABCD"] == ["A", "B50_speed0.6", "C50", "D50_speed0.6"]
 
 
-def test_a_declared_symmetry_and_another_training_seed_get_their_own_names(tmp_path):
-    """--symmetry changes B's and D's demonstrations (their own folders and policies); --train-seed
-    changes every condition's policy (trained with that seed) but no demonstrations."""
+def test_a_declared_symmetry_another_range_and_another_training_seed_get_their_own_names(tmp_path):
+    """--symmetry and --augment-object-range change B's and D's demonstrations (their own folders
+    and policies); --train-seed changes every condition's policy (trained with that seed) but no
+    demonstrations."""
     from manisplat.episode.synthetic import write_sample_episode
 
     from benchmarks.policy.stages import Stages
@@ -171,6 +172,10 @@ def test_a_declared_symmetry_and_another_training_seed_get_their_own_names(tmp_p
 
     symmetric, seeded = stages(symmetry=("box=4",)), stages(train_seed=1)
     assert [symmetric.key(c, 50) for c in "ABCD"] == ["A", "B50_sym-box4", "C50", "D50_sym-box4"]
+    wider, same = stages(augment_object_range=[0.1, 0.1, 55.0]), stages(augment_object_range=[0.05, 0.05, 30.0])
+    assert [wider.key(c, 50) for c in "ABCD"] == ["A", "B50_range0.1x0.1x55", "C50", "D50_range0.1x0.1x55"]
+    assert [same.key(c, 50) for c in "ABCD"] == ["A", "B50", "C50", "D50"]
+    assert wider.viewport == same.viewport  # the policy sees the evaluation's workspace either way
     assert [seeded.key(c, 50) for c in "ABCD"] == ["A_trainseed1", "B50_trainseed1", "C50_trainseed1",
                                                    "D50_trainseed1"]
     assert seeded.budget_of(9000).seed == 1 and symmetric.budget_of(9000).seed == 0
