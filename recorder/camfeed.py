@@ -138,6 +138,10 @@ class CameraFeed:
     def _accept(self, frame: CameraFrame) -> None:
         stats = self.stats
         now = self.clock.monotonic()
+        if not self._stalled and now - self.last_frame_host > self.stall_after_s:
+            # a silence the thread did not see while it lasted (a read that returned only after it)
+            self._stalled = True
+            stats.stalls += 1
         if self._stalled:
             self._stalled = False
             log.info("camera %s sends frames again after %.2f s", self.name, now - self.last_frame_host)
