@@ -100,7 +100,10 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    parser = _parser()
+    args = parser.parse_args(argv)
+    if args.augment_object_range is not None and min(args.augment_object_range) < 0:
+        parser.error(f"--augment-object-range: half-ranges must be >= 0, got {args.augment_object_range}")
     quick = args.quick
     shared = shared_dir()
     source = (args.source or shared / "data" / "sim_pick_place_small").resolve()

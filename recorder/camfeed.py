@@ -129,19 +129,19 @@ class CameraFeed:
                 self.error = f"camera {self.name} failed: {exc}"
                 log.error("%s", self.error)
                 return
-            silent = self.silent_s()
-            if silent > self.stall_after_s and not self._stalled:
-                self._stalled = True
-                self.stats.stalls += 1
-                log.warning("camera %s has sent no frame for %.2f s", self.name, silent)
+            self._count_stall(self.silent_s())
+
+    def _count_stall(self, silent: float) -> None:
+        """Count a silence of ``silent`` s as a stall once, when it is longer than the limit."""
+        if silent > self.stall_after_s and not self._stalled:
+            self._stalled = True
+            self.stats.stalls += 1
+            log.warning("camera %s has sent no frame for %.2f s", self.name, silent)
 
     def _accept(self, frame: CameraFrame) -> None:
         stats = self.stats
         now = self.clock.monotonic()
-        if not self._stalled and now - self.last_frame_host > self.stall_after_s:
-            # a silence the thread did not see while it lasted (a read that returned only after it)
-            self._stalled = True
-            stats.stalls += 1
+        self._count_stall(now - self.last_frame_host)  # a silence that a read returning only after it hid
         if self._stalled:
             self._stalled = False
             log.info("camera %s sends frames again after %.2f s", self.name, now - self.last_frame_host)
