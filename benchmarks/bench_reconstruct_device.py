@@ -8,6 +8,8 @@ with every phase timed separately (each phase waits for the device before and af
 split adds up to a slower iteration than the plain one; the exposure refit that ends a training
 run is left out): object poses, composition (with the shadow map, also timed alone), the main
 rasterization, the loss, backward, densification and the optimizer step.
+Eager runs count the tensor operations of ``--op-iters`` more iterations (each a kernel launch on
+a GPU: what bounds a small scene's iteration there; the same count on the CPU).
 On CUDA it also counts the host-device synchronisations of ``--sync-iters`` iterations
 (``torch.cuda.set_sync_debug_mode``), by source line. The held-out PSNR and pose error of the
 trained reconstruction are computed as ``metrics.json`` computes them.
@@ -140,6 +142,14 @@ def count_syncs(rec, iters: int) -> dict[str, int]:
     return dict(counts.most_common())
 
 
+def tensor_ops_per_iter(rec, iters: int) -> dict:
+    """Eager runs: the tensor operations (kernel launches on a GPU) of ``iters`` more iterations,
+    per iteration: the total and the ten most frequent."""
+    ops = rec.tensor_ops(iters)
+    return {"total": round(ops.total / iters, 1),
+            "most_frequent": {k: round(v / iters, 1) for k, v in ops.counts.most_common(10)}}
+
+
 def quality(rec, alignments) -> dict:
     """Held-out PSNR/SSIM and pose error, as ``metrics.json`` (written to a temporary folder)."""
     from manisplat.reconstruct.outputs import write_evaluation
@@ -151,11 +161,12 @@ def quality(rec, alignments) -> dict:
 
 def measure(episode: Path, *, device: str, iters: int, profile_iters: int, sync_iters: int, threads: int | None,
             rasterizer_revision: str | None = None, compile: str = "off", steady_iters: int = 0,
-            overrides: dict | None = None, callback=None) -> dict:
+            overrides: dict | None = None, callback=None, op_iters: int = 5) -> dict:
     """One training run on ``device`` and its measurements (see the module docstring).
 
     ``compile``: TrainConfig.compile; ``steady_iters``: iterations timed after training (compiled
-    code ready); ``overrides``: other TrainConfig fields; ``callback(rec, seconds_since_start)``
+    code ready); ``op_iters``: eager runs count the tensor operations of this many more iterations
+    (0: not counted); ``overrides``: other TrainConfig fields; ``callback(rec, seconds_since_start)``
     is called after every training iteration."""
     import torch
 
@@ -195,6 +206,8 @@ def measure(episode: Path, *, device: str, iters: int, profile_iters: int, sync_
         result["steady_ms_per_iter"] = steady_ms_per_iter(rec, steady_iters)
     if profile_iters:
         result["split_ms"] = profile_split(rec, profile_iters)
+    if op_iters and rec.compiled is None:
+        result["tensor_ops_per_iter"] = tensor_ops_per_iter(rec, op_iters)
     if sync_iters and dev.type == "cuda":
         result["syncs_in_%d_iters" % sync_iters] = count_syncs(rec, sync_iters)
     return result
@@ -219,6 +232,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--iters", type=int, default=1000)
     p.add_argument("--profile-iters", type=int, default=50)
     p.add_argument("--sync-iters", type=int, default=20)
+    p.add_argument("--op-iters", type=int, default=5, help="eager runs: iterations whose tensor ops are counted (0: none)")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     p.add_argument("--compile", default="off", choices=("auto", "on", "off"), help="TrainConfig.compile (default off)")
     p.add_argument("--steady-iters", type=int, default=0, help="iterations timed after training (compiled code ready)")
@@ -229,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
     check_revision(p, args.rasterizer_revision)
     result = measure(args.episode, device=args.device, iters=args.iters, profile_iters=args.profile_iters,
                      sync_iters=args.sync_iters, threads=args.threads, rasterizer_revision=args.rasterizer_revision,
-                     compile=args.compile, steady_iters=args.steady_iters)
+                     compile=args.compile, steady_iters=args.steady_iters, op_iters=args.op_iters)
     print_and_write_json(result, args.out)
     return 0
 

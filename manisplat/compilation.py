@@ -72,3 +72,18 @@ def compilable(fn: F) -> F:
         return compiled[mode](*args, **kwargs)
 
     return dispatch  # type: ignore[return-value]
+
+
+_CONSTANTS: dict[tuple[int, torch.dtype, torch.device], torch.Tensor] = {}
+
+
+def constant_tensor(values: tuple, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """The tensor of ``values`` (nested tuples of numbers, a module-level constant) on ``device``:
+    made once per dtype and device in eager code (a host-to-device copy in every call would wait
+    for the GPU), a constant of the graph inside compiled code (which traces no cache)."""
+    if torch.compiler.is_compiling():
+        return torch.tensor(values, dtype=dtype, device=device)
+    key = (id(values), dtype, device)
+    if key not in _CONSTANTS:
+        _CONSTANTS[key] = torch.tensor(values, dtype=dtype, device=device)
+    return _CONSTANTS[key]

@@ -1,10 +1,12 @@
 """Rotations: SO(3) exp/log, quaternions (w, x, y, z), geodesic angles, Euler RPY.
 
 All functions are batched over leading dimensions (``...``) and keep the input dtype
-(float64 is the project default; float32 is allowed). Exp/log and quaternion conversions
-call kornia, whose implementations pass our stress tests (exact at 0, 1e-12, pi - 1e-9 and pi,
+(float64 is the project default; float32 is allowed). Exp/log and quaternion-to-matrix call
+kornia, whose implementations pass our stress tests (exact at 0, 1e-12, pi - 1e-9 and pi,
 finite gradients there, float32 included); we add arbitrary batch shapes, a canonical
 quaternion sign and clear errors on inputs kornia silently maps to identity (a zero quaternion).
+Matrix-to-quaternion is Shepperd's method as one matrix product: it runs in every training
+iteration, where kornia's per-case branches cost about a hundred small kernels (with backward).
 The geodesic angle uses atan2 (kornia has no such function; acos loses all precision near 0
 and pi).
 """
@@ -14,6 +16,7 @@ from __future__ import annotations
 import torch
 from kornia.geometry import conversions as _kc
 
+from manisplat.compilation import constant_tensor
 from manisplat.geometry.errors import GeometryError
 
 DEFAULT_DTYPE = torch.float64
@@ -60,15 +63,10 @@ def quat_canonical(q: torch.Tensor) -> torch.Tensor:
     """The representative of ``q`` [..., 4] (w, x, y, z) with w >= 0.
 
     When w == 0, the first non-zero of (x, y, z) is made positive, so every rotation has one
-    canonical quaternion.
+    canonical quaternion. A fixed handful of tensor ops, no branches (it runs inside training).
     """
-    sign = torch.ones_like(q[..., :1])
-    decided = torch.zeros_like(q[..., 0], dtype=torch.bool)
-    for k in range(4):
-        comp = q[..., k]
-        flip = (~decided) & (comp < 0)
-        sign = torch.where(flip[..., None], -torch.ones_like(sign), sign)
-        decided = decided | (comp != 0)
+    first_nonzero = (q != 0).to(torch.uint8).argmax(dim=-1, keepdim=True)  # 0 when all are zero
+    sign = torch.where(q.gather(-1, first_nonzero) < 0, -1.0, 1.0).to(q.dtype)
     return q * sign
 
 
@@ -87,27 +85,66 @@ def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
     return _kc.quaternion_to_rotation_matrix(flat).reshape(*batch, 3, 3)
 
 
+def _shepperd_map() -> tuple[tuple[float, ...], ...]:
+    """[10][16] the linear map from (R00..R22, 1) to the flattened symmetric matrix ``K = 4 q q^T``
+    of Shepperd's method (entries like ``1 + R00 + R11 + R22 = 4 w^2`` and ``R21 - R12 = 4 w x``)."""
+    A = [[0.0] * 16 for _ in range(10)]
+    diagonal_signs = ((1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1))
+    for k, signs in enumerate(diagonal_signs):
+        A[9][5 * k] = 1.0
+        for i, s in enumerate(signs):
+            A[4 * i][5 * k] = float(s)
+    # off-diagonal (k, l): R[a] + sign * R[b], R indexed row-major (R01 = 1, R10 = 3, ...)
+    off = {(0, 1): (7, 5, -1), (0, 2): (2, 6, -1), (0, 3): (3, 1, -1),
+           (1, 2): (1, 3, 1), (1, 3): (2, 6, 1), (2, 3): (5, 7, 1)}
+    for (k, l), (a, b, s) in off.items():
+        for entry in (4 * k + l, 4 * l + k):
+            A[a][entry], A[b][entry] = 1.0, float(s)
+    return tuple(tuple(row) for row in A)
+
+
+def _hamilton_map() -> tuple[tuple[float, ...], ...]:
+    """[16][4] the linear map from the outer product ``a_j b_k`` (flattened j * 4 + k) to the
+    Hamilton product ``a * b``."""
+    terms = {0: ((0, 0, 1), (1, 1, -1), (2, 2, -1), (3, 3, -1)),
+             1: ((0, 1, 1), (1, 0, 1), (2, 3, 1), (3, 2, -1)),
+             2: ((0, 2, 1), (1, 3, -1), (2, 0, 1), (3, 1, 1)),
+             3: ((0, 3, 1), (1, 2, 1), (2, 1, -1), (3, 0, 1))}
+    H = [[0.0] * 4 for _ in range(16)]
+    for i, products in terms.items():
+        for j, k, s in products:
+            H[4 * j + k][i] = float(s)
+    return tuple(tuple(row) for row in H)
+
+
+SHEPPERD_MAP, HAMILTON_MAP = _shepperd_map(), _hamilton_map()
+
+
 def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
-    """Unit quaternion [..., 4] (w, x, y, z), canonical sign (w >= 0), of rotations [..., 3, 3]."""
+    """Unit quaternion [..., 4] (w, x, y, z), canonical sign (w >= 0), of rotations [..., 3, 3].
+
+    Shepperd's method: ``K = 4 q q^T`` is linear in R; its row with the largest diagonal entry
+    (at least 1, as the diagonal sums to 4) divided by twice that entry's square root is ``q``
+    up to sign, accurate everywhere, angle pi included. One matrix product and a few gathers: a
+    fixed dozen tensor ops (kernel launches on a GPU) rather than a branch per case, since it runs
+    in every training iteration.
+    """
     flat, batch = _flat(R, 2)
-    q = _kc.rotation_matrix_to_quaternion(flat)
-    q = q / q.norm(dim=-1, keepdim=True)
+    rows = torch.cat([flat.reshape(-1, 9), torch.ones_like(flat[:, :1, 0])], dim=1)  # [B, 10]
+    K = (rows @ constant_tensor(SHEPPERD_MAP, R.dtype, R.device)).reshape(-1, 4, 4)
+    pivot = K.diagonal(dim1=-2, dim2=-1).argmax(dim=-1)  # [B]
+    row = K.gather(1, pivot[:, None, None].expand(-1, 1, 4))[:, 0]  # [B, 4]
+    q = row / row.norm(dim=-1, keepdim=True)
     return quat_canonical(q).reshape(*batch, 4)
 
 
 def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Hamilton product ``a * b`` of quaternions [..., 4] (w, x, y, z): rotation ``a`` after ``b``."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        dim=-1,
-    )
+    """Hamilton product ``a * b`` of quaternions [..., 4] (w, x, y, z): rotation ``a`` after ``b``
+    (broadcast over the leading dimensions). An outer product and one matrix product: two
+    kernels, for the Gaussians' rotations in every training iteration."""
+    a, b = torch.broadcast_tensors(a, b)
+    outer = a[..., :, None] * b[..., None, :]
+    return outer.reshape(*outer.shape[:-2], 16) @ constant_tensor(HAMILTON_MAP, outer.dtype, outer.device)
 
 
 def quat_conjugate(q: torch.Tensor) -> torch.Tensor:

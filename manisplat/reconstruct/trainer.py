@@ -29,6 +29,7 @@ from manisplat.reconstruct.loss import frame_loss
 from manisplat.reconstruct.metrics import psnr
 from manisplat.reconstruct.plan import Plan
 from manisplat.reconstruct.poses import ObjectTrajectory, TwistAdam
+from manisplat.reconstruct.tensor_ops import TensorOpCounter
 from manisplat.scene import ROBOT, GaussianSet, SceneGraph
 from manisplat.scene.render import render_graph
 from manisplat.scene.shadows import DirectionalShadows, matched_resolution, search_direction
@@ -506,6 +507,17 @@ class Reconstruction:
             torch.cuda.set_sync_debug_mode("default")
         return collections.Counter(f"{w.filename}:{w.lineno}" for w in caught
                                    if "synchroniz" in str(w.message).lower())
+
+    def tensor_ops(self, iters: int) -> TensorOpCounter:
+        """Run ``iters`` more training iterations eagerly and count their tensor operations (forward,
+        backward, optimizer steps; :mod:`manisplat.reconstruct.tensor_ops`): on a GPU, the kernel
+        launches that bound a small scene's iteration. The iterations alone, as :meth:`host_syncs`."""
+        self.config.iters = self.step + iters
+        states = self._train_states()
+        with TensorOpCounter() as ops:
+            for _ in range(iters):
+                self._iteration(states)
+        return ops
 
     def save_checkpoint(self, path: Path) -> None:
         tmp = path.with_name(path.name + ".tmp")

@@ -75,6 +75,36 @@ def test_spherical_harmonics_degree_0_and_1():
         spherical_harmonics(4, d, coeffs)
 
 
+def _sh_basis_written_out(d: torch.Tensor) -> torch.Tensor:
+    """[N, 16] the real SH basis of unit directions [N, 3] in gsplat's order and signs, term by term."""
+    x, y, z = d.unbind(-1)
+    xx, yy, zz = x * x, y * y, z * z
+    return torch.stack([
+        torch.full_like(x, C0), -0.4886025119029199 * y, 0.4886025119029199 * z, -0.4886025119029199 * x,
+        1.0925484305920792 * x * y, -1.0925484305920792 * y * z, 0.31539156525252005 * (2 * zz - xx - yy),
+        -1.0925484305920792 * x * z, 0.5462742152960396 * (xx - yy),
+        -0.5900435899266435 * y * (3 * xx - yy), 2.890611442640554 * x * y * z,
+        -0.4570457994644658 * y * (4 * zz - xx - yy), 0.3731763325901154 * z * (2 * zz - 3 * xx - 3 * yy),
+        -0.4570457994644658 * x * (4 * zz - xx - yy), 1.445305721320277 * z * (xx - yy),
+        -0.5900435899266435 * x * (xx - 3 * yy),
+    ], dim=-1)
+
+
+@pytest.mark.parametrize("degree", [2, 3])
+def test_spherical_harmonics_of_every_band_term_by_term(degree):
+    g = torch.Generator().manual_seed(degree)
+    d = torch.nn.functional.normalize(torch.randn(50, 3, dtype=torch.float64, generator=g), dim=-1)
+    n = (degree + 1) ** 2
+    coeffs = torch.randn(50, 16, 3, dtype=torch.float64, generator=g)
+    expected = (_sh_basis_written_out(d)[:, :n, None] * coeffs[:, :n]).sum(1)
+    torch.testing.assert_close(spherical_harmonics(degree, 2.5 * d, coeffs), expected, rtol=0, atol=1e-13)
+    for k in range(n):  # each coefficient alone: a misplaced term cannot cancel out
+        one = torch.zeros(1, 16, 1, dtype=torch.float64)
+        one[0, k] = 1.0
+        torch.testing.assert_close(spherical_harmonics(degree, d, one.expand(50, 16, 1))[:, 0],
+                                   _sh_basis_written_out(d)[:, k], rtol=0, atol=1e-14)
+
+
 def test_no_compiler_is_a_clear_error_not_a_silent_fallback(scene, monkeypatch):
     from manisplat.splat.backends import cpu_raster
 
