@@ -45,6 +45,7 @@ class Run:
     def __init__(self, out: Path, budget_s: float) -> None:
         self.out, self.budget_s, self.t0 = out, budget_s, time.perf_counter()
         self.results: dict = {"machine": _machine(), "steps": {}}
+        out.mkdir(parents=True, exist_ok=True)  # steps write their logs beside device.json
 
     def elapsed(self) -> float:
         return time.perf_counter() - self.t0
@@ -52,7 +53,6 @@ class Run:
     def record(self, step: str, value) -> None:
         self.results["steps"][step] = value
         self.results["elapsed_s"] = round(self.elapsed(), 1)
-        self.out.mkdir(parents=True, exist_ok=True)
         (self.out / "device.json").write_text(json.dumps(self.results, indent=1, default=str) + "\n")
         print(f"[{self.elapsed():6.0f} s] {step}: {json.dumps(value, default=str)[:400]}", flush=True)
 

@@ -1,9 +1,10 @@
 """``torch.compile`` for the training iteration's tensor functions, switched on by a context.
 
-Eager PyTorch runs an iteration of the reconstruction as some 1 500 separate operations (the
-placement of every node, the light pass's camera, the shading, the loss and their backward); on a
-GPU each is a kernel launch of a few microseconds of work, so the iteration is bound by launches,
-not by arithmetic. The functions that do that work are pure tensor functions of fixed-shape
+Eager PyTorch runs an iteration of the reconstruction as some 800 separate operations (the
+placement of every node, the light pass's camera, the shading, the loss and their backward;
+:meth:`~manisplat.reconstruct.trainer.Reconstruction.tensor_ops` counts them); on a GPU each is a
+kernel launch of a few microseconds of work, so the iteration is bound by launches, not by
+arithmetic. The functions that do that work are pure tensor functions of fixed-shape
 inputs (shapes change only at densification steps) marked :func:`compilable`: inside
 ``with compilation("default"):`` they run through ``torch.compile`` (Inductor: fused Triton
 kernels on CUDA, vectorised C++ on the CPU, their backward compiled too); outside it they run
