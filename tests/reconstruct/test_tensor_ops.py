@@ -11,6 +11,7 @@ from manisplat.episode.synthetic import write_sample_episode
 from manisplat.geometry import matrix_to_quat, quat_multiply, random_rotations
 from manisplat.reconstruct.config import TrainConfig
 from manisplat.reconstruct.data import load_episode_data
+from manisplat.reconstruct.poses import twist_exp
 from manisplat.reconstruct.pipeline import build
 from manisplat.reconstruct.plan import make_plan
 from manisplat.reconstruct.tensor_ops import TensorOpCounter
@@ -35,6 +36,12 @@ def test_the_placements_rotation_algebra_is_a_fixed_handful_of_ops(batch):
     assert ops_of(quat_multiply, q, q.flip(0)) <= 12  # 9; written out per component: 95
     coeffs = torch.randn(batch, 16, 3, dtype=torch.float64, generator=g)
     assert ops_of(lambda d, c: spherical_harmonics(3, d, c), q[:, :3], coeffs) <= 50  # 41; term by term: 280
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-6, 0.1, 3.0])
+def test_an_object_pose_correction_is_a_fixed_handful_of_ops(angle):
+    xi = torch.tensor([0.01, -0.02, 0.005, angle, -0.5 * angle, 0.25 * angle], dtype=torch.float64)
+    assert ops_of(twist_exp, xi) <= 90  # 79 either side of the Taylor switch; element by element: 135
 
 
 def test_a_training_iteration_issues_few_tensor_ops(tmp_path):
