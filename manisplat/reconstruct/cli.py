@@ -198,26 +198,26 @@ def _run(args: argparse.Namespace, prompt: list[tuple[str, tuple | None, tuple |
 
     start = time.perf_counter()
     use_threads(args.threads)
-    device = iters = compiled = None
-    if not args.plan:
-        try:
-            device = resolve_device(args.device, args.backend)
-        except DeviceUnavailable as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return ExitCode.DEVICE
-        iters = args.iters if args.iters is not None else default_iters(device)
-        compiled = resolve_compile(args.compile, device.partition(":")[0], iters)
+    try:
+        device = resolve_device(args.device, args.backend)
+    except DeviceUnavailable as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return ExitCode.DEVICE
+    iters = args.iters if args.iters is not None else default_iters(device)
+    compiled = resolve_compile(args.compile, device.partition(":")[0], iters)
     fused = None
     try:
         if len(args.episodes) > 1:
             if args.plan:
                 for path in args.episodes:
                     print(f"{path}:\n{make_plan(load_episode_data(path, robot=args.robot)).summary()}")
+                print(_training_summary(args, device, iters, compiled))
                 return ExitCode.OK
             fused = _build_fused(args, _config(args, device, iters, compiled))
             rec, alignments = fused.reconstruction, fused.alignments
         else:
-            built = _build_one(args, prompt, lambda: _config(args, device, iters, compiled))
+            built = _build_one(args, prompt, lambda: _config(args, device, iters, compiled),
+                               _training_summary(args, device, iters, compiled))
             if built is None:
                 return ExitCode.OK
             rec, alignments = built
@@ -273,11 +273,26 @@ def _run(args: argparse.Namespace, prompt: list[tuple[str, tuple | None, tuple |
     return ExitCode.OK
 
 
+def _training_summary(args: argparse.Namespace, device: str, iters: int, compiled: str | None) -> str:
+    """One line of what training will do on ``device``: the budget and where it comes from, eager or
+    compiled, densification (the plan prints it; the log says it before training)."""
+    if args.iters is not None:
+        budget = f"{iters} iterations (--iters)"
+    else:
+        why = ("the CUDA default: the held-out PSNR's plateau on an H100" if device.startswith("cuda")
+               else f"the CPU default, about 1.5 dB short of the plateau that CUDA's {GPU_ITERS} reach")
+        budget = f"{iters} iterations ({why}; --iters to change)"
+    mode = ("the iteration compiled by torch.compile (about 4 minutes on an H100, in the first 1 250 iterations)"
+            if compiled else f"the iteration eager (--compile on to compile; auto compiles CUDA runs of {COMPILE_MIN_ITERS} "
+            "iterations or more)")
+    c = TrainConfig
+    densify = ("densification off (--no-densify)" if args.no_densify else
+               f"densification every {c.refine_every} iterations from {c.refine_start} to {int(c.refine_stop_fraction * iters)}")
+    return f"training      on {device} (rasterizer backend {args.backend}), {budget}; {mode}; {densify}"
+
+
 def _config(args: argparse.Namespace, device: str, iters: int, compiled: str | None) -> TrainConfig:
-    log.info("training on %s (rasterizer backend %s), %d iterations%s; %s", device, args.backend, iters,
-             "" if args.iters is not None else f" (the default on {device}; --iters to change)",
-             "the iteration compiled by torch.compile (about 4 minutes on an H100, in the first 1 250 iterations)" if compiled
-             else "the iteration eager (--compile to change)")
+    log.info("%s", _training_summary(args, device, iters, compiled))
     return TrainConfig(
         iters=iters, backend=args.backend, shadows=not args.no_shadows, densify=not args.no_densify,
         refine_camera=args.refine_camera, exposure=not args.no_exposure, lambda_app=args.lambda_app,
@@ -285,9 +300,10 @@ def _config(args: argparse.Namespace, device: str, iters: int, compiled: str | N
     )
 
 
-def _build_one(args: argparse.Namespace, prompt, config):
+def _build_one(args: argparse.Namespace, prompt, config, training: str):
     """Load, plan and align one episode: (reconstruction, alignments), or None after ``--plan``
-    printed the plan. ``config``: makes the training configuration once the plan is logged."""
+    printed the plan and ``training`` (:func:`_training_summary`). ``config``: makes the training
+    configuration once the plan is logged."""
     from manisplat.reconstruct.data import ReconstructionInputError, load_episode_data
     from manisplat.reconstruct.masks import ObjectPrompt, complete_masks
     from manisplat.reconstruct.pipeline import build
@@ -313,6 +329,7 @@ def _build_one(args: argparse.Namespace, prompt, config):
     plan = make_plan(data)
     if args.plan:
         print(plan.summary())
+        print(training)
         return None
     log.info("plan:\n%s", plan.summary())
     return build(data, plan, config(), tau=args.tau, table_z=args.table_z, masks_from_model=masks_from_model,

@@ -59,6 +59,16 @@ def test_plan_prints_and_exits(pick, capsys, tmp_path):
     assert main([str(pick), "--out", str(tmp_path / "x"), "--plan"]) == 0
     text = capsys.readouterr().out
     assert "held out" in text and "box: tracked" in text and not (tmp_path / "x").exists()
+    # the training the device's defaults choose (no GPU here: the CPU's budget, eager)
+    assert "training      on cpu" in text and "3000 iterations (the CPU default" in text and "eager" in text
+    assert "densification every 100 iterations from 300 to 2100" in text
+
+
+def test_plan_prints_the_training_asked_for(pick, capsys, tmp_path):
+    assert main([str(pick), "--out", str(tmp_path / "x"), "--plan", "--iters", "500", "--no-densify",
+                 "--compile", "on"]) == 0
+    text = capsys.readouterr().out
+    assert "500 iterations (--iters)" in text and "compiled by torch.compile" in text and "densification off" in text
 
 
 def test_resume_continues_from_the_checkpoint(pick, tmp_path, capsys):
