@@ -124,8 +124,8 @@ def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
     """Unit quaternion [..., 4] (w, x, y, z), canonical sign (w >= 0), of rotations [..., 3, 3].
 
     Shepperd's method: ``K = 4 q q^T`` is linear in R; its row with the largest diagonal entry
-    (at least 1, as the diagonal sums to 4) divided by twice that entry's square root is ``q``
-    up to sign, accurate everywhere, angle pi included. One matrix product and a few gathers: a
+    (``4 q_i q``, with ``|q_i| >= 1/2`` as the diagonal sums to 4), normalised, is ``q`` up to
+    sign, accurate everywhere, angle pi included. One matrix product and a few gathers: a
     fixed dozen tensor ops (kernel launches on a GPU) rather than a branch per case, since it runs
     in every training iteration.
     """

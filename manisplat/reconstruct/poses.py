@@ -147,9 +147,14 @@ class TwistAdam:
         self.lr = state["lr"]
 
 
+#: the inverse squared sigmas of a twist's (v, w) components
+_PENALTY_WEIGHTS = (1 / SIGMA_T ** 2,) * 3 + (1 / SIGMA_R ** 2,) * 3
+
+
 def pose_penalty(xi: torch.Tensor) -> torch.Tensor:
-    """[] the squared SE(3) distance of a correction twist [6] in units of SIGMA_T and SIGMA_R."""
-    return (xi[:3].norm() / SIGMA_T) ** 2 + (xi[3:].norm() / SIGMA_R) ** 2
+    """[] the squared SE(3) distance of a correction twist [6] in units of SIGMA_T and SIGMA_R
+    (a weighted sum of squares: two tensor operations, every iteration for every object)."""
+    return (xi * xi) @ constant_tensor(_PENALTY_WEIGHTS, xi.dtype, xi.device)
 
 
 @compilable

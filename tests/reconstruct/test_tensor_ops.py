@@ -11,7 +11,7 @@ from manisplat.episode.synthetic import write_sample_episode
 from manisplat.geometry import matrix_to_quat, quat_multiply, random_rotations
 from manisplat.reconstruct.config import TrainConfig
 from manisplat.reconstruct.data import load_episode_data
-from manisplat.reconstruct.poses import twist_exp
+from manisplat.reconstruct.poses import pose_penalty, twist_exp
 from manisplat.reconstruct.pipeline import build
 from manisplat.reconstruct.plan import make_plan
 from manisplat.reconstruct.tensor_ops import TensorOpCounter
@@ -42,6 +42,7 @@ def test_the_placements_rotation_algebra_is_a_fixed_handful_of_ops(batch):
 def test_an_object_pose_correction_is_a_fixed_handful_of_ops(angle):
     xi = torch.tensor([0.01, -0.02, 0.005, angle, -0.5 * angle, 0.25 * angle], dtype=torch.float64)
     assert ops_of(twist_exp, xi) <= 90  # 79 either side of the Taylor switch; element by element: 135
+    assert ops_of(pose_penalty, xi) <= 10  # 8; as two norms: 28
 
 
 def test_a_training_iteration_issues_few_tensor_ops(tmp_path):
