@@ -9,6 +9,14 @@ frames/s with the defaults and 58 with one thread. So here:
 - idle workers sleep (``OMP_WAIT_POLICY=PASSIVE``), set when manisplat is imported, which must
   come before torch's first import to take effect (every command line tool does); a user's own
   ``OMP_WAIT_POLICY`` is kept;
+- a command that takes only free cores (below) lets them spin briefly before they sleep
+  (``GOMP_SPINCOUNT`` of :data:`SPIN_COUNT`, about 0.2 ms), set before it imports torch: the
+  spin bridges the gaps between one training iteration's parallel regions (tens of microseconds
+  of Python each), where workers that slept at once had to be woken for every region and the
+  sample's iteration took 1.6x as long on an idle 2-core machine
+  (``benchmarks/results_contention/wait_policy/``). Where threads may outnumber the free cores
+  (a library user's own thread count, a ``--threads`` above them), spinning workers would take
+  turns with the other jobs, so they sleep at once there;
 - a job takes the cores that are free when it starts: the cores this process may run on minus
   the whole cores other work keeps busy (measured over 0.2 s), at least one (``--threads N`` on
   every heavy command sets it); torch's pool and OpenCV's follow it, and the log says how many
@@ -20,15 +28,37 @@ from __future__ import annotations
 import logging
 import math
 import os
+import sys
 import time
 
 log = logging.getLogger(__name__)
 
 
+#: busy-wait iterations of an idle OpenMP worker before it sleeps: about 0.2 ms by libgomp's own
+#: estimate of 100 000 a millisecond (its default is 3 ms, or none at all with PASSIVE alone)
+SPIN_COUNT = 20_000
+
+
+#: whether :func:`sleep_when_idle` chose the wait policy (the user did not)
+_POLICY_OURS = False
+
+
 def sleep_when_idle() -> None:
     """Make OpenMP's idle workers sleep instead of spin, unless ``OMP_WAIT_POLICY`` is set (only
     effective before torch's first import loads OpenMP)."""
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    global _POLICY_OURS
+    if "OMP_WAIT_POLICY" not in os.environ:
+        os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
+        _POLICY_OURS = True
+
+
+def spin_briefly_when_cores_are_free(threads: int, free: int) -> None:
+    """Let idle workers spin :data:`SPIN_COUNT` before they sleep when each of ``threads`` has a
+    free core (of ``free``), the wait policy is ours and ``GOMP_SPINCOUNT`` unset; only effective
+    before torch's first import, so not done after it."""
+    if (_POLICY_OURS and 1 < threads <= free and "GOMP_SPINCOUNT" not in os.environ
+            and "torch" not in sys.modules):
+        os.environ["GOMP_SPINCOUNT"] = str(SPIN_COUNT)
 
 
 def free_cores(sample_s: float = 0.2) -> tuple[int, int, float]:
@@ -67,19 +97,27 @@ def _busy_cores(sample_s: float) -> float | None:
 def use_threads(requested: int | None = None) -> int:
     """Set this process's CPU threads (torch's pool, OpenCV's) to ``requested`` or, when None, to
     the free cores; log the choice and return it."""
-    import cv2
-    import torch
-
     if requested is not None and requested < 1:
         raise ValueError(f"threads must be at least 1, got {requested}")
     free, cores, busy = free_cores()
     threads = requested if requested is not None else free
+    spin_briefly_when_cores_are_free(threads, free)
+    import cv2
+    import torch
+
     torch.set_num_threads(threads)
     cv2.setNumThreads(threads)
     why = "--threads" if requested is not None else f"the free cores: {cores}, {busy:.1f} busy with other work"
     log.info("using %d CPU thread%s (%s; OpenMP wait policy %s)", threads, "" if threads == 1 else "s", why,
-             os.environ.get("OMP_WAIT_POLICY", "the default").lower())
+             _wait_policy())
     return threads
+
+
+def _wait_policy() -> str:
+    """How idle OpenMP workers wait, as the environment sets it, for the log."""
+    policy = os.environ.get("OMP_WAIT_POLICY", "the default").lower()
+    spins = os.environ.get("GOMP_SPINCOUNT")
+    return policy if spins is None else f"{policy} after {spins} spins"
 
 
 THREADS_HELP = "CPU threads (default: the cores free when it starts, measured over 0.2 s)"

@@ -13,27 +13,39 @@ import pytest
 from manisplat import threads
 
 
-def _wait_policy_after_import(env_policy: str | None) -> str:
-    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
-    if env_policy is not None:
-        env["OMP_WAIT_POLICY"] = env_policy
-    script = "import manisplat, os; print(os.environ.get('OMP_WAIT_POLICY'))"
-    return subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True,
-                          check=True).stdout.strip()
+WAIT_VARIABLES = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")
+
+
+def _wait_after(script: str, **chosen: str) -> list[str]:
+    """[OMP_WAIT_POLICY, GOMP_SPINCOUNT, torch imported] after ``script`` ran in a new process, the
+    user having set ``chosen``."""
+    env = {k: v for k, v in os.environ.items() if k not in WAIT_VARIABLES} | chosen
+    report = "; import os, sys; print(*(os.environ.get(k) for k in ('OMP_WAIT_POLICY', 'GOMP_SPINCOUNT')), 'torch' in sys.modules)"
+    return subprocess.run([sys.executable, "-c", script + report], env=env, capture_output=True, text=True,
+                          check=True).stdout.split()
 
 
 def test_importing_manisplat_makes_idle_openmp_workers_sleep_unless_the_user_chose():
-    assert _wait_policy_after_import(None) == "PASSIVE"
-    assert _wait_policy_after_import("active") == "active"
+    assert _wait_after("import manisplat") == ["PASSIVE", "None", "False"]
+    assert _wait_after("import manisplat", OMP_WAIT_POLICY="active") == ["active", "None", "False"]
 
 
-def test_a_new_process_sleeps_its_idle_workers_before_torch_loads_openmp():
+def test_a_new_process_sets_how_its_idle_workers_wait_before_torch_loads_openmp():
     """What a command line tool does: manisplat first, then torch, whose OpenMP reads the policy."""
-    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
-    script = ("import manisplat.reconstruct.cli, torch, os; "
-              "print(os.environ['OMP_WAIT_POLICY'], 'torch' in __import__('sys').modules)")
-    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True)
-    assert out.stdout.split() == ["PASSIVE", "True"]
+    assert _wait_after("import manisplat.reconstruct.cli, torch") == ["PASSIVE", "None", "True"]
+
+
+def test_a_command_on_free_cores_lets_its_workers_spin_briefly_before_torch_loads():
+    pin = "import manisplat.threads as t; t.free_cores = lambda: (2, 2, 0.0); "
+    spins = str(threads.SPIN_COUNT)
+    assert _wait_after(pin + "t.use_threads()") == ["PASSIVE", spins, "True"]
+    assert _wait_after(pin + "t.use_threads(2)") == ["PASSIVE", spins, "True"]
+    # more threads than free cores, one thread, the user's own choices, torch already loaded: no spin of ours
+    assert _wait_after(pin + "t.use_threads(3)") == ["PASSIVE", "None", "True"]
+    assert _wait_after(pin + "t.use_threads(1)") == ["PASSIVE", "None", "True"]
+    assert _wait_after(pin + "t.use_threads()", OMP_WAIT_POLICY="PASSIVE") == ["PASSIVE", "None", "True"]
+    assert _wait_after(pin + "t.use_threads()", GOMP_SPINCOUNT="500") == ["PASSIVE", "500", "True"]
+    assert _wait_after(pin + "import torch; t.use_threads()") == ["PASSIVE", "None", "True"]
 
 
 @pytest.mark.parametrize(("cores", "busy", "free"), [(2, 0.0, 2), (2, 0.6, 2), (2, 1.2, 1), (2, 5.0, 1),

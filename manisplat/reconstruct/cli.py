@@ -187,6 +187,8 @@ def _check_out(args: argparse.Namespace) -> None:
 
 def _run(args: argparse.Namespace, prompt: list[tuple[str, tuple | None, tuple | None]]) -> int:
     """Load, plan, align, train, write the twin, then evaluate it."""
+    start = time.perf_counter()
+    use_threads(args.threads)  # before torch loads OpenMP (manisplat.threads)
     import torch
 
     from manisplat.episode import EpisodeFormatError
@@ -196,8 +198,6 @@ def _run(args: argparse.Namespace, prompt: list[tuple[str, tuple | None, tuple |
     from manisplat.robot import RobotModelError
     from manisplat.splat import BackendUnavailable
 
-    start = time.perf_counter()
-    use_threads(args.threads)
     try:
         device = resolve_device(args.device, args.backend)
     except DeviceUnavailable as exc:
