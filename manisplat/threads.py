@@ -9,7 +9,8 @@ frames/s with the defaults and 58 with one thread. So here:
 - idle workers sleep (``OMP_WAIT_POLICY=PASSIVE``), set when manisplat is imported, which must
   come before torch's first import to take effect (every command line tool does); a user's own
   ``OMP_WAIT_POLICY`` is kept;
-- a command that takes only free cores (below) lets them spin briefly before they sleep
+- a command that takes only free cores (below) on an otherwise idle machine (other work below
+  half a core) lets them spin briefly before they sleep
   (``GOMP_SPINCOUNT`` of :data:`SPIN_COUNT`, about 0.2 ms), set before it imports torch: the
   spin bridges the gaps between one training iteration's parallel regions (tens of microseconds
   of Python each), where workers that slept at once had to be woken for every region and the
@@ -52,11 +53,17 @@ def sleep_when_idle() -> None:
         _POLICY_OURS = True
 
 
-def spin_briefly_when_cores_are_free(threads: int, free: int) -> None:
+#: other work (cores) under which the machine counts as idle enough for spinning workers
+SPIN_IF_BUSY_BELOW = 0.5
+
+
+def spin_briefly_when_idle(threads: int, free: int, busy: float) -> None:
     """Let idle workers spin :data:`SPIN_COUNT` before they sleep when each of ``threads`` has a
-    free core (of ``free``), the wait policy is ours and ``GOMP_SPINCOUNT`` unset; only effective
-    before torch's first import, so not done after it."""
-    if (_POLICY_OURS and 1 < threads <= free and "GOMP_SPINCOUNT" not in os.environ
+    free core (of ``free``), other work keeps less than :data:`SPIN_IF_BUSY_BELOW` of a core busy
+    (``busy``: a process beside this one would take turns with the spinning workers), the wait
+    policy is ours and ``GOMP_SPINCOUNT`` unset; only effective before torch's first import, so not
+    done after it."""
+    if (_POLICY_OURS and 1 < threads <= free and busy < SPIN_IF_BUSY_BELOW and "GOMP_SPINCOUNT" not in os.environ
             and "torch" not in sys.modules):
         os.environ["GOMP_SPINCOUNT"] = str(SPIN_COUNT)
 
@@ -101,7 +108,7 @@ def use_threads(requested: int | None = None) -> int:
         raise ValueError(f"threads must be at least 1, got {requested}")
     free, cores, busy = free_cores()
     threads = requested if requested is not None else free
-    spin_briefly_when_cores_are_free(threads, free)
+    spin_briefly_when_idle(threads, free, busy)
     import cv2
     import torch
 

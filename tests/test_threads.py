@@ -35,12 +35,15 @@ def test_a_new_process_sets_how_its_idle_workers_wait_before_torch_loads_openmp(
     assert _wait_after("import manisplat.reconstruct.cli, torch") == ["PASSIVE", "None", "True"]
 
 
-def test_a_command_on_free_cores_lets_its_workers_spin_briefly_before_torch_loads():
+def test_a_command_on_an_idle_machine_lets_its_workers_spin_briefly_before_torch_loads():
     pin = "import manisplat.threads as t; t.free_cores = lambda: (2, 2, 0.0); "
     spins = str(threads.SPIN_COUNT)
     assert _wait_after(pin + "t.use_threads()") == ["PASSIVE", spins, "True"]
     assert _wait_after(pin + "t.use_threads(2)") == ["PASSIVE", spins, "True"]
-    # more threads than free cores, one thread, the user's own choices, torch already loaded: no spin of ours
+    # other work beside it, more threads than free cores, one thread, the user's own choices,
+    # torch already loaded: no spin of ours
+    busy = "import manisplat.threads as t; t.free_cores = lambda: (2, 2, 0.8); "
+    assert _wait_after(busy + "t.use_threads()") == ["PASSIVE", "None", "True"]
     assert _wait_after(pin + "t.use_threads(3)") == ["PASSIVE", "None", "True"]
     assert _wait_after(pin + "t.use_threads(1)") == ["PASSIVE", "None", "True"]
     assert _wait_after(pin + "t.use_threads()", OMP_WAIT_POLICY="PASSIVE") == ["PASSIVE", "None", "True"]
