@@ -28,13 +28,16 @@ def _flat(x: torch.Tensor, tail: int) -> tuple[torch.Tensor, torch.Size]:
     return x.reshape(-1, *x.shape[x.ndim - tail :]), batch
 
 
+#: hat(w) flattened row-major as a linear map of w: [3][9]
+HAT_MAP = ((0.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 1.0, 0.0),
+           (0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0),
+           (0.0, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0))
+
+
 def hat(w: torch.Tensor) -> torch.Tensor:
-    """Skew-symmetric matrix of ``w`` [..., 3] -> [..., 3, 3], so that ``hat(w) @ v = w x v``."""
-    zero = torch.zeros_like(w[..., 0])
-    wx, wy, wz = w.unbind(-1)
-    return torch.stack(
-        [zero, -wz, wy, wz, zero, -wx, -wy, wx, zero], dim=-1
-    ).reshape(*w.shape[:-1], 3, 3)
+    """Skew-symmetric matrix of ``w`` [..., 3] -> [..., 3, 3], so that ``hat(w) @ v = w x v``
+    (one matrix product: it runs in every training iteration, in the pose corrections)."""
+    return (w @ constant_tensor(HAT_MAP, w.dtype, w.device)).reshape(*w.shape[:-1], 3, 3)
 
 
 def vee(W: torch.Tensor) -> torch.Tensor:

@@ -19,6 +19,7 @@ import torch
 from manisplat.align.pseudo_gt import STATIC
 from manisplat.compilation import compilable, constant_tensor
 from manisplat.geometry import se3_exp
+from manisplat.geometry.rotation import hat
 
 SIGMA_T = 0.01  # m
 SIGMA_R = 0.05  # rad (about 3 deg)
@@ -163,10 +164,6 @@ def corrected_pose(pseudo: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
     return pseudo @ twist_exp(xi)
 
 
-#: hat(w) flattened row-major as a linear map of w: [3][9]
-_HAT_MAP = ((0.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 1.0, 0.0),
-            (0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0),
-            (0.0, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0))
 #: Taylor series of (sin t / t, (1 - cos t) / t^2, (t - sin t) / t^3) in t^2: constant, t^2 term
 _SERIES = ((1.0, 0.5, 1.0 / 6.0), (-1.0 / 6.0, -1.0 / 24.0, -1.0 / 120.0))
 #: R = I + a W + b W^2 and V = I + b W + c W^2 pick from (1, a, b, c)
@@ -191,7 +188,7 @@ def twist_exp(xi: torch.Tensor) -> torch.Tensor:
     series = constant_tensor(_SERIES, dtype, device)
     coefficients = torch.where(small, series[0] + series[1] * theta2, exact)  # a, b, c
     picks = torch.cat([constant_tensor(_ONE, dtype, device), coefficients])[constant_tensor(_PICK, torch.long, device)]
-    W = (w @ constant_tensor(_HAT_MAP, dtype, device)).view(3, 3)
+    W = hat(w)
     powers = torch.stack([constant_tensor(_EYE, dtype, device), W, W @ W]).view(3, 9)
     R, V = (picks @ powers).view(2, 3, 3).unbind(0)
     return torch.cat([torch.cat([R, (V @ v)[:, None]], dim=1), constant_tensor(_BOTTOM, dtype, device)])

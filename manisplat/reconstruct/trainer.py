@@ -495,14 +495,11 @@ class Reconstruction:
         the iterations alone, not :meth:`train`'s loss reads, evaluations and closing exposure fit."""
         if self.device.type != "cuda":
             raise ValueError(f"host_syncs counts CUDA synchronisations; this reconstruction is on {self.device}")
-        self.config.iters = self.step + iters
-        states = self._train_states()
         torch.cuda.set_sync_debug_mode("warn")
         try:
             with warnings.catch_warnings(record=True) as caught, compilation(self.compiled):
                 warnings.simplefilter("always")
-                for _ in range(iters):
-                    self._iteration(states)
+                self._iterate(iters)
         finally:
             torch.cuda.set_sync_debug_mode("default")
         return collections.Counter(f"{w.filename}:{w.lineno}" for w in caught
@@ -512,12 +509,17 @@ class Reconstruction:
         """Run ``iters`` more training iterations eagerly and count their tensor operations (forward,
         backward, optimizer steps; :mod:`manisplat.reconstruct.tensor_ops`): on a GPU, the kernel
         launches that bound a small scene's iteration. The iterations alone, as :meth:`host_syncs`."""
+        with TensorOpCounter() as ops:
+            self._iterate(iters)
+        return ops
+
+    def _iterate(self, iters: int) -> None:
+        """``iters`` more training iterations alone (no loss reads, evaluations or exposure fit),
+        for the diagnostics above."""
         self.config.iters = self.step + iters
         states = self._train_states()
-        with TensorOpCounter() as ops:
-            for _ in range(iters):
-                self._iteration(states)
-        return ops
+        for _ in range(iters):
+            self._iteration(states)
 
     def save_checkpoint(self, path: Path) -> None:
         tmp = path.with_name(path.name + ".tmp")
