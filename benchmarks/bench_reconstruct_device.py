@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING
 
 from benchmarks._harness import print_and_write_json
 from benchmarks.bench_rasterizer_cpu import check_revision
+from manisplat.cli_args import non_negative
 
 if TYPE_CHECKING:
     import torch
@@ -232,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--iters", type=int, default=1000)
     p.add_argument("--profile-iters", type=int, default=50)
     p.add_argument("--sync-iters", type=int, default=20)
-    p.add_argument("--op-iters", type=int, default=5, help="eager runs: iterations whose tensor ops are counted (0: none)")
+    p.add_argument("--op-iters", type=non_negative(int), default=5, help="eager runs: iterations whose tensor ops are counted (0: none)")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     p.add_argument("--compile", default="off", choices=("auto", "on", "off"), help="TrainConfig.compile (default off)")
     p.add_argument("--steady-iters", type=int, default=0, help="iterations timed after training (compiled code ready)")
