@@ -12,8 +12,10 @@ Variants, each adding one part:
   (frame 0) to the surface seen where tracking starts;
 * ``+ rest from depth``: a released object is shifted to where the depth after the release says
   it rests;
-* ``+ slip in the hand from depth`` (the default): a held object follows the slip in the hand the
-  depth shows while it is carried.
+* ``+ slip in the hand from depth``: a held object follows the slip in the hand the depth shows
+  while it is carried;
+* ``+ standing on its support`` (the default): a released object stands on the support the depth
+  shows under it, as it stood on its own at the start.
 Errors against gt.npz by both definitions (manisplat.reconstruct.metrics): fitted offset over all
 frames, and start-anchored (mean over the frames after the object first moves; final frame; worst).
 Seconds of CPU, tens of seconds with the test set's generation (once).
@@ -37,14 +39,15 @@ from manisplat.reconstruct.plan import make_plan
 THREADED = False
 NEVER = TrackerSettings(confident_inliers=10**9)
 NO_EVIDENCE = TrackerSettings(depth_evidence=False)
-VARIANTS = {  # name -> (tracker settings, use the object's model points, the rest from depth, the slip from depth)
-    "prior only": (NEVER, False, False, False),
-    "+ tracking (confidence)": (NO_EVIDENCE, False, False, False),
-    "+ depth evidence": (TrackerSettings(evidence_model=False), False, False, False),
-    "+ centring, settling": (TrackerSettings(evidence_model=False), True, False, False),
-    "+ model in the depth check": (TrackerSettings(), True, False, False),
-    "+ rest from depth": (TrackerSettings(), True, True, False),
-    "+ slip in the hand from depth (default)": (TrackerSettings(), True, True, True),
+VARIANTS = {  # name -> (tracker settings, use the object's model points, the rest, the slip, the support from depth)
+    "prior only": (NEVER, False, False, False, False),
+    "+ tracking (confidence)": (NO_EVIDENCE, False, False, False, False),
+    "+ depth evidence": (TrackerSettings(evidence_model=False), False, False, False, False),
+    "+ centring, settling": (TrackerSettings(evidence_model=False), True, False, False, False),
+    "+ model in the depth check": (TrackerSettings(), True, False, False, False),
+    "+ rest from depth": (TrackerSettings(), True, True, False, False),
+    "+ slip in the hand from depth": (TrackerSettings(), True, True, True, False),
+    "+ standing on its support (default)": (TrackerSettings(), True, True, True, True),
 }
 
 
@@ -61,16 +64,17 @@ def run(ctx: BenchContext) -> list[dict[str, Any]]:
         gaussians, T_start = object_gaussians(data, obj.label, 0)
         points = gaussians.params["means"].detach().double().numpy()
         gt = load_ground_truth(episode)[f"T_base_{obj.name}"]
-        for variant, (settings, centring, rest, slip) in VARIANTS.items():
+        for variant, (settings, centring, rest, slip, support) in VARIANTS.items():
             alignment = align_object(data, obj.label, T_start.numpy(), data.tcp.double().numpy(), data.gripper.numpy(),
                                      moves=True, model_points=points if centring else None, settings=settings,
-                                     rest_from_depth=rest, slip_from_depth=slip)
+                                     rest_from_depth=rest, slip_from_depth=slip, support_from_depth=support)
             poses = alignment.pseudo.poses
             fitted = pose_errors(poses, gt)
             anchored = start_anchored_errors(poses, gt)
             rows.append({"episode": episode.name, "object": obj.name, "variant": variant,
                          "overrides": int(alignment.pseudo.from_tracking.sum()),
                          "slips_mm": [round(1000 * float(np.linalg.norm(s)), 2) for s in alignment.pseudo.slips],
+                         "rest_heights_mm": [round(1000 * h, 2) for h in alignment.pseudo.rest_heights],
                          "fitted_et_cm": fitted["et_cm"], "fitted_er_deg": fitted["er_deg"],
                          "anchored_et_cm": anchored["et_cm"], "anchored_er_deg": anchored["er_deg"],
                          "anchored_max_et_cm": anchored["et_cm_max"], "anchored_max_er_deg": anchored["er_deg_max"],

@@ -22,6 +22,10 @@
   with its model points by one shift of position (:meth:`SurfaceModel.fit_shift`; the orientation stays the
   prior's). The rigid grasp misses a slip in the hand and the drop onto the support, 2-4 mm
   (MAX_REST_SHIFT bounds it: a larger shift is not a settle).
+* Where it is let go, it stands on the support under it as it stood on its own at the start: its
+  rest is raised or lowered to the height the depth shows for the support under its footprint in
+  the frames before it arrived (:func:`rest_on_support`, :mod:`manisplat.align.support`); the
+  carry sets it down as high as it sagged or slipped in the hand.
 * While held, the depth shows the object slipping in the hand (:func:`follow_slip`): each held
   frame's visible surface is aligned with the model by a shift of position, the shifts (in the
   TCP's frame) are smoothed by a running median, and the carry takes them only when the depth
@@ -42,6 +46,7 @@ from typing import Callable
 import numpy as np
 
 from manisplat.align.phases import GripperEvents, Segment
+from manisplat.align.support import footprint
 from manisplat.align.surface_fit import MAX_VIEW_CHANGE_DEG, ModelViews, SurfaceModel
 from manisplat.align.tracking import ObjectView, TrackerSettings, track_object
 
@@ -61,6 +66,7 @@ class PseudoPoses:
     from_tracking: np.ndarray
     rest_shifts: list[np.ndarray] = field(default_factory=list)  # [3] (m, base frame) per settled release
     slips: list[np.ndarray] = field(default_factory=list)  # [3] (m, TCP frame): each followed slip where it ended
+    rest_heights: list[float] = field(default_factory=list)  # m: each release's rest raised (+) or lowered onto its support
 
 
 MAX_CENTRING = 0.015  # m: a larger offset between the pads' centre and the object's is not a squeeze
@@ -71,6 +77,7 @@ MIN_REST_POINTS = 100  # fewer surface points after a release than this, and the
 MIN_SLIP_POINTS = 30  # a held frame with fewer visible surface points says nothing about a slip
 SLIP_WINDOW = 3  # frames each side of the running median over the per-frame slips
 SLIP_EVIDENCE_RATIO = 0.8  # the slipped carry's depth misfit must be below this share of the rigid one's...
+SUPPORT_FRAMES = 40  # frames (evenly spread) a support's height is read in (at most)
 SLIP_EVIDENCE_M = 3e-4  # ...and this much (m) less, else the rigid grasp stands
 
 
@@ -311,6 +318,54 @@ def settle_at_rest(poses: np.ndarray, events: list[GripperEvents], surface: Call
     return shifts
 
 
+def rest_on_support(poses: np.ndarray, events: list[GripperEvents],
+                    support: Callable[[np.ndarray, float, list[int]], float | None], model_points: np.ndarray,
+                    observe: frozenset[int] = frozenset()) -> list[float]:
+    """Raise or lower ``poses`` [T, 4, 4] (in place) from each release to the next grasp so that the
+    object's lowest points stand on the support under it as they stood on theirs at frame 0.
+    ``support(hull_xy, z_low, frames)``: the support's height (m) under a footprint
+    (:func:`manisplat.align.support.footprint`) in those frames, or None. The start's support is
+    read once the object has left it (from the first release), each rest's before the object was
+    picked up; held-out frames (``observe``) are moved but not read. A change beyond
+    :data:`MAX_REST_SHIFT` is not a rest on that support: the pose stands. Returns the changes (m)."""
+    T, heights = len(poses), []
+    grasps = sorted(e.grasp for e in events)
+    releases = sorted(e.release for e in events if e.release is not None)
+    if not releases:
+        return heights
+
+    def frames(first: int, end: int) -> list[int]:
+        usable = [f for f in range(first, end) if f not in observe]
+        return usable[:: max(1, len(usable) // SUPPORT_FRAMES)]
+
+    hull, low = footprint(model_points, poses[0])
+    start_support = support(hull, low, frames(releases[0], T))
+    if start_support is None:
+        log.info("the support under the object's start is not seen once it has left: its rests keep their height")
+        return heights
+    gap = low - start_support  # how its lowest points sit on a support (as modelled and measured)
+    for e in events:
+        if e.release is None:
+            continue
+        end = min([g for g in grasps if g > e.release], default=T)
+        hull, low = footprint(model_points, poses[e.release])
+        under = support(hull, low, frames(0, e.grasp))
+        if under is None:
+            log.info("release at frame %d: the support under where it rests is not seen before; its height stands",
+                     e.release)
+            continue
+        change = under + gap - low
+        if abs(change) > MAX_REST_SHIFT:
+            log.info("release at frame %d: standing on the support would move it %.1f mm: not a rest on it; "
+                     "its height stands", e.release, 1000 * change)
+            continue
+        poses[e.release:end, 2, 3] += change
+        heights.append(change)
+        log.info("release at frame %d: set on its support (%.1f mm %s the carry's height)", e.release,
+                 1000 * abs(change), "above" if change > 0 else "below")
+    return heights
+
+
 def hybrid_pseudo_poses(
     segments: list[Segment],
     T_start: np.ndarray,
@@ -323,6 +378,7 @@ def hybrid_pseudo_poses(
     surface: Callable[[int], np.ndarray | None] | None = None,
     slip_from_depth: bool = True,
     views: ModelViews | None = None,
+    support: Callable[[np.ndarray, float, list[int]], float | None] | None = None,
 ) -> PseudoPoses:
     """Pseudo poses for every frame from the phases.
 
@@ -342,6 +398,8 @@ def hybrid_pseudo_poses(
             with ``slip_from_depth``, how it slipped in the hand while held (:func:`follow_slip`).
         views: where ``model_points`` were seen from: frames that see the object from elsewhere
             are not fitted (:class:`~manisplat.align.surface_fit.ModelViews`).
+        support: ``(hull_xy, z_low, frames) -> height`` of the support under a footprint (None
+            where not seen): with ``model_points``, each rest stands on it (:func:`rest_on_support`).
     """
     T = len(tcp)
     poses = np.zeros((T, 4, 4))
@@ -374,7 +432,8 @@ def hybrid_pseudo_poses(
             slips = follow_slip(poses, events, surface, model_points, tcp, width, observe, keep=from_tracking,
                                 views=views)
         shifts = settle_at_rest(poses, events, surface, model_points, width, observe, views=views)
-    return PseudoPoses(poses, source, from_tracking, shifts, slips)
+    heights = rest_on_support(poses, events, support, model_points, observe) if support and model_points is not None else []
+    return PseudoPoses(poses, source, from_tracking, shifts, slips, heights)
 
 
 def _shift(events: list[GripperEvents], start: int) -> list[GripperEvents]:

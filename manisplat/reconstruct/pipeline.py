@@ -13,6 +13,7 @@ import torch
 from manisplat.align.phases import DEFAULT_TAU, GripperEvents, Segment, gripper_events, segment_phases
 from manisplat.align.pseudo_gt import PseudoPoses, hybrid_pseudo_poses, make_tracker, tracked_baseline
 from manisplat.align.surface_fit import ModelViews
+from manisplat.align.support import support_height
 from manisplat.align.tracking import ObjectView, TrackerSettings, visible_surface
 from manisplat.reconstruct.data import EpisodeData, ReconstructionInputError
 from manisplat.reconstruct.fusion import (CameraConsensus, EpisodeSpan, JoinedAlignment, camera_consensus,
@@ -233,7 +234,8 @@ def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.nda
                  masks_from_model: bool = False, model_points: np.ndarray | None = None,
                  settings: TrackerSettings = TrackerSettings(),
                  observe: frozenset[int] = frozenset(), rest_from_depth: bool = True,
-                 slip_from_depth: bool = True, views: ModelViews | None = None) -> ObjectAlignment:
+                 slip_from_depth: bool = True, support_from_depth: bool = True,
+                 views: ModelViews | None = None) -> ObjectAlignment:
     """Phases, hybrid pseudo poses and (for moving objects) the tracking-only baseline, with the
     tool track that handles the object: ``tcp`` [T, 4, 4] T_base_tcp and the gripper ``width`` [T] m
     (one arm's, or :func:`~manisplat.reconstruct.masks.object_carrier`'s through handovers).
@@ -245,7 +247,9 @@ def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.nda
     ``settings``: the tracker's; ``observe``: the held-out frames, whose poses are tracked without
     anything learning from them. ``rest_from_depth``: with ``model_points`` and depth, a released
     object is placed where the depth says it rests
-    (:func:`~manisplat.align.pseudo_gt.settle_at_rest`); with it and ``slip_from_depth``, a held one
+    (:func:`~manisplat.align.pseudo_gt.settle_at_rest`) and, with masks and ``support_from_depth``,
+    stands on the support the depth shows under it (:func:`~manisplat.align.pseudo_gt.rest_on_support`);
+    with it and ``slip_from_depth``, a held one
     follows its slip in the hand (:func:`~manisplat.align.pseudo_gt.follow_slip`), from the frames
     that see it from near where ``model_points`` were seen (``views``; default: this episode's
     first frame, ``T_start``).
@@ -274,11 +278,19 @@ def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.nda
             return None
         return visible_surface((data.masks[f] == label).numpy(), data.depth[f].numpy(), K, T_base_cam)
 
+    moving = np.array(sorted(set(data.labels.robot) | set(data.labels.objects)))
+
+    def support(hull_xy: np.ndarray, z_low: float, frames: list[int]) -> float | None:
+        if not (rest_from_depth and support_from_depth) or data.depth is None or data.masks is None or masks_from_model:
+            return None
+        views = ((data.depth[f].numpy(), ~np.isin(data.masks[f].numpy(), moving)) for f in frames)
+        return support_height(hull_xy, z_low, views, K, T_base_cam)
+
     if views is None:
         views = ModelViews.of(T_base_cam[:3, 3], [T_start])
     pseudo = hybrid_pseudo_poses(segments, T_start, tcp, events, tracker, model_points, observe,
                                  width=width, surface=surface,
-                                 slip_from_depth=slip_from_depth, views=views)
+                                 slip_from_depth=slip_from_depth, views=views, support=support)
     baseline = tracked_baseline(tracker, data.n_frames, T_start)
     return ObjectAlignment(segments, events, pseudo, baseline)
 

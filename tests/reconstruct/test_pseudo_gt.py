@@ -10,7 +10,8 @@ import torch
 
 from manisplat.align.phases import GripperEvents, Segment
 from manisplat.align.pseudo_gt import (ATTACHED, MAX_REST_SHIFT, STATIC, TRACKED, close_end, follow_slip,
-                                      hybrid_pseudo_poses, kinematic_prior, open_end, pad_push, settle_at_rest)
+                                      hybrid_pseudo_poses, kinematic_prior, open_end, pad_push, rest_on_support,
+                                      settle_at_rest)
 from manisplat.align.surface_fit import MAX_VIEW_CHANGE_DEG, ModelViews, SurfaceModel
 from manisplat.align.tracking import DepthEvidence, TrackerSettings, track_object
 from manisplat.geometry import so3_exp
@@ -322,6 +323,37 @@ def test_settle_at_rest_moves_the_frames_after_the_release_and_learns_nothing_fr
     far = lambda f: visible_box_surface(poses[f] @ _translation([MAX_REST_SHIFT * 0.9] * 3), seed=f)  # noqa: E731
     kept = poses.copy()
     assert settle_at_rest(kept, [GripperEvents(5, 18)], far, model, width) == [] and np.allclose(kept, poses)
+
+
+def test_a_released_object_stands_on_the_support_under_it_as_it_stood_at_the_start():
+    """The box starts on the table (support 0) and is carried onto a 5 mm mat, 3 mm too high (it
+    sagged in the hand): its rest comes down 3 mm, though the depth reads both supports 1 mm low.
+    The start's support is read from the release on, the mat's before the grasp, neither in a
+    held-out frame."""
+    model = box_points(n=21)
+    T = 40
+    poses = np.repeat(np.eye(4)[None], T, axis=0)
+    poses[:, :3, 3] = [0.3, -0.1, 0.025]  # its lowest points on the table
+    poses[10:25, :3, 3] = [0.32, 0.0, 0.1]  # carried
+    poses[25:, :3, 3] = [0.32, 0.06, 0.033]  # released 3 mm above the mat
+    read = []
+
+    def support(hull_xy, z_low, frames):
+        read.append((np.round(hull_xy.mean(0), 3).tolist(), frames))
+        return -0.001 if hull_xy.mean(0)[1] < -0.05 else 0.004
+
+    rested = poses.copy()
+    heights = rest_on_support(rested, [GripperEvents(10, 25)], support, model, observe=frozenset({3, 30}))
+    assert heights == [pytest.approx(-0.003)]
+    assert np.allclose(rested[:25], poses[:25]) and np.allclose(rested[25:, 2, 3], 0.030)
+    (start_xy, after_release), (rest_xy, before_grasp) = read
+    assert start_xy == [0.3, -0.1] and after_release == [f for f in range(25, T) if f != 30]
+    assert rest_xy == [0.32, 0.06] and before_grasp == [f for f in range(10) if f != 3]
+    # a support not seen, or one that would move the rest beyond MAX_REST_SHIFT: the height stands
+    for unseen in (lambda hull, low, frames: None,
+                   lambda hull, low, frames: -0.001 if hull.mean(0)[1] < -0.05 else 0.004 + 2 * MAX_REST_SHIFT):
+        kept = poses.copy()
+        assert rest_on_support(kept, [GripperEvents(10, 25)], unseen, model) == [] and np.allclose(kept, poses)
 
 
 def test_model_views_see_an_object_turned_less_than_the_limit():
