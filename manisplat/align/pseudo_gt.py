@@ -44,6 +44,7 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
+from scipy.spatial import QhullError
 
 from manisplat.align.phases import GripperEvents, Segment
 from manisplat.align.support import footprint
@@ -77,8 +78,8 @@ MIN_REST_POINTS = 100  # fewer surface points after a release than this, and the
 MIN_SLIP_POINTS = 30  # a held frame with fewer visible surface points says nothing about a slip
 SLIP_WINDOW = 3  # frames each side of the running median over the per-frame slips
 SLIP_EVIDENCE_RATIO = 0.8  # the slipped carry's depth misfit must be below this share of the rigid one's...
-SUPPORT_FRAMES = 40  # frames (evenly spread) a support's height is read in (at most)
 SLIP_EVIDENCE_M = 3e-4  # ...and this much (m) less, else the rigid grasp stands
+SUPPORT_FRAMES = 40  # frames (evenly spread) a support's height is read in (at most)
 
 
 def kinematic_prior(T_start: np.ndarray, tcp: np.ndarray, events: list[GripperEvents], *,
@@ -338,7 +339,11 @@ def rest_on_support(poses: np.ndarray, events: list[GripperEvents],
         usable = [f for f in range(first, end) if f not in observe]
         return usable[:: max(1, len(usable) // SUPPORT_FRAMES)]
 
-    hull, low = footprint(model_points, poses[0])
+    try:
+        hull, low = footprint(model_points, poses[0])
+    except QhullError:
+        log.info("the object's model points span no area seen from above: its rests keep their height")
+        return heights
     start_support = support(hull, low, frames(releases[0], T))
     if start_support is None:
         log.info("the support under the object's start is not seen once it has left: its rests keep their height")
@@ -432,7 +437,9 @@ def hybrid_pseudo_poses(
             slips = follow_slip(poses, events, surface, model_points, tcp, width, observe, keep=from_tracking,
                                 views=views)
         shifts = settle_at_rest(poses, events, surface, model_points, width, observe, views=views)
-    heights = rest_on_support(poses, events, support, model_points, observe) if support and model_points is not None else []
+    heights = []
+    if support is not None and model_points is not None:
+        heights = rest_on_support(poses, events, support, model_points, observe)
     return PseudoPoses(poses, source, from_tracking, shifts, slips, heights)
 
 

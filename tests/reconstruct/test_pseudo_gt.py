@@ -354,6 +354,11 @@ def test_a_released_object_stands_on_the_support_under_it_as_it_stood_at_the_sta
                    lambda hull, low, frames: -0.001 if hull.mean(0)[1] < -0.05 else 0.004 + 2 * MAX_REST_SHIFT):
         kept = poses.copy()
         assert rest_on_support(kept, [GripperEvents(10, 25)], unseen, model) == [] and np.allclose(kept, poses)
+    # a model with no area seen from above (points on a vertical line) has no footprint
+    line = np.zeros((20, 3))
+    line[:, 2] = np.linspace(-0.025, 0.025, 20)
+    kept = poses.copy()
+    assert rest_on_support(kept, [GripperEvents(10, 25)], support, line) == [] and np.allclose(kept, poses)
 
 
 def test_model_views_see_an_object_turned_less_than_the_limit():
