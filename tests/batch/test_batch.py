@@ -100,7 +100,7 @@ def test_a_worker_killed_mid_task_is_retried_and_the_batch_completes(cluster, so
     config = load_config(_batch(sources, tmp_path))
     outcome: dict = {}
     runner = threading.Thread(target=lambda: outcome.update(results=run_batch(
-        config, RayExecutor(None, config.max_retries))))
+        config, RayExecutor(None, config.max_retries))), daemon=True)
     runner.start()
     pid_file = config.out / "recon" / ".partial-ep0.pid"
     deadline = time.monotonic() + 300

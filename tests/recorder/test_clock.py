@@ -47,13 +47,14 @@ def test_manual_clock_sleep_wakes_on_advance_and_on_stop() -> None:
         if clock.sleep_until(1.0):
             woke.set()
 
-    thread = threading.Thread(target=sleeper)
+    thread = threading.Thread(target=sleeper, daemon=True)
     thread.start()
     clock.advance_to(0.5)
     assert not woke.wait(0.1)
     clock.advance_to(1.0)
     assert woke.wait(5.0)
-    thread.join()
+    thread.join(5.0)
+    assert not thread.is_alive()
     stop = threading.Event()
     stop.set()
     assert clock.sleep_until(2.0, stop) is False

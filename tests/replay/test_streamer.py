@@ -94,7 +94,7 @@ def test_lost_feedback_stops_the_stream_and_leaves_the_last_target(sim: SimArm) 
     traj = motion(duration=3.0)
     config = StreamConfig(**{**RELAXED, "feedback_timeout_s": 0.1})
     result: dict = {}
-    thread = threading.Thread(target=lambda: result.setdefault("r", replay(sim.arm, traj, config)))
+    thread = threading.Thread(target=lambda: result.setdefault("r", replay(sim.arm, traj, config)), daemon=True)
     thread.start()
     wait_for(lambda: sim.audit.joint_targets > 350)  # well into the stream (the approach takes ~1 s)
     sim.sim.stop()  # the arm goes silent

@@ -162,7 +162,7 @@ def test_a_stop_on_one_arm_stops_both_holding() -> None:
     config = StreamConfig(feedback_timeout_s=0.5, max_tracking_error_deg=20.0)
     thread = threading.Thread(target=lambda: result.setdefault(
         "r", replay_arms({name: (sims[name].arm, tr) for name, tr in trajs.items()}, config,
-                         on_progress=lambda s, _planned: streamed.append(s))))
+                         on_progress=lambda s, _planned: streamed.append(s))), daemon=True)
     try:
         thread.start()
         wait_for(lambda: streamed and streamed[-1] >= 0.5)  # streaming (on the stream's own clock, not a tick count)
