@@ -34,8 +34,8 @@ Without Ray installed, the same pipeline runs one task after another in this pro
 """ + exit_status_help({
     ExitCode.OK: "every stage complete",
     ExitCode.FAILED: "a stage failed (see the table and OUT/errors/)",
-    ExitCode.BAD_INPUT: "bad arguments; a PIPELINE.toml that is wrong (named); `status` of a folder that holds no\n"
-                        "batch",
+    ExitCode.BAD_INPUT: "bad arguments; a PIPELINE.toml that is wrong (named) or asks for more CPUs or GPUs than any\n"
+                        "node of the local Ray cluster has; `status` of a folder that holds no batch",
     ExitCode.INTERRUPTED: "interrupted (finished outputs stay, partial ones never look complete)",
 })
 
@@ -80,7 +80,7 @@ def table(rows: list) -> str:
 
 def _run(args: argparse.Namespace) -> int:
     from manisplat.batch.config import BatchConfigError, load_config
-    from manisplat.batch.runner import LocalExecutor, RayExecutor, run_batch
+    from manisplat.batch.runner import LocalExecutor, RayExecutor, run_batch, unfit_reconstruction
 
     try:
         config = load_config(args.pipeline)
@@ -99,6 +99,13 @@ def _run(args: argparse.Namespace) -> int:
         executor = LocalExecutor()
     else:
         executor = RayExecutor(args.address, config.max_retries, num_cpus=args.workers)
+        if problem := unfit_reconstruction(config, *executor.largest_node()):
+            if args.address is None:  # a local cluster does not grow: its tasks would wait forever
+                executor.shutdown()
+                print(f"error: {problem}: its reconstructions would never start; lower it or give "
+                      "--workers more CPUs", file=sys.stderr)
+                return ExitCode.BAD_INPUT
+            print(f"warning: {problem}: its reconstructions wait until such a node joins", file=sys.stderr)
     print(f"{len(config.episodes)} episodes -> {config.out} on {executor.name}", file=sys.stderr)
     try:
         results = run_batch(config, executor, progress=not args.quiet and sys.stderr.isatty())

@@ -88,9 +88,28 @@ class RayExecutor:
         except Exception as exc:  # noqa: BLE001 - a task's error or a worker that died once too often
             return ref, None, getattr(exc, "cause", None) or exc
 
+    def largest_node(self) -> tuple[float, float]:
+        """(CPUs, GPUs): the most of each that one alive node of the cluster has."""
+        nodes = [node["Resources"] for node in self._ray.nodes() if node.get("Alive")]
+        return (max((n.get("CPU", 0.0) for n in nodes), default=0.0),
+                max((n.get("GPU", 0.0) for n in nodes), default=0.0))
+
     def shutdown(self) -> None:
         if self._started:
             self._ray.shutdown()
+
+
+def unfit_reconstruction(config: BatchConfig, cpus: float, gpus: float) -> str | None:
+    """Why no node with ``cpus`` CPUs and ``gpus`` GPUs (the cluster's largest,
+    :meth:`RayExecutor.largest_node`) could run the reconstruction tasks ``config`` asks for (Ray
+    would keep them waiting), or None when one could."""
+    if config.reconstruct_cpus > cpus:
+        return (f"reconstruct.cpus = {config.reconstruct_cpus:g}, but the largest node of the Ray cluster has "
+                f"{cpus:g} CPUs")
+    if config.reconstruct_gpus > gpus:
+        return (f"reconstruct.gpus = {config.reconstruct_gpus:g} (device cuda), but the largest node of the Ray "
+                f"cluster has {gpus:g} GPUs")
+    return None
 
 
 def _call(fn: Callable[..., Any], *args: Any) -> Any:

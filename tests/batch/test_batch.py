@@ -185,3 +185,16 @@ def test_the_pipeline_example_in_the_help_is_a_working_pipeline(tmp_path, capsys
     (tmp_path / "PIPELINE.toml").write_text(textwrap.dedent(example))
     config = load_config(tmp_path / "PIPELINE.toml")
     assert [p.name for p in config.episodes] == ["ep0"] and config.iters == 3000 and config.n == 20
+
+
+def test_reconstructions_no_node_of_the_local_cluster_can_hold_are_refused_not_left_waiting(cluster, sources, tmp_path,
+                                                                                            capsys):
+    """The module's cluster has 2 CPUs and no GPU: Ray would keep such tasks pending forever."""
+    for section, message in (("cpus = 4", "reconstruct.cpus = 4, but the largest node of the Ray cluster has 2 CPUs"),
+                             ('device = "cuda"\ngpus = 0.5', "reconstruct.gpus = 0.5 (device cuda), but the largest "
+                                                            "node of the Ray cluster has 0 GPUs")):
+        pipeline = _batch(sources, tmp_path / section[:4], PIPELINE.replace("iters = 5", f"iters = 5\n{section}"))
+        assert main(["run", str(pipeline), "-q"]) == 2
+        assert message in capsys.readouterr().err
+        assert not (tmp_path / section[:4] / "out").exists()  # refused before anything ran
+    assert ray.is_initialized()  # the module's cluster, not the command's, stays up
