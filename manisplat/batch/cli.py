@@ -99,7 +99,7 @@ def _run(args: argparse.Namespace) -> int:
         executor = LocalExecutor()
     else:
         executor = RayExecutor(args.address, config.max_retries, num_cpus=args.workers)
-        if problem := unfit_reconstruction(config, *executor.largest_node()):
+        if problem := unfit_reconstruction(config, executor.nodes()):
             if args.address is None:  # a local cluster does not grow: its tasks would wait forever
                 executor.shutdown()
                 print(f"error: {problem}: its reconstructions would never start; lower it or give "

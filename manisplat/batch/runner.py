@@ -88,28 +88,29 @@ class RayExecutor:
         except Exception as exc:  # noqa: BLE001 - a task's error or a worker that died once too often
             return ref, None, getattr(exc, "cause", None) or exc
 
-    def largest_node(self) -> tuple[float, float]:
-        """(CPUs, GPUs): the most of each that one alive node of the cluster has."""
-        nodes = [node["Resources"] for node in self._ray.nodes() if node.get("Alive")]
-        return (max((n.get("CPU", 0.0) for n in nodes), default=0.0),
-                max((n.get("GPU", 0.0) for n in nodes), default=0.0))
+    def nodes(self) -> list[tuple[float, float]]:
+        """(CPUs, GPUs) of each alive node of the cluster."""
+        return [(node["Resources"].get("CPU", 0.0), node["Resources"].get("GPU", 0.0))
+                for node in self._ray.nodes() if node.get("Alive")]
 
     def shutdown(self) -> None:
         if self._started:
             self._ray.shutdown()
 
 
-def unfit_reconstruction(config: BatchConfig, cpus: float, gpus: float) -> str | None:
-    """Why no node with ``cpus`` CPUs and ``gpus`` GPUs (the cluster's largest,
-    :meth:`RayExecutor.largest_node`) could run the reconstruction tasks ``config`` asks for (Ray
-    would keep them waiting), or None when one could."""
-    if config.reconstruct_cpus > cpus:
-        return (f"reconstruct.cpus = {config.reconstruct_cpus:g}, but the largest node of the Ray cluster has "
-                f"{cpus:g} CPUs")
-    if config.reconstruct_gpus > gpus:
-        return (f"reconstruct.gpus = {config.reconstruct_gpus:g} (device cuda), but the largest node of the Ray "
-                f"cluster has {gpus:g} GPUs")
-    return None
+def unfit_reconstruction(config: BatchConfig, nodes: list[tuple[float, float]]) -> str | None:
+    """Why none of the cluster's ``nodes`` ((CPUs, GPUs) each, :meth:`RayExecutor.nodes`) could run
+    the reconstruction tasks ``config`` asks for (Ray would keep them waiting), or None when one could."""
+    cpus, gpus = config.reconstruct_cpus, config.reconstruct_gpus
+    if any(c >= cpus and g >= gpus for c, g in nodes):
+        return None
+    most_cpus, most_gpus = (max(column, default=0.0) for column in zip(*nodes)) if nodes else (0.0, 0.0)
+    if cpus > most_cpus:
+        return f"reconstruct.cpus = {cpus:g}, but the largest node of the Ray cluster has {most_cpus:g} CPUs"
+    if gpus > most_gpus:
+        return (f"reconstruct.gpus = {gpus:g} (device cuda), but the largest node of the Ray cluster has "
+                f"{most_gpus:g} GPUs")
+    return f"reconstruct.cpus = {cpus:g} and reconstruct.gpus = {gpus:g}: no node of the Ray cluster has both"
 
 
 def _call(fn: Callable[..., Any], *args: Any) -> Any:

@@ -281,16 +281,16 @@ def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.nda
     moving = np.array(sorted(set(data.labels.robot) | set(data.labels.objects)))
 
     def support(hull_xy: np.ndarray, z_low: float, frames: list[int]) -> float | None:
-        if not (rest_from_depth and support_from_depth) or data.depth is None or data.masks is None or masks_from_model:
-            return None
         views = ((data.depth[f].numpy(), ~np.isin(data.masks[f].numpy(), moving)) for f in frames)
         return support_height(hull_xy, z_low, views, K, T_base_cam)
 
+    supported = (rest_from_depth and support_from_depth and data.depth is not None and data.masks is not None
+                 and not masks_from_model)
     if views is None:
         views = ModelViews.of(T_base_cam[:3, 3], [T_start])
     pseudo = hybrid_pseudo_poses(segments, T_start, tcp, events, tracker, model_points, observe,
-                                 width=width, surface=surface,
-                                 slip_from_depth=slip_from_depth, views=views, support=support)
+                                 width=width, surface=surface, slip_from_depth=slip_from_depth, views=views,
+                                 support=support if supported else None)
     baseline = tracked_baseline(tracker, data.n_frames, T_start)
     return ObjectAlignment(segments, events, pseudo, baseline)
 

@@ -17,7 +17,7 @@ import pytest
 
 from manisplat.batch.cli import main
 from manisplat.batch.config import BatchConfigError, load_config
-from manisplat.batch.runner import LocalExecutor, RayExecutor, batch_status, run_batch
+from manisplat.batch.runner import LocalExecutor, RayExecutor, batch_status, run_batch, unfit_reconstruction
 from manisplat.episode import validate
 from manisplat.episode.synthetic import write_sample_episode
 from manisplat.twin import Twin
@@ -198,3 +198,13 @@ def test_reconstructions_no_node_of_the_local_cluster_can_hold_are_refused_not_l
         assert message in capsys.readouterr().err
         assert not (tmp_path / section[:4] / "out").exists()  # refused before anything ran
     assert ray.is_initialized()  # the module's cluster, not the command's, stays up
+
+
+def test_a_reconstruction_fits_only_a_node_that_has_both_its_cpus_and_its_gpus(tmp_path):
+    (tmp_path / "a" / "ep").mkdir(parents=True)
+    (tmp_path / "p.toml").write_text('episodes = ["a/*"]\nout = "o"\n[reconstruct]\ndevice = "cuda"\ncpus = 4\ngpus = 1')
+    config = load_config(tmp_path / "p.toml")
+    assert unfit_reconstruction(config, [(8.0, 0.0), (2.0, 1.0)]) == ("reconstruct.cpus = 4 and reconstruct.gpus = 1: "
+                                                                       "no node of the Ray cluster has both")
+    assert unfit_reconstruction(config, [(8.0, 0.0), (4.0, 2.0)]) is None
+    assert "has 0 CPUs" in unfit_reconstruction(config, [])
