@@ -10,8 +10,8 @@ import torch
 
 from manisplat.align.phases import GripperEvents, Segment
 from manisplat.align.pseudo_gt import (ATTACHED, MAX_REST_SHIFT, STATIC, TRACKED, close_end, follow_slip,
-                                      hybrid_pseudo_poses, kinematic_prior, open_end, pad_push, rest_on_support,
-                                      settle_at_rest)
+                                      hybrid_pseudo_poses, kinematic_prior, noise_floor, open_end, pad_push,
+                                      rest_on_support, settle_at_rest)
 from manisplat.align.surface_fit import MAX_VIEW_CHANGE_DEG, ModelViews, SurfaceModel
 from manisplat.align.tracking import DepthEvidence, TrackerSettings, track_object
 from manisplat.geometry import so3_exp
@@ -446,11 +446,58 @@ def test_follow_slip_keeps_the_rigid_grasp_without_clear_evidence_and_leaves_tra
     tracked = np.zeros(50, dtype=bool)
     tracked[25:28] = True
     slipped = rigid.copy()
-    assert len(follow_slip(slipped, [GripperEvents(10, 40)],
-                           lambda f: visible_box_surface(rigid[f] @ _translation([0.003, 0.0, 0.0]), seed=f),
+    in_hand = lambda f: rigid[f] @ _translation([0.003, 0.0, 0.0]) if f >= 10 else rigid[f]  # noqa: E731
+    assert len(follow_slip(slipped, [GripperEvents(10, 40)], lambda f: visible_box_surface(in_hand(f), seed=f),
                            model, tcp, width, keep=tracked)) == 1
     assert np.array_equal(slipped[tracked], rigid[tracked])
     assert np.allclose(np.linalg.norm(slipped[13:25, :3, 3] - rigid[13:25, :3, 3], axis=1), 0.003, atol=4e-4)
+
+
+def test_follow_slip_counts_the_misfit_above_the_depths_noise_floor():
+    """Stereo-like depth (1.5 mm scatter) and a model made of frame 0's noisy depth: a 2.5 mm slip
+    in the hand is taken when the still frames before the grasp show the noise floor, missed
+    without them (the misfit's drop is then measured against the noise too); no slip, none taken."""
+    tcp, rigid, width = carried_box()
+    noisy = lambda X, seed: X + np.random.default_rng(seed).normal(0.0, 0.0015, X.shape)  # noqa: E731
+    model = noisy(visible_box_surface(np.eye(4), seed=999), 999)
+
+    def depth(slip_m, still_frames=True):
+        def surface(f):
+            if f < 10 and not still_frames:
+                return None
+            pose = rigid[f] @ _translation([slip_m, 0.0, 0.0]) if f >= 10 else rigid[f]
+            return noisy(visible_box_surface(pose, seed=f), 100 + f)
+        return surface
+
+    assert 0.0013 < noise_floor(SurfaceModel(model), rigid, [GripperEvents(10, 40)], depth(0.0025)) < 0.0016
+    slipped = rigid.copy()
+    slips = follow_slip(slipped, [GripperEvents(10, 40)], depth(0.0025), model, tcp, width)
+    assert len(slips) == 1 and abs(np.linalg.norm(slips[0]) - 0.0025) < 5e-4
+    assert follow_slip(rigid.copy(), [GripperEvents(10, 40)], depth(0.0025, still_frames=False), model, tcp, width) == []
+    assert follow_slip(rigid.copy(), [GripperEvents(10, 40)], depth(0.0), model, tcp, width) == []
+
+
+def test_follow_slip_holds_the_object_where_the_pads_closed_along_their_closing_axis():
+    """The pads clamp the object along their closing axis (the TCP's y): what the depth shows
+    there is one offset for the whole hold (the centring's error), not a drift; across it
+    (x, z) the slip is followed frame by frame."""
+    model = box_points(n=41)
+    tcp, rigid, width = carried_box()
+    ramp = np.clip((np.arange(50) - 13) / 26, 0.0, 1.0)  # 0 -> 1 over the hold
+    centred_off = lambda f: rigid[f] @ _translation([0.0, 0.003, 0.0]) if f >= 10 else rigid[f]  # noqa: E731
+    poses = rigid.copy()
+    slips = follow_slip(poses, [GripperEvents(10, 40)], lambda f: visible_box_surface(centred_off(f), seed=f),
+                        model, tcp, width)
+    in_tcp = np.einsum("nji,nj->ni", tcp[13:40, :3, :3], poses[13:40, :3, 3] - rigid[13:40, :3, 3])
+    assert len(slips) == 1 and np.abs(in_tcp - [0.0, 0.003, 0.0]).max() < 3e-4  # taken whole, from the close
+
+    drifting = lambda f: rigid[f] @ _translation([0.004 * ramp[f], 0.003 * ramp[f], 0.0])  # noqa: E731
+    poses = rigid.copy()
+    slips = follow_slip(poses, [GripperEvents(10, 40)], lambda f: visible_box_surface(drifting(f), seed=f),
+                        model, tcp, width)
+    in_tcp = np.einsum("nji,nj->ni", tcp[13:40, :3, :3], poses[13:40, :3, 3] - rigid[13:40, :3, 3])
+    assert len(slips) == 1 and np.ptp(in_tcp[:, 1]) < 1e-9 and abs(in_tcp[0, 1] - 0.0015) < 5e-4
+    assert np.abs(in_tcp[:, 0] - 0.004 * ramp[13:40]).max() < 6e-4  # the drift across the pads followed
 
 
 def test_hybrid_pseudo_poses_follow_the_slip_the_depth_shows_unless_told_not_to():
