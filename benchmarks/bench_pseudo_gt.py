@@ -23,6 +23,7 @@ Seconds of CPU, tens of seconds with the test set's generation (once).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -39,15 +40,27 @@ from manisplat.reconstruct.plan import make_plan
 THREADED = False
 NEVER = TrackerSettings(confident_inliers=10**9)
 NO_EVIDENCE = TrackerSettings(depth_evidence=False)
-VARIANTS = {  # name -> (tracker settings, use the object's model points, the rest, the slip, the support from depth)
-    "prior only": (NEVER, False, False, False, False),
-    "+ tracking (confidence)": (NO_EVIDENCE, False, False, False, False),
-    "+ depth evidence": (TrackerSettings(evidence_model=False), False, False, False, False),
-    "+ centring, settling": (TrackerSettings(evidence_model=False), True, False, False, False),
-    "+ model in the depth check": (TrackerSettings(), True, False, False, False),
-    "+ rest from depth": (TrackerSettings(), True, True, False, False),
-    "+ slip in the hand from depth": (TrackerSettings(), True, True, True, False),
-    "+ standing on its support (default)": (TrackerSettings(), True, True, True, True),
+@dataclass(frozen=True)
+class Variant:
+    """Which parts of the pseudo ground truth one variant uses."""
+
+    tracker: TrackerSettings
+    model_points: bool = False  # the object's model: the grasp's centring, the release's settling
+    rest: bool = False  # where it rests after a release, from depth
+    slip: bool = False  # its slip in the hand, from depth
+    support: bool = False  # it stands on the support the depth shows under it
+
+
+VARIANTS = {
+    "prior only": Variant(NEVER),
+    "+ tracking (confidence)": Variant(NO_EVIDENCE),
+    "+ depth evidence": Variant(TrackerSettings(evidence_model=False)),
+    "+ centring, settling": Variant(TrackerSettings(evidence_model=False), model_points=True),
+    "+ model in the depth check": Variant(TrackerSettings(), model_points=True),
+    "+ rest from depth": Variant(TrackerSettings(), model_points=True, rest=True),
+    "+ slip in the hand from depth": Variant(TrackerSettings(), model_points=True, rest=True, slip=True),
+    "+ standing on its support (default)": Variant(TrackerSettings(), model_points=True, rest=True, slip=True,
+                                                   support=True),
 }
 
 
@@ -64,10 +77,11 @@ def run(ctx: BenchContext) -> list[dict[str, Any]]:
         gaussians, T_start = object_gaussians(data, obj.label, 0)
         points = gaussians.params["means"].detach().double().numpy()
         gt = load_ground_truth(episode)[f"T_base_{obj.name}"]
-        for variant, (settings, centring, rest, slip, support) in VARIANTS.items():
+        for variant, parts in VARIANTS.items():
             alignment = align_object(data, obj.label, T_start.numpy(), data.tcp.double().numpy(), data.gripper.numpy(),
-                                     moves=True, model_points=points if centring else None, settings=settings,
-                                     rest_from_depth=rest, slip_from_depth=slip, support_from_depth=support)
+                                     moves=True, model_points=points if parts.model_points else None,
+                                     settings=parts.tracker, rest_from_depth=parts.rest, slip_from_depth=parts.slip,
+                                     support_from_depth=parts.support)
             poses = alignment.pseudo.poses
             fitted = pose_errors(poses, gt)
             anchored = start_anchored_errors(poses, gt)
