@@ -222,12 +222,10 @@ def noise_floor(model: SurfaceModel, poses: np.ndarray, events: list[GripperEven
     viewpoint set this floor is 1.2-3.1 mm, while a carried box that slipped 2.4 mm in the hand
     fits its rigid grasp at 1.82 mm and the slip at 1.60 mm: above the floor (1.27 mm), 1.30
     against 0.96 mm (the same carry in exact depth: 1.61 against 1.06 mm, floor 0)."""
-    grasps = [e.grasp for e in events]
-    still = [f for f in range(1, min(grasps, default=0))
-             if f not in observe and (X := surface(f)) is not None and len(X) >= MIN_SLIP_POINTS]
-    if not still:
-        return 0.0
-    return float(np.median([model.misfit([surface(f)], [poses[f]]) for f in still]))
+    first_grasp = min((e.grasp for e in events), default=0)
+    seen = ((f, surface(f)) for f in range(1, first_grasp) if f not in observe)
+    misfits = [model.misfit([X], [poses[f]]) for f, X in seen if X is not None and len(X) >= MIN_SLIP_POINTS]
+    return float(np.median(misfits)) if misfits else 0.0
 
 
 def _above(misfit: float, floor: float) -> float:
