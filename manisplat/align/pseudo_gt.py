@@ -210,6 +210,11 @@ def open_end(width: np.ndarray, release: int, end: int, *, tolerance: float = 2e
     return _until_still(width, release, end - 1, tolerance)
 
 
+def _rest_end(events: list[GripperEvents], release: int, T: int) -> int:
+    """The frame (exclusive) a rest from ``release`` lasts to: the next grasp, else the track's end ``T``."""
+    return min((e.grasp for e in events if e.grasp > release), default=T)
+
+
 def noise_floor(model: SurfaceModel, poses: np.ndarray, events: list[GripperEvents],
                 surface: Callable[[int], np.ndarray | None], observe: frozenset[int] = frozenset()) -> float:
     """The misfit (m) the depth's noise alone leaves: the model (made from frame 0's depth)
@@ -253,7 +258,6 @@ def follow_slip(poses: np.ndarray, events: list[GripperEvents], surface: Callabl
     the depth's :func:`noise_floor`); the object then rests, until the next grasp, shifted as it was
     let go. Returns each taken slip where its stretch ended [3] (m, TCP frame)."""
     T, slips, model = len(poses), [], SurfaceModel(model_points)
-    grasps = sorted(e.grasp for e in events)
     floor = noise_floor(model, poses, events, surface, observe)
     for e in events:
         first = close_end(width, e.grasp, e.release) if width is not None else e.grasp
@@ -306,8 +310,7 @@ def follow_slip(poses: np.ndarray, events: list[GripperEvents], surface: Callabl
         let_go = slipped[-1, :3, 3] - poses[end - 1, :3, 3]
         poses[first:end] = slipped
         if e.release is not None:
-            rest_end = min([g for g in grasps if g > e.release], default=T)
-            poses[e.release:rest_end, :3, 3] += let_go
+            poses[e.release:_rest_end(events, e.release, T), :3, 3] += let_go
         slips.append(in_hand[-1])
         log.info("grasp at frame %d: the object slipped %.1f mm in the hand by the release (largest %.1f mm; "
                  "depth misfit above its noise floor of %.2f mm %.2f -> %.2f mm)", e.grasp,
@@ -325,11 +328,10 @@ def settle_at_rest(poses: np.ndarray, events: list[GripperEvents], surface: Call
     Held-out frames (``observe``) are shifted but not fitted, nor are frames that see the object
     from elsewhere than its model was seen from (``views``). Returns the shifts applied."""
     T, shifts, model = len(poses), [], SurfaceModel(model_points)
-    grasps = sorted(e.grasp for e in events)
     for e in events:
         if e.release is None:
             continue
-        end = min([g for g in grasps if g > e.release], default=T)
+        end = _rest_end(events, e.release, T)
         first = open_end(width, e.release, end) if width is not None else e.release
         seen = [f for f in range(first, end) if f not in observe and (views is None or views.sees(poses[f]))]
         if first < end and not seen:
@@ -363,7 +365,6 @@ def rest_on_support(poses: np.ndarray, events: list[GripperEvents],
     picked up; held-out frames (``observe``) are moved but not read. A change beyond
     :data:`MAX_REST_SHIFT` is not a rest on that support: the pose stands. Returns the changes (m)."""
     T, heights = len(poses), []
-    grasps = sorted(e.grasp for e in events)
     releases = sorted(e.release for e in events if e.release is not None)
     if not releases:
         return heights
@@ -385,7 +386,7 @@ def rest_on_support(poses: np.ndarray, events: list[GripperEvents],
     for e in events:
         if e.release is None:
             continue
-        end = min([g for g in grasps if g > e.release], default=T)
+        end = _rest_end(events, e.release, T)
         hull, low = footprint(model_points, poses[e.release])
         under = support(hull, low, frames(0, e.grasp))
         if under is None:
