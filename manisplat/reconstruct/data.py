@@ -38,6 +38,11 @@ class Labels:
     objects: dict[int, str] = field(default_factory=dict)  # value -> object name
     static: list[int] = field(default_factory=list)
 
+    @property
+    def moving(self) -> list[int]:
+        """The label values of what moves (robot links and manipulated objects), sorted."""
+        return sorted({*self.robot, *self.objects})
+
     @classmethod
     def from_meta(cls, labels: dict[int, str], objects: list[str]) -> "Labels":
         out = cls()

@@ -199,7 +199,7 @@ def measured_support(rec: Reconstruction, T_base_cam: np.ndarray) -> SupportMap 
         return None
     train = rec.plan.train_frames
     frames = [train[int(k)] for k in np.linspace(0, len(train) - 1, min(SUPPORT_FRAMES, len(train)))]
-    moving = torch.tensor(sorted(set(d.labels.robot) | set(d.labels.objects)), dtype=torch.uint8)
+    moving = torch.tensor(d.labels.moving, dtype=torch.uint8)
     background = ~torch.isin(d.masks[frames].cpu(), moving)
     return support_map(d.depth[frames].cpu().numpy(), background.numpy(), d.K_opencv.cpu().numpy(), T_base_cam)
 

@@ -278,7 +278,7 @@ def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.nda
             return None
         return visible_surface((data.masks[f] == label).numpy(), data.depth[f].numpy(), K, T_base_cam)
 
-    moving = np.array(sorted(set(data.labels.robot) | set(data.labels.objects)))
+    moving = np.array(data.labels.moving)
 
     def support(hull_xy: np.ndarray, z_low: float, frames: list[int]) -> float | None:
         views = ((data.depth[f].numpy(), ~np.isin(data.masks[f].numpy(), moving)) for f in frames)

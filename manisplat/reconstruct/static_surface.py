@@ -30,7 +30,7 @@ def static_surface(data: EpisodeData, frame: int, *, stride: int = 2) -> trimesh
     if data.riding or data.depth is None or data.masks is None:
         raise ValueError(f"camera {data.camera_name}: the static surface needs a fixed camera with depth and masks")
     z = data.depth[frame].cpu().numpy().astype(np.float64)[::stride, ::stride]
-    moving = np.array(sorted({*data.labels.robot, *data.labels.objects}), dtype=np.int64)
+    moving = np.array(data.labels.moving, dtype=np.int64)
     static = (z > 0) & ~np.isin(data.masks[frame].cpu().numpy()[::stride, ::stride], moving)
     H, W = z.shape
     rows, cols = np.mgrid[0:H, 0:W] * stride

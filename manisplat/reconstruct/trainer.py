@@ -540,7 +540,7 @@ def _dynamic_pixels(view: EpisodeData) -> torch.Tensor | None:
     """[T, H, W] bool: the robot's and the objects' pixels of every frame of ``view`` (None without masks)."""
     if view.masks is None:
         return None
-    dynamic = torch.tensor(sorted(set(view.labels.robot) | set(view.labels.objects)), dtype=torch.uint8)
+    dynamic = torch.tensor(view.labels.moving, dtype=torch.uint8)
     return torch.isin(view.masks, dynamic.to(view.masks.device))
 
 
