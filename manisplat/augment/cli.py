@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from manisplat.augment.timing import PROFILES
-from manisplat.cli_args import add_version, finite_numbers, positive
+from manisplat.cli_args import add_version, bounded, finite_numbers, positive
 from manisplat.exit_codes import ExitCode, exit_status_help
 from manisplat.output_folder import check_output_folder
 from manisplat.threads import THREADS_HELP, use_threads
@@ -82,6 +82,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--handover-range", type=finite_numbers((3,)), default=[0.04, 0.04, 0.02], metavar="X,Y,Z",
                    help="an object handed from one arm to the other: the handover point is moved by up to +-X, +-Y, "
                         "+-Z metres along the world's axes (default 0.04,0.04,0.02)")
+    p.add_argument("--start-range", type=bounded(0.0, 90.0), default=0.0, metavar="DEG",
+                   help="each new demonstration starts with every arm joint moved from the source's first "
+                        "position by up to +-DEG (uniformly), the first motion planned from there: demonstrations "
+                        "that all start from one pose and run straight to their targets let a policy read the "
+                        "target off its own joints instead of the image (default 0: the source's start; one arm)")
     p.add_argument("--sources", default="all", metavar="all|EPISODE,...",
                    help="the source demonstrations of a twin of several episodes: all (the default), or those named; "
                         "sample k starts from the k-th of them in turn, and the report names each one's source")

@@ -21,8 +21,9 @@ from manisplat.augment.bimanual import BimanualPlanner, BimanualTrajectory
 from manisplat.augment.cli import REPORT, load_poses_file
 from manisplat.augment.frames import from_centre_frame, to_centre_frame
 from manisplat.augment.symmetry import Symmetry
+from manisplat.augment.sampling import sample_start
 from manisplat.augment.trajectory import (AugmentConfig, NewTrajectory, ObjectTarget, Rejected, augment_trajectory,
-                                          sample_targets)
+                                          augmenter_for, sample_targets)
 from manisplat.augment.writer import write_demonstration
 from manisplat.episode.fsio import atomic_write_bytes
 from manisplat.robot.arms import ArmSet
@@ -51,6 +52,7 @@ class Sample:
     plan_s: float = 0.0
     episode: str | None = None
     source: str = ""  # the source demonstration it was planned from (its episode's name)
+    start_q: np.ndarray | None = None  # the arm's first joints (rad) when --start-range moved them
 
 
 def run_augmentation(args: argparse.Namespace) -> dict:
@@ -65,6 +67,8 @@ def run_augmentation(args: argparse.Namespace) -> dict:
     config = AugmentConfig(speed=args.speed, profile=args.profile, planner_timeout_s=args.planner_timeout,
                            seed=args.seed, symmetries=_symmetries(twin, args.symmetries))
     planners = {name: _arms_planner(source, args) for name, source in sources.items()}
+    if args.start_range > 0 and any(arms is not None for arms in planners.values()):
+        raise AugmentError("--start-range moves one arm's start; this twin has several arms (not supported yet)")
     explicit = _explicit_targets(args.poses, twin) if args.poses else None
     wanted = len(explicit) if explicit is not None else args.n
     limit = len(explicit) if explicit is not None else (args.max_samples or max(10, 3 * args.n))
@@ -78,17 +82,20 @@ def run_augmentation(args: argparse.Namespace) -> dict:
         seed = args.seed * 1_000_003 + index
         name = list(sources)[index % len(sources)]
         source, arms = sources[name], planners[name]
+        rng = np.random.default_rng(seed)
         if explicit is not None:
             targets = explicit[index]
         elif arms is not None:
-            targets = arms.sample_targets(np.random.default_rng(seed), object_range, target_range,
-                                          tuple(args.handover_range))
+            targets = arms.sample_targets(rng, object_range, target_range, tuple(args.handover_range))
         else:
-            targets = sample_targets(source, np.random.default_rng(seed), object_range, target_range)
+            targets = sample_targets(source, rng, object_range, target_range)
         sample = Sample(index, seed, targets, source=name)
         t0 = time.perf_counter()
         try:
-            sample.trajectory = arms.run(targets, config) if arms is not None else augment_trajectory(source, targets, config)
+            if args.start_range > 0:  # drawn after the objects: the same seed gives the same object poses
+                sample.start_q = _sample_start(source, rng, np.radians(args.start_range))
+            sample.trajectory = arms.run(targets, config) if arms is not None else \
+                augment_trajectory(source, targets, config, sample.start_q)
             bar.update(1)
         except Rejected as exc:
             sample.reason, sample.detail = exc.reason, exc.detail
@@ -213,6 +220,16 @@ def _explicit_targets(path: Path, twin: Twin) -> list[dict[str, ObjectTarget]]:
     return out
 
 
+def _sample_start(source: Twin, rng: np.random.Generator, half_range: float) -> np.ndarray:
+    """The arm's first joints (rad) for a new demonstration of ``source``: its own first joints
+    moved by up to +-``half_range`` rad each, within the limits the augmentation plans in."""
+    augmenter = augmenter_for(source)
+    if augmenter.src.skills[0].first == 0:
+        raise AugmentError(f"--start-range: {source.episode}'s first skill begins at its first frame, so no motion "
+                           "leads into it from another start")
+    return sample_start(rng, augmenter.src.q[0], half_range, augmenter.kin.lower, augmenter.kin.upper)
+
+
 def _remove_earlier(out: Path) -> None:
     for path in [*out.glob("episode_*"), *out.glob(".partial-episode_*")]:
         shutil.rmtree(path)
@@ -284,6 +301,7 @@ def _report(twin: Twin, args: argparse.Namespace, samples: list[Sample], wanted:
         "validity_rate": len(valid) / max(len(samples), 1), "reasons": reasons,
         "ranges": {"object": args.object_range, "target": args.target_range, "units": "m, m, deg",
                    **({"handover": args.handover_range, "handover_units": "m, m, m"} if handover else {})},
+        "start_range_deg": args.start_range,
         "speed": args.speed, "profile": args.profile, "workers": args.workers,
         "symmetry": {name: "round" if sym.order is None else sym.order for name, sym in args.symmetries.items()},
         "skill_error_max": {"mm": max(skill_mm, default=0.0), "deg": max(skill_deg, default=0.0)},

@@ -1,5 +1,5 @@
 """New object poses: table-plane perturbations (x, y, yaw) of where each manipulated object starts
-and, for a pick-and-place, where it is placed.
+and, for a pick-and-place, where it is placed; and, when asked, a new start of the arm's joints.
 
 A perturbation keeps the pose's height, roll and pitch: ``T' = [Rz(yaw) R, p + (dx, dy, 0)]``,
 the yaw turning the object about the vertical through its own origin. ``dx, dy, yaw`` are drawn
@@ -70,3 +70,14 @@ def sample_targets(twin, rng: np.random.Generator, object_range=(0.08, 0.08, mat
         T_place = perturb(obj.T_placed, *_draw(rng, target_range)) if obj.T_placed is not None else None
         out[name] = ObjectTarget(T_start, T_place)
     return out
+
+
+def sample_start(rng: np.random.Generator, q_source: np.ndarray, half_range: float, lower: np.ndarray,
+                 upper: np.ndarray) -> np.ndarray:
+    """The arm's first joint positions [dof] (rad) for a new demonstration: the source's first ones
+    ``q_source`` [dof] moved on every joint by a uniform draw within +-``half_range`` (rad), then
+    kept within ``lower``..``upper`` [dof] (rad)."""
+    if not (math.isfinite(half_range) and half_range >= 0):
+        raise ValueError(f"the start's half-range must be finite and >= 0, got {half_range}")
+    q_source = np.asarray(q_source, np.float64)
+    return np.clip(q_source + rng.uniform(-half_range, half_range, q_source.shape), lower, upper)

@@ -244,9 +244,13 @@ class Augmenter:
         return world, held
 
     # ------------------------------------------------------------------ the whole demonstration
-    def run(self, targets: dict[str, ObjectTarget], config: AugmentConfig) -> NewTrajectory:
+    def run(self, targets: dict[str, ObjectTarget], config: AugmentConfig,
+            start_q: np.ndarray | None = None) -> NewTrajectory:
+        """The new demonstration with the objects at ``targets``, its first motion planned from
+        ``start_q`` [dof] (rad; None: the source's first joints). Raises :class:`Rejected`."""
         timings = {"ik_s": 0.0, "planning_s": 0.0, "timing_s": 0.0, "validation_s": 0.0}
         src, kin = self.src, self.kin
+        q_first = src.q[0] if start_q is None else self._start(start_q)
         plan = self._object_plan(targets, config.symmetries)
         tol_pos, tol_rot = config.ik_position_tol, config.ik_rotation_tol
 
@@ -287,7 +291,7 @@ class Augmenter:
             elif nxt is None and src.skills[-1].last == src.n_frames - 1:
                 pass
             else:
-                q_a = prev.q[-1] if prev is not None else src.q[0]
+                q_a = prev.q[-1] if prev is not None else q_first
                 q_b = nxt.q[0] if nxt is not None else src.q[-1]
                 v_a = _end_velocity(prev.q, self.dt) if prev is not None else np.zeros(kin.dof)
                 v_b = _start_velocity(nxt.q, self.dt) if nxt is not None else np.zeros(kin.dof)
@@ -309,7 +313,19 @@ class Augmenter:
             pieces.append(self._settle(last_q[-1], v_end, width, plan, float(src.n_frames - 1), config, timings, attempts))
 
         # 3. assemble frames
-        return self._assemble(pieces, skills, transforms, plan, config, timings, attempts)
+        trajectory = self._assemble(pieces, skills, transforms, plan, config, timings, attempts)
+        trajectory.planner["start_offset_deg"] = np.degrees(q_first - src.q[0]).round(3).tolist()
+        return trajectory
+
+    def _start(self, start_q: np.ndarray) -> np.ndarray:
+        """``start_q`` checked: finite, one value per joint, and a first motion there is to plan."""
+        start_q = np.asarray(start_q, np.float64)
+        if start_q.shape != (self.kin.dof,) or not np.isfinite(start_q).all():
+            raise ValueError(f"start_q must be {self.kin.dof} finite joint positions, got shape {start_q.shape}")
+        if self.src.skills[0].first == 0:
+            raise ValueError("the source's first skill begins at its first frame: there is no first motion to "
+                             "plan from another start")
+        return start_q
 
     def _check_placements(self, plan: dict) -> None:
         """A moved object must not overlap other objects, obstacles or the background."""
@@ -690,7 +706,9 @@ def augmenter_for(twin, obstacles: tuple[BoxObstacle, ...] = ()) -> Augmenter:
     return per_twin[key]
 
 
-def augment_trajectory(twin, targets: dict[str, ObjectTarget], config: AugmentConfig | None = None) -> NewTrajectory:
-    """A new, validated demonstration with the objects at ``targets``; raises :class:`Rejected`."""
+def augment_trajectory(twin, targets: dict[str, ObjectTarget], config: AugmentConfig | None = None,
+                       start_q: np.ndarray | None = None) -> NewTrajectory:
+    """A new, validated demonstration with the objects at ``targets``, starting from the arm's
+    ``start_q`` [dof] (rad; None: the source's first joints); raises :class:`Rejected`."""
     config = config or AugmentConfig()
-    return augmenter_for(twin, tuple(config.obstacles)).run(targets, config)
+    return augmenter_for(twin, tuple(config.obstacles)).run(targets, config, start_q)

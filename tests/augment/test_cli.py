@@ -182,7 +182,7 @@ def test_the_report_counts_how_the_motions_were_planned():
                                       {"method": "stop along the last velocity"})),
                Sample(2, 2, {}, None, reason="collision")]
     args = SimpleNamespace(recon="twin", seed=0, object_range=(0.08, 0.08, 45), target_range=(0.05, 0.05, 45),
-                           speed=1.0, profile="time-optimal", workers=1, symmetries={})
+                           speed=1.0, profile="time-optimal", workers=1, symmetries={}, start_range=0.0)
     report = _report(SimpleNamespace(episode="ep"), args, samples, 2, {})
     assert report["motions"] == {"planned": 4, "joined_at_rest": 2,
                                  "by_method": {"straight": 1, "rrtconnect": 2, "stop along the last velocity": 1}}
@@ -236,3 +236,23 @@ def test_a_twin_without_recorded_gripper_commands_says_its_gripper_commands_are_
     assert len(warned) == 1 and "manisplat-reconstruct" in warned[0]
     frames = Episode.open(tmp_path / "aug" / "episode_0000").frames
     assert set(np.unique(frames.actions[:, 6])) == {0.0, 0.07}
+
+
+def test_start_range_moves_each_demonstrations_first_joints_and_keeps_its_objects(recon, tmp_path, capsys):
+    """--start-range: the same seed gives the same object poses; every episode's first joints are
+    moved within the range (recorded in its planner record and the report); out of range is a usage error."""
+    with pytest.raises(SystemExit) as exc:
+        main([str(recon), "--n", "1", "--out", str(tmp_path / "a"), "--start-range", "-5"])
+    assert exc.value.code == 2 and "--start-range" in capsys.readouterr().err
+    plain, moved = tmp_path / "plain", tmp_path / "moved"
+    assert main([str(recon), "--n", "2", "--out", str(plain), "--seed", "3", "-q"]) == 0
+    assert main([str(recon), "--n", "2", "--out", str(moved), "--seed", "3", "-q", "--start-range", "8"]) == 0
+    assert json.loads((moved / "augment_report.json").read_text())["start_range_deg"] == 8.0
+    for name in ("episode_0000", "episode_0001"):
+        a = json.loads((plain / name / "augmentation.json").read_text())
+        b = json.loads((moved / name / "augmentation.json").read_text())
+        assert a["objects"]["box"]["T_start"] == b["objects"]["box"]["T_start"]
+        offset = np.array(b["planner"]["start_offset_deg"])
+        assert np.abs(offset).max() <= 8.0 + 1e-6 and np.abs(offset).max() > 1.0
+        q_plain, q_moved = Episode.open(plain / name).frames.q[0], Episode.open(moved / name).frames.q[0]
+        np.testing.assert_allclose(np.degrees(q_moved - q_plain), offset, atol=1e-3)

@@ -192,6 +192,12 @@ def test_augment_writes_handed_over_demonstrations(twin_folder, tmp_path):
     assert len(ep.arm_frames("left").q) == len(ep.arm_frames("right").q) == len(ep)
 
 
+def test_a_new_start_for_two_arms_is_refused_by_name(twin_folder, tmp_path, capsys):
+    out = tmp_path / "aug"
+    assert augment([str(twin_folder), "--n", "1", "--out", str(out), "--start-range", "5", "-q"]) != ExitCode.OK
+    assert "--start-range" in capsys.readouterr().err and not list(out.glob("episode_*"))
+
+
 def test_the_handover_range_option_defaults_to_the_library_s():
     assert build_parser().parse_args(["twin", "--out", "o"]).handover_range == list(HANDOVER_RANGE)
 

@@ -298,3 +298,40 @@ def test_the_gripper_commands_are_the_sources_where_recorded_else_open_or_closed
     assert set(np.unique(binary.action_gripper)) == {0.0, 0.07}
     closing = np.flatnonzero(binary.action_gripper == 0.0)[0]
     assert recorded.action_gripper[closing - 1] < 0.07  # the recorded commands start closing earlier
+
+
+def test_a_new_start_is_where_the_demonstration_begins_and_the_skills_stay_where_they_were(twin):
+    """start_q: frame 0 is the given start, the first motion is planned from it (within the limits
+    the replay enforces), the skills are the same as from the source's start, and the planner
+    record says how far the start moved; a start of the wrong size is refused."""
+    targets = _source_targets(twin)
+    aug = augmenter_for(twin)
+    start = np.clip(aug.src.q[0] + np.radians([6.0, -4.0, 5.0, -8.0, 3.0, 10.0]), aug.kin.lower, aug.kin.upper)
+    own = augment_trajectory(twin, targets, AugmentConfig())
+    moved = augment_trajectory(twin, targets, AugmentConfig(), start_q=start)
+    np.testing.assert_allclose(moved.q[0], start, atol=1e-12)
+    assert np.abs(own.q[0] - start).max() > np.radians(5)
+    np.testing.assert_allclose(moved.planner["start_offset_deg"], np.degrees(start - aug.src.q[0]), atol=1e-3)
+    assert own.planner["start_offset_deg"] == [0.0] * aug.kin.dof
+    skills = lambda tr: [tr.q[s["frames"][0]:s["frames"][1] + 1] for s in tr.segments if s["kind"] == "skill"]  # noqa: E731
+    for a, b in zip(skills(own), skills(moved), strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-9)
+    assert moved.segments[0]["name"] == "M_approach"
+    problems, _ = _replay_problems(moved)
+    assert problems == []
+    with pytest.raises(ValueError, match="start_q must be"):
+        augment_trajectory(twin, targets, AugmentConfig(), start_q=start[:5])
+
+
+def test_sampled_starts_stay_within_their_range_and_the_joint_limits():
+    from manisplat.augment.sampling import sample_start
+    rng = np.random.default_rng(0)
+    q0 = np.array([0.0, 1.5, -1.3, 0.0, -1.2, 0.0])
+    lower, upper = np.full(6, -1.25), np.full(6, 1.6)
+    starts = np.stack([sample_start(rng, q0, 0.2, lower, upper) for _ in range(200)])
+    assert (starts >= lower).all() and (starts <= upper).all()
+    assert (np.abs(starts - np.clip(q0, lower, upper)) <= 0.2 + 1e-12).all()
+    assert (starts[:, 0].max() - starts[:, 0].min()) > 0.3  # spread over the range, not stuck at the source
+    assert np.allclose(sample_start(rng, q0, 0.0, lower, upper), np.clip(q0, lower, upper))
+    with pytest.raises(ValueError, match="half-range"):
+        sample_start(rng, q0, -0.1, lower, upper)
