@@ -84,6 +84,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="manisplat-augment --object-range for B and D: half-ranges (m, m, deg) of the augmented "
                         "objects' starts (default the evaluation's, 0.08,0.08,45); wider covers the evaluation "
                         "range's edges from both sides")
+    p.add_argument("--augment-start-range", type=bounded(0.0, 90.0), default=0.0, metavar="DEG",
+                   help="manisplat-augment --start-range for B and D: each augmented demonstration's arm starts up "
+                        "to +-DEG from the source's start on every joint (default 0: the source's start; the "
+                        "evaluation always starts there)")
     p.add_argument("--twin-iters", type=positive(int), help="reconstruction iterations (default 1000; --quick 300)")
     p.add_argument("--twin-episodes", type=positive(int), default=1,
                    help="demonstrations of the scene the twin is made of: the source and gen_demos.py ones (seeds 501-); "
@@ -93,6 +97,9 @@ def _parser() -> argparse.ArgumentParser:
                         "nearest the source's wrist; default none)")
     p.add_argument("--train-seed", type=int, default=0,
                    help="the policies' training seed (default 0): other seeds measure how much one run varies")
+    p.add_argument("--state-noise", type=bounded(0.0, 0.5), default=0.0, metavar="RAD",
+                   help="Gaussian noise (rad) on the joint states of the training frames, every condition "
+                        "(default 0: none)")
     p.add_argument("--work", type=Path, help="stage outputs, reused when present (default a new temporary folder)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_policy", help="JSON and plots")
     p.add_argument("--quick", action="store_true", help="a smoke run: 4 demonstrations, short training, 4 rollouts")
@@ -130,7 +137,8 @@ def main(argv: list[str] | None = None) -> int:
                     (300 if quick else 1000), image_size=args.image_size, augment_speed=args.augment_speed,
                     augment_profile=args.augment_profile, augment_object_range=args.augment_object_range,
                     twin_episodes=args.twin_episodes, symmetry=tuple(args.symmetry),
-                    train_seed=args.train_seed)
+                    train_seed=args.train_seed, state_noise=args.state_noise,
+                    augment_start_range=args.augment_start_range)
     started = time.perf_counter()
     args.out.mkdir(parents=True, exist_ok=True)
     suffix = "_quick" if quick else ""

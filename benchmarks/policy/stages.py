@@ -54,17 +54,23 @@ class Stages:
             renders with depth and masks). Augmentation still starts from the source alone
             (``--sources``): only the twin's appearance changes. Other than 1, it gets its own
             folders, policies and rollouts.
+        augment_start_range: manisplat-augment's --start-range (deg): each augmented demonstration's
+            arm starts that far from the source's on every joint; other than 0 gets its own folders.
         symmetry: manisplat-augment's --symmetry items ("box=4"): grasps on the face nearest the
             source's wrist; any gets its own folders, policies and rollouts.
         train_seed: the policy's training seed (initial weights, batches); other than 0, its
             policies and rollouts get their own names (the demonstrations are the same).
+        state_noise: rad of Gaussian noise on the training frames' joint states
+            (:func:`~benchmarks.policy.train.add_state_noise`); other than 0, its policies and
+            rollouts get their own names.
     """
 
     def __init__(self, source: Path, work: Path, simenv: Path, tools: Path, object_range: tuple[float, ...],
                  place_range: tuple[float, ...], twin_iters: int, image_size: tuple[int, int] | None = None,
                  augment_speed: float = 1.0, augment_profile: str = "time-optimal",
                  augment_object_range: tuple[float, ...] | None = None, twin_episodes: int = 1,
-                 symmetry: tuple[str, ...] = (), train_seed: int = 0) -> None:
+                 symmetry: tuple[str, ...] = (), train_seed: int = 0, state_noise: float = 0.0,
+                 augment_start_range: float = 0.0) -> None:
         self.source, self.work, self.simenv, self.tools = source, work, simenv, tools
         self.object_range, self.place_range, self.twin_iters = object_range, place_range, twin_iters
         self.data_report: dict[str, Any] = {}
@@ -80,9 +86,12 @@ class Stages:
             ("" if self.augment_object_range == tuple(object_range) else
              "_range{:g}x{:g}x{:g}".format(*self.augment_object_range)) + \
             ("" if self.twin_episodes == 1 else f"_twin{self.twin_episodes}") + \
-            "".join(f"_sym-{item.replace('=', '')}" for item in symmetry)
+            "".join(f"_sym-{item.replace('=', '')}" for item in symmetry) + \
+            (f"_start{augment_start_range:g}" if augment_start_range else "")
+        self.augment_start_range = float(augment_start_range)
         self.symmetry = tuple(symmetry)
         self.train_seed = int(train_seed)
+        self.state_noise = float(state_noise)
 
     # ------------------------------------------------------------------ demonstrations
     def twin(self) -> Path:
@@ -133,6 +142,7 @@ class Stages:
                      "--sources", self.source.name,
                      "--object-range", ",".join(map(str, self.augment_object_range)),
                      "--target-range", ",".join(map(str, self.place_range)),
+                     "--start-range", str(self.augment_start_range),
                      *(f"--symmetry={item}" for item in self.symmetry)])
             self.data_report[f"augment_{n}_s"] = round(time.perf_counter() - start, 1)
         report = json.loads((out / "augment_report.json").read_text())
@@ -208,13 +218,14 @@ class Stages:
 
     # ------------------------------------------------------------------ policies
     def budget_of(self, steps: int) -> Budget:
-        return Budget(steps=steps, seed=self.train_seed)
+        return Budget(steps=steps, seed=self.train_seed, state_noise=self.state_noise)
 
     def key(self, condition: str, n: int) -> str:
         """The name of a condition's policy and rollouts: A, C50, B50, B50_speed0.6, B50_twin5,
         C50_trainseed1, ..."""
         name = condition if condition == "A" else f"{condition}{n}" + (self.variant_tag if condition in "BD" else "")
-        return name + (f"_trainseed{self.train_seed}" if self.train_seed else "")
+        return name + (f"_statenoise{self.state_noise:g}" if self.state_noise else "") + \
+            (f"_trainseed{self.train_seed}" if self.train_seed else "")
 
     def condition(self, condition: str, n: int, steps: int, seeds: list[int], envs: int
                   ) -> tuple[dict[str, Any], list[Rollout]]:

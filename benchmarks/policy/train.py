@@ -29,6 +29,7 @@ class Budget:
     chunk: int = 16
     lr: float = 1e-3
     seed: int = 0
+    state_noise: float = 0.0  # rad: Gaussian noise added to the training frames' joint states (see add_state_noise)
 
 
 @dataclass
@@ -70,6 +71,20 @@ def random_shift(images: torch.Tensor, generator: torch.Generator, pad: int = SH
     return torch.stack([padded[i, :, y:y + h, x:x + w] for i, (x, y) in enumerate(zip(dx, dy))])
 
 
+def add_state_noise(state: torch.Tensor, sigma_rad: float, generator: torch.Generator) -> torch.Tensor:
+    """(B, 7) joint states (rad) and gripper gap (m) with N(0, sigma_rad) added to the six joints.
+
+    Why: a policy trained on motions that run along a straight joint line from one start learns to
+    read its target off the state once the arm moves (the direction it has taken) and stops looking
+    at the image, so an early misjudgement is never corrected; jittered states make the state an
+    unreliable guide to the target, leaving the image as the one that says where the object is."""
+    if sigma_rad <= 0:
+        return state
+    noise = torch.randn(state.shape, generator=generator) * sigma_rad
+    noise[:, 6:] = 0.0
+    return state + noise
+
+
 @dataclass
 class TrainedPolicy:
     model: ChunkPolicy
@@ -90,7 +105,6 @@ def train(demos: Demonstrations, budget: Budget, progress: bool = True) -> Train
     optimiser = torch.optim.AdamW(model.parameters(), lr=budget.lr, weight_decay=1e-4)
     schedule = torch.optim.lr_scheduler.LambdaLR(
         optimiser, lambda s: 0.5 * (1 + math.cos(math.pi * min(s / budget.steps, 1.0))))
-    state = norm.state(demos.state)
     start, losses = time.perf_counter(), []
     from tqdm import tqdm
 
@@ -98,7 +112,8 @@ def train(demos: Demonstrations, budget: Budget, progress: bool = True) -> Train
         index = torch.randint(0, len(demos), (budget.batch,), generator=generator)
         images = random_shift(image_input(demos.images[index]), generator)
         target = norm.action(demos.chunks(index, budget.chunk))
-        loss = F.l1_loss(model(images, state[index]), target)
+        state = norm.state(add_state_noise(demos.state[index], budget.state_noise, generator))
+        loss = F.l1_loss(model(images, state), target)
         optimiser.zero_grad(set_to_none=True)
         loss.backward()
         optimiser.step()

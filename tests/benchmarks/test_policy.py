@@ -179,3 +179,70 @@ def test_a_declared_symmetry_another_range_and_another_training_seed_get_their_o
     assert [seeded.key(c, 50) for c in "ABCD"] == ["A_trainseed1", "B50_trainseed1", "C50_trainseed1",
                                                    "D50_trainseed1"]
     assert seeded.budget_of(9000).seed == 1 and symmetric.budget_of(9000).seed == 0
+
+
+def test_another_start_range_and_state_noise_get_their_own_names(tmp_path):
+    """--augment-start-range changes B's and D's demonstrations (their own folders and policies);
+    --state-noise changes every condition's policy (trained with it) but no demonstrations."""
+    from manisplat.episode.synthetic import write_sample_episode
+
+    from benchmarks.policy.stages import Stages
+
+    source = write_sample_episode(tmp_path / "sample", frames=8, width=160, height=120)
+
+    def stages(**kw) -> Stages:
+        return Stages(source, tmp_path / "work", tmp_path / "python", tmp_path / "tools", (0.05, 0.05, 30.0),
+                      (0.02, 0.02, 30.0), 10, **kw)
+
+    started, noisy = stages(augment_start_range=10.0), stages(state_noise=0.1)
+    assert [started.key(c, 50) for c in "ABCD"] == ["A", "B50_start10", "C50", "D50_start10"]
+    assert [noisy.key(c, 50) for c in "ABCD"] == ["A_statenoise0.1", "B50_statenoise0.1", "C50_statenoise0.1",
+                                                  "D50_statenoise0.1"]
+    assert noisy.budget_of(9000).state_noise == 0.1 and started.budget_of(9000).state_noise == 0.0
+
+
+def test_state_noise_jitters_the_joints_only_and_none_leaves_the_state_as_it_is():
+    from benchmarks.policy.train import add_state_noise
+
+    state = torch.zeros(4000, 7)
+    generator = torch.Generator().manual_seed(0)
+    noisy = add_state_noise(state, 0.1, generator)
+    assert torch.all(noisy[:, 6] == 0)
+    assert abs(float(noisy[:, :6].std()) - 0.1) < 0.005 and abs(float(noisy[:, :6].mean())) < 0.005
+    assert add_state_noise(state, 0.0, generator) is state
+
+
+def _probe(n: int = 10, frames: int = 12):
+    """Random probe demonstrations: n episodes of ``frames`` frames, 32 x 24 images."""
+    from benchmarks.policy.data import Demonstrations, Viewport
+
+    generator = torch.Generator().manual_seed(0)
+    total = n * frames
+    return Demonstrations(images=torch.randint(0, 255, (total, 3, 24, 32), generator=generator, dtype=torch.uint8),
+                          state=torch.randn(total, 7, generator=generator), actions=torch.randn(total, 7, generator=generator),
+                          episode=torch.arange(n).repeat_interleave(frames), ends=torch.arange(1, n + 1) * frames,
+                          names=[f"episode_{i:04d}" for i in range(n)], viewport=Viewport(0, 0, 24, 32, (32, 24)))
+
+
+@pytest.mark.parametrize("blind", ["image", "state"])
+def test_reliance_shows_which_input_a_policy_follows(blind):
+    """A policy whose head ignores the image does not move when the image is swapped but does when
+    the state is, and the other way round: the measure can show either."""
+    from benchmarks.policy.model import ChunkPolicy
+    from benchmarks.policy.reliance import reliance
+    from benchmarks.policy.train import Normaliser
+
+    torch.manual_seed(0)
+    model = ChunkPolicy(chunk=4).eval()
+    with torch.no_grad():
+        first = model.head[0].weight
+        if blind == "image":
+            first[:, :128] = 0.0
+        else:
+            first[:, 128:] = 0.0
+    norm = Normaliser(torch.zeros(7), torch.ones(7), torch.zeros(7), torch.ones(7))
+    rows = reliance(model, norm, _probe(), [0, 5])
+    for row in rows:
+        image, state = np.array(row["image_swapped_deg"]), np.array(row["state_swapped_deg"])
+        assert (image == 0).all() and (state > 0.01).all() if blind == "image" else (state == 0).all() and (image > 0.01).all()
+        assert (np.array(row["targets_differ_deg"]) > 0).all()
