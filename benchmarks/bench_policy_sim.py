@@ -1,6 +1,7 @@
 """Policy in the loop: success of one policy trained on A (source), B (source + augmented), C (oracle), D (B in sim renders).
 
     python -m benchmarks policy_sim [--source EP] [--n 50 [200]] [--eval-seeds 1000-1049] [--work DIR] [--quick]
+        [--augment-start-range DEG] [--state-noise RAD] [--train-seed S] (and the options of --help)
 
 From one source episode of ``gen_pick_place.py`` (default shared/data/sim_pick_place_small), each
 data condition trains the same policy (``benchmarks/policy``: ACT-style chunks, small CNN, same

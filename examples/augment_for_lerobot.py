@@ -3,11 +3,12 @@ write N new demonstrations over the start poses the policy must handle, export t
 recording as one LeRobot v3.0 dataset, and print the command that trains LeRobot's ACT on it.
 
     python examples/augment_for_lerobot.py OUT_DIR [--episode EP] [--n 50] [--iters 1000]
-        [--object-range 0.08,0.08,45] [--target-range 0.025,0.025,45] [--task TEXT]
+        [--object-range 0.08,0.08,45] [--target-range 0.025,0.025,45] [--start-range 10] [--task TEXT]
 
 Without --episode it uses the built-in sample. OUT_DIR must be new or empty; it gets twin/ (the
 reconstruction), augmented/ (episode_0000 ...) and lerobot/ (the dataset). The choices behind the
-defaults (how many demonstrations, which ranges) are in docs/training-policies.md.
+defaults (how many demonstrations, which ranges, why the arm's start is scattered) are in
+docs/training-policies.md.
 """
 
 from __future__ import annotations
@@ -25,13 +26,15 @@ from manisplat.reconstruct.cli import main as reconstruct
 
 
 def main(out_dir: str, episode: str | None = None, n: int = 50, iters: int = 1000, object_range: str = "0.08,0.08,45",
-         target_range: str = "0.025,0.025,45", task: str = "pick up the object and place it on the mat") -> dict:
+         target_range: str = "0.025,0.025,45", start_range: float = 10.0,
+         task: str = "pick up the object and place it on the mat") -> dict:
     out = new_or_empty_folder(out_dir)
     source = Path(episode) if episode else write_sample_episode(out / "sample")
     steps = [
         ("reconstruct", reconstruct, [str(source), "--out", str(out / "twin"), "--iters", str(iters)]),
         ("augment", augment, [str(out / "twin"), "--n", str(n), "--out", str(out / "augmented"),
-                              "--object-range", object_range, "--target-range", target_range]),
+                              "--object-range", object_range, "--target-range", target_range,
+                              "--start-range", str(start_range)]),
     ]
     for name, command, args in steps:
         if command(args) != 0:
@@ -57,9 +60,12 @@ if __name__ == "__main__":
     parser.add_argument("--iters", type=int, default=1000, help="reconstruction iterations (default 1000)")
     parser.add_argument("--object-range", default="0.08,0.08,45", help="X,Y m and YAW deg of the object's start")
     parser.add_argument("--target-range", default="0.025,0.025,45", help="X,Y m and YAW deg of the place pose")
+    parser.add_argument("--start-range", type=float, default=10.0,
+                        help="deg each joint of the arm's start is scattered by (default 10)")
     parser.add_argument("--task", default="pick up the object and place it on the mat")
     args = parser.parse_args()
     try:
-        main(args.out_dir, args.episode, args.n, args.iters, args.object_range, args.target_range, args.task)
+        main(args.out_dir, args.episode, args.n, args.iters, args.object_range, args.target_range, args.start_range,
+             args.task)
     except (ValueError, RuntimeError) as exc:
         sys.exit(f"error: {exc}")

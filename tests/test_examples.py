@@ -84,4 +84,6 @@ def test_augment_for_lerobot_example(tmp_path, capsys):
     assert result["episodes"] == info["total_episodes"] == 3  # the recording and two new ones
     provenance = json.loads((result["dataset"] / "meta" / "augmentation.json").read_text())
     assert sum(e["augmented"] for e in provenance["episodes"]) == 2
+    report = json.loads((tmp_path / "out" / "augmented" / "augment_report.json").read_text())
+    assert report["start_range_deg"] == 10.0  # the recommended scattered start (docs/training-policies.md)
     assert "lerobot-train" in capsys.readouterr().out and f"--dataset.root={result['dataset']}" in result["train_command"]
