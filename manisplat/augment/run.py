@@ -20,8 +20,8 @@ from tqdm import tqdm
 from manisplat.augment.bimanual import BimanualPlanner, BimanualTrajectory
 from manisplat.augment.cli import REPORT, load_poses_file
 from manisplat.augment.frames import from_centre_frame, to_centre_frame
-from manisplat.augment.symmetry import Symmetry
 from manisplat.augment.sampling import sample_start
+from manisplat.augment.symmetry import Symmetry
 from manisplat.augment.trajectory import (AugmentConfig, NewTrajectory, ObjectTarget, Rejected, augment_trajectory,
                                           augmenter_for, sample_targets)
 from manisplat.augment.writer import write_demonstration
