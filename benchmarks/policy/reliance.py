@@ -27,19 +27,10 @@ import torch
 from benchmarks.bench_policy_sim import OBJECT_RANGE
 from benchmarks.policy.data import Demonstrations, episode_folders, load_demonstrations, workspace_viewport
 from benchmarks.policy.model import ChunkPolicy
-from benchmarks.policy.train import Normaliser, image_input
+from benchmarks.policy.train import Budget, Normaliser, image_input, load_saved
 
 JOINTS = (0, 3, 5)  # joints 1, 4 and 6: the arm's heading and the wrist's turn
 PARTNER_SHIFT = 7  # demonstration i is paired with demonstration i - 7 (mod n): an object elsewhere
-
-
-def load_policy(path: Path) -> tuple[ChunkPolicy, Normaliser]:
-    """A policy saved by the benchmark (``work/policies/*.pt``): the model and its normaliser."""
-    saved = torch.load(path, weights_only=False)
-    model = ChunkPolicy()
-    model.load_state_dict(saved["model"])
-    model.eval()
-    return model, Normaliser(**saved["normaliser"])
 
 
 @torch.no_grad()
@@ -99,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
     result = {"command": "python -m benchmarks.policy.reliance " + " ".join(argv if argv is not None else sys.argv[1:]),
               "probe": [f.name for f in folders], "joints": [j + 1 for j in JOINTS], "policies": {}}
     for path in args.policies:
-        model, norm = load_policy(path)
+        model, norm, _ = load_saved(path, Budget().chunk)
         rows = reliance(model, norm, demos, frames)
         result["policies"][path.stem] = rows
         print(path.stem)

@@ -19,8 +19,7 @@ from benchmarks._simulator import SimJob, run_sim_jobs, sim_env
 from benchmarks.policy.data import IMAGE_SIZE, Viewport, episode_folders, load_demonstrations, workspace_viewport
 from benchmarks.policy.rollout import Rollout, evaluate, wilson_interval
 from benchmarks.policy.sim_env import SimEnv
-from benchmarks.policy.train import Budget, Normaliser, TrainedPolicy, train
-from benchmarks.policy.model import ChunkPolicy
+from benchmarks.policy.train import Budget, TrainedPolicy, load_saved, train
 
 
 ENV_OPTIONS = {"control": "linear", "terminate_on_collision": True}
@@ -249,12 +248,9 @@ class Stages:
     def _policy(self, key: str, folders: list[Path], budget: Budget) -> TrainedPolicy:
         path = self.work / "policies" / f"{key}_{budget.steps}_{self.viewport.tag}.pt"
         if path.exists():
-            saved = torch.load(path, weights_only=False)
-            model = ChunkPolicy(chunk=budget.chunk)
-            model.load_state_dict(saved["model"])
-            model.eval()
-            return TrainedPolicy(model, Normaliser(**saved["normaliser"]), budget, saved["seconds"], saved["loss"],
-                                 saved["frames"], self.viewport)
+            model, normaliser, saved = load_saved(path, budget.chunk)
+            return TrainedPolicy(model, normaliser, budget, saved["seconds"], saved["loss"], saved["frames"],
+                                 self.viewport)
         demos = load_demonstrations(folders, self.viewport)
         _log(f"training {key}: {len(folders)} demonstrations, {len(demos)} frames, {budget.steps} steps")
         policy = train(demos, budget)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 import torch.nn.functional as F
@@ -94,6 +95,16 @@ class TrainedPolicy:
     final_loss: float
     frames: int
     viewport: Viewport
+
+
+def load_saved(path: Path, chunk: int) -> tuple[ChunkPolicy, Normaliser, dict]:
+    """A policy the benchmark saved (``work/policies/*.pt``): its model (in eval mode), normaliser
+    and the saved record (training seconds, loss, frames)."""
+    saved = torch.load(path, weights_only=False)
+    model = ChunkPolicy(chunk=chunk)
+    model.load_state_dict(saved["model"])
+    model.eval()
+    return model, Normaliser(**saved["normaliser"]), saved
 
 
 def train(demos: Demonstrations, budget: Budget, progress: bool = True) -> TrainedPolicy:
