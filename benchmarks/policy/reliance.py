@@ -20,40 +20,42 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
-import torch
-
-from benchmarks.bench_policy_sim import OBJECT_RANGE
-from benchmarks.policy.data import Demonstrations, episode_folders, load_demonstrations, workspace_viewport
-from benchmarks.policy.model import ChunkPolicy
-from benchmarks.policy.train import Budget, Normaliser, image_input, load_saved
+if TYPE_CHECKING:  # torch and the policy load in the functions: --help answers at once
+    from benchmarks.policy.data import Demonstrations
+    from benchmarks.policy.model import ChunkPolicy
+    from benchmarks.policy.train import Normaliser
 
 JOINTS = (0, 3, 5)  # joints 1, 4 and 6: the arm's heading and the wrist's turn
 PARTNER_SHIFT = 7  # demonstration i is paired with demonstration i - 7 (mod n): an object elsewhere
 
 
-@torch.no_grad()
 def reliance(model: ChunkPolicy, norm: Normaliser, demos: Demonstrations, frames: list[int]) -> list[dict]:
     """Per frame k: how far (deg, mean over demonstrations, joints 1/4/6) the chunk's last action
     moves when the image or the state is another demonstration's, against how far the two
     demonstrations' own targets differ."""
+    import numpy as np
+    import torch
+
+    from benchmarks.policy.train import image_input
+
     starts = torch.cat([torch.zeros(1, dtype=torch.long), demos.ends[:-1]])
     partner = torch.roll(torch.arange(len(starts)), PARTNER_SHIFT)
+
+    def last_action(img: torch.Tensor, st: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            return norm.unaction(model(img, st))[:, -1, :6].double()
+
+    def moved(other: torch.Tensor, base: torch.Tensor) -> list[float]:
+        return [round(float(v), 2) for v in np.degrees((other - base).abs().mean(0).numpy())[list(JOINTS)]]
+
     rows = []
     for k in frames:
         index = torch.minimum(starts + k, demos.ends - 1)
         images, state = image_input(demos.images[index]), norm.state(demos.state[index])
-
-        def last_action(img: torch.Tensor, st: torch.Tensor) -> torch.Tensor:
-            return norm.unaction(model(img, st))[:, -1, :6].double()
-
         own = last_action(images, state)
         target = demos.actions[torch.minimum(index + model.chunk - 1, demos.ends - 1)][:, :6].double()
-
-        def moved(other: torch.Tensor, base: torch.Tensor) -> list[float]:
-            return [round(float(v), 2) for v in np.degrees((other - base).abs().mean(0).numpy())[list(JOINTS)]]
-
         rows.append({"frame": k, "image_swapped_deg": moved(last_action(images[partner], state), own),
                      "state_swapped_deg": moved(last_action(images, state[partner]), own),
                      "targets_differ_deg": moved(target[partner], target),
@@ -77,7 +79,12 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    import torch
+
     from benchmarks._harness import shared_dir
+    from benchmarks.bench_policy_sim import OBJECT_RANGE
+    from benchmarks.policy.data import episode_folders, load_demonstrations, workspace_viewport
+    from benchmarks.policy.train import Budget, load_saved
 
     source = args.source or shared_dir() / "data" / "sim_pick_place_small"
     folders = sorted(p for p in args.probe.rglob("episode_*") if (p / "episode.json").exists())
