@@ -44,6 +44,7 @@ OBJECT_RANGE = (0.08, 0.08, 45.0)  # m, m, deg: policy_env's reset(seed) ranges
 PLACE_RANGE = (0.025, 0.025, 45.0)  # within the 6 cm mat with 1 cm to spare from the source's place
 CONDITIONS = ("A", "B", "C", "D")
 ENVS = 2  # environments rendering side by side (one per core)
+CHUNK = 16  # actions per predicted chunk: benchmarks.policy.train.Budget.chunk (not imported: --help stays fast)
 
 
 def _seeds(text: str) -> list[int]:
@@ -101,6 +102,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--state-noise", type=bounded(0.0, 0.5), default=0.0, metavar="RAD",
                    help="Gaussian noise (rad) on the joint states of the training frames, every condition "
                         "(default 0: none)")
+    p.add_argument("--n-action-steps", type=bounded(1, CHUNK, int), metavar="K",
+                   help="run the first K actions of each predicted chunk open loop, then predict again (LeRobot's "
+                        "n_action_steps; default: ACT's temporal ensembling, a chunk every step)")
     p.add_argument("--work", type=Path, help="stage outputs, reused when present (default a new temporary folder)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_policy", help="JSON and plots")
     p.add_argument("--quick", action="store_true", help="a smoke run: 4 demonstrations, short training, 4 rollouts")
@@ -139,7 +143,8 @@ def main(argv: list[str] | None = None) -> int:
                     augment_profile=args.augment_profile, augment_object_range=args.augment_object_range,
                     twin_episodes=args.twin_episodes, symmetry=tuple(args.symmetry),
                     train_seed=args.train_seed, state_noise=args.state_noise,
-                    augment_start_range=args.augment_start_range)
+                    augment_start_range=args.augment_start_range,
+                    action_steps=args.n_action_steps)
     started = time.perf_counter()
     args.out.mkdir(parents=True, exist_ok=True)
     suffix = "_quick" if quick else ""
@@ -173,7 +178,8 @@ def _write(args: argparse.Namespace, argv: list[str] | None, stages: Any, source
         "machine": machine_info(), "source": str(source), "eval_seeds": eval_seeds,
         "ranges": {"object_m_m_deg": OBJECT_RANGE, "place_m_m_deg": PLACE_RANGE,
                    "augmented_object_m_m_deg": stages.augment_object_range},
-        "budget": stages.budget_of(steps).__dict__, "viewport": stages.viewport.__dict__, "env_options": ENV_OPTIONS, "rows": rows, "data": stages.data_report,
+        "budget": stages.budget_of(steps).__dict__, "viewport": stages.viewport.__dict__, "env_options": ENV_OPTIONS,
+        "action_steps": stages.action_steps, "rows": rows, "data": stages.data_report,
         "rollouts": {k: [{"seed": r.seed, "phase": r.phase, **{f: r.result[f] for f in (
             "success", "object_start", "dist_to_mat_m", "tilt_deg", "lifted_m", "steps", "failed")}} for r in v]
             for k, v in rollouts.items()},

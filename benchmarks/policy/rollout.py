@@ -1,9 +1,11 @@
 """Closed-loop evaluation: the policy drives simulated environments from given start seeds.
 
-The policy is queried every step; as in ACT, the actions that the chunks predicted for the current
-step are averaged with weights exp(-0.01 i), the oldest first (temporal ensembling). Several
-environments run side by side (each renders in its own process); the policy takes their
-observations as one batch."""
+Two ways to run a chunking policy: by default it is queried every step and, as in ACT, the actions
+that the chunks predicted for the current step are averaged with weights exp(-0.01 i), the oldest
+first (temporal ensembling); or it is queried every k steps and the first k actions of its chunk
+run open loop (LeRobot's ``n_action_steps``; diffusion policy runs 8 of 16). Several environments
+run side by side (each renders in its own process); the policy takes their observations as one
+batch."""
 
 from __future__ import annotations
 
@@ -43,17 +45,49 @@ def failed_phase(result: dict[str, Any], touched: bool) -> str:
 
 
 class _Ensemble:
-    """Per-step action buffers of one episode."""
+    """Temporal ensembling of one episode: a chunk every step, per-step action buffers."""
 
     def __init__(self) -> None:
         self.pending: dict[int, list[np.ndarray]] = defaultdict(list)
 
+    def wants(self, step: int) -> bool:
+        return True
+
     def add(self, step: int, chunk: np.ndarray) -> np.ndarray:
+        """Take the chunk predicted at ``step``; the action to run at ``step``."""
         for i, action in enumerate(chunk):
             self.pending[step + i].append(action)
+        return self.action(step)
+
+    def action(self, step: int) -> np.ndarray:
         actions = np.stack(self.pending.pop(step))
         weights = np.exp(-ENSEMBLE_DECAY * np.arange(len(actions)))
         return (weights[:, None] * actions).sum(0) / weights.sum()
+
+
+class _ChunkSteps:
+    """Open-loop chunks of one episode: a chunk every ``k`` steps, its first ``k`` actions run."""
+
+    def __init__(self, k: int) -> None:
+        self.k = k
+        self.plan: np.ndarray | None = None
+
+    def wants(self, step: int) -> bool:
+        return step % self.k == 0
+
+    def add(self, step: int, chunk: np.ndarray) -> np.ndarray:
+        if len(chunk) < self.k:
+            raise ValueError(f"a chunk of {len(chunk)} actions cannot run {self.k} steps")
+        self.plan = chunk[: self.k]
+        return self.action(step)
+
+    def action(self, step: int) -> np.ndarray:
+        return self.plan[step % self.k]
+
+
+def executor(action_steps: int | None) -> _Ensemble | _ChunkSteps:
+    """None: temporal ensembling; k: the first k actions of every k-th step's chunk."""
+    return _Ensemble() if action_steps is None else _ChunkSteps(action_steps)
 
 
 @torch.no_grad()
@@ -66,9 +100,9 @@ def _act(policy: TrainedPolicy, observations: list[dict[str, Any]]) -> np.ndarra
 
 
 def evaluate(policy: TrainedPolicy, envs: list[SimEnv], seeds: list[int], keep_frames: int = 0,
-             frame_every: int = 8, progress: Any = None) -> list[Rollout]:
+             frame_every: int = 8, progress: Any = None, action_steps: int | None = None) -> list[Rollout]:
     """Run one episode per seed, ``len(envs)`` at a time; the first ``keep_frames`` seeds keep their
-    policy view every ``frame_every`` steps."""
+    policy view every ``frame_every`` steps; ``action_steps`` as :func:`executor`."""
     results: list[Rollout] = []
     queue = list(seeds)
     while queue:
@@ -77,18 +111,20 @@ def evaluate(policy: TrainedPolicy, envs: list[SimEnv], seeds: list[int], keep_f
         for env, seed in zip(active, batch):
             env.send("reset", seed)
         observations = [env.receive() for env in active]
-        ensembles = [_Ensemble() for _ in active]
+        executors = [executor(action_steps) for _ in active]
         touched = [False] * len(active)
         keep = [seed in seeds[:keep_frames] for seed in batch]
         frames: list[list[np.ndarray]] = [[] for _ in active]
         running = list(range(len(active)))
         step = 0
         while running:
-            chunks = _act(policy, [observations[i] for i in running])
-            for i, chunk in zip(running, chunks):
+            asking = [i for i in running if executors[i].wants(step)]
+            chunks = dict(zip(asking, _act(policy, [observations[i] for i in asking]))) if asking else {}
+            for i in running:
                 if keep[i] and step % frame_every == 0:
                     frames[i].append(policy.viewport.view(observations[i]["rgb"]))
-                active[i].send("step", ensembles[i].add(step, chunk))
+                action = executors[i].add(step, chunks[i]) if i in chunks else executors[i].action(step)
+                active[i].send("step", action)
             still = []
             for i in running:
                 observations[i], done, info = active[i].receive()

@@ -62,6 +62,9 @@ class Stages:
         state_noise: rad of Gaussian noise on the training frames' joint states
             (:func:`~benchmarks.policy.train.add_state_noise`); other than 0, its policies and
             rollouts get their own names.
+        action_steps: how the policy runs (:func:`~benchmarks.policy.rollout.executor`): None,
+            temporal ensembling; k, the first k actions of each chunk open loop (its rollouts get
+            their own names; the policies are the same).
     """
 
     def __init__(self, source: Path, work: Path, simenv: Path, tools: Path, object_range: tuple[float, ...],
@@ -69,7 +72,7 @@ class Stages:
                  augment_speed: float = 1.0, augment_profile: str = "time-optimal",
                  augment_object_range: tuple[float, ...] | None = None, twin_episodes: int = 1,
                  symmetry: tuple[str, ...] = (), train_seed: int = 0, state_noise: float = 0.0,
-                 augment_start_range: float = 0.0) -> None:
+                 augment_start_range: float = 0.0, action_steps: int | None = None) -> None:
         self.source, self.work, self.simenv, self.tools = source, work, simenv, tools
         self.object_range, self.place_range, self.twin_iters = object_range, place_range, twin_iters
         self.data_report: dict[str, Any] = {}
@@ -91,6 +94,9 @@ class Stages:
         self.symmetry = tuple(symmetry)
         self.train_seed = int(train_seed)
         self.state_noise = float(state_noise)
+        self.action_steps = action_steps
+        #: the rollout files' tag: the environment's options and how the policy ran
+        self.rollout_tag = ENV_TAG + ("" if action_steps is None else f"_steps{action_steps}")
 
     # ------------------------------------------------------------------ demonstrations
     def twin(self) -> Path:
@@ -241,7 +247,7 @@ class Stages:
                "successes": successes, "rollouts": len(rollouts), "success_rate": successes / len(rollouts),
                "ci95": wilson_interval(successes, len(rollouts)), "train_s": round(policy.seconds, 1),
                "train_loss_end": round(policy.final_loss, 4), "failed_in": phases,
-               "arm_hit_scene": sum(any(f.startswith("arm hit") for f in r.result["failed"]) for r in rollouts),
+               "action_steps": self.action_steps, "arm_hit_scene": sum(any(f.startswith("arm hit") for f in r.result["failed"]) for r in rollouts),
                "mean_steps": float(np.mean([r.result["steps"] for r in rollouts]))}
         return row, rollouts
 
@@ -263,7 +269,7 @@ class Stages:
         """The policy's rollouts from ``seeds``: those of earlier runs of the same policy and
         environment taken from the work folder (by seed), the rest run and saved as one more file."""
         stem = f"{key}_{policy.budget.steps}_{policy.viewport.tag}"
-        done = _cached_rollouts(self.work / "rollouts", stem, set(seeds))
+        done = _cached_rollouts(self.work / "rollouts", stem, self.rollout_tag, set(seeds))
         missing = [seed for seed in seeds if seed not in done]
         if missing:
             _log(f"evaluating {key} on {len(missing)} start poses ({len(done)} from earlier runs)")
@@ -271,12 +277,13 @@ class Stages:
             pool: list[SimEnv] = []
             try:
                 pool += [SimEnv(self.simenv, self.tools, self.source, **ENV_OPTIONS) for _ in range(envs)]
-                rollouts = evaluate(policy, pool, missing, keep_frames=2, progress=_print_rollout)
+                rollouts = evaluate(policy, pool, missing, keep_frames=2, progress=_print_rollout,
+                                    action_steps=self.action_steps)
             finally:
                 for env in pool:
                     env.close()
                 torch.set_num_threads(max(1, os.cpu_count() or 1))
-            path = self.work / "rollouts" / f"{stem}_{missing[0]}_{len(missing)}_{ENV_TAG}.npz"
+            path = self.work / "rollouts" / f"{stem}_{missing[0]}_{len(missing)}_{self.rollout_tag}.npz"
             path.parent.mkdir(parents=True, exist_ok=True)
             np.savez(path, rollouts=np.array(rollouts, dtype=object))
             done.update((r.seed, r) for r in rollouts)
@@ -296,12 +303,12 @@ class Stages:
             raise RuntimeError(f"{script} failed")
 
 
-def _cached_rollouts(folder: Path, stem: str, seeds: set[int]) -> dict[int, Rollout]:
-    """seed -> rollout of the files ``{stem}_{first seed}_{count}_{ENV_TAG}.npz`` in ``folder``
-    (one policy, one environment), for ``seeds``."""
+def _cached_rollouts(folder: Path, stem: str, tag: str, seeds: set[int]) -> dict[int, Rollout]:
+    """seed -> rollout of the files ``{stem}_{first seed}_{count}_{tag}.npz`` in ``folder``
+    (one policy, one environment, one way of running it), for ``seeds``."""
     found: dict[int, Rollout] = {}
-    for path in sorted(folder.glob(f"{stem}_*_*_{ENV_TAG}.npz")):
-        first, _, count = path.name[len(stem) + 1: -len(f"_{ENV_TAG}.npz")].partition("_")
+    for path in sorted(folder.glob(f"{stem}_*_*_{tag}.npz")):
+        first, _, count = path.name[len(stem) + 1: -len(f"_{tag}.npz")].partition("_")
         if not (first.isdigit() and count.isdigit()):  # another policy whose key begins with this one's
             continue
         for rollout in np.load(path, allow_pickle=True)["rollouts"]:

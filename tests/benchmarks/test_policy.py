@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from benchmarks.policy.data import Demonstrations, Viewport
-from benchmarks.policy.rollout import _Ensemble, failed_phase, wilson_interval
+from benchmarks.policy.rollout import _Ensemble, executor, failed_phase, wilson_interval
 from benchmarks.policy.train import Budget, image_input, random_shift, train
 
 
@@ -34,6 +34,23 @@ def test_temporal_ensembling_weights_the_oldest_prediction_most():
     assert first[0] == 0.0
     w = np.exp(-0.01)
     assert second[0] == pytest.approx(w / (1 + w)) and second[0] < 0.5
+
+
+def test_open_loop_chunks_run_k_actions_of_each_chunk_then_ask_again():
+    run = executor(3)
+    chunks = {0: np.arange(16.0)[:, None], 3: 100 + np.arange(16.0)[:, None]}
+    actions, asked = [], []
+    for step in range(6):
+        if run.wants(step):
+            asked.append(step)
+            actions.append(run.add(step, chunks[step])[0])
+        else:
+            actions.append(run.action(step)[0])
+    assert asked == [0, 3]
+    assert actions == [0.0, 1.0, 2.0, 100.0, 101.0, 102.0]
+    assert executor(None).wants(5) and isinstance(executor(None), _Ensemble)
+    with pytest.raises(ValueError, match="cannot run 3 steps"):
+        executor(3).add(0, np.zeros((2, 7)))
 
 
 def test_wilson_interval():
@@ -105,17 +122,19 @@ def test_rollouts_of_earlier_runs_are_found_by_seed_for_their_own_policy_only(tm
     from benchmarks.policy.rollout import Rollout
     from benchmarks.policy.stages import ENV_TAG, _cached_rollouts
 
-    def save(name: str, seeds: range) -> None:
+    def save(name: str, seeds: range, tag: str = ENV_TAG) -> None:
         runs = [Rollout(seed, {"success": True}, "success", True) for seed in seeds]
-        np.savez(tmp_path / f"{name}_{seeds[0]}_{len(seeds)}_{ENV_TAG}.npz", rollouts=np.array(runs, dtype=object))
+        np.savez(tmp_path / f"{name}_{seeds[0]}_{len(seeds)}_{tag}.npz", rollouts=np.array(runs, dtype=object))
 
     save("B50_3000_v1", range(1000, 1030))
     save("B50_3000_v1", range(1030, 1040))
     save("B50_3000_v1_other", range(1040, 1050))  # another viewport
-    found = _cached_rollouts(tmp_path, "B50_3000_v1", set(range(1000, 1050)))
+    save("B50_3000_v1", range(1040, 1050), f"{ENV_TAG}_steps8")  # the same policy run another way
+    found = _cached_rollouts(tmp_path, "B50_3000_v1", ENV_TAG, set(range(1000, 1050)))
     assert sorted(found) == list(range(1000, 1040))
     assert all(found[seed].seed == seed for seed in found)
-    assert sorted(_cached_rollouts(tmp_path, "B50_3000_v1", {1005, 1031, 1045})) == [1005, 1031]
+    assert sorted(_cached_rollouts(tmp_path, "B50_3000_v1", ENV_TAG, {1005, 1031, 1045})) == [1005, 1031]
+    assert sorted(_cached_rollouts(tmp_path, "B50_3000_v1", f"{ENV_TAG}_steps8", {1005, 1045})) == [1045]
 
 
 @pytest.mark.parametrize("text, size", [("80x60", (80, 60)), ("160x120", (160, 120)), ("80", None), ("16x12", None),
@@ -199,6 +218,19 @@ def test_another_start_range_and_state_noise_get_their_own_names(tmp_path):
     assert [noisy.key(c, 50) for c in "ABCD"] == ["A_statenoise0.1", "B50_statenoise0.1", "C50_statenoise0.1",
                                                   "D50_statenoise0.1"]
     assert noisy.budget_of(9000).state_noise == 0.1 and started.budget_of(9000).state_noise == 0.0
+    open_loop = stages(action_steps=8)  # the same policies, run otherwise: rollouts of their own
+    assert [open_loop.key(c, 50) for c in "ABCD"] == ["A", "B50", "C50", "D50"]
+    assert (open_loop.rollout_tag, started.rollout_tag) == ("linear_stop_steps8", "linear_stop")
+
+
+def test_the_chunk_length_the_options_allow_is_the_policys():
+    from benchmarks.bench_policy_sim import CHUNK, _parser
+
+    assert CHUNK == Budget().chunk
+    assert _parser().parse_args(["--n-action-steps", "8"]).n_action_steps == 8
+    for bad in ("0", "17", "2.5"):
+        with pytest.raises(SystemExit):
+            _parser().parse_args(["--n-action-steps", bad])
 
 
 def test_state_noise_jitters_the_joints_only_and_none_leaves_the_state_as_it_is():
