@@ -224,7 +224,7 @@ def _sample_start(source: Twin, rng: np.random.Generator, half_range: float) -> 
     """The arm's first joints (rad) for a new demonstration of ``source``: its own first joints
     moved by up to +-``half_range`` rad each, within the limits the augmentation plans in."""
     augmenter = augmenter_for(source)
-    if augmenter.src.skills[0].first == 0:
+    if not augmenter.plans_first_motion:
         raise AugmentError(f"--start-range: {source.episode}'s first skill begins at its first frame, so no motion "
                            "leads into it from another start")
     return sample_start(rng, augmenter.src.q[0], half_range, augmenter.kin.lower, augmenter.kin.upper)

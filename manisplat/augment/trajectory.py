@@ -286,7 +286,7 @@ class Augmenter:
         for i in range(n + 1):
             prev = skills[i - 1] if i > 0 else None
             nxt = skills[i] if i < n else None
-            if prev is None and src.skills[0].first == 0:
+            if prev is None and not self.plans_first_motion:
                 pass
             elif nxt is None and src.skills[-1].last == src.n_frames - 1:
                 pass
@@ -317,12 +317,17 @@ class Augmenter:
         trajectory.planner["start_offset_deg"] = np.degrees(q_first - src.q[0]).round(3).tolist()
         return trajectory
 
+    @property
+    def plans_first_motion(self) -> bool:
+        """Whether a motion leads into the source's first skill, so that a new start can be planned from."""
+        return self.src.skills[0].first > 0
+
     def _start(self, start_q: np.ndarray) -> np.ndarray:
         """``start_q`` checked: finite, one value per joint, and a first motion there is to plan."""
         start_q = np.asarray(start_q, np.float64)
         if start_q.shape != (self.kin.dof,) or not np.isfinite(start_q).all():
             raise ValueError(f"start_q must be {self.kin.dof} finite joint positions, got shape {start_q.shape}")
-        if self.src.skills[0].first == 0:
+        if not self.plans_first_motion:
             raise ValueError("the source's first skill begins at its first frame: there is no first motion to "
                              "plan from another start")
         return start_q
