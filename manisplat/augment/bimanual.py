@@ -37,9 +37,9 @@ from manisplat.augment.collision import CollisionSettings, _object_box
 from manisplat.augment.errors import Rejected
 from manisplat.augment.handover import (HANDOVER_RANGE, HANDOVER_SKILL, Handover, entry_delays, handed_track,
                                         moved_handover, output_frame, skill_segment)
-from manisplat.augment.sampling import ObjectTarget, sample_targets
+from manisplat.augment.sampling import ObjectTarget, sample_start, sample_targets
 from manisplat.augment.source import SourceError
-from manisplat.augment.trajectory import AugmentConfig, NewTrajectory, augment_trajectory
+from manisplat.augment.trajectory import AugmentConfig, NewTrajectory, augment_trajectory, augmenter_for
 from manisplat.robot.hulls import convex, link_hulls
 
 MIN_ARM_CLEARANCE_M = 0.005
@@ -262,16 +262,30 @@ class BimanualPlanner:
                                                   taker.T_place)
         return out
 
-    def run(self, targets: dict[str, dict[str, ObjectTarget]], config: AugmentConfig) -> BimanualTrajectory:
-        """Plan every arm, put them on one timeline and check them against each other."""
+    def sample_starts(self, rng: np.random.Generator, half_range: float) -> dict[str, np.ndarray]:
+        """Arm name -> its first joints (rad) for a new demonstration: the source's moved by up to
+        +-``half_range`` rad each, within the limits the augmentation plans in (arms in the twin's
+        order, one draw each)."""
+        starts = {}
+        for name, arm in self.arms.items():
+            augmenter = augmenter_for(arm)
+            starts[name] = sample_start(rng, augmenter.src.q[0], half_range, augmenter.kin.lower, augmenter.kin.upper)
+        return starts
+
+    def run(self, targets: dict[str, dict[str, ObjectTarget]], config: AugmentConfig,
+            start_q: dict[str, np.ndarray] | None = None) -> BimanualTrajectory:
+        """Plan every arm (from ``start_q[arm]``, rad, where given; else the source's first joints),
+        put them on one timeline and check them against each other."""
+        starts = start_q or {}
         planned = {}
         for name, arm in self.arms.items():
             try:
-                planned[name] = augment_trajectory(arm, targets.get(name, {}), config)
+                planned[name] = augment_trajectory(arm, targets.get(name, {}), config, starts.get(name))
             except Rejected as exc:
                 raise Rejected(exc.reason, f"{name} arm: {exc.detail}") from exc
         if self.handovers:
-            return self._handed_over(self._at_one_pace(planned, targets, config, self.handovers[0]), self.handovers[0])
+            return self._handed_over(self._at_one_pace(planned, targets, config, self.handovers[0], starts),
+                                     self.handovers[0])
         together, (distance, frame, pair) = self._together(planned)
         if distance < self.min_clearance_m:  # one arm waits at its start: the shortest wait that clears
             for wait_s in WAITS_S:
@@ -287,7 +301,8 @@ class BimanualPlanner:
         return self._validated(together, (distance, frame, pair))
 
     def _at_one_pace(self, planned: dict[str, NewTrajectory], targets: dict[str, dict[str, ObjectTarget]],
-                     config: AugmentConfig, handover: Handover) -> dict[str, NewTrajectory]:
+                     config: AugmentConfig, handover: Handover, starts: dict[str, np.ndarray]
+                     ) -> dict[str, NewTrajectory]:
         """``planned`` with the arm that plays the shared skill faster planned again at the other's
         pace (a skill is slowed uniformly where its new joints would break a limit)."""
         pace = {arm: float(skill_segment(planned[arm].segments, handover).get("slowed", 1.0))
@@ -297,7 +312,8 @@ class BimanualPlanner:
             if own < slowest:
                 paced = replace(config, min_slow={**config.min_slow, HANDOVER_SKILL: slowest})
                 try:
-                    planned = {**planned, arm: augment_trajectory(self.arms[arm], targets.get(arm, {}), paced)}
+                    planned = {**planned, arm: augment_trajectory(self.arms[arm], targets.get(arm, {}), paced,
+                                                                  starts.get(arm))}
                 except Rejected as exc:
                     raise Rejected(exc.reason, f"{arm} arm, at the other arm's pace x{slowest:.2f}: {exc.detail}") from exc
         return planned

@@ -86,7 +86,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="each new demonstration starts with every arm joint moved from the source's first "
                         "position by up to +-DEG (uniformly), the first motion planned from there: demonstrations "
                         "that all start from one pose and run straight to their targets let a policy read the "
-                        "target off its own joints instead of the image (default 0: the source's start; one arm)")
+                        "target off its own joints instead of the image (default 0: the source's start; on a "
+                        "two-arm twin, every arm)")
     p.add_argument("--sources", default="all", metavar="all|EPISODE,...",
                    help="the source demonstrations of a twin of several episodes: all (the default), or those named; "
                         "sample k starts from the k-th of them in turn, and the report names each one's source")

@@ -52,7 +52,8 @@ class Sample:
     plan_s: float = 0.0
     episode: str | None = None
     source: str = ""  # the source demonstration it was planned from (its episode's name)
-    start_q: np.ndarray | None = None  # the arm's first joints (rad) when --start-range moved them
+    #: first joints (rad; arm name -> joints on a two-arm twin) when --start-range moved them
+    start_q: np.ndarray | dict[str, np.ndarray] | None = None
 
 
 def run_augmentation(args: argparse.Namespace) -> dict:
@@ -67,8 +68,9 @@ def run_augmentation(args: argparse.Namespace) -> dict:
     config = AugmentConfig(speed=args.speed, profile=args.profile, planner_timeout_s=args.planner_timeout,
                            seed=args.seed, symmetries=_symmetries(twin, args.symmetries))
     planners = {name: _arms_planner(source, args) for name, source in sources.items()}
-    if args.start_range > 0 and any(arms is not None for arms in planners.values()):
-        raise AugmentError("--start-range moves one arm's start; this twin has several arms (not supported yet)")
+    if args.start_range > 0:
+        for name, source in sources.items():
+            _check_new_start(source, planners[name])
     explicit = _explicit_targets(args.poses, twin) if args.poses else None
     wanted = len(explicit) if explicit is not None else args.n
     limit = len(explicit) if explicit is not None else (args.max_samples or max(10, 3 * args.n))
@@ -93,8 +95,10 @@ def run_augmentation(args: argparse.Namespace) -> dict:
         t0 = time.perf_counter()
         try:
             if args.start_range > 0:  # drawn after the objects: the same seed gives the same object poses
-                sample.start_q = _sample_start(source, rng, np.radians(args.start_range))
-            sample.trajectory = arms.run(targets, config) if arms is not None else \
+                half_range = np.radians(args.start_range)
+                sample.start_q = arms.sample_starts(rng, half_range) if arms is not None else \
+                    _sample_start(source, rng, half_range)
+            sample.trajectory = arms.run(targets, config, sample.start_q) if arms is not None else \
                 augment_trajectory(source, targets, config, sample.start_q)
             bar.update(1)
         except Rejected as exc:
@@ -220,13 +224,21 @@ def _explicit_targets(path: Path, twin: Twin) -> list[dict[str, ObjectTarget]]:
     return out
 
 
+def _check_new_start(source: Twin, arms: BimanualPlanner | None) -> None:
+    """--start-range needs a motion into every arm's first skill to plan from a new start."""
+    augmenters = {None: augmenter_for(source)} if arms is None else \
+        {name: augmenter_for(arm) for name, arm in arms.arms.items()}
+    for name, augmenter in augmenters.items():
+        if not augmenter.plans_first_motion:
+            arm = "" if name is None else f" ({name} arm)"
+            raise AugmentError(f"--start-range: {source.episode}'s first skill{arm} begins at its first frame, so no "
+                               "motion leads into it from another start")
+
+
 def _sample_start(source: Twin, rng: np.random.Generator, half_range: float) -> np.ndarray:
     """The arm's first joints (rad) for a new demonstration of ``source``: its own first joints
     moved by up to +-``half_range`` rad each, within the limits the augmentation plans in."""
     augmenter = augmenter_for(source)
-    if not augmenter.plans_first_motion:
-        raise AugmentError(f"--start-range: {source.episode}'s first skill begins at its first frame, so no motion "
-                           "leads into it from another start")
     return sample_start(rng, augmenter.src.q[0], half_range, augmenter.kin.lower, augmenter.kin.upper)
 
 

@@ -319,8 +319,9 @@ class Augmenter:
 
     @property
     def plans_first_motion(self) -> bool:
-        """Whether a motion leads into the source's first skill, so that a new start can be planned from."""
-        return self.src.skills[0].first > 0
+        """Whether a motion leads into the source's first skill (or the arm has none), so that a new
+        start can be planned from."""
+        return not self.src.skills or self.src.skills[0].first > 0
 
     def _start(self, start_q: np.ndarray) -> np.ndarray:
         """``start_q`` checked: finite, one value per joint, and a first motion there is to plan."""

@@ -192,10 +192,30 @@ def test_augment_writes_handed_over_demonstrations(twin_folder, tmp_path):
     assert len(ep.arm_frames("left").q) == len(ep.arm_frames("right").q) == len(ep)
 
 
-def test_a_new_start_for_two_arms_is_refused_by_name(twin_folder, tmp_path, capsys):
-    out = tmp_path / "aug"
-    assert augment([str(twin_folder), "--n", "1", "--out", str(out), "--start-range", "5", "-q"]) != ExitCode.OK
-    assert "--start-range" in capsys.readouterr().err and not list(out.glob("episode_*"))
+def test_a_new_start_moves_both_arms_and_keeps_the_object_poses_of_the_seed(twin_folder, tmp_path):
+    """--start-range on a two-arm twin: each arm's first frame is its source's first joints moved by
+    up to the range (recorded per arm), the rest of the demonstration as planned from there, and the
+    same seed draws the same object and handover poses as without it."""
+    runs = {}
+    for deg in (0, 5):
+        out = tmp_path / f"aug{deg}"
+        assert augment([str(twin_folder), "--n", "1", "--out", str(out), "--seed", "3", "--max-samples", "12",
+                        "--start-range", str(deg), "-q"]) == ExitCode.OK
+        runs[deg] = out
+    twin = Twin.load(twin_folder)
+    source = twin.arm_tracks()
+    offsets = []
+    for arm in ("left", "right"):
+        first = Episode.open(runs[5] / "episode_0000").arm_frames(arm).q[0]
+        record = json.loads((runs[5] / "episode_0000" / "augmentation.json").read_text())["arms"][arm]["planner"]
+        offset = np.degrees(first - source[arm][0][0])
+        np.testing.assert_allclose(record["start_offset_deg"], offset, atol=2e-3)
+        assert np.abs(offset).max() <= 5 + 1e-6
+        offsets.append(np.abs(offset).max())
+    assert min(offsets) > 0.5  # both arms moved
+    objects = [json.loads((runs[deg] / "episode_0000" / "augmentation.json").read_text())["objects"] for deg in (0, 5)]
+    for name in objects[0]:
+        np.testing.assert_allclose(objects[1][name]["T_start"], objects[0][name]["T_start"], atol=1e-9)
 
 
 def test_the_handover_range_option_defaults_to_the_library_s():
