@@ -23,7 +23,8 @@ def heatmaps(rollouts: dict[str, list[Rollout]], training_starts: dict[str, np.n
     import matplotlib.pyplot as plt
 
     keys = list(rollouts)
-    fig, axes = plt.subplots(1, len(keys), figsize=(3.2 * len(keys), 3.4), squeeze=False, sharex=True, sharey=True)
+    fig, axes = plt.subplots(1, len(keys), figsize=(max(3.2 * len(keys), 4.6), 3.8), squeeze=False, sharex=True,
+                             sharey=True)
     for ax, key in zip(axes[0], keys):
         starts = training_starts.get(key)
         if starts is not None and len(starts):
@@ -34,13 +35,14 @@ def heatmaps(rollouts: dict[str, list[Rollout]], training_starts: dict[str, np.n
                 ax.scatter(xy[:, 0] * 100, xy[:, 1] * 100, s=28, c=colour, marker="o" if phase == "success" else "x",
                            label=phase)
         wins = sum(r.phase == "success" for r in rollouts[key])
-        ax.set_title(f"{key}: {wins}/{len(rollouts[key])}")
+        ax.set_title(f"{key}\n{wins} of {len(rollouts[key])} succeeded", fontsize=8)
         ax.set_xlabel("object start x (cm)")
         ax.set_aspect("equal")
     axes[0][0].set_ylabel("object start y (cm)")
     handles = {h.get_label(): h for ax in axes[0] for h in ax.collections}
-    fig.legend(list(handles.values()), list(handles), loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
-    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    fig.legend(list(handles.values()), list(handles), loc="lower center", ncol=min(len(handles), 3), fontsize=8,
+               frameon=False)
+    fig.tight_layout(rect=(0, 0.14, 1, 1))
     fig.savefig(out, dpi=110)
     plt.close(fig)
     return out
