@@ -247,7 +247,8 @@ class Stages:
                "successes": successes, "rollouts": len(rollouts), "success_rate": successes / len(rollouts),
                "ci95": wilson_interval(successes, len(rollouts)), "train_s": round(policy.seconds, 1),
                "train_loss_end": round(policy.final_loss, 4), "failed_in": phases,
-               "action_steps": self.action_steps, "arm_hit_scene": sum(any(f.startswith("arm hit") for f in r.result["failed"]) for r in rollouts),
+               "action_steps": self.action_steps,
+               "arm_hit_scene": sum(any(f.startswith("arm hit") for f in r.result["failed"]) for r in rollouts),
                "mean_steps": float(np.mean([r.result["steps"] for r in rollouts]))}
         return row, rollouts
 

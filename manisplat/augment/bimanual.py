@@ -37,7 +37,7 @@ from manisplat.augment.collision import CollisionSettings, _object_box
 from manisplat.augment.errors import Rejected
 from manisplat.augment.handover import (HANDOVER_RANGE, HANDOVER_SKILL, Handover, entry_delays, handed_track,
                                         moved_handover, output_frame, skill_segment)
-from manisplat.augment.sampling import ObjectTarget, sample_start, sample_targets
+from manisplat.augment.sampling import ObjectTarget, sample_targets
 from manisplat.augment.source import SourceError
 from manisplat.augment.trajectory import AugmentConfig, NewTrajectory, augment_trajectory, augmenter_for
 from manisplat.robot.hulls import convex, link_hulls
@@ -266,11 +266,7 @@ class BimanualPlanner:
         """Arm name -> its first joints (rad) for a new demonstration: the source's moved by up to
         +-``half_range`` rad each, within the limits the augmentation plans in (arms in the twin's
         order, one draw each)."""
-        starts = {}
-        for name, arm in self.arms.items():
-            augmenter = augmenter_for(arm)
-            starts[name] = sample_start(rng, augmenter.src.q[0], half_range, augmenter.kin.lower, augmenter.kin.upper)
-        return starts
+        return {name: augmenter_for(arm).sample_start(rng, half_range) for name, arm in self.arms.items()}
 
     def run(self, targets: dict[str, dict[str, ObjectTarget]], config: AugmentConfig,
             start_q: dict[str, np.ndarray] | None = None) -> BimanualTrajectory:

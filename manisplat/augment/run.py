@@ -20,7 +20,6 @@ from tqdm import tqdm
 from manisplat.augment.bimanual import BimanualPlanner, BimanualTrajectory
 from manisplat.augment.cli import REPORT, load_poses_file
 from manisplat.augment.frames import from_centre_frame, to_centre_frame
-from manisplat.augment.sampling import sample_start
 from manisplat.augment.symmetry import Symmetry
 from manisplat.augment.trajectory import (AugmentConfig, NewTrajectory, ObjectTarget, Rejected, augment_trajectory,
                                           augmenter_for, sample_targets)
@@ -97,7 +96,7 @@ def run_augmentation(args: argparse.Namespace) -> dict:
             if args.start_range > 0:  # drawn after the objects: the same seed gives the same object poses
                 half_range = np.radians(args.start_range)
                 sample.start_q = arms.sample_starts(rng, half_range) if arms is not None else \
-                    _sample_start(source, rng, half_range)
+                    augmenter_for(source).sample_start(rng, half_range)
             sample.trajectory = arms.run(targets, config, sample.start_q) if arms is not None else \
                 augment_trajectory(source, targets, config, sample.start_q)
             bar.update(1)
@@ -233,13 +232,6 @@ def _check_new_start(source: Twin, arms: BimanualPlanner | None) -> None:
             arm = "" if name is None else f" ({name} arm)"
             raise AugmentError(f"--start-range: {source.episode}'s first skill{arm} begins at its first frame, so no "
                                "motion leads into it from another start")
-
-
-def _sample_start(source: Twin, rng: np.random.Generator, half_range: float) -> np.ndarray:
-    """The arm's first joints (rad) for a new demonstration of ``source``: its own first joints
-    moved by up to +-``half_range`` rad each, within the limits the augmentation plans in."""
-    augmenter = augmenter_for(source)
-    return sample_start(rng, augmenter.src.q[0], half_range, augmenter.kin.lower, augmenter.kin.upper)
 
 
 def _remove_earlier(out: Path) -> None:

@@ -47,7 +47,7 @@ from manisplat.augment.errors import Rejected
 from manisplat.augment.frames import solid_points
 from manisplat.augment.kinematics import PinRobot
 from manisplat.augment.planning import RESOLUTION, path_free, plan_path
-from manisplat.augment.sampling import ObjectTarget, sample_targets
+from manisplat.augment.sampling import ObjectTarget, sample_start, sample_targets
 from manisplat.augment.skills import SkillResult, SourceSpline, solve_skill
 from manisplat.augment.source import SourceDemo, SourceError, source_demo
 from manisplat.augment.symmetry import Symmetry, axis_point, wrist_keeping_turn, yaw_of
@@ -322,6 +322,11 @@ class Augmenter:
         """Whether a motion leads into the source's first skill (or the arm has none), so that a new
         start can be planned from."""
         return not self.src.skills or self.src.skills[0].first > 0
+
+    def sample_start(self, rng: np.random.Generator, half_range: float) -> np.ndarray:
+        """First joints (rad) for a new demonstration: the source's moved by up to +-``half_range``
+        rad each, within the limits the augmentation plans in."""
+        return sample_start(rng, self.src.q[0], half_range, self.kin.lower, self.kin.upper)
 
     def _start(self, start_q: np.ndarray) -> np.ndarray:
         """``start_q`` checked: finite, one value per joint, and a first motion there is to plan."""
