@@ -1,16 +1,18 @@
 """Policy in the loop: success of one policy trained on A (source), B (source + augmented), C (oracle), D (B in sim renders).
 
     python -m benchmarks policy_sim [--source EP] [--n 50 [200]] [--eval-seeds 1000-1049] [--work DIR] [--quick]
-        [--augment-start-range DEG] [--state-noise RAD] [--train-seed S] (and the options of --help)
+        [--augment-start-range DEG] [--state-noise RAD] [--train-seed S[,S...]] (and the options of --help)
 
 From one source episode of ``gen_pick_place.py`` (default shared/data/sim_pick_place_small), each
-data condition trains the same policy (``benchmarks/policy``: ACT-style chunks, small CNN, same
-budget and seed), then drives ``policy_env.PickPlaceEnv`` closed loop from the evaluation seeds'
+data condition trains the same policy (``benchmarks/policy``: ACT-style chunks, small CNN, the
+training frames' joint states jittered by 0.1 rad; same budget, once per training seed), then drives ``policy_env.PickPlaceEnv`` closed loop from the evaluation seeds'
 start poses (object within +-8 cm, +-8 cm, +-45 deg; no training demonstration starts there):
 
 - **A** the source demonstration alone;
 - **B** the source plus N demonstrations written by ``manisplat-augment`` from a twin that
-  ``manisplat-reconstruct`` made of the source (the twin's renders);
+  ``manisplat-reconstruct`` made of the source (the twin's renders; objects within +-10 cm,
+  +-55 deg, the arm's start scattered by up to 10 deg per joint, as docs/training-policies.md
+  recommends);
 - **C** N scripted demonstrations of ``gen_demos.py`` over the same ranges (the reference: as many
   real demonstrations);
 - **D** B's demonstrations with the simulator's renders of the same motions (``execute_episode.py
@@ -42,6 +44,9 @@ from manisplat.cli_args import bounded, finite_numbers, positive
 OWN_OPTIONS = True  # python -m benchmarks policy_sim [options] calls main()
 OBJECT_RANGE = (0.08, 0.08, 45.0)  # m, m, deg: policy_env's reset(seed) ranges
 PLACE_RANGE = (0.025, 0.025, 45.0)  # within the 6 cm mat with 1 cm to spare from the source's place
+AUGMENT_OBJECT_RANGE = (0.10, 0.10, 55.0)  # m, m, deg: B's and D's object starts, 2 cm and 10 deg past the evaluation's
+AUGMENT_START_RANGE = 10.0  # deg: manisplat-augment --start-range, as docs/training-policies.md recommends
+STATE_NOISE = 0.1  # rad: the learner's jitter of the training frames' joint states
 CONDITIONS = ("A", "B", "C", "D")
 ENVS = 2  # environments rendering side by side (one per core)
 CHUNK = 16  # actions per predicted chunk: benchmarks.policy.train.Budget.chunk (not imported: --help stays fast)
@@ -55,6 +60,17 @@ def _seeds(text: str) -> list[int]:
         seeds += list(range(int(low), int(high) + 1)) if high else [int(low)]
     if not seeds or len(set(seeds)) != len(seeds):
         raise argparse.ArgumentTypeError(f"{text!r}: distinct seeds, e.g. 1000-1049")
+    return seeds
+
+
+def _train_seeds(text: str) -> list[int]:
+    """'0' or '0,1' -> training seeds (distinct, >= 0)."""
+    try:
+        seeds = [int(part) for part in text.split(",")]
+    except ValueError:
+        seeds = []
+    if not seeds or min(seeds) < 0 or len(set(seeds)) != len(seeds):
+        raise argparse.ArgumentTypeError(f"{text!r}: distinct training seeds >= 0, e.g. 0 or 0,1")
     return seeds
 
 
@@ -83,13 +99,17 @@ def _parser() -> argparse.ArgumentParser:
                    help="manisplat-augment --profile for B and D: how re-planned motions are timed "
                         "(default %(default)s)")
     p.add_argument("--augment-object-range", type=finite_numbers((3,)), metavar="X,Y,DEG",
+                   default=AUGMENT_OBJECT_RANGE,
                    help="manisplat-augment --object-range for B and D: half-ranges (m, m, deg) of the augmented "
-                        "objects' starts (default the evaluation's, 0.08,0.08,45); wider covers the evaluation "
-                        "range's edges from both sides")
-    p.add_argument("--augment-start-range", type=bounded(0.0, 90.0), default=0.0, metavar="DEG",
+                        "objects' starts (default %s: past the evaluation's 0.08,0.08,45, so that its edges are "
+                        "covered from both sides)" % ",".join(f"{v:g}" for v in AUGMENT_OBJECT_RANGE))
+    p.add_argument("--augment-start-range", type=bounded(0.0, 90.0), default=AUGMENT_START_RANGE, metavar="DEG",
                    help="manisplat-augment --start-range for B and D: each augmented demonstration's arm starts up "
-                        "to +-DEG from the source's start on every joint (default 0: the source's start; the "
-                        "evaluation always starts there)")
+                        "to +-DEG from the source's start on every joint (default %(default)g; 0: the source's "
+                        "start; the evaluation always starts there)")
+    p.add_argument("--augment-trim-holds", action="store_true",
+                   help="manisplat-augment --trim-holds for B and D: the skills without the still frames where "
+                        "re-planned motions join them (default: as recorded)")
     p.add_argument("--twin-iters", type=positive(int), help="reconstruction iterations (default 1000; --quick 300)")
     p.add_argument("--twin-episodes", type=positive(int), default=1,
                    help="demonstrations of the scene the twin is made of: the source and gen_demos.py ones (seeds 501-); "
@@ -97,11 +117,13 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--symmetry", action="append", default=[], metavar="OBJECT=ORDER|round",
                    help="manisplat-augment --symmetry for B and D (e.g. box=4: the 4 x 4 cm box's grasps on the face "
                         "nearest the source's wrist; default none)")
-    p.add_argument("--train-seed", type=int, default=0,
-                   help="the policies' training seed (default 0): other seeds measure how much one run varies")
-    p.add_argument("--state-noise", type=bounded(0.0, 0.5), default=0.0, metavar="RAD",
+    p.add_argument("--train-seed", type=_train_seeds, default=[0], metavar="S[,S...]",
+                   help="the policies' training seeds (default 0): each condition is trained and run once per seed "
+                        "and reported per seed and over all of them (one seed against another moves a result by "
+                        "up to 18 in 50: compare over two or more)")
+    p.add_argument("--state-noise", type=bounded(0.0, 0.5), default=STATE_NOISE, metavar="RAD",
                    help="Gaussian noise (rad) on the joint states of the training frames, every condition "
-                        "(default 0: none)")
+                        "(default %(default)g; 0: none)")
     p.add_argument("--n-action-steps", type=bounded(1, CHUNK, int), metavar="K",
                    help="run the first K actions of each predicted chunk open loop, then predict again (LeRobot's "
                         "n_action_steps; default: ACT's temporal ensembling, a chunk every step)")
@@ -114,7 +136,7 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
-    if args.augment_object_range is not None and min(args.augment_object_range) < 0:
+    if min(args.augment_object_range) < 0:
         parser.error(f"--augment-object-range: half-ranges must be >= 0, got {args.augment_object_range}")
     quick = args.quick
     shared = shared_dir()
@@ -137,14 +159,14 @@ def main(argv: list[str] | None = None) -> int:
 
     from benchmarks.policy.stages import Stages
 
-    stages = Stages(source=source, work=work, simenv=Path(simenv), tools=shared / "tools" / "sim",
-                    object_range=OBJECT_RANGE, place_range=PLACE_RANGE, twin_iters=args.twin_iters or
-                    (300 if quick else 1000), image_size=args.image_size, augment_speed=args.augment_speed,
-                    augment_profile=args.augment_profile, augment_object_range=args.augment_object_range,
-                    twin_episodes=args.twin_episodes, symmetry=tuple(args.symmetry),
-                    train_seed=args.train_seed, state_noise=args.state_noise,
-                    augment_start_range=args.augment_start_range,
-                    action_steps=args.n_action_steps)
+    seeded = [Stages(source=source, work=work, simenv=Path(simenv), tools=shared / "tools" / "sim",
+                     object_range=OBJECT_RANGE, place_range=PLACE_RANGE, twin_iters=args.twin_iters or
+                     (300 if quick else 1000), image_size=args.image_size, augment_speed=args.augment_speed,
+                     augment_profile=args.augment_profile, augment_object_range=args.augment_object_range,
+                     twin_episodes=args.twin_episodes, symmetry=tuple(args.symmetry),
+                     train_seed=seed, state_noise=args.state_noise,
+                     augment_start_range=args.augment_start_range, augment_trim_holds=args.augment_trim_holds,
+                     action_steps=args.n_action_steps) for seed in args.train_seed]
     started = time.perf_counter()
     args.out.mkdir(parents=True, exist_ok=True)
     suffix = "_quick" if quick else ""
@@ -154,23 +176,47 @@ def main(argv: list[str] | None = None) -> int:
         for condition in conditions:
             if condition == "A" and n != ns[0]:
                 continue  # the source alone does not depend on N
-            row, runs = stages.condition(condition, n, steps, eval_seeds, envs=ENVS)
-            rows.append(row)
-            rollouts[row["condition"]] = runs
-            print(f"  {row['condition']}: {row['successes']}/{row['rollouts']} = {row['success_rate']:.0%} "
-                  f"(95 % {row['ci95'][0]:.0%}-{row['ci95'][1]:.0%}), trained {row['train_s']:.0f} s", flush=True)
-            path = _write(args, argv, stages, source, eval_seeds, steps, rows, rollouts, started, suffix)
+            for stages in seeded:
+                row, runs = stages.condition(condition, n, steps, eval_seeds, envs=ENVS)
+                rows.append({**row, "train_seed": stages.train_seed,
+                             "data": row["condition"].removesuffix(f"_trainseed{stages.train_seed}")})
+                rollouts[row["condition"]] = runs
+                print(f"  {row['condition']}: {row['successes']}/{row['rollouts']} = {row['success_rate']:.0%} "
+                      f"(95 % {row['ci95'][0]:.0%}-{row['ci95'][1]:.0%}), trained {row['train_s']:.0f} s", flush=True)
+                path = _write(args, argv, seeded, source, eval_seeds, steps, rows, rollouts, started, suffix)
+    for total in over_seeds(rows):
+        print(f"  {total['data']} over training seeds {total['train_seeds']}: {total['successes']}/{total['rollouts']}"
+              f" = {total['success_rate']:.0%} ({', '.join(map(str, total['per_seed']))})")
     print(f"wrote {path} ({time.perf_counter() - started:.0f} s)")
     return 0
 
 
-def _write(args: argparse.Namespace, argv: list[str] | None, stages: Any, source: Path, eval_seeds: list[int],
+def over_seeds(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One total per condition's data (rows' ``data``) over the training seeds it ran with: successes
+    and rollouts summed, the successes per seed in ``per_seed`` (their spread is the seed's effect)."""
+    totals: dict[str, dict[str, Any]] = {}
+    for row in rows:
+        total = totals.setdefault(row["data"], {"data": row["data"], "train_seeds": [], "per_seed": [],
+                                                "successes": 0, "rollouts": 0})
+        total["train_seeds"].append(row["train_seed"])
+        total["per_seed"].append(row["successes"])
+        total["successes"] += row["successes"]
+        total["rollouts"] += row["rollouts"]
+    for total in totals.values():
+        total["success_rate"] = total["successes"] / total["rollouts"]
+    return list(totals.values())
+
+
+def _write(args: argparse.Namespace, argv: list[str] | None, seeded: list[Any], source: Path, eval_seeds: list[int],
            steps: int, rows: list[dict[str, Any]], rollouts: dict[str, list], started: float, suffix: str) -> Path:
-    """The results so far (rewritten after every condition): JSON, heatmaps, contact sheet."""
+    """The results so far (rewritten after every condition and seed): JSON, heatmaps, contact sheet
+    (``seeded``: the stages of each training seed, which share their data)."""
     from benchmarks.policy.report import contact_sheet, heatmaps
     from benchmarks.policy.stages import ENV_OPTIONS
 
-    plots = [heatmaps(rollouts, stages.training_starts, args.out / f"policy_sim_heatmap{suffix}.png"),
+    stages = seeded[0]
+    training_starts = {key: starts for each in seeded for key, starts in each.training_starts.items()}
+    plots = [heatmaps(rollouts, training_starts, args.out / f"policy_sim_heatmap{suffix}.png"),
              contact_sheet(rollouts, args.out / f"policy_sim_rollouts{suffix}.png")]
     result = {
         "benchmark": "policy_sim", "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "quick": args.quick,
@@ -179,7 +225,9 @@ def _write(args: argparse.Namespace, argv: list[str] | None, stages: Any, source
         "ranges": {"object_m_m_deg": OBJECT_RANGE, "place_m_m_deg": PLACE_RANGE,
                    "augmented_object_m_m_deg": stages.augment_object_range},
         "budget": stages.budget_of(steps).__dict__, "viewport": stages.viewport.__dict__, "env_options": ENV_OPTIONS,
-        "action_steps": stages.action_steps, "rows": rows, "data": stages.data_report,
+        "action_steps": stages.action_steps, "train_seeds": args.train_seed, "rows": rows,
+        "over_training_seeds": over_seeds(rows),
+        "data": {key: report for each in seeded for key, report in each.data_report.items()},
         "rollouts": {k: [{"seed": r.seed, "phase": r.phase, **{f: r.result[f] for f in (
             "success", "object_start", "dist_to_mat_m", "tilt_deg", "lifted_m", "steps", "failed")}} for r in v]
             for k, v in rollouts.items()},

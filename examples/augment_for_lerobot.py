@@ -3,7 +3,7 @@ write N new demonstrations over the start poses the policy must handle, export t
 recording as one LeRobot v3.0 dataset, and print the command that trains LeRobot's ACT on it.
 
     python examples/augment_for_lerobot.py OUT_DIR [--episode EP] [--n 50] [--iters 1000]
-        [--object-range 0.08,0.08,45] [--target-range 0.025,0.025,45] [--start-range 10] [--task TEXT]
+        [--object-range 0.1,0.1,55] [--target-range 0.025,0.025,45] [--start-range 10] [--task TEXT]
 
 Without --episode it uses the built-in sample. OUT_DIR must be new or empty; it gets twin/ (the
 reconstruction), augmented/ (episode_0000 ...) and lerobot/ (the dataset). The choices behind the
@@ -25,7 +25,7 @@ from manisplat.output_folder import new_or_empty_folder
 from manisplat.reconstruct.cli import main as reconstruct
 
 
-def main(out_dir: str, episode: str | None = None, n: int = 50, iters: int = 1000, object_range: str = "0.08,0.08,45",
+def main(out_dir: str, episode: str | None = None, n: int = 50, iters: int = 1000, object_range: str = "0.1,0.1,55",
          target_range: str = "0.025,0.025,45", start_range: float = 10.0,
          task: str = "pick up the object and place it on the mat") -> dict:
     out = new_or_empty_folder(out_dir)
@@ -58,7 +58,7 @@ if __name__ == "__main__":
     parser.add_argument("--episode", help="a recorded episode folder (default: the built-in sample)")
     parser.add_argument("--n", type=int, default=50, help="new demonstrations (default 50)")
     parser.add_argument("--iters", type=int, default=1000, help="reconstruction iterations (default 1000)")
-    parser.add_argument("--object-range", default="0.08,0.08,45", help="X,Y m and YAW deg of the object's start")
+    parser.add_argument("--object-range", default="0.1,0.1,55", help="X,Y m and YAW deg of the object's start")
     parser.add_argument("--target-range", default="0.025,0.025,45", help="X,Y m and YAW deg of the place pose")
     parser.add_argument("--start-range", type=float, default=10.0,
                         help="deg each joint of the arm's start is scattered by (default 10)")

@@ -3,6 +3,8 @@ failure phases, the success interval, and a policy that learns from image positi
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -231,6 +233,40 @@ def test_the_chunk_length_the_options_allow_is_the_policys():
     for bad in ("0", "17", "2.5"):
         with pytest.raises(SystemExit):
             _parser().parse_args(["--n-action-steps", bad])
+
+
+def test_the_benchmarks_augmentation_is_the_documented_recipe():
+    """B's default --augment-object-range and --augment-start-range are the ones
+    docs/training-policies.md tells users to pass to manisplat-augment."""
+    import re
+    import shlex
+
+    from benchmarks.bench_policy_sim import _parser
+
+    recipe = (Path(__file__).parents[2] / "docs" / "training-policies.md").read_text()
+    line = next(line for line in recipe.splitlines() if line.startswith("manisplat-augment "))
+    words = shlex.split(line)
+    option = {words[i]: words[i + 1] for i in range(len(words) - 1) if re.fullmatch(r"--[a-z-]+", words[i])}
+    defaults = _parser().parse_args([])
+    assert [float(v) for v in option["--object-range"].split(",")] == list(defaults.augment_object_range)
+    assert float(option["--start-range"]) == defaults.augment_start_range
+    assert defaults.state_noise == 0.1 and defaults.train_seed == [0]
+
+
+def test_training_seeds_are_parsed_and_totalled_per_condition():
+    from benchmarks.bench_policy_sim import _parser, over_seeds
+
+    assert _parser().parse_args(["--train-seed", "0,1"]).train_seed == [0, 1]
+    for bad in ("", "0,0", "-1", "a"):
+        with pytest.raises(SystemExit):
+            _parser().parse_args(["--train-seed", bad])
+    rows = [{"data": "C50", "train_seed": 0, "successes": 45, "rollouts": 50},
+            {"data": "C50", "train_seed": 1, "successes": 46, "rollouts": 50},
+            {"data": "B50", "train_seed": 0, "successes": 34, "rollouts": 50}]
+    totals = {t["data"]: t for t in over_seeds(rows)}
+    assert totals["C50"]["per_seed"] == [45, 46] and totals["C50"]["train_seeds"] == [0, 1]
+    assert (totals["C50"]["successes"], totals["C50"]["rollouts"], totals["C50"]["success_rate"]) == (91, 100, 0.91)
+    assert (totals["B50"]["successes"], totals["B50"]["rollouts"]) == (34, 50)
 
 
 def test_state_noise_jitters_the_joints_only_and_none_leaves_the_state_as_it_is():
