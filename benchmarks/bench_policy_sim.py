@@ -107,9 +107,6 @@ def _parser() -> argparse.ArgumentParser:
                    help="manisplat-augment --start-range for B and D: each augmented demonstration's arm starts up "
                         "to +-DEG from the source's start on every joint (default %(default)g; 0: the source's "
                         "start; the evaluation always starts there)")
-    p.add_argument("--augment-trim-holds", action="store_true",
-                   help="manisplat-augment --trim-holds for B and D: the skills without the still frames where "
-                        "re-planned motions join them (default: as recorded)")
     p.add_argument("--twin-iters", type=positive(int), help="reconstruction iterations (default 1000; --quick 300)")
     p.add_argument("--twin-episodes", type=positive(int), default=1,
                    help="demonstrations of the scene the twin is made of: the source and gen_demos.py ones (seeds 501-); "
@@ -165,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
                      augment_profile=args.augment_profile, augment_object_range=args.augment_object_range,
                      twin_episodes=args.twin_episodes, symmetry=tuple(args.symmetry),
                      train_seed=seed, state_noise=args.state_noise,
-                     augment_start_range=args.augment_start_range, augment_trim_holds=args.augment_trim_holds,
+                     augment_start_range=args.augment_start_range,
                      action_steps=args.n_action_steps) for seed in args.train_seed]
     started = time.perf_counter()
     args.out.mkdir(parents=True, exist_ok=True)

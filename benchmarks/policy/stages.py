@@ -55,8 +55,6 @@ class Stages:
             folders, policies and rollouts.
         augment_start_range: manisplat-augment's --start-range (deg): each augmented demonstration's
             arm starts that far from the source's on every joint; other than 0 gets its own folders.
-        augment_trim_holds: manisplat-augment's --trim-holds (the skills without the holds where
-            re-planned motions join them); True gets its own folders.
         symmetry: manisplat-augment's --symmetry items ("box=4"): grasps on the face nearest the
             source's wrist; any gets its own folders, policies and rollouts.
         train_seed: the policy's training seed (initial weights, batches); other than 0, its
@@ -74,8 +72,7 @@ class Stages:
                  augment_speed: float = 1.0, augment_profile: str = "time-optimal",
                  augment_object_range: tuple[float, ...] | None = None, twin_episodes: int = 1,
                  symmetry: tuple[str, ...] = (), train_seed: int = 0, state_noise: float = 0.0,
-                 augment_start_range: float = 0.0, augment_trim_holds: bool = False,
-                 action_steps: int | None = None) -> None:
+                 augment_start_range: float = 0.0, action_steps: int | None = None) -> None:
         self.source, self.work, self.simenv, self.tools = source, work, simenv, tools
         self.object_range, self.place_range, self.twin_iters = object_range, place_range, twin_iters
         self.data_report: dict[str, Any] = {}
@@ -92,10 +89,8 @@ class Stages:
              "_range{:g}x{:g}x{:g}".format(*self.augment_object_range)) + \
             ("" if self.twin_episodes == 1 else f"_twin{self.twin_episodes}") + \
             "".join(f"_sym-{item.replace('=', '')}" for item in symmetry) + \
-            (f"_start{augment_start_range:g}" if augment_start_range else "") + \
-            ("_trimholds" if augment_trim_holds else "")
+            (f"_start{augment_start_range:g}" if augment_start_range else "")
         self.augment_start_range = float(augment_start_range)
-        self.augment_trim_holds = bool(augment_trim_holds)
         self.symmetry = tuple(symmetry)
         self.train_seed = int(train_seed)
         self.state_noise = float(state_noise)
@@ -153,7 +148,6 @@ class Stages:
                      "--object-range", ",".join(map(str, self.augment_object_range)),
                      "--target-range", ",".join(map(str, self.place_range)),
                      "--start-range", str(self.augment_start_range),
-                     *(["--trim-holds"] if self.augment_trim_holds else []),
                      *(f"--symmetry={item}" for item in self.symmetry)])
             self.data_report[f"augment_{n}_s"] = round(time.perf_counter() - start, 1)
         report = json.loads((out / "augment_report.json").read_text())

@@ -273,8 +273,6 @@ class BimanualPlanner:
         """Plan every arm (from ``start_q[arm]``, rad, where given; else the source's first joints),
         put them on one timeline and check them against each other."""
         starts = start_q or {}
-        if self.handovers:  # the shared skill is paced by both arms: neither trims its holds (AugmentConfig)
-            config = replace(config, min_slow={HANDOVER_SKILL: 1.0, **config.min_slow})
         planned = {}
         for name, arm in self.arms.items():
             try:

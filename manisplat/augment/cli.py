@@ -107,11 +107,6 @@ def build_parser() -> argparse.ArgumentParser:
                    help="how re-planned motions are timed: time-optimal (toppra: full acceleration at once) or "
                         "smooth (a quintic: speed rises and falls as a bell, as a teleoperated motion does; "
                         "longer) (default %(default)s)")
-    p.add_argument("--trim-holds", action="store_true",
-                   help="play each skill without the still frames at the ends a re-planned motion joins (where the "
-                        "source came to rest above the object and set off again: the new motion arrives and "
-                        "leaves itself); a still arm teaches a policy to wait without knowing when to go on "
-                        "(default: the skills as recorded)")
     p.add_argument("--planner-timeout", type=positive(), default=1.0,
                    help="seconds the planner may spend on one motion before the sample is given up (default %(default)s)")
     p.add_argument("--workers", type=positive(int), default=1,

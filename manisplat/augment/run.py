@@ -64,8 +64,7 @@ def run_augmentation(args: argparse.Namespace) -> dict:
     if args.overwrite:
         _remove_earlier(args.out)
     args.out.mkdir(parents=True, exist_ok=True)
-    config = AugmentConfig(speed=args.speed, profile=args.profile, trim_holds=args.trim_holds,
-                           planner_timeout_s=args.planner_timeout,
+    config = AugmentConfig(speed=args.speed, profile=args.profile, planner_timeout_s=args.planner_timeout,
                            seed=args.seed, symmetries=_symmetries(twin, args.symmetries))
     planners = {name: _arms_planner(source, args) for name, source in sources.items()}
     if args.start_range > 0:
@@ -307,7 +306,7 @@ def _report(twin: Twin, args: argparse.Namespace, samples: list[Sample], wanted:
         "ranges": {"object": args.object_range, "target": args.target_range, "units": "m, m, deg",
                    **({"handover": args.handover_range, "handover_units": "m, m, m"} if handover else {})},
         "start_range_deg": args.start_range,
-        "speed": args.speed, "profile": args.profile, "trim_holds": args.trim_holds, "workers": args.workers,
+        "speed": args.speed, "profile": args.profile, "workers": args.workers,
         "symmetry": {name: "round" if sym.order is None else sym.order for name, sym in args.symmetries.items()},
         "skill_error_max": {"mm": max(skill_mm, default=0.0), "deg": max(skill_deg, default=0.0)},
         "motions": {"planned": len(motions), "by_method": dict(Counter(r["method"] for r in motions)),

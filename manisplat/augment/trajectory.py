@@ -37,7 +37,7 @@ from __future__ import annotations
 import math
 import time
 import weakref
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -45,12 +45,11 @@ from manisplat.augment.collision import BoxObstacle, SceneCollision
 from manisplat.augment.commands import SourceCommands
 from manisplat.augment.errors import Rejected
 from manisplat.augment.frames import solid_points
-from manisplat.augment.holds import moving_span
 from manisplat.augment.kinematics import PinRobot
 from manisplat.augment.planning import RESOLUTION, path_free, plan_path
 from manisplat.augment.sampling import ObjectTarget, sample_start, sample_targets
 from manisplat.augment.skills import SkillResult, SourceSpline, solve_skill
-from manisplat.augment.source import SkillSpec, SourceDemo, SourceError, source_demo
+from manisplat.augment.source import SourceDemo, SourceError, source_demo
 from manisplat.augment.symmetry import Symmetry, axis_point, wrist_keeping_turn, yaw_of
 from manisplat.augment.timing import PROFILES, REST, TimedMotion, TimingError, time_motion
 from manisplat.augment.validation import check_all, dense_collision, skill_relative_errors, within_limits
@@ -88,8 +87,6 @@ class AugmentConfig:
             pace); a handover skill is played by both arms at one pace.
         symmetries: object name -> its shape's symmetry about the vertical: its skills grasp
             the face that keeps the wrist nearest the source's (:mod:`.symmetry`).
-        trim_holds: play the skills without the holds at the ends a re-planned motion joins
-            (:mod:`.holds`).
     """
 
     speed: float = 1.0
@@ -103,7 +100,6 @@ class AugmentConfig:
     max_support_step: float = MAX_STEP
     min_slow: dict[str, float] = field(default_factory=dict)
     symmetries: dict[str, Symmetry] = field(default_factory=dict)
-    trim_holds: bool = False
 
     def __post_init__(self) -> None:
         if not (0 < self.speed <= 1):
@@ -264,10 +260,9 @@ class Augmenter:
         self._check_support(plan, config.max_support_step)
 
         # 1. skills
-        specs = self.skill_spans(config)
         skills: list[SkillResult] = []
         transforms = []
-        for i, spec in enumerate(specs):
+        for i, spec in enumerate(src.skills):
             p = plan[spec.object]
             if spec.relative_to == "place":
                 T_new, T_src = p["T_place"], p["T_src_place"]
@@ -300,8 +295,8 @@ class Augmenter:
                 q_b = nxt.q[0] if nxt is not None else src.q[-1]
                 v_a = _end_velocity(prev.q, self.dt) if prev is not None else np.zeros(kin.dof)
                 v_b = _start_velocity(nxt.q, self.dt) if nxt is not None else np.zeros(kin.dof)
-                s_a = specs[i - 1].last if prev is not None else 0.0
-                s_b = specs[i].first if nxt is not None else float(src.n_frames - 1)
+                s_a = src.skills[i - 1].last if prev is not None else 0.0
+                s_b = src.skills[i].first if nxt is not None else float(src.n_frames - 1)
                 width = float(prev.gripper[-1]) if prev is not None else float(src.gripper[0])
                 name = _motion_name(i, n, src)
                 piece = self._motion(name, q_a, q_b, v_a, v_b, width, plan, 0.5 * (s_a + s_b), vl, al, config,
@@ -309,7 +304,7 @@ class Augmenter:
                 piece["source_gap"] = (s_a, s_b)
                 pieces.append(piece)
             if nxt is not None:
-                pieces.append({"kind": "skill", "index": i, "spec": specs[i], "result": nxt})
+                pieces.append({"kind": "skill", "index": i, "result": nxt})
         # settle at the end when the last frame is still moving
         last_q = pieces[-1]["result"].q if pieces[-1]["kind"] == "skill" else pieces[-1]["q"]
         v_end = _end_velocity(last_q, self.dt) if len(last_q) >= 2 else np.zeros(kin.dof)
@@ -321,25 +316,6 @@ class Augmenter:
         trajectory = self._assemble(pieces, skills, transforms, plan, config, timings, attempts)
         trajectory.planner["start_offset_deg"] = np.degrees(q_first - src.q[0]).round(3).tolist()
         return trajectory
-
-    def skill_spans(self, config: AugmentConfig) -> list[SkillSpec]:
-        """The source's skills as the new demonstration plays them: with ``config.trim_holds``,
-        without the holds at the ends a re-planned motion joins (:mod:`.holds`; not those of a
-        skill paced with another arm, ``config.min_slow``)."""
-        skills = self.src.skills
-        if not config.trim_holds:
-            return list(skills)
-        last_frame = self.src.n_frames - 1
-        out = []
-        for i, spec in enumerate(skills):
-            if spec.name in config.min_slow:
-                out.append(spec)
-                continue
-            first, last = moving_span(self.src.q, self.src.gripper, self.src.fps, spec.first, spec.last,
-                                      lead=i > 0 or self.plans_first_motion,
-                                      trail=i < len(skills) - 1 or spec.last < last_frame)
-            out.append(replace(spec, first=first, last=last))
-        return out
 
     @property
     def plans_first_motion(self) -> bool:
@@ -565,7 +541,7 @@ class Augmenter:
                 frame += len(body)
             else:
                 i = piece["index"]
-                spec, res = piece["spec"], piece["result"]
+                spec, res = src.skills[i], piece["result"]
                 D, T_new, T_src = transforms[i]
                 first = frame
                 tcp_new = kin.tcp_batch(res.q)

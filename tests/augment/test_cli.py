@@ -182,8 +182,7 @@ def test_the_report_counts_how_the_motions_were_planned():
                                       {"method": "stop along the last velocity"})),
                Sample(2, 2, {}, None, reason="collision")]
     args = SimpleNamespace(recon="twin", seed=0, object_range=(0.08, 0.08, 45), target_range=(0.05, 0.05, 45),
-                           speed=1.0, profile="time-optimal", workers=1, symmetries={}, start_range=0.0,
-                           trim_holds=False)
+                           speed=1.0, profile="time-optimal", workers=1, symmetries={}, start_range=0.0)
     report = _report(SimpleNamespace(episode="ep"), args, samples, 2, {})
     assert report["motions"] == {"planned": 4, "joined_at_rest": 2,
                                  "by_method": {"straight": 1, "rrtconnect": 2, "stop along the last velocity": 1}}

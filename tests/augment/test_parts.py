@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 import torch
 
-from manisplat.augment.holds import HOLD_JOINT_SPEED, moving_span
 from manisplat.augment.kinematics import PinRobot
 from manisplat.augment.sampling import sample_targets
 from manisplat.augment.skills import finite_difference_ratios
@@ -120,25 +119,3 @@ def test_an_unknown_timing_profile_is_refused():
     with pytest.raises(ValueError, match="profile"):
         time_motion(np.stack([np.zeros(6), np.ones(6)]), np.zeros(6), np.zeros(6), vlim=np.ones(6), alim=np.ones(6),
                     dt=0.1, profile="fast")
-
-
-def test_the_still_frames_at_a_skills_joined_ends_are_left_out_and_nothing_else():
-    """moving_span: still intervals (every joint under HOLD_JOINT_SPEED, the gripper still) at the
-    ends asked for are dropped; one the gripper moves in, or one just over the speed, is kept; a
-    skill that never moves is kept whole."""
-    fps = 16.0
-    speed = np.array([0, 0, 0, 1.0, 1.0, 1.0, 1.0, 0.5, 0, 0, 0]) * HOLD_JOINT_SPEED * 3  # rad/s per interval
-    q = np.zeros((12, 6))
-    q[1:, 2] = np.cumsum(speed / fps)
-    gripper = np.full(12, 0.07)
-    assert moving_span(q, gripper, fps, 0, 11, lead=True, trail=True) == (3, 8)
-    assert moving_span(q, gripper, fps, 0, 11, lead=False, trail=True) == (0, 8)
-    assert moving_span(q, gripper, fps, 0, 11, lead=True, trail=False) == (3, 11)
-    assert moving_span(q, gripper, fps, 1, 10, lead=True, trail=True) == (3, 8)
-    closing = gripper.copy()
-    closing[2:] -= 0.002  # the fingers move in interval 1 -> 2 (0.032 m/s)
-    assert moving_span(q, closing, fps, 0, 11, lead=True, trail=True) == (1, 8)
-    barely = q.copy()
-    barely[1:, 4] = np.arange(1, 12) * 1.05 * HOLD_JOINT_SPEED / fps  # another joint just over the speed
-    assert moving_span(barely, gripper, fps, 0, 11, lead=True, trail=True) == (0, 11)
-    assert moving_span(np.zeros((12, 6)), gripper, fps, 0, 11, lead=True, trail=True) == (0, 11)

@@ -17,12 +17,6 @@ from manisplat.augment.source import source_demo
 from manisplat.augment.trajectory import (AugmentConfig, ObjectTarget, Rejected, augment_trajectory, augmenter_for,
                                           sample_targets)
 from manisplat.drivers.piper.trajectory import ReplayLimits, Trajectory, check_trajectory, trajectory_figures
-from manisplat.episode.synthetic import write_sample_episode
-from manisplat.reconstruct.data import load_episode_data
-from manisplat.reconstruct.outputs import twin_of
-from manisplat.reconstruct.pipeline import build
-from manisplat.reconstruct.plan import make_plan
-from manisplat.reconstruct.trainer import TrainConfig
 from manisplat.robot import builtin_piper
 from manisplat.twin.commands import CommandRelation
 
@@ -341,50 +335,3 @@ def test_sampled_starts_stay_within_their_range_and_the_joint_limits():
     assert np.allclose(sample_start(rng, q0, 0.0, lower, upper), np.clip(q0, lower, upper))
     with pytest.raises(ValueError, match="half-range"):
         sample_start(rng, q0, -0.1, lower, upper)
-
-
-def _with_hold(twin, frame: int, n: int):
-    """The twin with its source held still at ``frame`` for ``n`` more frames (everything after it
-    ``n`` frames later): a recording that stopped there."""
-    demo = twin.demonstration
-    again = lambda a: np.insert(a, frame + 1, np.repeat(a[frame:frame + 1], n, axis=0), axis=0)  # noqa: E731
-    shift = lambda f: f + n if f > frame else f  # noqa: E731
-    commands = None if demo.commands is None else replace(
-        demo.commands, press=again(demo.commands.press),
-        gripper=None if demo.commands.gripper is None else again(demo.commands.gripper))
-    held = replace(demo, t=np.arange(len(demo.t) + n) / demo.fps, q=again(demo.q), gripper=again(demo.gripper),
-                   object_poses={k: again(v) for k, v in demo.object_poses.items()},
-                   pose_sources={k: v[:frame + 1] + [v[frame]] * n + v[frame + 1:] for k, v in demo.pose_sources.items()},
-                   phases={k: [replace(p, start=shift(p.start), end=shift(p.end)) for p in v]
-                           for k, v in demo.phases.items()},
-                   commands=commands)
-    return twin.with_demonstration(held)
-
-
-def test_trimmed_holds_leave_out_the_still_frames_where_a_motion_joins_a_skill(tmp_path):
-    """--trim-holds: a source held still for 3 frames as its pick begins is played from where it
-    moves again (the rest of the skill as recorded, at the same pace); a skill paced with another
-    arm's keeps the hold, and without the option the hold is played."""
-    episode = write_sample_episode(tmp_path / "ep", frames=64, fps=16.0, width=80, height=60)
-    data = load_episode_data(episode)
-    rec, alignments = build(data, make_plan(data), TrainConfig(iters=5))
-    twin = twin_of(rec, alignments)
-    pick = next(s for s in augmenter_for(twin).src.skills if s.role == "pick")
-    held = _with_hold(twin, pick.first, 3)
-    first, last = pick.first, pick.last + 3
-    assert next(s for s in augmenter_for(held).src.skills if s.role == "pick").last == last
-    targets = _source_targets(held)
-    kept = augment_trajectory(held, targets, AugmentConfig())
-    trimmed = augment_trajectory(held, targets, AugmentConfig(trim_holds=True))
-    segment = lambda tr: next(s for s in tr.segments if s["name"] == pick.name)  # noqa: E731
-    assert segment(kept)["source_frames"] == [first, last]
-    assert segment(trimmed)["source_frames"] == [first + 3, last]
-    k = segment(trimmed)["slowed"]
-    a, b = segment(kept)["frames"], segment(trimmed)["frames"]
-    assert b[1] - b[0] == math.ceil((last - first - 3) * k - 1e-9) < a[1] - a[0]
-    np.testing.assert_allclose(_tcp(held, trimmed.q[b[0]:b[1] + 1]),
-                               _source_tcp_at(held, first + 3, last, b[1] - b[0] + 1), atol=TOL_M)
-    problems, _ = _replay_problems(trimmed)
-    assert problems == []
-    paced = augment_trajectory(held, targets, AugmentConfig(trim_holds=True, min_slow={pick.name: 1.0}))
-    assert segment(paced)["source_frames"] == [first, last]
