@@ -5,8 +5,9 @@
 
 From one source episode of ``gen_pick_place.py`` (default shared/data/sim_pick_place_small), each
 data condition trains the same policy (``benchmarks/policy``: ACT-style chunks, small CNN, the
-training frames' joint states jittered by 0.1 rad; same budget, once per training seed), then drives ``policy_env.PickPlaceEnv`` closed loop from the evaluation seeds'
-start poses (object within +-8 cm, +-8 cm, +-45 deg; no training demonstration starts there):
+training frames' joint states jittered by 0.1 rad; same budget, once per training seed), then
+drives ``policy_env.PickPlaceEnv`` closed loop from the evaluation seeds' start poses (object
+within +-8 cm, +-8 cm, +-45 deg; no training demonstration starts there):
 
 - **A** the source demonstration alone;
 - **B** the source plus N demonstrations written by ``manisplat-augment`` from a twin that
