@@ -54,24 +54,16 @@ CHUNK = 16  # actions per predicted chunk: benchmarks.policy.train.Budget.chunk 
 
 
 def _seeds(text: str) -> list[int]:
-    """'1000-1049' or '1000,1003,1010' -> seeds."""
+    """'1000-1049', '1000,1003,1010' or '0,1' -> seeds (distinct, >= 0)."""
     seeds: list[int] = []
-    for part in text.split(","):
-        low, _, high = part.partition("-")
-        seeds += list(range(int(low), int(high) + 1)) if high else [int(low)]
-    if not seeds or len(set(seeds)) != len(seeds):
-        raise argparse.ArgumentTypeError(f"{text!r}: distinct seeds, e.g. 1000-1049")
-    return seeds
-
-
-def _train_seeds(text: str) -> list[int]:
-    """'0' or '0,1' -> training seeds (distinct, >= 0)."""
     try:
-        seeds = [int(part) for part in text.split(",")]
+        for part in text.split(","):
+            low, _, high = part.partition("-")
+            seeds += list(range(int(low), int(high) + 1)) if high else [int(low)]
     except ValueError:
         seeds = []
-    if not seeds or min(seeds) < 0 or len(set(seeds)) != len(seeds):
-        raise argparse.ArgumentTypeError(f"{text!r}: distinct training seeds >= 0, e.g. 0 or 0,1")
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise argparse.ArgumentTypeError(f"{text!r}: distinct seeds >= 0, e.g. 1000-1049 or 0,1")
     return seeds
 
 
@@ -115,7 +107,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--symmetry", action="append", default=[], metavar="OBJECT=ORDER|round",
                    help="manisplat-augment --symmetry for B and D (e.g. box=4: the 4 x 4 cm box's grasps on the face "
                         "nearest the source's wrist; default none)")
-    p.add_argument("--train-seed", type=_train_seeds, default=[0], metavar="S[,S...]",
+    p.add_argument("--train-seed", type=_seeds, default=[0], metavar="S[,S...]",
                    help="the policies' training seeds (default 0): each condition is trained and run once per seed "
                         "and reported per seed and over all of them (one seed against another moves a result by "
                         "up to 18 in 50: compare over two or more)")
@@ -176,8 +168,7 @@ def main(argv: list[str] | None = None) -> int:
                 continue  # the source alone does not depend on N
             for stages in seeded:
                 row, runs = stages.condition(condition, n, steps, eval_seeds, envs=ENVS)
-                rows.append({**row, "train_seed": stages.train_seed,
-                             "data": row["condition"].removesuffix(f"_trainseed{stages.train_seed}")})
+                rows.append(row)
                 rollouts[row["condition"]] = runs
                 print(f"  {row['condition']}: {row['successes']}/{row['rollouts']} = {row['success_rate']:.0%} "
                       f"(95 % {row['ci95'][0]:.0%}-{row['ci95'][1]:.0%}), trained {row['train_s']:.0f} s", flush=True)

@@ -228,9 +228,12 @@ class Stages:
     def key(self, condition: str, n: int) -> str:
         """The name of a condition's policy and rollouts: A, C50, B50, B50_speed0.6, B50_twin5,
         C50_trainseed1, ..."""
+        return self.key_over_seeds(condition, n) + (f"_trainseed{self.train_seed}" if self.train_seed else "")
+
+    def key_over_seeds(self, condition: str, n: int) -> str:
+        """The name its policies of every training seed share: :meth:`key` without the seed."""
         name = condition if condition == "A" else f"{condition}{n}" + (self.variant_tag if condition in "BD" else "")
-        return name + (f"_statenoise{self.state_noise:g}" if self.state_noise else "") + \
-            (f"_trainseed{self.train_seed}" if self.train_seed else "")
+        return name + (f"_statenoise{self.state_noise:g}" if self.state_noise else "")
 
     def condition(self, condition: str, n: int, steps: int, seeds: list[int], envs: int
                   ) -> tuple[dict[str, Any], list[Rollout]]:
@@ -243,7 +246,8 @@ class Stages:
         rollouts = self._rollouts(key, policy, seeds, envs)
         successes = sum(r.result["success"] for r in rollouts)
         phases = {p: sum(r.phase == p for r in rollouts) for p in ("reach", "grasp", "transfer", "place")}
-        row = {"condition": key, "demonstrations": len(folders), "frames": policy.frames,
+        row = {"condition": key, "data": self.key_over_seeds(condition, n), "train_seed": self.train_seed,
+               "demonstrations": len(folders), "frames": policy.frames,
                "successes": successes, "rollouts": len(rollouts), "success_rate": successes / len(rollouts),
                "ci95": wilson_interval(successes, len(rollouts)), "train_s": round(policy.seconds, 1),
                "train_loss_end": round(policy.final_loss, 4), "failed_in": phases,

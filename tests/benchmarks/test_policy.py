@@ -200,6 +200,8 @@ def test_a_declared_symmetry_another_range_and_another_training_seed_get_their_o
     assert [seeded.key(c, 50) for c in "ABCD"] == ["A_trainseed1", "B50_trainseed1", "C50_trainseed1",
                                                    "D50_trainseed1"]
     assert seeded.budget_of(9000).seed == 1 and symmetric.budget_of(9000).seed == 0
+    assert [seeded.key_over_seeds(c, 50) for c in "ABCD"] == [symmetric.key_over_seeds(c, 50).replace("_sym-box4", "")
+                                                             for c in "ABCD"] == ["A", "B50", "C50", "D50"]
 
 
 def test_another_start_range_and_state_noise_get_their_own_names(tmp_path):
