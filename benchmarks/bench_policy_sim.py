@@ -1,7 +1,8 @@
 """Policy in the loop: success of one policy trained on A (source), B (source + augmented), C (oracle), D (B in sim renders).
 
     python -m benchmarks policy_sim [--source EP] [--n 50 [200]] [--eval-seeds 1000-1049] [--work DIR] [--quick]
-        [--augment-start-range DEG] [--state-noise RAD] [--train-seed S[,S...]] (and the options of --help)
+        [--augment-start-range DEG] [--state-noise RAD] [--train-seed S[,S...]] [--image-transforms]
+        (and the options of --help)
 
 From one source episode of ``gen_pick_place.py`` (default shared/data/sim_pick_place_small), each
 data condition trains the same policy (``benchmarks/policy``: ACT-style chunks, small CNN, the
@@ -114,6 +115,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--state-noise", type=bounded(0.0, 0.5), default=STATE_NOISE, metavar="RAD",
                    help="Gaussian noise (rad) on the joint states of the training frames, every condition "
                         "(default %(default)g; 0: none)")
+    p.add_argument("--image-transforms", action="store_true",
+                   help="train every condition with LeRobot's image transforms (its --dataset.image_transforms.enable"
+                        "=true: three of brightness, contrast, saturation, hue and sharpness jitter per image)")
     p.add_argument("--n-action-steps", type=bounded(1, CHUNK, int), metavar="K",
                    help="run the first K actions of each predicted chunk open loop, then predict again (LeRobot's "
                         "n_action_steps; default: ACT's temporal ensembling, a chunk every step)")
@@ -154,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
                      (300 if quick else 1000), image_size=args.image_size, augment_speed=args.augment_speed,
                      augment_profile=args.augment_profile, augment_object_range=args.augment_object_range,
                      twin_episodes=args.twin_episodes, symmetry=tuple(args.symmetry),
-                     train_seed=seed, state_noise=args.state_noise,
+                     train_seed=seed, state_noise=args.state_noise, image_transforms=args.image_transforms,
                      augment_start_range=args.augment_start_range,
                      action_steps=args.n_action_steps) for seed in args.train_seed]
     started = time.perf_counter()

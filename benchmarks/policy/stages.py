@@ -62,6 +62,9 @@ class Stages:
         state_noise: rad of Gaussian noise on the training frames' joint states
             (:func:`~benchmarks.policy.train.add_state_noise`); other than 0, its policies and
             rollouts get their own names.
+        image_transforms: train every policy with LeRobot's image transforms
+            (:func:`~benchmarks.policy.train.jitter_images`); on, its policies and rollouts get
+            their own names.
         action_steps: how the policy runs (:func:`~benchmarks.policy.rollout.executor`): None,
             temporal ensembling; k, the first k actions of each chunk open loop (its rollouts get
             their own names; the policies are the same).
@@ -72,7 +75,8 @@ class Stages:
                  augment_speed: float = 1.0, augment_profile: str = "time-optimal",
                  augment_object_range: tuple[float, ...] | None = None, twin_episodes: int = 1,
                  symmetry: tuple[str, ...] = (), train_seed: int = 0, state_noise: float = 0.0,
-                 augment_start_range: float = 0.0, action_steps: int | None = None) -> None:
+                 augment_start_range: float = 0.0, action_steps: int | None = None,
+                 image_transforms: bool = False) -> None:
         self.source, self.work, self.simenv, self.tools = source, work, simenv, tools
         self.object_range, self.place_range, self.twin_iters = object_range, place_range, twin_iters
         self.data_report: dict[str, Any] = {}
@@ -94,6 +98,7 @@ class Stages:
         self.symmetry = tuple(symmetry)
         self.train_seed = int(train_seed)
         self.state_noise = float(state_noise)
+        self.image_transforms = bool(image_transforms)
         self.action_steps = action_steps
         #: the rollout files' tag: the environment's options and how the policy ran
         self.rollout_tag = ENV_TAG + ("" if action_steps is None else f"_steps{action_steps}")
@@ -223,7 +228,8 @@ class Stages:
 
     # ------------------------------------------------------------------ policies
     def budget_of(self, steps: int) -> Budget:
-        return Budget(steps=steps, seed=self.train_seed, state_noise=self.state_noise)
+        return Budget(steps=steps, seed=self.train_seed, state_noise=self.state_noise,
+                      image_transforms=self.image_transforms)
 
     def key(self, condition: str, n: int) -> str:
         """The name of a condition's policy and rollouts: A, C50, B50, B50_speed0.6, B50_twin5,
@@ -233,7 +239,8 @@ class Stages:
     def key_over_seeds(self, condition: str, n: int) -> str:
         """The name its policies of every training seed share: :meth:`key` without the seed."""
         name = condition if condition == "A" else f"{condition}{n}" + (self.variant_tag if condition in "BD" else "")
-        return name + (f"_statenoise{self.state_noise:g}" if self.state_noise else "")
+        return name + (f"_statenoise{self.state_noise:g}" if self.state_noise else "") + \
+            ("_imagetransforms" if self.image_transforms else "")
 
     def condition(self, condition: str, n: int, steps: int, seeds: list[int], envs: int
                   ) -> tuple[dict[str, Any], list[Rollout]]:

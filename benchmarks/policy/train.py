@@ -31,6 +31,7 @@ class Budget:
     lr: float = 1e-3
     seed: int = 0
     state_noise: float = 0.0  # rad: Gaussian noise added to the training frames' joint states (see add_state_noise)
+    image_transforms: bool = False  # LeRobot's colour and sharpness jitter on the training images (see jitter_images)
 
 
 @dataclass
@@ -60,7 +61,40 @@ class Normaliser:
 
 def image_input(images: torch.Tensor) -> torch.Tensor:
     """(B, 3, H, W) uint8 -> float, about [-2, 2]."""
-    return (images.float() / 255.0 - IMAGE_MEAN) / IMAGE_STD
+    return normalised(images.float() / 255.0)
+
+
+def normalised(images: torch.Tensor) -> torch.Tensor:
+    """(B, 3, H, W) float in [0, 1] -> about [-2, 2]."""
+    return (images - IMAGE_MEAN) / IMAGE_STD
+
+
+def lerobot_image_transforms() -> tuple[torch.nn.Module, ...]:
+    """LeRobot's default dataset image transforms (what ``--dataset.image_transforms.enable=true``
+    switches on), in its order, as kornia augmentations: brightness x0.8-1.2, contrast x0.8-1.2,
+    saturation x0.5-1.5, hue +-0.05 turn, sharpness 0.5-1.5 (0 blurred, 1 as it is)."""
+    import kornia.augmentation as K
+
+    return (K.ColorJitter(brightness=(0.8, 1.2), p=1.0), K.ColorJitter(contrast=(0.8, 1.2), p=1.0),
+            K.ColorJitter(saturation=(0.5, 1.5), p=1.0), K.ColorJitter(hue=(-0.05, 0.05), p=1.0),
+            K.RandomSharpness(sharpness=(0.5, 1.5), p=1.0))
+
+
+def jitter_images(images: torch.Tensor, generator: torch.Generator, transforms: tuple[torch.nn.Module, ...],
+                  per_image: int = 3) -> torch.Tensor:
+    """(B, 3, H, W) float images in [0, 1], each through ``per_image`` of ``transforms`` drawn
+    at random (LeRobot's ``max_num_transforms``, 3 by default), applied in the order given.
+
+    Why: a policy trained on the twin's renders is run on other images (the simulator's here, a
+    camera's on a robot); jittered colour and sharpness keep it from keying on the renders' own
+    shading and softness."""
+    chosen = torch.rand(len(images), len(transforms), generator=generator).argsort(dim=1)[:, :per_image]
+    out = images.clone()
+    for k, transform in enumerate(transforms):
+        rows = (chosen == k).any(dim=1)
+        if bool(rows.any()):
+            out[rows] = transform(out[rows])
+    return out
 
 
 def random_shift(images: torch.Tensor, generator: torch.Generator, pad: int = SHIFT_PX) -> torch.Tensor:
@@ -117,11 +151,15 @@ def train(demos: Demonstrations, budget: Budget, progress: bool = True) -> Train
     schedule = torch.optim.lr_scheduler.LambdaLR(
         optimiser, lambda s: 0.5 * (1 + math.cos(math.pi * min(s / budget.steps, 1.0))))
     start, losses = time.perf_counter(), []
+    transforms = lerobot_image_transforms() if budget.image_transforms else ()
     from tqdm import tqdm
 
     for _ in tqdm(range(budget.steps), desc="train", disable=not progress, mininterval=5):
         index = torch.randint(0, len(demos), (budget.batch,), generator=generator)
-        images = random_shift(image_input(demos.images[index]), generator)
+        images = demos.images[index].float() / 255.0
+        if transforms:
+            images = jitter_images(images, generator, transforms)
+        images = random_shift(normalised(images), generator)
         target = norm.action(demos.chunks(index, budget.chunk))
         state = norm.state(add_state_noise(demos.state[index], budget.state_noise, generator))
         loss = F.l1_loss(model(images, state), target)

@@ -19,6 +19,9 @@ class TrainConfig:
             at most ``growth_cap`` times its initial size (unbounded growth on these sharp
             synthetic images multiplied the Gaussians by 6 and the time with them).
         shadows: learn cast shadows of the moving parts (searched at ``shadow_start``).
+        shadow_receivers: what they darken: "all" (the background and the moving parts: the
+            gripper's shadow on the object, the arm's on itself) or "background" (the earlier
+            model, whose moving parts bake what shadows they had in the recording into colour).
         shadow_resolution: the shadow map's size (pixels a side; it spans about twice the
             robot's reach). None: a texel about one camera pixel wide at the robot
             (:func:`manisplat.scene.shadows.matched_resolution`; 368 for the simulator's
@@ -60,6 +63,7 @@ class TrainConfig:
     shadows: bool = True
     shadow_start: int = 300
     shadow_resolution: int | None = None
+    shadow_receivers: str = "all"
     sh_degree: int = 2
     sh_every: int = 500
     refine_camera: bool = False
@@ -88,6 +92,8 @@ def default_iters(device: str) -> int:
 
 
 COMPILE_CHOICES = ("auto", "on", "off")
+#: TrainConfig.shadow_receivers' values (manisplat.scene.shadows.RECEIVERS, here without torch)
+SHADOW_RECEIVERS = ("all", "background")
 #: "auto" compiles a CUDA run of at least this many iterations: on an H100, over whole runs of
 #: sim_pick_place_small (densification, held-out estimates, 65 600 Gaussians), an iteration took
 #: 39.4 ms eagerly (gpu_eager/tests_long_pp_10000.json) and 19.7 ms compiled after about 240 s of

@@ -375,6 +375,9 @@ def _light(shadows) -> dict:
             "elevation_deg": round(math.degrees(math.asin(max(-1.0, min(1.0, float(d[2]))))), 2),
             "azimuth_deg": round(math.degrees(math.atan2(float(d[1]), float(d[0]))), 2),
             "strength": [round(float(x), 4) for x in shadows.strength.detach().cpu()],
+            "receivers": shadows.receivers,
+            "strength_moving": None if shadows.moving_strength is None else
+            [round(float(x), 4) for x in shadows.moving_strength.detach().cpu()],
             "shadow_map_px": shadows.resolution}
 
 

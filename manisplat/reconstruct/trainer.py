@@ -151,8 +151,11 @@ class Reconstruction:
 
     @staticmethod
     def _light_groups(model: DirectionalShadows) -> list[dict]:
-        return [{"params": [model.direction], "lr": 1e-3, "name": "light_direction"},
-                {"params": [model.strength_logit], "lr": 1e-2, "name": "light_strength"}]
+        groups = [{"params": [model.direction], "lr": 1e-3, "name": "light_direction"},
+                  {"params": [model.strength_logit], "lr": 1e-2, "name": "light_strength"}]
+        if model.receivers == "all":
+            groups.append({"params": [model.moving_strength_logit], "lr": 1e-2, "name": "light_strength_moving"})
+        return groups
 
     # ------------------------------------------------------------------ rendering
     def object_poses(self, frame: int, evaluation: dict[str, np.ndarray] | None = None) -> dict[str, torch.Tensor]:
@@ -384,8 +387,8 @@ class Reconstruction:
         center = links.mean(0)
         extent = 2.2 * float((links - center).norm(dim=-1).max())
         resolution = self.config.shadow_resolution or matched_resolution(center, extent, self.viewmat(), d.K)
-        model = DirectionalShadows(torch.tensor([0.0, 0.0, 1.0]), center.cpu(), extent,
-                                   resolution=resolution).to(self.device)
+        model = DirectionalShadows(torch.tensor([0.0, 0.0, 1.0]), center.cpu(), extent, resolution=resolution,
+                                   receivers=self.config.shadow_receivers).to(self.device)
         points, _, _, _, colors = (x.detach() for x in self.graph.background.activated())
         V, K = self.viewmat().detach(), d.K
         cam = points @ V[:3, :3].T + V[:3, 3]
@@ -410,6 +413,7 @@ class Reconstruction:
         direction, strength, _ = search_direction(model, points, colors, observations)
         model.direction.copy_(direction)
         model.strength_logit.copy_(torch.logit(strength.clamp(0.05, 0.95)))
+        model.moving_strength_logit.copy_(model.strength_logit)
         self.graph.shadows = model
         for group in self._light_groups(model):
             self.optimizer.add_param_group(group)
@@ -434,7 +438,8 @@ class Reconstruction:
             "view_exposures": {name: e.fitted.clone() for name, e in (self.exposures or {}).items()
                                if name != self.data.camera_name},
             "shadows": self.graph.shadows.state_dict() if self.graph.shadows is not None else None,
-            "shadow_geometry": (self.graph.shadows.extent, self.graph.shadows.resolution) if self.graph.shadows else None,
+            "shadow_geometry": (self.graph.shadows.extent, self.graph.shadows.resolution,
+                                self.graph.shadows.receivers) if self.graph.shadows else None,
             "rng": self._rng.getstate(), "torch_rng": torch.get_rng_state(),
             "cuda_rng": torch.cuda.get_rng_state(self.device) if self.device.type == "cuda" else None,
         }
@@ -475,8 +480,9 @@ class Reconstruction:
                     self.exposures[name].fitted.copy_(fitted)
         self.graph.shadows = None
         if state["shadows"] is not None:
-            extent, resolution = state["shadow_geometry"]
-            sh = DirectionalShadows(torch.tensor([0.0, 0.0, 1.0]), torch.zeros(3), extent, resolution=resolution)
+            extent, resolution, receivers = state["shadow_geometry"]
+            sh = DirectionalShadows(torch.tensor([0.0, 0.0, 1.0]), torch.zeros(3), extent, resolution=resolution,
+                                    receivers=receivers)
             sh.load_state_dict(state["shadows"])
             self.graph.shadows = sh.to(dev)
         self.optimizer = self._make_optimizer()

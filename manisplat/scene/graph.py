@@ -60,7 +60,7 @@ class SceneGraph:
         self.links = links
         self.link_index = {name: i for i, name in enumerate(link_order)}
         self.objects = objects
-        self.shadows: DirectionalShadows | None = None  # cast shadows of moving nodes on the background
+        self.shadows: DirectionalShadows | None = None  # cast shadows of the moving nodes (DirectionalShadows.receivers)
         self._index_cache: tuple | None = None  # see _node_index
 
     @property
@@ -124,7 +124,11 @@ class SceneGraph:
             start += n
         if self.shadows is not None and self.background is not None and len(parts) > 1:
             occluders = tuple(torch.cat([p[k] for p in parts[1:]]) for k in range(4))
-            parts[0][4] = self.shadows.shade(parts[0][4], parts[0][0], occluders)
+            shadow = self.shadows.shadow_inputs(occluders)
+            parts[0][4] = darken(parts[0][4], parts[0][0], *shadow)
+            if self.shadows.receivers == "all":
+                for part in parts[1:]:
+                    part[4] = darken(part[4], part[0].detach(), self.shadows.moving_strength_logit, *shadow[1:])
         cat = [torch.cat(x) for x in zip(*parts)]
         return Composed(*cat, slices=slices)
 
@@ -166,7 +170,9 @@ class SceneGraph:
         for n, count in zip(dynamic, counts):
             slices[n.name] = (start, start + count)
             start += count
-        return Composed(*_shade_and_join(bg, moving, shadow), groups, slices=slices)
+        moving_strength = self.shadows.moving_strength_logit if shadow is not None and \
+            self.shadows.receivers == "all" else None
+        return Composed(*_shade_and_join(bg, moving, shadow, moving_strength), groups, slices=slices)
 
     def _node_index(self, background: int, counts: tuple[int, ...], groups: list[int],
                     device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
@@ -186,12 +192,19 @@ class SceneGraph:
 
 
 @compilable
-def _shade_and_join(background: Activated | None, moving: Activated, shadow: tuple | None) -> Activated:
+def _shade_and_join(background: Activated | None, moving: Activated, shadow: tuple | None,
+                    moving_strength_logit: torch.Tensor | None = None) -> Activated:
     """The union of the background (its colours darkened where ``shadow``, the inputs of
-    :func:`~manisplat.scene.shadows.darken` after the colours and points, says) and the moving nodes."""
+    :func:`~manisplat.scene.shadows.darken` after the colours and points, says) and the moving nodes
+    (darkened too, by ``moving_strength_logit`` [3] in place of the background's strength, when
+    given; their positions detached)."""
     if background is None:
         return moving
     if shadow is not None:
         means, quats, scales, opacities, colors = background
         background = (means, quats, scales, opacities, darken(colors, means, *shadow))
+        if moving_strength_logit is not None:
+            means, quats, scales, opacities, colors = moving
+            moving = (means, quats, scales, opacities,
+                      darken(colors, means.detach(), moving_strength_logit, *shadow[1:]))
     return join([background, moving])

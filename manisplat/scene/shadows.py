@@ -8,6 +8,12 @@ projected into that view; where an occluder lies in front of it, its colour is s
 ``1 - strength * occlusion`` (strength per colour channel, learned). The light direction is
 learned too (through the rasterizer's viewmat gradient); it starts from a coarse search.
 The occluders' geometry is detached in the light pass: shadows tune the light, not the robot.
+
+With ``receivers="all"`` the moving nodes' Gaussians receive shadows too (their positions detached
+likewise), with a strength of their own (a table and a link's surface turned elsewhere lose
+different shares of their light): the gripper darkens the object under it and the arm darkens
+itself, as in the images, instead of that darkening being baked into their colours where the
+recording had it and missing where a new demonstration puts it.
 """
 
 from __future__ import annotations
@@ -21,6 +27,7 @@ from manisplat.compilation import compilable
 from manisplat.splat import rasterization
 
 LIGHT_DISTANCE = 100.0  # m: far enough that the pinhole light camera is nearly orthographic
+RECEIVERS = ("all", "background")  # which Gaussians receive the shadows (DirectionalShadows.receivers)
 
 
 @compilable
@@ -79,19 +86,31 @@ class DirectionalShadows(torch.nn.Module):
         center, extent: where the shadow map looks (m) and how wide it is; cover the robot's reach.
         resolution: shadow-map size in pixels.
         softness: occluder depth margin (m) below which a point is not considered shadowed.
+        receivers: which Gaussians the shadows darken: "background" or "all" (the moving nodes
+            too; see the module's docstring).
     """
 
     def __init__(self, direction: torch.Tensor, center: torch.Tensor, extent: float, *, resolution: int = 128,
-                 softness: float = 0.02, strength: float = 0.4) -> None:
+                 softness: float = 0.02, strength: float = 0.4, receivers: str = "all") -> None:
+        if receivers not in RECEIVERS:
+            raise ValueError(f"shadow receivers must be one of {RECEIVERS}, not {receivers!r}")
         super().__init__()
         self.direction = torch.nn.Parameter(direction.float() / direction.norm())
         self.strength_logit = torch.nn.Parameter(torch.full((3,), math.log(strength / (1 - strength))))
+        self.moving_strength_logit = torch.nn.Parameter(self.strength_logit.detach().clone())
         self.register_buffer("center", center.float())
         self.extent, self.resolution, self.softness = float(extent), int(resolution), float(softness)
+        self.receivers = receivers
 
     @property
     def strength(self) -> torch.Tensor:
+        """[3] share of the light the background loses in full shadow."""
         return torch.sigmoid(self.strength_logit)
+
+    @property
+    def moving_strength(self) -> torch.Tensor | None:
+        """[3] the same for the moving nodes' Gaussians (None unless ``receivers == "all"``)."""
+        return torch.sigmoid(self.moving_strength_logit) if self.receivers == "all" else None
 
     def occlusion(self, points: torch.Tensor, occluders: tuple[torch.Tensor, ...]) -> torch.Tensor:
         """How much of the light each point [N, 3] loses to the occluders, in [0, 1]: [N].

@@ -56,7 +56,7 @@ def save_twin(twin: Twin, folder: Path) -> None:
     light = None
     if twin.graph.shadows is not None:
         sh = twin.graph.shadows
-        light = {"extent": sh.extent, "resolution": sh.resolution, "softness": sh.softness}
+        light = {"extent": sh.extent, "resolution": sh.resolution, "softness": sh.softness, "receivers": sh.receivers}
         tensors.update({f"shadows/{k}": v.detach().cpu().clone() for k, v in sh.state_dict().items()})
     support = None
     if twin.support is not None:
@@ -142,8 +142,10 @@ def load_twin(folder: Path, *, backend: str = "auto", device: torch.device | str
     if meta["shadows"] is not None:
         light = meta["shadows"]
         sh = DirectionalShadows(torch.tensor([0.0, 0.0, 1.0]), torch.zeros(3), light["extent"],
-                                resolution=light["resolution"], softness=light["softness"])
-        sh.load_state_dict({k: tensor(f"shadows/{k}") for k in sh.state_dict()})
+                                resolution=light["resolution"], softness=light["softness"],
+                                receivers=light.get("receivers", "background"))  # twins before receivers: background
+        stored = [k for k in sh.state_dict() if "receivers" in light or k != "moving_strength_logit"]
+        sh.load_state_dict({k: tensor(f"shadows/{k}") for k in stored}, strict="receivers" in light)
         graph.shadows = sh.to(device)
     support = None
     if meta.get("support") is not None:  # twins written before support maps have none

@@ -81,7 +81,9 @@ def test_random_shift_moves_whole_images_by_at_most_the_pad():
     assert len(set(zip(rows.tolist(), cols.tolist()))) > 5  # not the same shift every time
 
 
-def test_the_policy_learns_where_a_bright_spot_is():
+@pytest.mark.parametrize("image_transforms", [False, True])
+def test_the_policy_learns_where_a_bright_spot_is(image_transforms):
+    """With or without LeRobot's colour and sharpness jitter on the training images."""
     torch.manual_seed(0)
     n, h, w = 64, 24, 32
     xy = torch.rand(n, 2)
@@ -91,7 +93,8 @@ def test_the_policy_learns_where_a_bright_spot_is():
         images[i, :, r - 2:r + 3, c - 2:c + 3] = 255
     actions = torch.cat([xy, torch.zeros(n, 5)], 1)  # the action says where the spot is
     demos = _demos(images, actions, [1] * n)
-    policy = train(demos, Budget(steps=150, batch=16, chunk=2, lr=3e-3), progress=False)
+    policy = train(demos, Budget(steps=150, batch=16, chunk=2, lr=3e-3, image_transforms=image_transforms),
+                   progress=False)
     with torch.no_grad():
         out = policy.normaliser.unaction(policy.model(image_input(images), policy.normaliser.state(demos.state)))
     error = (out[:, 0, :2] - xy).abs().mean()
@@ -316,3 +319,51 @@ def test_reliance_shows_which_input_a_policy_follows(blind):
         image, state = np.array(row["image_swapped_deg"]), np.array(row["state_swapped_deg"])
         assert (image == 0).all() and (state > 0.01).all() if blind == "image" else (state == 0).all() and (image > 0.01).all()
         assert (np.array(row["targets_differ_deg"]) > 0).all()
+
+
+class _Adds(torch.nn.Module):
+    def __init__(self, amount: float) -> None:
+        super().__init__()
+        self.amount = amount
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        return images + self.amount
+
+
+def test_each_training_image_goes_through_three_of_the_transforms():
+    """LeRobot's max_num_transforms: three of the five per image, drawn per image."""
+    from benchmarks.policy.train import jitter_images
+
+    transforms = tuple(_Adds(2.0 ** k) for k in range(5))  # the sum names the subset
+    images = torch.zeros(200, 3, 4, 4)
+    out = jitter_images(images, torch.Generator().manual_seed(0), transforms)
+    sums = out[:, 0, 0, 0].long()
+    assert all(bin(int(s)).count("1") == 3 for s in sums)
+    assert len(set(sums.tolist())) == 10  # every one of the C(5, 3) subsets occurs
+    assert torch.all(images == 0), "the input is left as it was"
+
+
+def test_lerobots_transforms_jitter_colour_and_sharpness_within_the_image_range():
+    from benchmarks.policy.train import jitter_images, lerobot_image_transforms
+
+    torch.manual_seed(0)
+    images = torch.rand(16, 3, 24, 32)
+    out = jitter_images(images, torch.Generator().manual_seed(0), lerobot_image_transforms())
+    assert out.shape == images.shape and float(out.min()) >= 0.0 and float(out.max()) <= 1.0
+    changed = (out - images).abs().flatten(1).amax(1)
+    assert bool((changed > 0.01).all()), "every image is jittered"
+
+
+def test_image_transforms_get_their_own_policies(tmp_path):
+    from manisplat.episode.synthetic import write_sample_episode
+
+    from benchmarks.bench_policy_sim import _parser
+    from benchmarks.policy.stages import Stages
+
+    source = write_sample_episode(tmp_path / "sample", frames=8, width=160, height=120)
+    jittered = Stages(source, tmp_path / "work", tmp_path / "python", tmp_path / "tools", (0.05, 0.05, 30.0),
+                      (0.02, 0.02, 30.0), 10, state_noise=0.1, image_transforms=True)
+    assert jittered.key("B", 50) == "B50_statenoise0.1_imagetransforms"
+    assert jittered.budget_of(9000).image_transforms
+    assert _parser().parse_args(["--image-transforms"]).image_transforms
+    assert not _parser().parse_args([]).image_transforms

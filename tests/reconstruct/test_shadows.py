@@ -1,13 +1,18 @@
-"""Cast shadows: the light camera, which points are occluded, and finding the light direction."""
+"""Cast shadows: the light camera, which points are occluded, what they darken, and finding the light
+direction."""
 
 from __future__ import annotations
 
 import math
 
+import pytest
 import torch
 
-from manisplat.scene.shadows import (DirectionalShadows, direction_from_angles, light_camera, matched_resolution,
-                                     search_direction)
+from manisplat.reconstruct.config import SHADOW_RECEIVERS
+from manisplat.scene.gaussians import GaussianSet
+from manisplat.scene.graph import SceneGraph
+from manisplat.scene.shadows import (RECEIVERS, DirectionalShadows, direction_from_angles, light_camera,
+                                     matched_resolution, search_direction)
 
 
 def blob(center, radius=0.05, n=200, seed=0):
@@ -75,3 +80,54 @@ def test_search_recovers_the_light_direction():
     angle = math.degrees(math.acos(float(torch.clamp(direction @ true, -1, 1))))
     assert angle < 6.0  # the fine grid is 10 deg in azimuth and 5 deg in elevation
     assert torch.allclose(strength, torch.full((3,), 0.5), atol=0.15)
+
+
+def _node(points: torch.Tensor, sh_degree: int = 0) -> GaussianSet:
+    return GaussianSet.from_points(points, torch.full_like(points, 0.8), 0.01, opacity=0.95, sh_degree=sh_degree)
+
+
+@pytest.mark.parametrize("path", ["batched", "node by node"])
+@pytest.mark.parametrize("receivers", ["all", "background"])
+def test_the_moving_parts_receive_shadows_with_their_own_strength(path, receivers):
+    """A link held above an object between it and the light darkens the object by the moving
+    parts' strength (not the table's) when they receive shadows, and never an object beside it;
+    with ``receivers="background"`` only the table darkens. Both ways of composing agree."""
+    light = direction_from_angles(0.0, math.radians(60))
+    under = torch.tensor([0.0, 0.0, 0.05])
+    link_points = blob(torch.zeros(3), radius=0.05, n=300)[0]  # in the link's frame
+    link_pose = torch.eye(4)
+    link_pose[:3, 3] = under + 0.3 * light
+    box = torch.tensor([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0]])
+    table = torch.tensor([[0.0, 0.0, -0.02], [0.5, 0.5, -0.02]])
+    graph = SceneGraph(_node(table), {"link1": _node(link_points, sh_degree=int(path == "node by node"))},
+                       ["link1"], {"shaded": _node(box), "lit": _node(box)})
+    graph.shadows = DirectionalShadows(light, torch.zeros(3), extent=1.2, receivers=receivers)
+    with torch.no_grad():
+        graph.shadows.strength_logit.fill_(math.log(0.2 / 0.8))  # the table loses 20 %
+        graph.shadows.moving_strength_logit.fill_(math.log(0.6 / 0.4))  # the moving parts 60 %
+    lit_pose = torch.eye(4)
+    lit_pose[:3, 3] = torch.tensor([0.4, -0.4, 0.05])
+    shaded_pose = torch.eye(4)
+    shaded_pose[:3, 3] = under
+    with torch.no_grad():
+        g = graph.compose(link_pose[None], {"shaded": shaded_pose, "lit": lit_pose})
+    colour = {name: g.colors[start:end] for name, (start, end) in g.slices.items()}
+    base = torch.sigmoid(torch.logit(torch.tensor(0.8)))
+    assert 1 - colour["background"][0].mean() / base == pytest.approx(0.2, abs=0.03)  # under the link
+    assert torch.allclose(colour["background"][1], torch.full((3,), base), atol=1e-4)
+    darkened = {name: float(1 - colour[f"object/{name}"].mean() / base) for name in ("shaded", "lit")}
+    if receivers == "all":
+        assert darkened["shaded"] == pytest.approx(0.6, abs=0.05)
+        # a surface's own Gaussians, at the shadow map's depth, sit within its softness margin
+        assert darkened["lit"] < 0.1
+    else:
+        assert darkened == {"shaded": pytest.approx(0.0, abs=1e-6), "lit": pytest.approx(0.0, abs=1e-6)}
+
+
+def test_unknown_receivers_are_refused():
+    with pytest.raises(ValueError, match="receivers"):
+        DirectionalShadows(torch.tensor([0.0, 0.0, 1.0]), torch.zeros(3), extent=1.0, receivers="robot")
+
+
+def test_the_cli_offers_the_shadow_models_receivers():
+    assert SHADOW_RECEIVERS == RECEIVERS  # the CLI's torch-free copy

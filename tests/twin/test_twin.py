@@ -40,6 +40,10 @@ def test_the_twin_renders_the_training_state_as_the_trainer_does(trained):
     rec, out, _ = trained
     twin = Twin.load(out)
     assert twin.graph.shadows is not None, "the learned light must travel with the twin"
+    assert twin.graph.shadows.receivers == "all"
+    torch.testing.assert_close(twin.graph.shadows.moving_strength, rec.graph.shadows.moving_strength)
+    assert not torch.allclose(rec.graph.shadows.moving_strength, rec.graph.shadows.strength), \
+        "trained apart, the moving parts' strength and the background's differ"
     evaluation = rec.evaluation_poses()
     for frame in (0, 7, 15):
         with torch.no_grad():
@@ -162,3 +166,19 @@ def test_a_twin_written_in_version_1_still_loads_and_renders_the_same(trained, t
     (old / "twin.json").write_text(json.dumps(meta))
     with pytest.raises(TwinFormatError, match="version 3"):
         Twin.load(old)
+
+
+def test_a_twin_written_before_shadow_receivers_keeps_its_shadows_on_the_background(trained, tmp_path):
+    """Its moving parts were trained without receiving shadows: they must render as they were
+    trained (shadows on the background only), not darkened by a strength they never had."""
+    _, out, _ = trained
+    old = tmp_path / "old"
+    shutil.copytree(out, old)
+    meta = json.loads((old / "twin.json").read_text())
+    del meta["shadows"]["receivers"]
+    (old / "twin.json").write_text(json.dumps(meta))
+    tensors = torch.load(old / "twin.pt", weights_only=True)
+    del tensors["shadows/moving_strength_logit"]
+    torch.save(tensors, old / "twin.pt")
+    shadows = Twin.load(old).graph.shadows
+    assert shadows.receivers == "background" and shadows.moving_strength is None
