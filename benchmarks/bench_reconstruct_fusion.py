@@ -75,9 +75,10 @@ def main(argv: list[str] | None = None) -> int:
         twins[count]["new_poses"] = _new_poses(simenv, work / f"twin_{count}", work / f"aug_{count}", episodes[0],
                                                args.demos)
         print(f"{count} episodes, new poses: {json.dumps(twins[count]['new_poses']['mean'])}", flush=True)
-    registration = _registration(episodes)
-    print(f"registration: rotation error median {registration['rotation_deg_median']:.2f} deg, "
-          f"max {registration['rotation_deg_max']:.2f}", flush=True)
+    registration = _registration(episodes) if len(episodes) > 1 else None  # one episode: nothing to register
+    if registration is not None:
+        print(f"registration: rotation error median {registration['rotation_deg_median']:.2f} deg, "
+              f"max {registration['rotation_deg_max']:.2f}", flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     sheet = args.out.with_name(args.out.stem + "_sheet.png")
     _sheet(work, counts, sheet)
