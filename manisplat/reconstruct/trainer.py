@@ -480,10 +480,10 @@ class Reconstruction:
                     self.exposures[name].fitted.copy_(fitted)
         self.graph.shadows = None
         if state["shadows"] is not None:
-            extent, resolution, receivers = state["shadow_geometry"]
+            extent, resolution, *receivers = state["shadow_geometry"]  # checkpoints before receivers: background
             sh = DirectionalShadows(torch.tensor([0.0, 0.0, 1.0]), torch.zeros(3), extent, resolution=resolution,
-                                    receivers=receivers)
-            sh.load_state_dict(state["shadows"])
+                                    receivers=receivers[0] if receivers else "background")
+            sh.load_state_dict(state["shadows"], strict=bool(receivers))
             self.graph.shadows = sh.to(dev)
         self.optimizer = self._make_optimizer()
         self.optimizer.load_state_dict(state["optimizer"])  # moves the moments to the parameters' device

@@ -174,17 +174,34 @@ def test_a_checkpoint_continues_exactly(pick, tmp_path):
     rec.train(progress=False)
     assert rec.graph.shadows.resolution == 96  # the configured shadow map
     rec.save_checkpoint(tmp_path / "c.pt")
+    rec_moving_strength = rec.graph.shadows.moving_strength.detach().clone()
     rec.config.iters = 14
     rec.train(progress=False)
 
     resumed, _ = _reconstruction(pick, iters=14, device="cpu")
     resumed.load_state_dict(torch.load(tmp_path / "c.pt", weights_only=True, map_location="cpu"))
     assert resumed.step == 10 and resumed.graph.shadows is not None and resumed.graph.shadows.resolution == 96
+    assert resumed.graph.shadows.receivers == "all"
+    torch.testing.assert_close(resumed.graph.shadows.moving_strength, rec_moving_strength)
     resumed.train(progress=False)
     for a, b in zip(rec.graph.nodes(), resumed.graph.nodes()):
         for k in a.gaussians.params:
             torch.testing.assert_close(a.gaussians.params[k], b.gaussians.params[k], rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(rec.trajectories["box"].xi, resumed.trajectories["box"].xi)
+
+
+def test_a_checkpoint_from_before_shadow_receivers_resumes_with_shadows_on_the_background(pick):
+    """Its light has no strength for the moving parts and its shadow geometry no receivers."""
+    rec, _ = _reconstruction(pick, iters=10, device="cpu", shadow_resolution=96, shadow_receivers="background")
+    rec.train(progress=False)
+    state = rec.state_dict()
+    state["shadow_geometry"] = state["shadow_geometry"][:2]
+    del state["shadows"]["moving_strength_logit"]
+    resumed, _ = _reconstruction(pick, iters=12, device="cpu")
+    resumed.load_state_dict(state)
+    assert resumed.graph.shadows.receivers == "background" and resumed.graph.shadows.moving_strength is None
+    resumed.train(progress=False)
+    assert resumed.step == 12
 
 
 def test_a_checkpoint_of_the_older_per_node_format_is_refused_clearly(pick):
