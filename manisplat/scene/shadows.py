@@ -119,10 +119,6 @@ class DirectionalShadows(torch.nn.Module):
         """
         return _sample_occlusion(points, *self._shadow_map(occluders), self.softness)
 
-    def shade(self, colors: torch.Tensor, points: torch.Tensor, occluders: tuple[torch.Tensor, ...]) -> torch.Tensor:
-        """Colours [N, 3] of points [N, 3] darkened where the occluders shadow them."""
-        return darken(colors, points, *self.shadow_inputs(occluders))
-
     def shadow_inputs(self, occluders: tuple[torch.Tensor, ...]) -> tuple:
         """What :func:`darken` needs after the colours and points: (strength logit [3], the
         occluders' shadow map, its light camera, softness)."""

@@ -11,7 +11,7 @@ import torch
 from manisplat.reconstruct.config import SHADOW_RECEIVERS
 from manisplat.scene.gaussians import GaussianSet
 from manisplat.scene.graph import SceneGraph
-from manisplat.scene.shadows import (RECEIVERS, DirectionalShadows, direction_from_angles, light_camera,
+from manisplat.scene.shadows import (RECEIVERS, DirectionalShadows, darken, direction_from_angles, light_camera,
                                      matched_resolution, search_direction)
 
 
@@ -58,7 +58,7 @@ def test_points_under_an_occluder_are_shadowed_and_others_not():
     assert occ[0] > 0.9  # behind the ball as seen from the light
     assert occ[1] < 0.01  # elsewhere on the ground
     assert occ[2] < 0.01  # between the ball and the light: lit
-    shaded = model.shade(torch.ones(3, 3), points, occluder)
+    shaded = darken(torch.ones(3, 3), points, *model.shadow_inputs(occluder))
     assert torch.allclose(shaded[1], torch.ones(3)) and bool((shaded[0] < 1).all())
 
 
@@ -73,7 +73,7 @@ def test_search_recovers_the_light_direction():
     for k, centre in enumerate(([0.1, 0.0, 0.25], [-0.2, 0.2, 0.3], [0.2, -0.3, 0.2])):
         occluder = blob(centre, radius=0.08, seed=k)
         with torch.no_grad():
-            observed = truth.shade(colors, points, occluder)
+            observed = darken(colors, points, *truth.shadow_inputs(occluder))
         observations.append((occluder, observed, torch.ones(len(points), dtype=torch.bool)))
     model = DirectionalShadows(torch.tensor([0.0, 0.0, 1.0]), torch.zeros(3), extent=1.5, resolution=64)
     direction, strength, _ = search_direction(model, points, colors, observations)
