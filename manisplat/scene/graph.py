@@ -122,15 +122,13 @@ class SceneGraph:
                           torch.full((n,), node.group, dtype=torch.long, device=means.device)])
             slices[node.name] = (start, start + n)
             start += n
-        if self.shadows is not None and self.background is not None and len(parts) > 1:
-            occluders = tuple(torch.cat([p[k] for p in parts[1:]]) for k in range(4))
-            shadow = self.shadows.shadow_inputs(occluders)
-            parts[0][4] = darken(parts[0][4], parts[0][0], *shadow)
-            if self.shadows.receivers == "all":
-                for part in parts[1:]:
-                    part[4] = darken(part[4], part[0].detach(), self.shadows.moving_strength_logit, *shadow[1:])
-        cat = [torch.cat(x) for x in zip(*parts)]
-        return Composed(*cat, slices=slices)
+        groups = torch.cat([part[5] for part in parts])
+        dynamic = parts[1:] if self.background is not None else parts
+        if not dynamic:
+            return Composed(*parts[0][:5], groups, slices=slices)
+        bg = tuple(parts[0][:5]) if self.background is not None else None
+        moving = tuple(torch.cat([part[k] for part in dynamic]) for k in range(5))
+        return Composed(*self._join_shaded(bg, moving), groups, slices=slices)
 
     def _compose_batched(self, link_poses: torch.Tensor, object_poses: dict[str, torch.Tensor],
                          camera_center: torch.Tensor | None) -> Composed | None:
@@ -161,18 +159,23 @@ class SceneGraph:
             (self.background.params, self.background.band_weights())
         bg, moving = place_scene(background_params, [n.gaussians.params for n in dynamic], torch.stack(poses).float(),
                                  index, camera_center, dynamic[0].gaussians.band_weights(), background_bands)
-        shadow = None
-        if self.shadows is not None and bg is not None:
-            shadow = self.shadows.shadow_inputs(moving[:4])
         slices, start = {}, 0
         if bg is not None:
             slices["background"], start = (0, background), background
         for n, count in zip(dynamic, counts):
             slices[n.name] = (start, start + count)
             start += count
-        moving_strength = self.shadows.moving_strength_logit if shadow is not None and \
-            self.shadows.receivers == "all" else None
-        return Composed(*_shade_and_join(bg, moving, shadow, moving_strength), groups, slices=slices)
+        return Composed(*self._join_shaded(bg, moving), groups, slices=slices)
+
+    def _join_shaded(self, background: Activated | None, moving: Activated) -> Activated:
+        """The background's and the moving nodes' placed Gaussians as one set, darkened where the
+        moving nodes shadow the light (:func:`_shade_and_join`; the moving nodes too when the
+        shadows fall on every receiver)."""
+        if self.shadows is None or background is None:
+            return _shade_and_join(background, moving, None)
+        shadow = self.shadows.shadow_inputs(moving[:4])
+        moving_strength = self.shadows.moving_strength_logit if self.shadows.receivers == "all" else None
+        return _shade_and_join(background, moving, shadow, moving_strength)
 
     def _node_index(self, background: int, counts: tuple[int, ...], groups: list[int],
                     device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:

@@ -124,3 +124,22 @@ def test_gradcheck_on_a_tiny_scene(backend):
 
     inputs = tuple(p.clone().requires_grad_(True) for p in params)
     assert torch.autograd.gradcheck(render, inputs, eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+@pytest.mark.parametrize("threads", [2, 4])
+def test_float32_gradients_are_the_same_on_every_call(threads):
+    """The backward sums each Gaussian's gradient over tiles in threads; the sum must not depend
+    on which thread took which tile (a run resumed from a checkpoint has to continue as the
+    unbroken run would). Large splats reaching over many tiles, more threads than cores
+    (preempted workers), calls repeated until a thread would have taken another tile."""
+    params, V, K, W, H = random_scene(400, 3, dtype=torch.float32, width=160, height=120, scale=(0.05, 0.4))
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        first = render_and_grad("cpu", params, V, K, W, H, tile_size=8)[3]
+        for _ in range(30):
+            again = render_and_grad("cpu", params, V, K, W, H, tile_size=8)[3]
+            for a, b in zip(first, again):
+                assert torch.equal(a, b)
+    finally:
+        torch.set_num_threads(before)

@@ -6,9 +6,13 @@
 // to 1e-4 or below. Splats are binned into square tiles; each tile's list is in depth order
 // because Gaussians are visited in depth order when the lists are filled.
 //
-// Work is split over tiles with at::parallel_for (so torch.set_num_threads applies) and an
-// atomic tile counter (dynamic load balance). The backward accumulates per-Gaussian gradients
-// in one buffer per worker and sums them at the end.
+// Work is split over tiles with at::parallel_for (so torch.set_num_threads applies). The forward
+// takes tiles from an atomic counter (dynamic load balance: a pixel's result does not depend on
+// which thread computes it). The backward accumulates per-Gaussian gradients in one buffer per
+// worker and sums them at the end, so it deals tiles to workers in a fixed order (tile t to
+// worker t mod workers): which tiles a buffer sums, and in which order, depends on the number of
+// threads alone, and the same inputs give the same gradients bit for bit (a run resumed from a
+// checkpoint continues as the unbroken run would).
 //
 // Within a tile, a splat is applied row by row over the span of pixels its ellipse can reach.
 // float32 (training) takes eight pixels of a span at once, masked lanes for the pixels it skips
@@ -127,12 +131,23 @@ inline void row_span(const Splat<T>& sp, T dy, int64_t lo, int64_t hi, int64_t& 
   x1 = std::min(hi, static_cast<int64_t>(std::floor(right - T(0.5))) + 2);
 }
 
-void run_tiles(int64_t tiles, const std::function<void(int64_t worker, int64_t tile)>& body) {
+// Every tile once, taken from a shared counter by whichever worker is free (results must not
+// depend on the worker).
+void run_tiles(int64_t tiles, const std::function<void(int64_t tile)>& body) {
   std::atomic<int64_t> next{0};
   const int64_t workers = std::max<int64_t>(1, at::get_num_threads());
   at::parallel_for(0, workers, 1, [&](int64_t begin, int64_t end) {
     for (int64_t worker = begin; worker < end; ++worker)
-      for (int64_t t = next++; t < tiles; t = next++) body(worker, t);
+      for (int64_t t = next++; t < tiles; t = next++) body(t);
+  });
+}
+
+// Every tile once, tile t by worker t mod `workers`, each worker's tiles in increasing order: what a
+// worker accumulates is fixed by the number of workers.
+void run_tiles_dealt(int64_t tiles, int64_t workers, const std::function<void(int64_t worker, int64_t tile)>& body) {
+  at::parallel_for(0, workers, 1, [&](int64_t begin, int64_t end) {
+    for (int64_t worker = begin; worker < end; ++worker)
+      for (int64_t t = worker; t < tiles; t += workers) body(worker, t);
   });
 }
 
@@ -294,7 +309,7 @@ template <typename T, int TW>
 void forward_impl(const std::vector<Splat<T>>& splats, const T* colors, const Bins& bins, int64_t D, int64_t W,
                   int64_t H, T* image, T* alpha, T* final_T, int32_t* last) {
   const int64_t tiles_x = (W + TW - 1) / TW, tiles_y = (H + TW - 1) / TW;
-  run_tiles(tiles_x * tiles_y, [&](int64_t, int64_t tile) {
+  run_tiles(tiles_x * tiles_y, [&](int64_t tile) {
     TileState<T, TW> st(tile, tiles_x, W, H, D);
     constexpr int P = TileState<T, TW>::P;
     std::vector<int32_t> lst(P + kLanes, -1);
@@ -458,7 +473,7 @@ void backward_impl(const std::vector<Splat<T>>& splats, const T* colors, const B
   const int64_t workers = std::max<int64_t>(1, at::get_num_threads());
   const int64_t stride = 6 + D;  // means 2, conics 3, opacity 1, colours D
   std::vector<std::vector<T>> buffers(workers);
-  run_tiles(tiles_x * tiles_y, [&](int64_t worker, int64_t tile) {
+  run_tiles_dealt(tiles_x * tiles_y, workers, [&](int64_t worker, int64_t tile) {
     std::vector<T>& buf = buffers[worker];
     if (buf.empty()) buf.assign(N * stride, T(0));
     TileState<T, TW> st(tile, tiles_x, W, H, D);  // st.C holds S, the colour composited behind
