@@ -69,6 +69,16 @@ class _TorchDepthOrder:
         return torch.argsort(depths, stable=True)
 
 
+def current_revision() -> str | None:
+    """HEAD's short hash, with "+uncommitted" when the rasterizer's sources differ from HEAD's (the
+    build timed as current is the working tree's)."""
+    head = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+    if not head.stdout.strip():
+        return None
+    changed = subprocess.run(["git", "-C", str(REPO), "diff", "--quiet", "HEAD", "--", CSRC_IN_REPO])
+    return head.stdout.strip() + ("+uncommitted" if changed.returncode else "")
+
+
 def build_of(revision: str):
     """The C++ extension built from git ``revision``'s sources (built once into torch's cache,
     keyed by the sources as ever); a revision from before the C++ depth sort gets
@@ -190,10 +200,9 @@ def measure(episode: Path, *, warm_iters: int, baseline: str | None, reps: int) 
     builds = {"current": cpu_raster.load_extension()}
     if baseline:
         builds[f"baseline_{baseline}"] = build_of(baseline)
-    head = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
     return {
         "episode": str(episode), "warm_iters": warm_iters, "gaussians_after_warm_up": gaussians,
-        "current": head.stdout.strip() or None, "baseline": baseline, "reps": reps,
+        "current": current_revision(), "baseline": baseline, "reps": reps,
         "rows": compare(calls, builds, reps),
         "torch": torch.__version__, "cpu_capability": torch.backends.cpu.get_cpu_capability(),
         "platform": platform.platform(), "processor": platform.processor() or platform.machine(),

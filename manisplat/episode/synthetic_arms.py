@@ -63,6 +63,10 @@ COBOT_MAGIC_T_LINK6_CAM = np.array([[-1.0, 0.0, 0.0, 0.0],
 # the box at the grasp.
 T_LINK6_WRIST_CAM = np.array([[0.0, -1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0],
                               [0.0, 0.0, 0.0, 1.0]]) @ COBOT_MAGIC_T_LINK6_CAM
+# Each wrist camera's body, which no URDF has: a box of these extents (m, camera frame) behind the
+# lens, dark grey, labelled as the link it rides on.
+WRIST_CAMERA_BODY_EXTENTS = (0.04, 0.03, 0.025)
+WRIST_CAMERA_BODY_COLOR = (45, 45, 50)
 
 
 def _T_world_base(arm: str) -> np.ndarray:
@@ -151,7 +155,7 @@ def write_two_arm_sample_episode(out: Path, *, duration: float = 4.0, fps: float
             ``robot/<arm>/<link>``, ``object/<box>``, ``table``), and of the wrist cameras.
         wrist_cameras: also ``cam_left_wrist`` and ``cam_right_wrist`` (mounts ``<arm>/link6``,
             ``T_mount_cam`` :data:`T_LINK6_WRIST_CAM`, 70 deg vertical field of view), rendered
-            like ``cam_high``.
+            like ``cam_high``, and their bodies (:func:`wrist_camera_body`) in every image.
         task: "pick_place" (boxes ``box_left`` and ``box_right``) or "handover" (one ``box``).
 
     ``gt.npz`` holds per frame ``t`` (T,) s, ``T_world_tcp_<arm>`` for arms ``left`` and ``right``
@@ -223,6 +227,9 @@ def write_two_arm_sample_episode(out: Path, *, duration: float = 4.0, fps: float
             for i, name in enumerate(arms.link_names):
                 for visual in arms.visuals.get(name, []):
                     meshes.append(_posed(visual.mesh, links[k, i], LINK_COLORS[name.split("/")[1]], i + 1))
+            for cam in cam_infos[1:]:
+                meshes.append(_posed(wrist_camera_body(), T_cam[cam.name][k], WRIST_CAMERA_BODY_COLOR,
+                                     arms.link_names.index(cam.mount) + 1))
             images = {cam.name: render(Camera(cam.K, width, height, T_cam[cam.name][k]), meshes, ground,
                                        exact_depth=True) for cam in cam_infos}  # camera -> rgb, depth, mask
             writer.add_frame(float(t_frames[k]), {arm: joints[arm][k] for arm in BASE_Y},
@@ -238,4 +245,12 @@ def write_two_arm_sample_episode(out: Path, *, duration: float = 4.0, fps: float
     return out
 
 
-__all__ = ["write_two_arm_sample_episode"]
+def wrist_camera_body() -> trimesh.Trimesh:
+    """A wrist camera's body in its camera's frame (m): :data:`WRIST_CAMERA_BODY_EXTENTS`, its
+    front face 1 mm behind the lens."""
+    body = trimesh.creation.box(extents=WRIST_CAMERA_BODY_EXTENTS)
+    body.apply_translation((0.0, 0.0, -WRIST_CAMERA_BODY_EXTENTS[2] / 2 - 0.001))
+    return body
+
+
+__all__ = ["write_two_arm_sample_episode", "wrist_camera_body"]

@@ -124,6 +124,9 @@ class EpisodeData:
             ``gripper`` and the poses are read there (:func:`retime`).
         commands: how ``frames.csv``'s commands relate to its joints (:func:`recorded_commands`,
             before any retiming), or None where the episode records no commands.
+        riding_cameras: the episode's cameras that ride on a link, whether trained or not: name ->
+            (the link as the robot names it, ``T_link_cam`` [4, 4] float64); their bodies are
+            looked for in this camera's depth (:mod:`manisplat.reconstruct.camera_bodies`).
     """
 
     path: Path
@@ -159,6 +162,7 @@ class EpisodeData:
     mount: str = "base"
     T_mount_cam: torch.Tensor | None = None
     commands: CommandRelation | None = None
+    riding_cameras: dict[str, tuple[str, torch.Tensor]] = field(default_factory=dict)
 
     @property
     def n_frames(self) -> int:
@@ -329,6 +333,9 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, camera: str
         dist=tuple(float(d) for d in cam.dist) if lens is not None else (),
         joints=stream, recorded_latency_s=recorded_latency, frame="world" if several else "base",
         mount=cam.mount, T_mount_cam=None if fixed else T_mount_cam, commands=recorded_commands(episode),
+        riding_cameras={c.name: (c.mount, torch.as_tensor(c.T_mount_cam, dtype=torch.float64))
+                        for c in episode.cameras.values() if c.mount not in ("base", WORLD_MOUNT)
+                        and c.T_mount_cam is not None and c.mount in model.link_names} if several else {},
     )
     if not fixed:
         _place_riding_camera(data, q, gripper)

@@ -15,12 +15,13 @@ from manisplat.align.pseudo_gt import PseudoPoses, hybrid_pseudo_poses, make_tra
 from manisplat.align.surface_fit import ModelViews
 from manisplat.align.support import support_height
 from manisplat.align.tracking import ObjectView, TrackerSettings, visible_surface
+from manisplat.reconstruct.camera_bodies import add_camera_bodies, find_camera_bodies
 from manisplat.reconstruct.data import EpisodeData, ReconstructionInputError
 from manisplat.reconstruct.fusion import (CameraConsensus, EpisodeSpan, JoinedAlignment, camera_consensus,
                                           check_same_scene, join_alignments, joined, joined_plan, merged_model,
                                           spans_of)
 from manisplat.reconstruct.init import background_gaussians, link_gaussians, object_gaussians, object_points
-from manisplat.reconstruct.masks import draw_view_masks, object_carrier
+from manisplat.reconstruct.masks import draw_view_masks, object_carrier, redraw_robot_masks
 from manisplat.reconstruct.plan import Plan
 from manisplat.reconstruct.poses import ObjectTrajectory
 from manisplat.reconstruct.register import register_start
@@ -81,6 +82,12 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
         raise ReconstructionInputError("the first frame must be a training frame: it seeds the objects")
     views = views or {}
     rig = check_rig(data, views, train) if check_extrinsic else None
+    if data.mask_source.startswith("drawn robot"):  # masks drawn from the robot's geometry: give it the camera bodies
+        bodies = find_camera_bodies(data, train)
+        if bodies:
+            for robot in {id(r): r for r in (data.robot, *(v.robot for v in views.values()))}.values():
+                add_camera_bodies(robot, bodies)
+            redraw_robot_masks(data, progress=False)
     # no pixel of a held-out frame reaches the Gaussians: the first, middle and last training frames seed them
     background = background_gaussians(data, frames=sorted({train[0], train[len(train) // 2], train[-1]}),
                                       sh_degree=config.sh_degree, table_z=table_z)
