@@ -64,7 +64,7 @@ COBOT_MAGIC_T_LINK6_CAM = np.array([[-1.0, 0.0, 0.0, 0.0],
 T_LINK6_WRIST_CAM = np.array([[0.0, -1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0],
                               [0.0, 0.0, 0.0, 1.0]]) @ COBOT_MAGIC_T_LINK6_CAM
 # Each wrist camera's body, which no URDF has: a box of these extents (m, camera frame) behind the
-# lens, dark grey, labelled as the link it rides on.
+# lens, dark grey, labelled robot/<arm>/wrist_camera (as the shared simulator labels it).
 WRIST_CAMERA_BODY_EXTENTS = (0.04, 0.03, 0.025)
 WRIST_CAMERA_BODY_COLOR = (45, 45, 50)
 
@@ -197,6 +197,10 @@ def write_two_arm_sample_episode(out: Path, *, duration: float = 4.0, fps: float
     labels.update({value: f"object/{name}" for name, value in box_label.items()})
     table_label = len(labels)
     labels[table_label] = "table"
+    body_label = {}  # wrist camera -> the label of its body: robot/<arm>/wrist_camera, a part no URDF has
+    for cam in cam_infos[1:]:
+        body_label[cam.name] = len(labels)
+        labels[len(labels)] = f"robot/{cam.mount.split('/')[0]}/wrist_camera"
     ground = GroundPlane((-0.4, 1.2, -0.9, 0.9), 0.05, ((178, 150, 112), (150, 124, 90)), table_label)
     box_mesh = trimesh.creation.box(extents=(BOX_SIZE,) * 3)
 
@@ -229,7 +233,7 @@ def write_two_arm_sample_episode(out: Path, *, duration: float = 4.0, fps: float
                     meshes.append(_posed(visual.mesh, links[k, i], LINK_COLORS[name.split("/")[1]], i + 1))
             for cam in cam_infos[1:]:
                 meshes.append(_posed(wrist_camera_body(), T_cam[cam.name][k], WRIST_CAMERA_BODY_COLOR,
-                                     arms.link_names.index(cam.mount) + 1))
+                                     body_label[cam.name]))
             images = {cam.name: render(Camera(cam.K, width, height, T_cam[cam.name][k]), meshes, ground,
                                        exact_depth=True) for cam in cam_infos}  # camera -> rgb, depth, mask
             writer.add_frame(float(t_frames[k]), {arm: joints[arm][k] for arm in BASE_Y},

@@ -8,8 +8,9 @@ squared error (rendered at 7-8 dB).
 
 Each camera that rides on a link (the episode's metadata says which link and where on it) has its
 body looked for around its optical centre: in the training frames, the reference camera's depth
-pixels that no drawn label claims and that lie within :data:`SEARCH_RADIUS_M` of the centre are
-taken into the mount link's frame. What moves with the link lands in the same voxels pose after
+pixels that may be a body (:func:`body_labels`: unclaimed where the robot's masks were drawn, a
+robot label naming no link where they are the episode's) and that lie within
+:data:`SEARCH_RADIUS_M` of the centre are taken into the mount link's frame. What moves with the link lands in the same voxels pose after
 pose; the table, objects and the other arm do not. Voxels hit from at least :data:`MIN_POSES`
 distinct link poses and :data:`MIN_POSE_SHARE` of them, the largest connected part, make the body:
 their convex hull is added to the link's visuals, so that the link's Gaussians, the drawn robot
@@ -60,17 +61,27 @@ class CameraBody:
         return tuple(round(float(100 * e), 1) for e in extent)
 
 
+def body_labels(data: EpisodeData) -> set[int]:
+    """The mask values a camera body may carry: where the masks were drawn from the robot's
+    geometry, the unclaimed pixels (0); where they are the episode's, its robot labels that name
+    no link of the robot (``robot/left/wrist_camera``): a part of the robot that no URDF has."""
+    if data.mask_source.startswith("drawn robot"):
+        return {0}
+    return {value for value, name in data.labels.robot.items() if name not in data.robot.link_names}
+
+
 def find_camera_bodies(data: EpisodeData, frames: list[int]) -> list[CameraBody]:
     """The bodies of ``data.riding_cameras`` seen by its (fixed) camera in ``frames``.
 
-    Needs depth and masks (pixels any label claims are not looked at). A camera whose body is
-    not found (out of view, hidden, no depth there) is logged and left out.
+    Needs depth and masks; only pixels of :func:`body_labels` are looked at. A camera whose body
+    is not found (out of view, hidden, no depth there) is logged and left out.
     """
-    if data.depth is None or data.masks is None or data.riding:
+    values = body_labels(data) if data.masks is not None else set()
+    if data.depth is None or not values or data.riding:
         return []
     bodies = []
     for camera, (link, T_link_cam) in data.riding_cameras.items():
-        body = _body_of(data, frames, camera, link, T_link_cam.double().numpy())
+        body = _body_of(data, frames, camera, link, T_link_cam.double().numpy(), values)
         if body is None:
             log.info("camera %s rides on %s: no body of it found in %s's depth; not modelled", camera, link,
                      data.camera_name)
@@ -90,7 +101,8 @@ def add_camera_bodies(robot: RobotModel | ArmSet, bodies: list[CameraBody]) -> N
                                     Visual(body.mesh, f"body of camera {body.camera}, from depth")]
 
 
-def _body_of(data: EpisodeData, frames: list[int], camera: str, link: str, T_link_cam: np.ndarray) -> CameraBody | None:
+def _body_of(data: EpisodeData, frames: list[int], camera: str, link: str, T_link_cam: np.ndarray,
+             values: set[int]) -> CameraBody | None:
     index = list(data.robot.link_names).index(link)
     T_cam_base = data.viewmat.double().cpu().numpy()  # the fixed reference camera: base -> camera
     T_base_cam = np.linalg.inv(T_cam_base)
@@ -100,7 +112,8 @@ def _body_of(data: EpisodeData, frames: list[int], camera: str, link: str, T_lin
     for f in frames:
         T_base_link = data.link_poses[f, index].double().cpu().numpy()
         centre = T_base_link[:3, :3] @ T_link_cam[:3, 3] + T_base_link[:3, 3]
-        found = _pixels_near(centre, T_cam_base, K, W, H, data.depth[f].cpu().numpy(), data.masks[f].cpu().numpy())
+        found = _pixels_near(centre, T_cam_base, K, W, H, data.depth[f].cpu().numpy(),
+                             np.isin(data.masks[f].cpu().numpy(), list(values)))
         if found is None:
             continue
         pose = _distinct_pose(T_base_link, poses)
@@ -134,10 +147,10 @@ _UNIT_CUBE = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)
 
 
 def _pixels_near(centre: np.ndarray, T_cam_base: np.ndarray, K: np.ndarray, W: int, H: int, depth: np.ndarray,
-                 labels: np.ndarray) -> tuple[np.ndarray, float] | None:
-    """(camera-frame points [N, 3] of the unlabelled depth pixels within the search radius's image
-    window around ``centre`` [3] (base frame), the centre's depth (m)); None when the centre is
-    out of view or no such pixel has depth."""
+                 candidate: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """(camera-frame points [N, 3] of the ``candidate`` [H, W] bool depth pixels within the search
+    radius's image window around ``centre`` [3] (base frame), the centre's depth (m)); None when
+    the centre is out of view or no such pixel has depth."""
     c = T_cam_base[:3, :3] @ centre + T_cam_base[:3, 3]
     if c[2] <= SEARCH_RADIUS_M:
         return None
@@ -148,7 +161,7 @@ def _pixels_near(centre: np.ndarray, T_cam_base: np.ndarray, K: np.ndarray, W: i
     if x0 >= x1 or y0 >= y1:
         return None
     z = depth[y0:y1, x0:x1]
-    free = (z > 0) & (labels[y0:y1, x0:x1] == 0)
+    free = (z > 0) & candidate[y0:y1, x0:x1]
     if not free.any():
         return None
     ys, xs = np.nonzero(free)
@@ -184,4 +197,4 @@ def _largest_part(voxels: np.ndarray) -> np.ndarray:
     return voxels[parts[tuple((voxels - low).T)] == int(np.argmax(sizes))]
 
 
-__all__ = ["CameraBody", "add_camera_bodies", "find_camera_bodies"]
+__all__ = ["CameraBody", "add_camera_bodies", "body_labels", "find_camera_bodies"]

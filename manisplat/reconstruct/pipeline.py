@@ -82,11 +82,11 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
         raise ReconstructionInputError("the first frame must be a training frame: it seeds the objects")
     views = views or {}
     rig = check_rig(data, views, train) if check_extrinsic else None
-    if data.mask_source.startswith("drawn robot"):  # masks drawn from the robot's geometry: give it the camera bodies
-        bodies = find_camera_bodies(data, train)
-        if bodies:
-            for robot in {id(r): r for r in (data.robot, *(v.robot for v in views.values()))}.values():
-                add_camera_bodies(robot, bodies)
+    bodies = find_camera_bodies(data, train)  # the riding cameras' bodies, which the robot's geometry lacks
+    if bodies:
+        for robot in {id(r): r for r in (data.robot, *(v.robot for v in views.values()))}.values():
+            add_camera_bodies(robot, bodies)
+        if data.mask_source.startswith("drawn robot"):
             redraw_robot_masks(data, progress=False)
     # no pixel of a held-out frame reaches the Gaussians: the first, middle and last training frames seed them
     background = background_gaussians(data, frames=sorted({train[0], train[len(train) // 2], train[-1]}),

@@ -1,6 +1,6 @@
 """The bodies of wrist cameras, which no URDF has, found in the head camera's depth and added to
 the links they ride on: the two-arm sample renders each wrist camera's body (a 4 x 3 x 2.5 cm
-box behind its lens) in every image and labels it as its link."""
+box behind its lens) in every image and labels it robot/<arm>/wrist_camera."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import torch
 import trimesh
 
 from manisplat.episode.synthetic_arms import T_LINK6_WRIST_CAM, write_two_arm_sample_episode, wrist_camera_body
-from manisplat.reconstruct.camera_bodies import find_camera_bodies
+from manisplat.reconstruct.camera_bodies import body_labels, find_camera_bodies
 from manisplat.reconstruct.config import TrainConfig
 from manisplat.reconstruct.data import load_episode_data
 from manisplat.reconstruct.masks import ObjectPrompt, complete_masks
@@ -59,6 +59,19 @@ def test_each_wrist_cameras_body_is_found_on_its_link(drawn):
                                                                                truth.bounds)
 
 
+def test_with_the_episodes_masks_the_bodies_are_its_robot_labels_that_name_no_link(episode):
+    """The sample's own masks label each body robot/<arm>/wrist_camera: robot, but no link of
+    the URDF. Those pixels are where the bodies are looked for, and found on their links."""
+    data = load_episode_data(episode)
+    assert data.mask_source == "episode"
+    assert {data.labels.robot[v] for v in body_labels(data)} == {"left/wrist_camera", "right/wrist_camera"}
+    bodies = find_camera_bodies(data, list(range(data.n_frames)))
+    assert {b.camera: b.link for b in bodies} == {"cam_left_wrist": "left/link6", "cam_right_wrist": "right/link6"}
+    truth = true_body_in_link()
+    for body in bodies:
+        assert np.abs(body.mesh.bounds - truth.bounds).max() <= body.voxel_m, body.camera
+
+
 def test_what_does_not_move_with_the_link_is_no_body(drawn):
     """Around a point 25 cm beyond link6's flange the table and the boxes pass under the gripper:
     seen from many poses, they land in other voxels of the link's frame each time, so nothing
@@ -71,7 +84,7 @@ def test_what_does_not_move_with_the_link_is_no_body(drawn):
 
 def test_the_robots_masks_and_gaussians_include_the_bodies(episode):
     """Without the bodies the drawn robot misses the camera bodies' pixels, which the episode's
-    own masks label as robot; with them it covers most of those pixels, and the link's Gaussians
+    own masks label as robot (robot/<arm>/wrist_camera); with them it covers most of those pixels, and the link's Gaussians
     fill the body."""
     data = drawn_data(episode)
     robot_values = torch.tensor(sorted(data.labels.robot), dtype=torch.uint8)
