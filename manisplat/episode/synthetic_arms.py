@@ -203,6 +203,7 @@ def write_two_arm_sample_episode(out: Path, *, duration: float = 4.0, fps: float
         labels[len(labels)] = f"robot/{cam.mount.split('/')[0]}/wrist_camera"
     ground = GroundPlane((-0.4, 1.2, -0.9, 0.9), 0.05, ((178, 150, 112), (150, 124, 90)), table_label)
     box_mesh = trimesh.creation.box(extents=(BOX_SIZE,) * 3)
+    camera_body = wrist_camera_body()
 
     joints = {arm: np.column_stack(trajectory.at(t_frames)[:2])  # [T, 7] per arm: q1..q6 (rad), gripper (m)
               for arm, trajectory in scripted.items()}
@@ -232,7 +233,7 @@ def write_two_arm_sample_episode(out: Path, *, duration: float = 4.0, fps: float
                 for visual in arms.visuals.get(name, []):
                     meshes.append(_posed(visual.mesh, links[k, i], LINK_COLORS[name.split("/")[1]], i + 1))
             for cam in cam_infos[1:]:
-                meshes.append(_posed(wrist_camera_body(), T_cam[cam.name][k], WRIST_CAMERA_BODY_COLOR,
+                meshes.append(_posed(camera_body, T_cam[cam.name][k], WRIST_CAMERA_BODY_COLOR,
                                      body_label[cam.name]))
             images = {cam.name: render(Camera(cam.K, width, height, T_cam[cam.name][k]), meshes, ground,
                                        exact_depth=True) for cam in cam_infos}  # camera -> rgb, depth, mask

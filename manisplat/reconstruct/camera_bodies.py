@@ -20,13 +20,17 @@ masks and everything else that reads the robot's geometry include it.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 import trimesh
 from scipy import ndimage
 
+from manisplat.geometry import pose_error
 from manisplat.reconstruct.data import EpisodeData
+from manisplat.reconstruct.masks import backproject_pixels
 from manisplat.robot.arms import ArmSet
 from manisplat.robot.model import RobotModel, Visual
 
@@ -105,25 +109,23 @@ def _body_of(data: EpisodeData, frames: list[int], camera: str, link: str, T_lin
              values: set[int]) -> CameraBody | None:
     index = list(data.robot.link_names).index(link)
     T_cam_base = data.viewmat.double().cpu().numpy()  # the fixed reference camera: base -> camera
-    T_base_cam = np.linalg.inv(T_cam_base)
     K = data.K_opencv.double().cpu().numpy()
-    H, W = data.depth.shape[1:]
     poses, seen, distances = [], [], []  # distinct link poses; (pose, points [N, 3] link frame); centre depth (m)
     for f in frames:
         T_base_link = data.link_poses[f, index].double().cpu().numpy()
         centre = T_base_link[:3, :3] @ T_link_cam[:3, 3] + T_base_link[:3, 3]
-        found = _pixels_near(centre, T_cam_base, K, W, H, data.depth[f].cpu().numpy(),
-                             np.isin(data.masks[f].cpu().numpy(), list(values)))
+        depth = data.depth[f].cpu().numpy()
+        found = _pixels_near(centre, T_cam_base, K, depth, data.masks[f].cpu().numpy(), values)
         if found is None:
             continue
         pose = _distinct_pose(T_base_link, poses)
         if pose is None:
             continue
-        pixels, distance = found
-        points = T_base_cam[:3, :3] @ pixels.T + T_base_cam[:3, 3:4]  # [3, N] base frame
-        near = np.linalg.norm(points.T - centre, axis=1) < SEARCH_RADIUS_M
-        local = (np.linalg.inv(T_base_link) @ np.vstack([points[:, near], np.ones(int(near.sum()))]))[:3].T
-        seen.append((pose, local))
+        keep, distance = found
+        points = backproject_pixels(depth, keep, data)  # [N, 3] base frame
+        near = np.linalg.norm(points - centre, axis=1) < SEARCH_RADIUS_M
+        T_link_base = np.linalg.inv(T_base_link)
+        seen.append((pose, points[near] @ T_link_base[:3, :3].T + T_link_base[:3, 3]))
         distances.append(distance)
     if not poses:
         return None
@@ -146,11 +148,12 @@ def _body_of(data: EpisodeData, frames: list[int], camera: str, link: str, T_lin
 _UNIT_CUBE = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=np.float64)
 
 
-def _pixels_near(centre: np.ndarray, T_cam_base: np.ndarray, K: np.ndarray, W: int, H: int, depth: np.ndarray,
-                 candidate: np.ndarray) -> tuple[np.ndarray, float] | None:
-    """(camera-frame points [N, 3] of the ``candidate`` [H, W] bool depth pixels within the search
-    radius's image window around ``centre`` [3] (base frame), the centre's depth (m)); None when
-    the centre is out of view or no such pixel has depth."""
+def _pixels_near(centre: np.ndarray, T_cam_base: np.ndarray, K: np.ndarray, depth: np.ndarray, labels: np.ndarray,
+                 values: set[int]) -> tuple[np.ndarray, float] | None:
+    """(the pixels [H, W] bool with depth and a label of ``values`` inside the search radius's
+    image window around ``centre`` [3] (base frame), the centre's depth (m)); None when the centre
+    is out of view or no such pixel has depth."""
+    H, W = depth.shape
     c = T_cam_base[:3, :3] @ centre + T_cam_base[:3, 3]
     if c[2] <= SEARCH_RADIUS_M:
         return None
@@ -160,24 +163,17 @@ def _pixels_near(centre: np.ndarray, T_cam_base: np.ndarray, K: np.ndarray, W: i
     y0, y1 = int(max(0, np.floor(v - reach))), int(min(H, np.ceil(v + reach) + 1))
     if x0 >= x1 or y0 >= y1:
         return None
-    z = depth[y0:y1, x0:x1]
-    free = (z > 0) & candidate[y0:y1, x0:x1]
-    if not free.any():
-        return None
-    ys, xs = np.nonzero(free)
-    zs = z[ys, xs].astype(np.float64)
-    x = (xs + x0 - K[0, 2]) / K[0, 0] * zs
-    y = (ys + y0 - K[1, 2]) / K[1, 1] * zs
-    return np.stack([x, y, zs], 1), float(c[2])
+    keep = np.zeros((H, W), dtype=bool)
+    keep[y0:y1, x0:x1] = (depth[y0:y1, x0:x1] > 0) & np.isin(labels[y0:y1, x0:x1], list(values))
+    return (keep, float(c[2])) if keep.any() else None
 
 
 def _distinct_pose(T: np.ndarray, poses: list[np.ndarray]) -> int | None:
     """The index of ``T`` [4, 4] among ``poses`` (appended when it differs from every one by more
     than the distinct-pose thresholds); None for a pose already counted."""
-    for other in poses:
-        moved = np.linalg.norm(T[:3, 3] - other[:3, 3])
-        cos = np.clip((np.trace(other[:3, :3].T @ T[:3, :3]) - 1) / 2, -1.0, 1.0)
-        if moved < DISTINCT_POSE_M and np.degrees(np.arccos(cos)) < DISTINCT_POSE_DEG:
+    if poses:
+        moved, angle = pose_error(torch.as_tensor(np.stack(poses)), torch.as_tensor(T))
+        if bool(((moved < DISTINCT_POSE_M) & (angle < math.radians(DISTINCT_POSE_DEG))).any()):
             return None
     poses.append(T)
     return len(poses) - 1

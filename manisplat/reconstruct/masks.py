@@ -205,7 +205,7 @@ def table_plane(data: EpisodeData, robot_mask: np.ndarray, frame: int = 0) -> Pl
     normal towards the camera."""
     depth = data.depth[frame].numpy()
     keep = (depth > 0) & (robot_mask == 0)
-    points = _backproject(depth, keep, data)[::7]
+    points = backproject_pixels(depth, keep, data)[::7]
     plane, _ = fit_plane_ransac(points)
     camera_centre = torch.linalg.inv(data.viewmat.double())[:3, 3].numpy()
     if plane.height(camera_centre) < 0:
@@ -263,7 +263,7 @@ def follow_object_masks(data: EpisodeData, robot_masks: torch.Tensor, first: np.
     W, H = data.size
     grow = grow or max(3, W // 40)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow + 1, 2 * grow + 1))
-    model = _backproject(data.depth[0].numpy(), first, data)
+    model = backproject_pixels(data.depth[0].numpy(), first, data)
     track, width, _ = object_carrier(data, model.mean(0))
     prior, _ = kinematic_prior(np.eye(4), track, gripper_events(width))
     out = np.zeros((data.n_frames, H, W), dtype=bool)
@@ -340,13 +340,13 @@ def _above_table_components(data: EpisodeData, frame: int, robot_mask: np.ndarra
     depth = data.depth[frame].numpy()
     H, W = depth.shape
     keep = depth > 0
-    points = _backproject(depth, np.ones_like(keep), data).reshape(H, W, 3)
+    points = backproject_pixels(depth, np.ones_like(keep), data).reshape(H, W, 3)
     above = keep & (plane.height(points) > min_height) & (robot_mask == 0)
     above = cv2.morphologyEx(above.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
     return cv2.connectedComponents(above, connectivity=8)[1]
 
 
-def _backproject(depth: np.ndarray, keep: np.ndarray, data: EpisodeData) -> np.ndarray:
+def backproject_pixels(depth: np.ndarray, keep: np.ndarray, data: EpisodeData) -> np.ndarray:
     """Base-frame points [M, 3] (float64) of the pixels where ``keep`` [H, W] (row-major order)."""
     K = data.K_opencv.double().numpy()
     rows, cols = np.nonzero(keep)
@@ -415,6 +415,6 @@ def complete_masks(data: EpisodeData, links: list[str], prompts: list[ObjectProm
 
 
 __all__ = [
-    "OBJECT_LABEL", "ObjectPrompt", "Plane", "complete_masks", "draw_view_masks", "fit_plane_ransac", "follow_object_masks", "object_carrier",
+    "OBJECT_LABEL", "ObjectPrompt", "Plane", "backproject_pixels", "complete_masks", "draw_view_masks", "fit_plane_ransac", "follow_object_masks", "object_carrier",
     "object_mask_from_depth", "object_mask_grabcut", "redraw_robot_masks", "render_robot_labels", "table_plane",
 ]
