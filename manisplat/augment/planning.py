@@ -8,9 +8,11 @@ TOPP-RA in one call) was the alternative, but it pins numpy < 2 and segfaults be
 project's numpy 2.
 
 Determinism: OMPL draws from a global seed generator; it is re-seeded (``RNG.setSeed``) before
-each query from the augmentation seed and the segment, so a seed gives the same path when the
-planner finishes within its time limit (RRT-Connect stops at its first solution; the simplifier
-runs its fixed rounds, not against a clock). The same seed on inputs that differ in the last bit
+each query from the augmentation seed and the segment, and RRT-Connect's budget is a number of
+collision checks (:data:`MAX_CHECKS`), not seconds, so a seed gives the same path on an idle
+machine and on a busy one (RRT-Connect stops at its first solution; the simplifier runs its fixed
+rounds, not against a clock). A time limit stays as a safety net only: with the former 1 s limit
+a test's motion failed on a loaded 2-core machine that the same seed planned when it was idle. The same seed on inputs that differ in the last bit
 (a twin trained with several threads) may give another path: the search branches on them.
 
 Validity of a configuration: within the joint limits and no active collision pair
@@ -33,6 +35,7 @@ from manisplat.augment.errors import Rejected
 
 RESOLUTION = 0.01  # rad between collision checks along a joint-space segment
 LIMIT_MARGIN = 0.02  # rad the planner's samples keep inside the joint limits
+MAX_CHECKS = 50_000  # RRT-Connect's budget of collision checks per query: about 1 s on one idle core
 
 
 @dataclass
@@ -57,10 +60,11 @@ def path_free(checker, waypoints: np.ndarray, width: float, resolution: float = 
 
 def plan_path(checker, q_start: np.ndarray, q_goal: np.ndarray, width: float, *, lower: np.ndarray,
               upper: np.ndarray, timeout: float, seed: int, name: str = "motion",
-              straight: bool = True) -> PlanResult:
+              straight: bool = True, max_checks: int = MAX_CHECKS) -> PlanResult:
     """A collision-free path from ``q_start`` to ``q_goal`` (gripper ``width``): the straight
-    segment when it is free (and ``straight``), else RRT-Connect's; raises :class:`Rejected`
-    ("collision" when an end collides or no path passes the dense check, "planner_timeout")."""
+    segment when it is free (and ``straight``), else RRT-Connect's within ``max_checks`` collision
+    checks per query (``timeout`` s: a safety net); raises :class:`Rejected` ("collision" when an
+    end collides or no path passes the dense check, "planner_timeout" when the budget ran out)."""
     t0 = time.perf_counter()
     checks0 = checker.checks
     for what, q in (("start", q_start), ("goal", q_goal)):
@@ -75,15 +79,18 @@ def plan_path(checker, q_start: np.ndarray, q_goal: np.ndarray, width: float, *,
     low = np.minimum(lower + LIMIT_MARGIN, np.minimum(q_start, q_goal))
     high = np.maximum(upper - LIMIT_MARGIN, np.maximum(q_start, q_goal))
     for attempt, resolution in enumerate((RESOLUTION, RESOLUTION / 4)):
-        wps = _rrt_connect(checker, q_start, q_goal, width, low, high, timeout, seed + attempt, resolution)
+        first = checker.checks
+        wps = _rrt_connect(checker, q_start, q_goal, width, low, high, timeout, max_checks, seed + attempt, resolution)
         if wps is None:
-            raise Rejected("planner_timeout", f"{name}: RRT-Connect found no collision-free path in {timeout:g} s")
+            spent = (f"{max_checks} collision checks" if checker.checks - first >= max_checks
+                     else f"{timeout:g} s (its time limit; {checker.checks - first} collision checks)")
+            raise Rejected("planner_timeout", f"{name}: RRT-Connect found no collision-free path in {spent}")
         if path_free(checker, wps, width):
             return PlanResult(wps, "rrtconnect", time.perf_counter() - t0, checker.checks - checks0)
     raise Rejected("collision", f"{name}: the planner's path fails the dense collision check (twice)")
 
 
-def _rrt_connect(checker, a, b, width, lower, upper, timeout, seed, resolution=RESOLUTION) -> np.ndarray | None:
+def _rrt_connect(checker, a, b, width, lower, upper, timeout, max_checks, seed, resolution=RESOLUTION) -> np.ndarray | None:
     from ompl import base as ob
     from ompl import geometric as og
     from ompl import util as ou
@@ -111,7 +118,9 @@ def _rrt_connect(checker, a, b, width, lower, upper, timeout, seed, resolution=R
     si = ss.getSpaceInformation()
     si.setStateValidityCheckingResolution(resolution / space.getMaximumExtent())
     ss.setPlanner(og.RRTConnect(si))
-    solved = ss.solve(float(timeout))
+    first = checker.checks
+    budget = ob.PlannerTerminationCondition(lambda: checker.checks - first >= max_checks)
+    solved = ss.solve(ob.plannerOrTerminationCondition(budget, ob.timedPlannerTerminationCondition(float(timeout))))
     if not solved or "Exact" not in str(solved):
         return None
     path = ss.getSolutionPath()

@@ -65,6 +65,7 @@ def run_augmentation(args: argparse.Namespace) -> dict:
         _remove_earlier(args.out)
     args.out.mkdir(parents=True, exist_ok=True)
     config = AugmentConfig(speed=args.speed, profile=args.profile, planner_timeout_s=args.planner_timeout,
+                           planner_checks=args.planner_checks,
                            seed=args.seed, symmetries=_symmetries(twin, args.symmetries))
     planners = {name: _arms_planner(source, args) for name, source in sources.items()}
     if args.start_range > 0:

@@ -46,7 +46,7 @@ from manisplat.augment.commands import SourceCommands
 from manisplat.augment.errors import Rejected
 from manisplat.augment.frames import solid_points
 from manisplat.augment.kinematics import PinRobot
-from manisplat.augment.planning import RESOLUTION, path_free, plan_path
+from manisplat.augment.planning import MAX_CHECKS, RESOLUTION, path_free, plan_path
 from manisplat.augment.sampling import ObjectTarget, sample_start, sample_targets
 from manisplat.augment.skills import SkillResult, SourceSpline, solve_skill
 from manisplat.augment.source import SourceDemo, SourceError, source_demo
@@ -73,7 +73,9 @@ class AugmentConfig:
             along a skill's velocity and speeding up into the next (a motion joined at rest,
             ``M_settle``) stay time-optimal: a quintic with zero acceleration at the skill needs
             a longer way to stop than the braking point leaves.
-        planner_timeout_s: RRT-Connect's time limit per motion.
+        planner_checks: RRT-Connect's budget per motion, in collision checks (the same paths on
+            any machine, however busy; the default about 1 s on one idle core).
+        planner_timeout_s: its time limit per motion, a safety net behind the budget.
         ik_position_tol, ik_rotation_tol: the largest IK residual accepted (m, rad).
         seed: seeds the planner (with the segment index).
         obstacles: extra boxes in the base frame, besides what the twin holds.
@@ -91,7 +93,8 @@ class AugmentConfig:
 
     speed: float = 1.0
     profile: str = "time-optimal"
-    planner_timeout_s: float = 1.0
+    planner_checks: int = MAX_CHECKS
+    planner_timeout_s: float = 30.0
     ik_position_tol: float = 1e-4
     ik_rotation_tol: float = 1.75e-4
     seed: int = 0
@@ -108,6 +111,8 @@ class AugmentConfig:
             raise ValueError(f"profile must be one of {PROFILES}, got {self.profile!r}")
         if not self.planner_timeout_s > 0:
             raise ValueError(f"planner_timeout_s must be > 0, got {self.planner_timeout_s}")
+        if not self.planner_checks >= 1:
+            raise ValueError(f"planner_checks must be >= 1, got {self.planner_checks}")
         if not (self.ik_position_tol > 0 and self.ik_rotation_tol > 0):
             raise ValueError("IK tolerances must be > 0")
 
@@ -396,7 +401,7 @@ class Augmenter:
         state.apply(self.scene)
         t0 = time.perf_counter()
         path = plan_path(self.scene, q_a, q_b, width, lower=self.kin.lower, upper=self.kin.upper,
-                         timeout=config.planner_timeout_s, seed=seed, name=name)
+                         timeout=config.planner_timeout_s, max_checks=config.planner_checks, seed=seed, name=name)
         timings["planning_s"] += time.perf_counter() - t0
         record = {"segment": name, "method": path.method, "plan_s": round(path.seconds, 4), "checks": path.checks,
                   "waypoints": len(path.waypoints)}
@@ -426,7 +431,8 @@ class Augmenter:
                 waypoints = _densify(waypoints, 0.05)
             else:
                 replanned = plan_path(self.scene, q_a, q_b, width, lower=self.kin.lower, upper=self.kin.upper,
-                                      timeout=config.planner_timeout_s, seed=seed + 7, name=name, straight=False)
+                                      timeout=config.planner_timeout_s, max_checks=config.planner_checks, seed=seed + 7,
+                                      name=name, straight=False)
                 waypoints = _densify(replanned.waypoints, 0.05)
                 record["method"] = replanned.method
             timings["planning_s"] += time.perf_counter() - t0
@@ -474,7 +480,7 @@ class Augmenter:
         rest_b = self._stop_point(q_b, -v_b) if moving_b else q_b
         t0 = time.perf_counter()
         path = plan_path(self.scene, rest_a, rest_b, width, lower=self.kin.lower, upper=self.kin.upper,
-                         timeout=config.planner_timeout_s, seed=seed, name=name)
+                         timeout=config.planner_timeout_s, max_checks=config.planner_checks, seed=seed, name=name)
         timings["planning_s"] += time.perf_counter() - t0
         t0 = time.perf_counter()
         zero = np.zeros_like(v_a)

@@ -83,7 +83,7 @@ def test_the_planners_waypoints_keep_a_margin_inside_the_joint_limits():
     for seed in range(8):
         checker = WallWithPassageAtTheLimit(0.1)
         result = plan_path(checker, np.array([-0.5, 0.5]), np.array([0.5, 0.5]), 0.0, lower=LOWER, upper=UPPER,
-                           timeout=30.0, seed=seed)  # wall-clock: generous for a loaded CI
+                           timeout=60.0, seed=seed, max_checks=1_000_000)  # seed 6 needs 245 403 checks
         assert result.method == "rrtconnect" and path_free(checker, result.waypoints, 0.0)
         highest.append(result.waypoints[:, 1].max())
     assert max(highest) <= UPPER[1] - LIMIT_MARGIN
@@ -92,6 +92,21 @@ def test_the_planners_waypoints_keep_a_margin_inside_the_joint_limits():
     result = plan_path(WallWithPassageAtTheLimit(0.1), np.array([-0.5, 0.5]), end, 0.0, lower=LOWER, upper=UPPER,
                        timeout=2.0, seed=0)
     assert np.array_equal(result.waypoints[-1], end)
+
+
+def test_the_planners_budget_is_collision_checks_not_seconds():
+    """A query is given up when its budget of collision checks runs out, whatever the clock says
+    (the same seed plans the same way on an idle machine and on a busy one): this passage takes
+    seed 6 245 403 checks, within a generous time limit either way."""
+    start, goal = np.array([-0.5, 0.5]), np.array([0.5, 0.5])
+    with pytest.raises(Rejected) as info:
+        plan_path(WallWithPassageAtTheLimit(0.1), start, goal, 0.0, lower=LOWER, upper=UPPER, timeout=60.0, seed=6,
+                  max_checks=200_000, name="M_toy")
+    assert info.value.reason == "planner_timeout" and "M_toy: RRT-Connect found no collision-free path in 200000 " \
+        "collision checks" in str(info.value)
+    paths = [plan_path(WallWithPassageAtTheLimit(0.1), start, goal, 0.0, lower=LOWER, upper=UPPER, timeout=60.0,
+                       seed=6, max_checks=300_000).waypoints for _ in range(2)]
+    assert np.array_equal(paths[0], paths[1])
 
 
 def test_an_end_inside_the_wall_is_rejected_by_name():
