@@ -188,8 +188,9 @@ def test_can_stamps_off_the_wall_clock_fall_back_to_host_arrival_times(tmp_path:
     assert recorder.feed.can_stamps == "host" and result.valid
     ep = Episode.open(tmp_path / "ep")
     assert ep.meta.extra["clock"]["can_timestamps"] == "host arrival time (monotonic)"
-    # host arrival times put the rows on the episode's timeline, over the whole 1.5 s (not 5000 s
-    # away); how many arrive depends on the machine's load, that some do on both ends does not
+    # host arrival times put the rows on the episode's timeline, within its 1.5 s (not 5000 s
+    # away); how many arrive, and when the first does, depends on the machine's load (on a
+    # saturated 2-core machine the first came 0.94 s in)
     joints = ep.joints()
     assert len(ep) >= 10 and len(joints) >= 30
-    assert 0.0 <= joints.t[0] < 0.1 and 1.0 < joints.t[-1] < 2.0
+    assert 0.0 <= joints.t[0] < joints.t[-1] < 2.0
