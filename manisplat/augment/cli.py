@@ -12,7 +12,7 @@ import math
 import sys
 from pathlib import Path
 
-from manisplat.augment.planning import MAX_CHECKS
+from manisplat.augment.planning import MAX_CHECKS, SAFETY_TIMEOUT_S
 from manisplat.augment.timing import PROFILES
 from manisplat.cli_args import add_version, bounded, finite_numbers, positive
 from manisplat.exit_codes import ExitCode, exit_status_help
@@ -112,7 +112,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="collision checks the planner may spend on one motion before the sample is given up "
                         "(default %(default)s, about 1 s on one idle core; a budget of checks, not seconds, gives "
                         "the same demonstrations on a busy machine)")
-    p.add_argument("--planner-timeout", type=positive(), default=30.0,
+    p.add_argument("--planner-timeout", type=positive(), default=SAFETY_TIMEOUT_S,
                    help="seconds the planner may spend on one motion in any case (default %(default)s)")
     p.add_argument("--workers", type=positive(int), default=1,
                    help="processes rendering and writing demonstrations in parallel (default %(default)s)")

@@ -11,9 +11,10 @@ Determinism: OMPL draws from a global seed generator; it is re-seeded (``RNG.set
 each query from the augmentation seed and the segment, and RRT-Connect's budget is a number of
 collision checks (:data:`MAX_CHECKS`), not seconds, so a seed gives the same path on an idle
 machine and on a busy one (RRT-Connect stops at its first solution; the simplifier runs its fixed
-rounds, not against a clock). A time limit stays as a safety net only: with the former 1 s limit
-a test's motion failed on a loaded 2-core machine that the same seed planned when it was idle. The same seed on inputs that differ in the last bit
-(a twin trained with several threads) may give another path: the search branches on them.
+rounds, not against a clock). A time limit (:data:`SAFETY_TIMEOUT_S`) stays as a safety net only:
+with the former 1 s limit a test's motion failed on a loaded 2-core machine that the same seed
+planned when it was idle. The same seed on inputs that differ in the last bit (a twin trained with
+several threads) may give another path: the search branches on them.
 
 Validity of a configuration: within the joint limits and no active collision pair
 (:class:`~manisplat.augment.collision.SceneCollision`, in the state the caller set). Segments are
@@ -36,6 +37,7 @@ from manisplat.augment.errors import Rejected
 RESOLUTION = 0.01  # rad between collision checks along a joint-space segment
 LIMIT_MARGIN = 0.02  # rad the planner's samples keep inside the joint limits
 MAX_CHECKS = 50_000  # RRT-Connect's budget of collision checks per query: about 1 s on one idle core
+SAFETY_TIMEOUT_S = 30.0  # s: its time limit per query, behind the budget
 
 
 @dataclass

@@ -46,7 +46,7 @@ from manisplat.augment.commands import SourceCommands
 from manisplat.augment.errors import Rejected
 from manisplat.augment.frames import solid_points
 from manisplat.augment.kinematics import PinRobot
-from manisplat.augment.planning import MAX_CHECKS, RESOLUTION, path_free, plan_path
+from manisplat.augment.planning import MAX_CHECKS, RESOLUTION, SAFETY_TIMEOUT_S, path_free, plan_path
 from manisplat.augment.sampling import ObjectTarget, sample_start, sample_targets
 from manisplat.augment.skills import SkillResult, SourceSpline, solve_skill
 from manisplat.augment.source import SourceDemo, SourceError, source_demo
@@ -94,7 +94,7 @@ class AugmentConfig:
     speed: float = 1.0
     profile: str = "time-optimal"
     planner_checks: int = MAX_CHECKS
-    planner_timeout_s: float = 30.0
+    planner_timeout_s: float = SAFETY_TIMEOUT_S
     ik_position_tol: float = 1e-4
     ik_rotation_tol: float = 1.75e-4
     seed: int = 0
