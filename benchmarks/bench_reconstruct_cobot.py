@@ -11,7 +11,7 @@ benchmark reads: held-out PSNR / SSIM per camera and region (the simulator's mas
 errors in the world frame (fitted and start-anchored), wall time and time per iteration.
 
 ``python -m benchmarks reconstruct_cobot [--samples cobot_dual_small,...] [--settings all,head] [--iters 3000]
-[--out FILE]``: ``--settings all --iters 9000`` gives the head camera about as many iterations as
+[--shadow-casters meshes|gaussians] [--out FILE]``: ``--settings all --iters 9000`` gives the head camera about as many iterations as
 ``--settings head --iters 3000`` (one camera's image an iteration).
 """
 
@@ -32,6 +32,7 @@ from benchmarks._harness import BENCH_DIR, shared_dir
 from manisplat.episode.cli import main as episode_main
 from manisplat.episode.groundtruth import write_gt
 from manisplat.reconstruct.cli import main as reconstruct_main
+from manisplat.reconstruct.config import SHADOW_CASTERS
 
 OWN_OPTIONS = True
 HEAD = "cam_high"
@@ -45,6 +46,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--samples", default=",".join(SAMPLES), help=f"shared samples (default {','.join(SAMPLES)})")
     p.add_argument("--settings", default="all,head", help="which cameras to train: all, head or both (default all,head)")
     p.add_argument("--iters", type=int, default=3000, help="training iterations (default 3000, the CPU default)")
+    p.add_argument("--shadow-casters", choices=SHADOW_CASTERS, default="gaussians",
+                   help="manisplat-reconstruct --shadow-casters (default gaussians)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_reconstruct" / "reconstruct_cobot.json")
     args = p.parse_args(argv)
     settings = args.settings.split(",")
@@ -58,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
             episode, prompts = imported_sample(shared, sample, Path(tmp))
             for setting, cameras in (SETTINGS[key] for key in settings):
                 out = Path(tmp) / f"{sample}_{len(cameras)}"
-                rows.append(reconstruct(episode, out, cameras, prompts, args.iters) | {"sample": sample, "setting": setting})
+                rows.append(reconstruct(episode, out, cameras, prompts, args.iters, args.shadow_casters) | {"sample": sample, "setting": setting})
                 print(json.dumps(rows[-1], default=float), flush=True)
     result = {"benchmark": "reconstruct_cobot",
               "command": "python -m benchmarks reconstruct_cobot " + " ".join(argv if argv is not None else sys.argv[1:]),
@@ -80,13 +83,13 @@ def imported_sample(shared: Path, sample: str, folder: Path) -> tuple[Path, dict
 
 
 def reconstruct(episode: Path, out: Path, cameras: tuple[str, ...], prompts: dict[str, tuple[float, float]],
-                iters: int) -> dict:
+                iters: int, shadow_casters: str = "gaussians") -> dict:
     """One timed ``manisplat-reconstruct`` run and its figures."""
     logging.disable(logging.WARNING)
     start = time.perf_counter()
     try:
         code = reconstruct_main([str(episode), "--out", str(out), "--cameras", ",".join(cameras), "--no-masks",
-                                 "--quiet", "--iters", str(iters)]
+                                 "--quiet", "--iters", str(iters), "--shadow-casters", shadow_casters]
                                 + [a for name, (u, v) in prompts.items() for a in ("--object-point", f"{name}={u:.0f},{v:.0f}")])
     finally:
         logging.disable(logging.NOTSET)
@@ -95,6 +98,7 @@ def reconstruct(episode: Path, out: Path, cameras: tuple[str, ...], prompts: dic
         raise RuntimeError(f"{episode.name}: manisplat-reconstruct exited {code}")
     metrics = json.loads((out / "metrics.json").read_text())
     return {"cameras": list(cameras), "iters": iters, "wall_s": round(wall, 1), "ms_per_iter": metrics.get("ms_per_iter"),
+            "light": metrics.get("light"),
             "prompts": {k: [round(u), round(v)] for k, (u, v) in prompts.items()},
             "per_camera": {name: {"psnr": m["psnr"], "ssim": m["ssim"]}
                            for name, m in metrics.get("cameras", {HEAD: metrics}).items()},

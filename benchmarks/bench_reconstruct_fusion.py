@@ -2,15 +2,16 @@
 at new poses, where the simulator says what the new demonstrations look like (issue 34).
 
     MANISPLAT_SIMENV=SIMENV/bin/python python -m benchmarks reconstruct_fusion [--counts 1,5,20]
-        [--iters 3000] [--demos 5] [--shadow-receivers all|background] [--work DIR] [--out JSON]
+        [--iters 3000] [--demos 5] [--shadow-receivers all|background] [--shadow-casters meshes|gaussians]
+        [--work DIR] [--out JSON]
 
 1. **Data** (generated, not committed): ``shared/tools/sim/gen_demos.py --source
    shared/data/sim_pick_place_small --n 20 --seed-start 1 --place-range 0.02 0.02 0.4``: the
    shared scene and camera, the box started anywhere within +-8 cm, +-8 cm, +-45 deg of the
    sample's start and placed within +-2 cm of the mat's centre, turned up to 0.4 rad more.
 2. **Twins**: ``manisplat-reconstruct`` of the first 1, 5 and 20 of them (``--iters``, the same
-   for each; ``--shadow-receivers``: what the learned shadows darken, manisplat-reconstruct's
-   option of that name), each in its own process: wall time, its peak resident memory, metrics.json (held-out
+   for each; ``--shadow-receivers``, ``--shadow-casters``: what the learned shadows darken and
+   what casts the links' shadows, manisplat-reconstruct's options of those names), each in its own process: wall time, its peak resident memory, metrics.json (held-out
    PSNR per region, the mean over episodes and episode_0001's; pose errors; the pose error with
    one offset for every episode).
 3. **New poses**: ``manisplat-augment TWIN --sources episode_0001 --n DEMOS --seed 0`` from each
@@ -43,7 +44,7 @@ import numpy as np
 
 from benchmarks._harness import BENCH_DIR, MissingBenchmarkData, machine_info, shared_dir, simulator_python
 from benchmarks._simulator import SimJob, run_sim_jobs, sim_env, sim_tools
-from manisplat.reconstruct.config import SHADOW_RECEIVERS
+from manisplat.reconstruct.config import SHADOW_CASTERS, SHADOW_RECEIVERS
 
 OWN_OPTIONS = True
 SOURCE = "episode_0001"
@@ -58,6 +59,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--demos", type=int, default=5, help="new demonstrations rendered and executed per twin (default 5)")
     p.add_argument("--shadow-receivers", choices=SHADOW_RECEIVERS, default="all",
                    help="manisplat-reconstruct --shadow-receivers of every twin (default all)")
+    p.add_argument("--shadow-casters", choices=SHADOW_CASTERS, default="gaussians",
+                   help="manisplat-reconstruct --shadow-casters of every twin (default gaussians)")
     p.add_argument("--work", type=Path, help="outputs (default a temporary folder; kept)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_reconstruct" / "reconstruct_fusion.json")
     args = p.parse_args(argv)
@@ -68,7 +71,8 @@ def main(argv: list[str] | None = None) -> int:
     episodes = _demonstrations(simenv, work / "demos", max(counts))
     twins = {}
     for count in counts:
-        twins[count] = _twin(episodes[:count], work / f"twin_{count}", args.iters, args.shadow_receivers)
+        twins[count] = _twin(episodes[:count], work / f"twin_{count}", args.iters, args.shadow_receivers,
+                              args.shadow_casters)
         print(f"{count} episodes: {json.dumps({k: twins[count][k] for k in ('wall_s', 'peak_rss_mb', 'psnr')})}",
               flush=True)
     for count in counts:
@@ -85,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     result = {"benchmark": "reconstruct_fusion", "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
               "command": "python -m benchmarks reconstruct_fusion " + " ".join(argv if argv is not None else sys.argv[1:]),
               "machine": machine_info(), "work": str(work), "iters": args.iters,
-              "shadow_receivers": args.shadow_receivers,
+              "shadow_receivers": args.shadow_receivers, "shadow_casters": args.shadow_casters,
               "episodes": [e.name for e in episodes], "twins": {str(k): v for k, v in twins.items()},
               "registration": registration, "sheet": sheet.name, "wall_s": round(time.perf_counter() - started, 1)}
     args.out.write_text(json.dumps(result, indent=1) + "\n")
@@ -107,20 +111,21 @@ def _demonstrations(simenv: Path, out: Path, n: int) -> list[Path]:
     return found[:n]
 
 
-def _twin(episodes: list[Path], out: Path, iters: int, shadow_receivers: str) -> dict:
+def _twin(episodes: list[Path], out: Path, iters: int, shadow_receivers: str, shadow_casters: str) -> dict:
     """Reconstruct ``episodes`` into ``out`` in a process of its own; its time, peak memory, figures."""
     if (out / "metrics.json").exists():
         light = json.loads((out / "metrics.json").read_text()).get("light") or {}
-        if light.get("receivers", "background") != shadow_receivers:
-            raise MissingBenchmarkData(f"{out} was made with shadow receivers {light.get('receivers', 'background')!r}, "
-                                       f"not {shadow_receivers!r}: use another --work")
+        made = {"receivers": light.get("receivers", "background"), "casters": light.get("casters", "gaussians")}
+        if made != {"receivers": shadow_receivers, "casters": shadow_casters}:
+            raise MissingBenchmarkData(f"{out} was made with shadow {made}, not receivers {shadow_receivers!r} and "
+                                       f"casters {shadow_casters!r}: use another --work")
     else:
         from benchmarks._degraded import robot_of
 
         robot = robot_of(shared_dir() / "data" / "sim_pick_place_small")  # the demonstrations live elsewhere
         cmd = [sys.executable, "-c", PEAK_RSS, sys.executable, "-m", "manisplat.reconstruct.cli",
                *map(str, episodes), "--out", str(out), "--iters", str(iters), "--robot", robot,
-               "--shadow-receivers", shadow_receivers, "--overwrite", "-q"]
+               "--shadow-receivers", shadow_receivers, "--shadow-casters", shadow_casters, "--overwrite", "-q"]
         t0 = time.perf_counter()
         proc = subprocess.run(cmd, capture_output=True, text=True)
         if proc.returncode != 0:
@@ -132,8 +137,8 @@ def _twin(episodes: list[Path], out: Path, iters: int, shadow_receivers: str) ->
     first = m["episodes"][SOURCE] if "episodes" in m else m
     return {"episodes": len(episodes), "wall_s": round(run["wall_s"], 1), "peak_rss_mb": round(run["peak_rss_kb"] / 1024),
             "ms_per_iter": m.get("ms_per_iter"), "psnr": m["psnr"], "psnr_colour_fitted": m.get("psnr_colour_fitted"),
-            "psnr_source_episode": first["psnr"], "pose": m.get("pose"), "pose_anchored": _anchored(m.get("pose_anchored")),
-            "pose_one_offset": m.get("pose_one_offset")}
+            "psnr_source_episode": first["psnr"], "shadow": m.get("shadow"), "pose": m.get("pose"),
+            "pose_anchored": _anchored(m.get("pose_anchored")), "pose_one_offset": m.get("pose_one_offset")}
 
 
 def _anchored(anchored: dict | None) -> dict | None:

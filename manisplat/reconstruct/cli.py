@@ -22,8 +22,9 @@ from manisplat.align.phases import DEFAULT_TAU
 from manisplat.cli_args import add_version, finite, non_negative, numbers, positive
 from manisplat.exit_codes import ExitCode, exit_status_help
 from manisplat.output_folder import check_output_folder
-from manisplat.reconstruct.config import (COMPILE_CHOICES, COMPILE_MIN_ITERS, GPU_ITERS, SHADOW_RECEIVERS,
-                                          DeviceUnavailable, TrainConfig, default_iters, resolve_compile, resolve_device)
+from manisplat.reconstruct.config import (COMPILE_CHOICES, COMPILE_MIN_ITERS, GPU_ITERS, SHADOW_CASTERS,
+                                          SHADOW_RECEIVERS, DeviceUnavailable, TrainConfig, default_iters,
+                                          resolve_compile, resolve_device)
 from manisplat.threads import THREADS_HELP, use_threads
 
 log = logging.getLogger("manisplat.reconstruct")
@@ -98,6 +99,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--shadow-receivers", default="all", choices=SHADOW_RECEIVERS,
                    help="what the cast shadows darken: all (the background and the moving parts: the gripper's "
                         "shadow on the object; default) or background (the parts keep recorded shadows in their colour)")
+    p.add_argument("--shadow-casters", default="gaussians", choices=SHADOW_CASTERS,
+                   help="what casts the links' shadows: gaussians (the links' fitted Gaussians, whose shadows come out "
+                        "wider; default) or meshes (the robot description's link meshes: the links' outlines)")
     p.add_argument("--no-densify", action="store_true", help="keep the initial Gaussians (no clone/split/prune)")
     p.add_argument("--refine-camera", action="store_true", help="also optimise a correction of the camera extrinsic")
     p.add_argument("--keep-extrinsic", action="store_true",
@@ -298,6 +302,7 @@ def _config(args: argparse.Namespace, device: str, iters: int, compiled: str | N
     log.info("%s", _training_summary(args, device, iters, compiled))
     return TrainConfig(
         iters=iters, backend=args.backend, shadows=not args.no_shadows, shadow_receivers=args.shadow_receivers,
+        shadow_casters=args.shadow_casters,
         densify=not args.no_densify,
         refine_camera=args.refine_camera, exposure=not args.no_exposure, lambda_app=args.lambda_app,
         lambda_mask=args.lambda_mask, lambda_pose=args.lambda_pose, seed=args.seed, device=device, compile=args.compile,

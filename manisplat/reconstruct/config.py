@@ -22,6 +22,11 @@ class TrainConfig:
         shadow_receivers: what they darken: "all" (the background and the moving parts: the
             gripper's shadow on the object, the arm's on itself) or "background" (the earlier
             model, whose moving parts bake what shadows they had in the recording into colour).
+        shadow_casters: what casts the links' shadows: "gaussians" (the links' fitted Gaussians,
+            which reach past the surface: wider shadows) or "meshes" (points sampled over the robot
+            description's link meshes: the links' outlines; the Gaussians where it has none).
+            Meshes: +0.8 dB held-out and +0.4 dB at new poses on the one-arm episode, but 0.3-0.7
+            dB less in the object region held out (docs/benchmarks.md), so not yet the default.
         shadow_resolution: the shadow map's size (pixels a side; it spans about twice the
             robot's reach). None: a texel about one camera pixel wide at the robot
             (:func:`manisplat.scene.shadows.matched_resolution`; 368 for the simulator's
@@ -64,6 +69,7 @@ class TrainConfig:
     shadow_start: int = 300
     shadow_resolution: int | None = None
     shadow_receivers: str = "all"
+    shadow_casters: str = "gaussians"
     sh_degree: int = 2
     sh_every: int = 500
     refine_camera: bool = False
@@ -94,6 +100,8 @@ def default_iters(device: str) -> int:
 COMPILE_CHOICES = ("auto", "on", "off")
 #: TrainConfig.shadow_receivers' values (manisplat.scene.shadows.RECEIVERS, here without torch)
 SHADOW_RECEIVERS = ("all", "background")
+#: TrainConfig.shadow_casters' values
+SHADOW_CASTERS = ("meshes", "gaussians")
 #: "auto" compiles a CUDA run of at least this many iterations: on an H100, over whole runs of
 #: sim_pick_place_small (densification, held-out estimates, 65 600 Gaussians), an iteration took
 #: 39.4 ms eagerly (gpu_eager/tests_long_pp_10000.json) and 19.7 ms compiled after about 240 s of

@@ -368,7 +368,7 @@ def _without_shadows(rec: Reconstruction, frame: int, evaluation: dict[str, np.n
 
 def _light(shadows) -> dict:
     """The learned light: direction towards it [3] (base frame), elevation and azimuth (deg), strength [3],
-    and the shadow map's size (pixels a side)."""
+    what casts the links' shadows ("meshes" or "gaussians") and the shadow map's size (pixels a side)."""
     d = shadows.direction.detach().double().cpu()
     d = d / d.norm()
     return {"direction": [round(float(x), 5) for x in d],
@@ -378,6 +378,7 @@ def _light(shadows) -> dict:
             "receivers": shadows.receivers,
             "strength_moving": None if shadows.moving_strength is None else
             [round(float(x), 4) for x in shadows.moving_strength.detach().cpu()],
+            "casters": "meshes" if shadows.has_casters else "gaussians",
             "shadow_map_px": shadows.resolution}
 
 

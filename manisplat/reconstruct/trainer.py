@@ -16,6 +16,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
+import trimesh
 import torch
 from tqdm import tqdm
 
@@ -32,7 +33,7 @@ from manisplat.reconstruct.poses import ObjectTrajectory, TwistAdam
 from manisplat.reconstruct.tensor_ops import TensorOpCounter
 from manisplat.scene import ROBOT, GaussianSet, SceneGraph
 from manisplat.scene.render import render_graph
-from manisplat.scene.shadows import DirectionalShadows, matched_resolution, search_direction
+from manisplat.scene.shadows import DirectionalShadows, matched_resolution, search_direction, surface_casters
 from manisplat.geometry import se3_exp
 from manisplat.splat import DefaultStrategy, value_checks
 from manisplat.splat.strategy import gradient_statistics
@@ -387,8 +388,9 @@ class Reconstruction:
         center = links.mean(0)
         extent = 2.2 * float((links - center).norm(dim=-1).max())
         resolution = self.config.shadow_resolution or matched_resolution(center, extent, self.viewmat(), d.K)
+        casters = self._shadow_casters()
         model = DirectionalShadows(torch.tensor([0.0, 0.0, 1.0]), center.cpu(), extent, resolution=resolution,
-                                   receivers=self.config.shadow_receivers).to(self.device)
+                                   receivers=self.config.shadow_receivers, casters=casters).to(self.device)
         points, _, _, _, colors = (x.detach() for x in self.graph.background.activated())
         V, K = self.viewmat().detach(), d.K
         cam = points @ V[:3, :3].T + V[:3, 3]
@@ -403,8 +405,9 @@ class Reconstruction:
         for f in chosen:
             composed = self.graph.compose(d.link_poses[f], self.object_poses(f))
             start, end = composed.slices["background"]
-            occluders = tuple(torch.cat([x[:start], x[end:]]) for x in
-                              (composed.means, composed.quats, composed.scales, composed.opacities))
+            moving = tuple(torch.cat([x[:start], x[end:]]) for x in
+                           (composed.means, composed.quats, composed.scales, composed.opacities))
+            occluders = model.occluders(moving, d.link_poses[f].to(self.device), self.graph.link_gaussians)
             valid = inside & d.region(f, d.labels.static)[px[:, 1], px[:, 0]]
             if d.depth is not None:
                 valid &= (d.depth[f][px[:, 1], px[:, 0]] - cam[:, 2]).abs() < 0.02
@@ -420,6 +423,24 @@ class Reconstruction:
         log.info("shadows: light direction %s, strength %s (searched in %.1f s; shadow map %d px a side)",
                  np.round(direction.cpu().numpy(), 3).tolist(), np.round(strength.cpu().numpy(), 3).tolist(),
                  time.perf_counter() - t0, resolution)
+
+    def _shadow_casters(self) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """The links' surface samples that cast their shadows (``DirectionalShadows``' casters), or
+        None when ``shadow_casters`` is "gaussians" or the robot description has no link mesh."""
+        if self.config.shadow_casters == "gaussians":
+            return None
+        meshes = {}
+        for name, visuals in self.data.robot.visuals.items():
+            parts = [v.mesh for v in visuals if v.mesh is not None and len(v.mesh.faces)]
+            if parts and name in self.graph.link_index:
+                meshes[self.graph.link_index[name]] = trimesh.util.concatenate(parts)
+        if not meshes:
+            log.warning("shadows: the robot description has no link meshes; the links' Gaussians cast their "
+                        "shadows (wider than the links')")
+            return None
+        points, links = surface_casters(meshes)
+        log.info("shadows: cast by %d points on the meshes of %d links", len(points), len(meshes))
+        return points, links
 
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict:
@@ -481,8 +502,10 @@ class Reconstruction:
         self.graph.shadows = None
         if state["shadows"] is not None:
             extent, resolution, *receivers = state["shadow_geometry"]  # checkpoints before receivers: background
+            casters = state["shadows"].get("caster_points"), state["shadows"].get("caster_links")
             sh = DirectionalShadows(torch.tensor([0.0, 0.0, 1.0]), torch.zeros(3), extent, resolution=resolution,
-                                    receivers=receivers[0] if receivers else "background")
+                                    receivers=receivers[0] if receivers else "background",
+                                    casters=None if casters[0] is None else casters)
             sh.load_state_dict(state["shadows"], strict=bool(receivers))
             self.graph.shadows = sh.to(dev)
         self.optimizer = self._make_optimizer()

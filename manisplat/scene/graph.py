@@ -128,7 +128,7 @@ class SceneGraph:
             return Composed(*parts[0][:5], groups, slices=slices)
         bg = tuple(parts[0][:5]) if self.background is not None else None
         moving = tuple(torch.cat([part[k] for part in dynamic]) for k in range(5))
-        return Composed(*self._join_shaded(bg, moving), groups, slices=slices)
+        return Composed(*self._join_shaded(bg, moving, link_poses), groups, slices=slices)
 
     def _compose_batched(self, link_poses: torch.Tensor, object_poses: dict[str, torch.Tensor],
                          camera_center: torch.Tensor | None) -> Composed | None:
@@ -165,15 +165,21 @@ class SceneGraph:
         for n, count in zip(dynamic, counts):
             slices[n.name] = (start, start + count)
             start += count
-        return Composed(*self._join_shaded(bg, moving), groups, slices=slices)
+        return Composed(*self._join_shaded(bg, moving, link_poses), groups, slices=slices)
 
-    def _join_shaded(self, background: Activated | None, moving: Activated) -> Activated:
+    @property
+    def link_gaussians(self) -> int:
+        """How many of the moving nodes' Gaussians (the links', then the objects', in a union) are the links'."""
+        return sum(len(g) for g in self.links.values())
+
+    def _join_shaded(self, background: Activated | None, moving: Activated, link_poses: torch.Tensor) -> Activated:
         """The background's and the moving nodes' placed Gaussians as one set, darkened where the
-        moving nodes shadow the light (:func:`_shade_and_join`; the moving nodes too when the
-        shadows fall on every receiver)."""
+        moving nodes (the links at ``link_poses`` [L, 4, 4]) shadow the light
+        (:meth:`DirectionalShadows.occluders`, :func:`_shade_and_join`; the moving nodes too when
+        the shadows fall on every receiver)."""
         if self.shadows is None or background is None:
             return _shade_and_join(background, moving, None)
-        shadow = self.shadows.shadow_inputs(moving[:4])
+        shadow = self.shadows.shadow_inputs(self.shadows.occluders(moving, link_poses, self.link_gaussians))
         moving_strength = self.shadows.moving_strength_logit if self.shadows.receivers == "all" else None
         return _shade_and_join(background, moving, shadow, moving_strength)
 

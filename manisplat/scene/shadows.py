@@ -9,6 +9,11 @@ projected into that view; where an occluder lies in front of it, its colour is s
 learned too (through the rasterizer's viewmat gradient); it starts from a coarse search.
 The occluders' geometry is detached in the light pass: shadows tune the light, not the robot.
 
+The links cast from their meshes where the robot has them (``casters``: points sampled over each
+link's surface, :func:`surface_casters`, drawn as small opaque round Gaussians): the Gaussians
+fitted to a link reach past its surface, so the shadow they cast is wider than the link's (the
+gripper's came out visibly too large). The objects, which have no mesh, cast from their Gaussians.
+
 With ``receivers="all"`` the moving nodes' Gaussians receive shadows too (their positions detached
 likewise), with a strength of their own (a table and a link's surface turned elsewhere lose
 different shares of their light): the gripper darkens the object under it and the arm darkens
@@ -22,10 +27,13 @@ import math
 
 import torch
 import torch.nn.functional as F
+import trimesh
 
 from manisplat.compilation import compilable
 from manisplat.splat import rasterization
 
+CASTER_SPACING = 0.004  # m between the surface samples that cast the links' shadows (surface_casters)
+CASTER_SIGMA = 0.5 * CASTER_SPACING  # m, standard deviation of each sample's round Gaussian: neighbours overlap
 LIGHT_DISTANCE = 100.0  # m: far enough that the pinhole light camera is nearly orthographic
 RECEIVERS = ("all", "background")  # which Gaussians receive the shadows (DirectionalShadows.receivers)
 
@@ -88,10 +96,14 @@ class DirectionalShadows(torch.nn.Module):
         softness: occluder depth margin (m) below which a point is not considered shadowed.
         receivers: which Gaussians the shadows darken: "background" or "all" (the moving nodes
             too; see the module's docstring).
+        casters: (points [P, 3] each in its link's frame, link index [P] in FK order) of the
+            links' surfaces (:func:`surface_casters`), which then cast the links' shadows in place
+            of their Gaussians; None: the links' Gaussians cast.
     """
 
     def __init__(self, direction: torch.Tensor, center: torch.Tensor, extent: float, *, resolution: int = 128,
-                 softness: float = 0.02, strength: float = 0.4, receivers: str = "all") -> None:
+                 softness: float = 0.02, strength: float = 0.4, receivers: str = "all",
+                 casters: tuple[torch.Tensor, torch.Tensor] | None = None) -> None:
         if receivers not in RECEIVERS:
             raise ValueError(f"shadow receivers must be one of {RECEIVERS}, not {receivers!r}")
         super().__init__()
@@ -101,6 +113,9 @@ class DirectionalShadows(torch.nn.Module):
         self.register_buffer("center", center.float())
         self.extent, self.resolution, self.softness = float(extent), int(resolution), float(softness)
         self.receivers = receivers
+        points, links = casters if casters is not None else (None, None)
+        self.register_buffer("caster_points", None if points is None else points.float())
+        self.register_buffer("caster_links", None if links is None else links.long())
 
     @property
     def strength(self) -> torch.Tensor:
@@ -111,6 +126,26 @@ class DirectionalShadows(torch.nn.Module):
     def moving_strength(self) -> torch.Tensor | None:
         """[3] the same for the moving nodes' Gaussians (None unless ``receivers == "all"``)."""
         return torch.sigmoid(self.moving_strength_logit) if self.receivers == "all" else None
+
+    @property
+    def has_casters(self) -> bool:
+        """Whether the links cast from their meshes' surface samples (else from their Gaussians)."""
+        return self.caster_points is not None
+
+    def occluders(self, moving: tuple[torch.Tensor, ...], link_poses: torch.Tensor,
+                  link_gaussians: int) -> tuple[torch.Tensor, ...]:
+        """(means, quats, scales, opacities) of what casts the shadows, from the moving nodes'
+        placed Gaussians ``moving`` (those four [M, ...], the links' ``link_gaussians`` first, then
+        the objects'): with casters, the links' surface samples at ``link_poses`` [L, 4, 4]
+        (T_base_link, FK order) in place of the links' Gaussians."""
+        if self.caster_points is None:
+            return tuple(moving[:4])
+        P = link_poses.detach().to(self.caster_points.dtype)[self.caster_links]
+        means = torch.einsum("nij,nj->ni", P[:, :3, :3], self.caster_points) + P[:, :3, 3]
+        n = len(means)
+        identity = torch.cat([means.new_ones(n, 1), means.new_zeros(n, 3)], dim=1)  # built on the device: no host copy
+        casters = (means, identity, means.new_full((n, 3), CASTER_SIGMA), means.new_ones(n))
+        return tuple(torch.cat([c, x[link_gaussians:]]) for c, x in zip(casters, moving[:4]))
 
     def occlusion(self, points: torch.Tensor, occluders: tuple[torch.Tensor, ...]) -> torch.Tensor:
         """How much of the light each point [N, 3] loses to the occluders, in [0, 1]: [N].
@@ -134,6 +169,22 @@ class DirectionalShadows(torch.nn.Module):
             self.resolution, self.resolution, render_mode="ED",
         )
         return alpha_map[0], depth_map[0], view, K
+
+
+def surface_casters(meshes: dict[int, trimesh.Trimesh],
+                    spacing: float = CASTER_SPACING) -> tuple[torch.Tensor, torch.Tensor]:
+    """(points [P, 3] float32 in their links' frames, link index [P] int64) sampled about ``spacing``
+    m apart over the surfaces of ``meshes`` (link index -> its mesh in its link's frame, m), the
+    ``casters`` of :class:`DirectionalShadows`. ValueError without any mesh."""
+    if not meshes:
+        raise ValueError("no link mesh to cast shadows from")
+    points, links = [], []
+    for index, mesh in sorted(meshes.items()):
+        count = max(int(math.ceil(mesh.area / spacing ** 2)), 1)
+        p, _ = trimesh.sample.sample_surface_even(mesh, count, radius=0.5 * spacing, seed=index)
+        points.append(torch.as_tensor(p, dtype=torch.float32))
+        links.append(torch.full((len(p),), index, dtype=torch.long))
+    return torch.cat(points), torch.cat(links)
 
 
 def _sample_occlusion(points: torch.Tensor, alpha_map: torch.Tensor, depth_map: torch.Tensor, view: torch.Tensor,

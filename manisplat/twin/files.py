@@ -56,7 +56,8 @@ def save_twin(twin: Twin, folder: Path) -> None:
     light = None
     if twin.graph.shadows is not None:
         sh = twin.graph.shadows
-        light = {"extent": sh.extent, "resolution": sh.resolution, "softness": sh.softness, "receivers": sh.receivers}
+        light = {"extent": sh.extent, "resolution": sh.resolution, "softness": sh.softness, "receivers": sh.receivers,
+                 "casters": "meshes" if sh.has_casters else "gaussians"}
         tensors.update({f"shadows/{k}": v.detach().cpu().clone() for k, v in sh.state_dict().items()})
     support = None
     if twin.support is not None:
@@ -141,9 +142,13 @@ def load_twin(folder: Path, *, backend: str = "auto", device: torch.device | str
     graph = SceneGraph(background, links, list(meta["link_order"]), objects)
     if meta["shadows"] is not None:
         light = meta["shadows"]
+        casters = None
+        if light.get("casters", "gaussians") == "meshes":  # twins before mesh casters: the links' Gaussians cast
+            casters = tensor("shadows/caster_points"), tensor("shadows/caster_links")
         sh = DirectionalShadows(torch.tensor([0.0, 0.0, 1.0]), torch.zeros(3), light["extent"],
                                 resolution=light["resolution"], softness=light["softness"],
-                                receivers=light.get("receivers", "background"))  # twins before receivers: background
+                                receivers=light.get("receivers", "background"),  # twins before receivers: background
+                                casters=casters)
         stored = [k for k in sh.state_dict() if "receivers" in light or k != "moving_strength_logit"]
         sh.load_state_dict({k: tensor(f"shadows/{k}") for k in stored}, strict="receivers" in light)
         graph.shadows = sh.to(device)

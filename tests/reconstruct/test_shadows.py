@@ -8,11 +8,13 @@ import math
 import pytest
 import torch
 
+import trimesh
+
 from manisplat.reconstruct.config import SHADOW_RECEIVERS
 from manisplat.scene.gaussians import GaussianSet
 from manisplat.scene.graph import SceneGraph
 from manisplat.scene.shadows import (RECEIVERS, DirectionalShadows, darken, direction_from_angles, light_camera,
-                                     matched_resolution, search_direction)
+                                     matched_resolution, search_direction, surface_casters)
 
 
 def blob(center, radius=0.05, n=200, seed=0):
@@ -122,6 +124,61 @@ def test_the_moving_parts_receive_shadows_with_their_own_strength(path, receiver
         assert darkened["lit"] < 0.1
     else:
         assert darkened == {"shaded": pytest.approx(0.0, abs=1e-6), "lit": pytest.approx(0.0, abs=1e-6)}
+
+
+def test_surface_casters_cover_each_link_about_a_spacing_apart():
+    plate = trimesh.creation.box((0.1, 0.1, 0.01))
+    points, links = surface_casters({2: plate, 0: trimesh.creation.box((0.02, 0.02, 0.02))}, spacing=0.005)
+    assert points.dtype == torch.float32 and links.dtype == torch.int64
+    on_plate = points[links == 2]
+    assert plate.area / 0.005 ** 2 * 0.6 <= len(on_plate) <= math.ceil(plate.area / 0.005 ** 2)
+    assert (on_plate.abs().max(0).values <= torch.tensor([0.05, 0.05, 0.005]) + 1e-6).all()  # on the surface
+    gaps = torch.cdist(on_plate, on_plate).fill_diagonal_(1.0).min(1).values
+    assert float(gaps.min()) >= 0.0025 - 1e-6  # no two samples closer than half the spacing
+    with pytest.raises(ValueError, match="no link mesh"):
+        surface_casters({})
+
+
+@pytest.mark.parametrize("path", ["batched", "node by node"])
+def test_a_links_mesh_casts_its_shadow_as_wide_as_the_link_and_moves_with_it(path):
+    """A link whose fitted Gaussians reach 6 cm past its 2 cm mesh (as a soft fit reaches past a
+    surface): with its mesh as the caster the table 4 cm beside the link's shadow stays lit, where
+    the Gaussians darkened it; under the link it is dark either way; the shadow follows the link's
+    pose; the objects keep casting from their Gaussians."""
+    light = torch.tensor([0.0, 0.0, 1.0])  # straight above: a shadow right under its caster
+    xs = torch.linspace(-0.2, 0.2, 81)
+    table = torch.stack([xs, torch.zeros_like(xs), torch.full_like(xs, -0.02)], -1)  # a line on the table
+    wide = blob(torch.zeros(3), radius=0.08, n=400)[0]  # the link's Gaussians, in its frame
+    box = torch.tensor([[0.0, 0.0, 0.0]])
+    graph = SceneGraph(_node(table), {"link1": _node(wide, sh_degree=int(path == "node by node"))}, ["link1"],
+                       {"box": _node(box)})
+    mesh = trimesh.creation.box((0.02, 0.02, 0.02))
+
+    def darkened(casters, link_x: float) -> torch.Tensor:
+        graph.shadows = DirectionalShadows(light, torch.zeros(3), extent=0.8, resolution=160,
+                                           casters=None if casters is None else surface_casters({0: casters}))
+        with torch.no_grad():
+            graph.shadows.strength_logit.fill_(0.0)  # half the light
+            pose = torch.eye(4)
+            pose[:3, 3] = torch.tensor([link_x, 0.0, 0.2])
+            box_pose = torch.eye(4)
+            box_pose[:3, 3] = torch.tensor([0.0, 0.3, 0.1])  # beside the line: its shadow falls elsewhere
+            g = graph.compose(pose[None], {"box": box_pose})
+        start, end = g.slices["background"]
+        return 1 - g.colors[start:end].mean(-1) / g.colors[start:end].max()
+
+    def at(x: float) -> int:
+        return int(torch.argmin((xs - x).abs()))
+
+    with_gaussians, with_mesh = darkened(None, 0.0), darkened(mesh, 0.0)
+    assert with_mesh[at(0.0)] > 0.45 and with_gaussians[at(0.0)] > 0.45  # under the link
+    assert with_gaussians[at(0.04)] > 0.2  # the Gaussians' shadow reaches past the link
+    assert with_mesh[at(0.04)] < 0.01  # the mesh's does not
+    moved = darkened(mesh, 0.1)
+    assert moved[at(0.1)] > 0.45 and moved[at(0.0)] < 0.01  # the shadow follows the link
+    assert graph.shadows.occluders(
+        (box, torch.tensor([[1.0, 0, 0, 0]]), torch.full((1, 3), 0.01), torch.ones(1)), torch.eye(4)[None], 0,
+    )[0].shape[0] == len(graph.shadows.caster_points) + 1  # the objects cast from their Gaussians
 
 
 def test_unknown_receivers_are_refused():

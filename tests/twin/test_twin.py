@@ -28,7 +28,8 @@ def trained(tmp_path_factory):
     root = tmp_path_factory.mktemp("twin")
     episode = write_sample_episode(root / "ep", frames=16, width=80, height=60)
     data = load_episode_data(episode)
-    rec, alignments = build(data, make_plan(data), TrainConfig(iters=30, shadow_start=10, eval_every=1000))
+    rec, alignments = build(data, make_plan(data), TrainConfig(iters=30, shadow_start=10, eval_every=1000,
+                                                                  shadow_casters="meshes"))
     rec.train(progress=False)
     out = root / "twin"
     write_twin(rec, alignments, out)
@@ -41,6 +42,8 @@ def test_the_twin_renders_the_training_state_as_the_trainer_does(trained):
     twin = Twin.load(out)
     assert twin.graph.shadows is not None, "the learned light must travel with the twin"
     assert twin.graph.shadows.receivers == "all"
+    assert rec.graph.shadows.has_casters, "the built-in robot's link meshes cast the shadows"
+    torch.testing.assert_close(twin.graph.shadows.caster_points, rec.graph.shadows.caster_points)
     torch.testing.assert_close(twin.graph.shadows.moving_strength, rec.graph.shadows.moving_strength)
     moving = rec.graph.shadows.moving_strength_logit
     assert rec.optimizer.state[moving]["step"] > 0, "the moving parts' shadow strength is learned"
@@ -182,3 +185,18 @@ def test_a_twin_written_before_shadow_receivers_keeps_its_shadows_on_the_backgro
     torch.save(tensors, old / "twin.pt")
     shadows = Twin.load(old).graph.shadows
     assert shadows.receivers == "background" and shadows.moving_strength is None
+
+
+def test_a_twin_written_before_mesh_casters_casts_from_the_links_gaussians(trained, tmp_path):
+    _, out, _ = trained
+    old = tmp_path / "old"
+    shutil.copytree(out, old)
+    meta = json.loads((old / "twin.json").read_text())
+    del meta["shadows"]["casters"]
+    (old / "twin.json").write_text(json.dumps(meta))
+    tensors = torch.load(old / "twin.pt", weights_only=True)
+    del tensors["shadows/caster_points"], tensors["shadows/caster_links"]
+    torch.save(tensors, old / "twin.pt")
+    twin = Twin.load(old)
+    assert not twin.graph.shadows.has_casters
+    assert twin.render_frame(3).rgb.shape == (60, 80, 3)
