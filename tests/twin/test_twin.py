@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -174,29 +175,27 @@ def test_a_twin_written_in_version_1_still_loads_and_renders_the_same(trained, t
 def test_a_twin_written_before_shadow_receivers_keeps_its_shadows_on_the_background(trained, tmp_path):
     """Its moving parts were trained without receiving shadows: they must render as they were
     trained (shadows on the background only), not darkened by a strength they never had."""
-    _, out, _ = trained
-    old = tmp_path / "old"
-    shutil.copytree(out, old)
-    meta = json.loads((old / "twin.json").read_text())
-    del meta["shadows"]["receivers"]
-    (old / "twin.json").write_text(json.dumps(meta))
-    tensors = torch.load(old / "twin.pt", weights_only=True)
-    del tensors["shadows/moving_strength_logit"]
-    torch.save(tensors, old / "twin.pt")
+    old = _without_light_fields(trained[1], tmp_path / "old", ["receivers"], ["moving_strength_logit"])
     shadows = Twin.load(old).graph.shadows
     assert shadows.receivers == "background" and shadows.moving_strength is None
 
 
 def test_a_twin_written_before_mesh_casters_casts_from_the_links_gaussians(trained, tmp_path):
-    _, out, _ = trained
-    old = tmp_path / "old"
-    shutil.copytree(out, old)
-    meta = json.loads((old / "twin.json").read_text())
-    del meta["shadows"]["casters"]
-    (old / "twin.json").write_text(json.dumps(meta))
-    tensors = torch.load(old / "twin.pt", weights_only=True)
-    del tensors["shadows/caster_points"], tensors["shadows/caster_links"]
-    torch.save(tensors, old / "twin.pt")
+    old = _without_light_fields(trained[1], tmp_path / "old", ["casters"], ["caster_points", "caster_links"])
     twin = Twin.load(old)
     assert not twin.graph.shadows.has_casters
     assert twin.render_frame(3).rgb.shape == (60, 80, 3)
+
+
+def _without_light_fields(twin: Path, old: Path, meta_keys: list[str], tensor_keys: list[str]) -> Path:
+    """A copy of the twin folder ``twin`` in ``old`` as a version without those fields of the light wrote it."""
+    shutil.copytree(twin, old)
+    meta = json.loads((old / "twin.json").read_text())
+    for key in meta_keys:
+        del meta["shadows"][key]
+    (old / "twin.json").write_text(json.dumps(meta))
+    tensors = torch.load(old / "twin.pt", weights_only=True)
+    for key in tensor_keys:
+        del tensors[f"shadows/{key}"]
+    torch.save(tensors, old / "twin.pt")
+    return old
