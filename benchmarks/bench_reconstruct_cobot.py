@@ -11,8 +11,8 @@ benchmark reads: held-out PSNR / SSIM per camera and region (the simulator's mas
 errors in the world frame (fitted and start-anchored), wall time and time per iteration.
 
 ``python -m benchmarks reconstruct_cobot [--samples cobot_dual_small,...] [--settings all,head] [--iters 3000]
-[--shadow-casters meshes|gaussians] [--out FILE]``: ``--settings all --iters 9000`` gives the head camera about as many iterations as
-``--settings head --iters 3000`` (one camera's image an iteration).
+[--shadow-casters meshes|gaussians] [--out FILE]``: ``--settings all --iters 9000`` gives the head
+camera about as many iterations as ``--settings head --iters 3000`` (one camera's image an iteration).
 """
 
 from __future__ import annotations
@@ -61,7 +61,8 @@ def main(argv: list[str] | None = None) -> int:
             episode, prompts = imported_sample(shared, sample, Path(tmp))
             for setting, cameras in (SETTINGS[key] for key in settings):
                 out = Path(tmp) / f"{sample}_{len(cameras)}"
-                rows.append(reconstruct(episode, out, cameras, prompts, args.iters, args.shadow_casters) | {"sample": sample, "setting": setting})
+                row = reconstruct(episode, out, cameras, prompts, args.iters, args.shadow_casters)
+                rows.append(row | {"sample": sample, "setting": setting})
                 print(json.dumps(rows[-1], default=float), flush=True)
     result = {"benchmark": "reconstruct_cobot",
               "command": "python -m benchmarks reconstruct_cobot " + " ".join(argv if argv is not None else sys.argv[1:]),

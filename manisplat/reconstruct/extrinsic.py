@@ -39,6 +39,7 @@ from trimesh.ray.ray_pyembree import RayMeshIntersector
 from manisplat.geometry import pose_error, se3_exp
 from manisplat.reconstruct.data import EpisodeData, joints_at
 from manisplat.reconstruct.static_surface import world_region
+from manisplat.robot import link_meshes
 
 log = logging.getLogger(__name__)
 
@@ -215,12 +216,9 @@ def _summed(systems: dict, by: int) -> list[tuple[np.ndarray, np.ndarray]]:
 
 def _link_meshes(data: EpisodeData) -> dict[str, trimesh.Trimesh]:
     """link -> its visual meshes as one mesh (link frame), ray-cast with Embree."""
-    out = {}
-    for name, visuals in data.robot.visuals.items():
-        if visuals:
-            mesh = trimesh.util.concatenate([v.mesh for v in visuals])
-            mesh.ray = RayMeshIntersector(mesh)  # Embree (embreex), not trimesh's slow pure-Python fallback
-            out[name] = mesh
+    out = link_meshes(data.robot.visuals)
+    for mesh in out.values():
+        mesh.ray = RayMeshIntersector(mesh)  # Embree (embreex), not trimesh's slow pure-Python fallback
     return out
 
 

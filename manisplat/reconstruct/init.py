@@ -17,7 +17,7 @@ import torch
 import trimesh
 
 from manisplat.reconstruct.data import EpisodeData, ReconstructionInputError
-from manisplat.robot import RobotModel
+from manisplat.robot import RobotModel, link_meshes
 from manisplat.scene import GaussianSet
 
 log = logging.getLogger(__name__)
@@ -177,8 +177,8 @@ def link_gaussians(robot: RobotModel, links: list[str], *, total: int = 20_000, 
 
     The ``total`` budget is shared in proportion to surface area; colours start mid-grey.
     """
-    meshes = {name: trimesh.util.concatenate([v.mesh for v in robot.visuals[name]]) for name in links
-              if robot.visuals.get(name)}
+    geometry = link_meshes(robot.visuals)
+    meshes = {name: geometry[name] for name in links if name in geometry}
     missing = [name for name in links if name not in meshes]
     if missing:
         raise ValueError(f"{robot.name}: no geometry for links {missing}; load the URDF with its meshes")

@@ -16,12 +16,11 @@ from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
-import trimesh
 import torch
 from tqdm import tqdm
 
 from manisplat.compilation import compilation
-from manisplat.reconstruct.config import TrainConfig, resolve_compile, resolve_device
+from manisplat.reconstruct.config import SHADOW_CASTERS, TrainConfig, resolve_compile, resolve_device
 from manisplat.reconstruct.data import EpisodeData
 from manisplat.reconstruct.exposure import FrameExposure
 from manisplat.reconstruct.extrinsic import ExtrinsicCorrection
@@ -31,6 +30,7 @@ from manisplat.reconstruct.metrics import psnr
 from manisplat.reconstruct.plan import Plan
 from manisplat.reconstruct.poses import ObjectTrajectory, TwistAdam
 from manisplat.reconstruct.tensor_ops import TensorOpCounter
+from manisplat.robot import link_meshes
 from manisplat.scene import ROBOT, GaussianSet, SceneGraph
 from manisplat.scene.render import render_graph
 from manisplat.scene.shadows import DirectionalShadows, matched_resolution, search_direction, surface_casters
@@ -427,13 +427,12 @@ class Reconstruction:
     def _shadow_casters(self) -> tuple[torch.Tensor, torch.Tensor] | None:
         """The links' surface samples that cast their shadows (``DirectionalShadows``' casters), or
         None when ``shadow_casters`` is "gaussians" or the robot description has no link mesh."""
+        if self.config.shadow_casters not in SHADOW_CASTERS:
+            raise ValueError(f"shadow casters must be one of {SHADOW_CASTERS}, not {self.config.shadow_casters!r}")
         if self.config.shadow_casters == "gaussians":
             return None
-        meshes = {}
-        for name, visuals in self.data.robot.visuals.items():
-            parts = [v.mesh for v in visuals if v.mesh is not None and len(v.mesh.faces)]
-            if parts and name in self.graph.link_index:
-                meshes[self.graph.link_index[name]] = trimesh.util.concatenate(parts)
+        meshes = {self.graph.link_index[name]: mesh for name, mesh in link_meshes(self.data.robot.visuals).items()
+                  if name in self.graph.link_index}
         if not meshes:
             log.warning("shadows: the robot description has no link meshes; the links' Gaussians cast their "
                         "shadows (wider than the links')")

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Callable
 
 from manisplat.robot.ik import IKResult, solve_ik
-from manisplat.robot.model import Gripper, Joint, JointLimits, RobotModel, RobotModelError, Visual
+from manisplat.robot.model import Gripper, Joint, JointLimits, RobotModel, RobotModelError, Visual, link_meshes
 from manisplat.robot.piper import BUILTIN_NAME, builtin_piper, is_agilex_piper_urdf, load_agilex_piper_urdf
 from manisplat.robot.urdf import load_urdf
 
@@ -80,6 +80,7 @@ __all__ = [
     "builtin_piper",
     "description_file",
     "is_agilex_piper_urdf",
+    "link_meshes",
     "load_agilex_piper_urdf",
     "load_robot",
     "load_urdf",

@@ -79,6 +79,17 @@ class Visual:
     source: str
 
 
+def link_meshes(visuals: dict[str, list[Visual]]) -> dict[str, trimesh.Trimesh]:
+    """link -> its visuals' triangles as one mesh (link frame, m), for every link that has any
+    (``visuals`` as :attr:`RobotModel.visuals`)."""
+    out = {}
+    for link, vis in visuals.items():
+        parts = [v.mesh for v in vis if v.mesh is not None and len(v.mesh.faces)]
+        if parts:
+            out[link] = trimesh.util.concatenate(parts)
+    return out
+
+
 class RobotModel:
     """Kinematic tree, arm joints, limits, TCP, gripper and link geometry of one robot.
 

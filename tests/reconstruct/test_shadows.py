@@ -7,7 +7,6 @@ import math
 
 import pytest
 import torch
-
 import trimesh
 
 from manisplat.reconstruct.config import SHADOW_RECEIVERS
