@@ -11,8 +11,9 @@ benchmark reads: held-out PSNR / SSIM per camera and region (the simulator's mas
 errors in the world frame (fitted and start-anchored), wall time and time per iteration.
 
 ``python -m benchmarks reconstruct_cobot [--samples cobot_dual_small,...] [--settings all,head] [--iters 3000]
-[--shadow-casters meshes|gaussians] [--out FILE]``: ``--settings all --iters 9000`` gives the head
-camera about as many iterations as ``--settings head --iters 3000`` (one camera's image an iteration).
+[--shadow-casters meshes|gaussians] [--rasterize-mode auto|classic|antialiased] [--out FILE]``: ``--settings all
+--iters 9000`` gives the head camera about as many iterations as ``--settings head --iters 3000`` (one
+camera's image an iteration).
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from benchmarks._harness import BENCH_DIR, shared_dir
 from manisplat.episode.cli import main as episode_main
 from manisplat.episode.groundtruth import write_gt
 from manisplat.reconstruct.cli import main as reconstruct_main
-from manisplat.reconstruct.config import SHADOW_CASTERS
+from manisplat.reconstruct.config import RASTERIZE_CHOICES, SHADOW_CASTERS
 
 OWN_OPTIONS = True
 HEAD = "cam_high"
@@ -48,6 +49,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--iters", type=int, default=3000, help="training iterations (default 3000, the CPU default)")
     p.add_argument("--shadow-casters", choices=SHADOW_CASTERS, default="gaussians",
                    help="manisplat-reconstruct --shadow-casters (default gaussians)")
+    p.add_argument("--rasterize-mode", choices=RASTERIZE_CHOICES, default="auto",
+                   help="manisplat-reconstruct --rasterize-mode (default auto, as the command's)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_reconstruct" / "reconstruct_cobot.json")
     args = p.parse_args(argv)
     settings = args.settings.split(",")
@@ -61,7 +64,8 @@ def main(argv: list[str] | None = None) -> int:
             episode, prompts = imported_sample(shared, sample, Path(tmp))
             for setting, cameras in (SETTINGS[key] for key in settings):
                 out = Path(tmp) / f"{sample}_{len(cameras)}"
-                row = reconstruct(episode, out, cameras, prompts, args.iters, args.shadow_casters)
+                row = reconstruct(episode, out, cameras, prompts, args.iters,
+                                  ("--shadow-casters", args.shadow_casters, "--rasterize-mode", args.rasterize_mode))
                 rows.append(row | {"sample": sample, "setting": setting})
                 print(json.dumps(rows[-1], default=float), flush=True)
     result = {"benchmark": "reconstruct_cobot",
@@ -84,13 +88,13 @@ def imported_sample(shared: Path, sample: str, folder: Path) -> tuple[Path, dict
 
 
 def reconstruct(episode: Path, out: Path, cameras: tuple[str, ...], prompts: dict[str, tuple[float, float]],
-                iters: int, shadow_casters: str = "gaussians") -> dict:
-    """One timed ``manisplat-reconstruct`` run and its figures."""
+                iters: int, options: tuple[str, ...] = ()) -> dict:
+    """One timed ``manisplat-reconstruct`` run (with further ``options``) and its figures."""
     logging.disable(logging.WARNING)
     start = time.perf_counter()
     try:
         code = reconstruct_main([str(episode), "--out", str(out), "--cameras", ",".join(cameras), "--no-masks",
-                                 "--quiet", "--iters", str(iters), "--shadow-casters", shadow_casters]
+                                 "--quiet", "--iters", str(iters), *options]
                                 + [a for name, (u, v) in prompts.items() for a in ("--object-point", f"{name}={u:.0f},{v:.0f}")])
     finally:
         logging.disable(logging.NOTSET)
@@ -99,7 +103,7 @@ def reconstruct(episode: Path, out: Path, cameras: tuple[str, ...], prompts: dic
         raise RuntimeError(f"{episode.name}: manisplat-reconstruct exited {code}")
     metrics = json.loads((out / "metrics.json").read_text())
     return {"cameras": list(cameras), "iters": iters, "wall_s": round(wall, 1), "ms_per_iter": metrics.get("ms_per_iter"),
-            "light": metrics.get("light"),
+            "light": metrics.get("light"), "rasterize_mode": metrics.get("rasterize_mode"),
             "prompts": {k: [round(u), round(v)] for k, (u, v) in prompts.items()},
             "per_camera": {name: {"psnr": m["psnr"], "ssim": m["ssim"]}
                            for name, m in metrics.get("cameras", {HEAD: metrics}).items()},

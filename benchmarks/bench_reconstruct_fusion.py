@@ -3,15 +3,16 @@ at new poses, where the simulator says what the new demonstrations look like (is
 
     MANISPLAT_SIMENV=SIMENV/bin/python python -m benchmarks reconstruct_fusion [--counts 1,5,20]
         [--iters 3000] [--demos 5] [--shadow-receivers all|background] [--shadow-casters meshes|gaussians]
-        [--work DIR] [--out JSON]
+        [--rasterize-mode classic|antialiased] [--work DIR] [--out JSON]
 
 1. **Data** (generated, not committed): ``shared/tools/sim/gen_demos.py --source
    shared/data/sim_pick_place_small --n 20 --seed-start 1 --place-range 0.02 0.02 0.4``: the
    shared scene and camera, the box started anywhere within +-8 cm, +-8 cm, +-45 deg of the
    sample's start and placed within +-2 cm of the mat's centre, turned up to 0.4 rad more.
 2. **Twins**: ``manisplat-reconstruct`` of the first 1, 5 and 20 of them (``--iters``, the same
-   for each; ``--shadow-receivers``, ``--shadow-casters``: what the learned shadows darken and
-   what casts the links' shadows, manisplat-reconstruct's options of those names), each in its own process: wall time, its peak resident memory, metrics.json (held-out
+   for each; ``--shadow-receivers``, ``--shadow-casters``, ``--rasterize-mode``:
+   manisplat-reconstruct's options of those names), each in its own process: wall time, its
+   peak resident memory, metrics.json (held-out
    PSNR per region, the mean over episodes and episode_0001's; pose errors; the pose error with
    one offset for every episode).
 3. **New poses**: ``manisplat-augment TWIN --sources episode_0001 --n DEMOS --seed 0`` from each
@@ -44,7 +45,7 @@ import numpy as np
 
 from benchmarks._harness import BENCH_DIR, MissingBenchmarkData, machine_info, shared_dir, simulator_python
 from benchmarks._simulator import SimJob, run_sim_jobs, sim_env, sim_tools
-from manisplat.reconstruct.config import SHADOW_CASTERS, SHADOW_RECEIVERS
+from manisplat.reconstruct.config import RASTERIZE_MODES, SHADOW_CASTERS, SHADOW_RECEIVERS
 
 OWN_OPTIONS = True
 SOURCE = "episode_0001"
@@ -61,6 +62,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="manisplat-reconstruct --shadow-receivers of every twin (default all)")
     p.add_argument("--shadow-casters", choices=SHADOW_CASTERS, default="gaussians",
                    help="manisplat-reconstruct --shadow-casters of every twin (default gaussians)")
+    p.add_argument("--rasterize-mode", choices=RASTERIZE_MODES, default="classic",
+                   help="manisplat-reconstruct --rasterize-mode of every twin (default classic, what auto gives one camera)")
     p.add_argument("--work", type=Path, help="outputs (default a temporary folder; kept)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_reconstruct" / "reconstruct_fusion.json")
     args = p.parse_args(argv)
@@ -71,8 +74,9 @@ def main(argv: list[str] | None = None) -> int:
     episodes = _demonstrations(simenv, work / "demos", max(counts))
     twins = {}
     for count in counts:
-        twins[count] = _twin(episodes[:count], work / f"twin_{count}", args.iters, args.shadow_receivers,
-                              args.shadow_casters)
+        twins[count] = _twin(episodes[:count], work / f"twin_{count}", args.iters,
+                             {"shadow_receivers": args.shadow_receivers, "shadow_casters": args.shadow_casters,
+                              "rasterize_mode": args.rasterize_mode})
         print(f"{count} episodes: {json.dumps({k: twins[count][k] for k in ('wall_s', 'peak_rss_mb', 'psnr')})}",
               flush=True)
     for count in counts:
@@ -90,6 +94,7 @@ def main(argv: list[str] | None = None) -> int:
               "command": "python -m benchmarks reconstruct_fusion " + " ".join(argv if argv is not None else sys.argv[1:]),
               "machine": machine_info(), "work": str(work), "iters": args.iters,
               "shadow_receivers": args.shadow_receivers, "shadow_casters": args.shadow_casters,
+              "rasterize_mode": args.rasterize_mode,
               "episodes": [e.name for e in episodes], "twins": {str(k): v for k, v in twins.items()},
               "registration": registration, "sheet": sheet.name, "wall_s": round(time.perf_counter() - started, 1)}
     args.out.write_text(json.dumps(result, indent=1) + "\n")
@@ -111,21 +116,25 @@ def _demonstrations(simenv: Path, out: Path, n: int) -> list[Path]:
     return found[:n]
 
 
-def _twin(episodes: list[Path], out: Path, iters: int, shadow_receivers: str, shadow_casters: str) -> dict:
-    """Reconstruct ``episodes`` into ``out`` in a process of its own; its time, peak memory, figures."""
+def _twin(episodes: list[Path], out: Path, iters: int, options: dict[str, str]) -> dict:
+    """Reconstruct ``episodes`` into ``out`` in a process of its own, with manisplat-reconstruct's
+    ``options`` (``shadow_receivers``, ``shadow_casters``, ``rasterize_mode``); its time, peak
+    memory, figures."""
     if (out / "metrics.json").exists():
-        light = json.loads((out / "metrics.json").read_text()).get("light") or {}
-        made = {"receivers": light.get("receivers", "background"), "casters": light.get("casters", "gaussians")}
-        if made != {"receivers": shadow_receivers, "casters": shadow_casters}:
-            raise MissingBenchmarkData(f"{out} was made with shadow {made}, not receivers {shadow_receivers!r} and "
-                                       f"casters {shadow_casters!r}: use another --work")
+        metrics = json.loads((out / "metrics.json").read_text())
+        light = metrics.get("light") or {}
+        made = {"shadow_receivers": light.get("receivers", "background"),
+                "shadow_casters": light.get("casters", "gaussians"),
+                "rasterize_mode": metrics.get("rasterize_mode", "classic")}
+        if made != options:
+            raise MissingBenchmarkData(f"{out} was made with {made}, not {options}: use another --work")
     else:
         from benchmarks._degraded import robot_of
 
         robot = robot_of(shared_dir() / "data" / "sim_pick_place_small")  # the demonstrations live elsewhere
         cmd = [sys.executable, "-c", PEAK_RSS, sys.executable, "-m", "manisplat.reconstruct.cli",
                *map(str, episodes), "--out", str(out), "--iters", str(iters), "--robot", robot,
-               "--shadow-receivers", shadow_receivers, "--shadow-casters", shadow_casters, "--overwrite", "-q"]
+               *[a for key, value in options.items() for a in (f"--{key.replace('_', '-')}", value)], "--overwrite", "-q"]
         t0 = time.perf_counter()
         proc = subprocess.run(cmd, capture_output=True, text=True)
         if proc.returncode != 0:

@@ -22,9 +22,9 @@ from manisplat.align.phases import DEFAULT_TAU
 from manisplat.cli_args import add_version, finite, non_negative, numbers, positive
 from manisplat.exit_codes import ExitCode, exit_status_help
 from manisplat.output_folder import check_output_folder
-from manisplat.reconstruct.config import (COMPILE_CHOICES, COMPILE_MIN_ITERS, GPU_ITERS, SHADOW_CASTERS,
-                                          SHADOW_RECEIVERS, DeviceUnavailable, TrainConfig, default_iters,
-                                          resolve_compile, resolve_device)
+from manisplat.reconstruct.config import (COMPILE_CHOICES, COMPILE_MIN_ITERS, GPU_ITERS, RASTERIZE_CHOICES,
+                                          SHADOW_CASTERS, SHADOW_RECEIVERS, DeviceUnavailable, TrainConfig,
+                                          default_iters, resolve_compile, resolve_device, resolve_rasterize_mode)
 from manisplat.threads import THREADS_HELP, use_threads
 
 log = logging.getLogger("manisplat.reconstruct")
@@ -102,6 +102,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--shadow-casters", default="gaussians", choices=SHADOW_CASTERS,
                    help="what casts the links' shadows: gaussians (the links' fitted Gaussians, whose shadows come out "
                         "wider; default) or meshes (the robot description's link meshes: the links' outlines)")
+    p.add_argument("--rasterize-mode", default="auto", choices=RASTERIZE_CHOICES,
+                   help="how splats smaller than a pixel are drawn: classic (dilated to a pixel at full opacity), "
+                        "antialiased (dilated at the opacity that keeps their integral: Gaussians fitted to a wrist "
+                        "camera's close-ups, seen from the head camera) or auto (default: antialiased when several "
+                        "cameras are trained, classic with one)")
     p.add_argument("--no-densify", action="store_true", help="keep the initial Gaussians (no clone/split/prune)")
     p.add_argument("--refine-camera", action="store_true", help="also optimise a correction of the camera extrinsic")
     p.add_argument("--keep-extrinsic", action="store_true",
@@ -220,10 +225,10 @@ def _run(args: argparse.Namespace, prompt: list[tuple[str, tuple | None, tuple |
                     print(f"{path}:\n{make_plan(load_episode_data(path, robot=args.robot)).summary()}")
                 print(_training_summary(args, device, iters, compiled))
                 return ExitCode.OK
-            fused = _build_fused(args, _config(args, device, iters, compiled))
+            fused = _build_fused(args, _config(args, device, iters, compiled, cameras=1))
             rec, alignments = fused.reconstruction, fused.alignments
         else:
-            built = _build_one(args, prompt, lambda: _config(args, device, iters, compiled),
+            built = _build_one(args, prompt, lambda cameras: _config(args, device, iters, compiled, cameras),
                                _training_summary(args, device, iters, compiled))
             if built is None:
                 return ExitCode.OK
@@ -298,11 +303,15 @@ def _training_summary(args: argparse.Namespace, device: str, iters: int, compile
     return f"training      on {device} (rasterizer backend {args.backend}), {budget}; {mode}; {densify}"
 
 
-def _config(args: argparse.Namespace, device: str, iters: int, compiled: str | None) -> TrainConfig:
+def _config(args: argparse.Namespace, device: str, iters: int, compiled: str | None, cameras: int) -> TrainConfig:
+    """The training configuration of a run training ``cameras`` cameras (logged)."""
     log.info("%s", _training_summary(args, device, iters, compiled))
+    rasterize_mode = resolve_rasterize_mode(args.rasterize_mode, cameras)
+    log.info("splats drawn %s (--rasterize-mode %s, %d camera%s trained)", rasterize_mode, args.rasterize_mode,
+             cameras, "s" if cameras > 1 else "")
     return TrainConfig(
         iters=iters, backend=args.backend, shadows=not args.no_shadows, shadow_receivers=args.shadow_receivers,
-        shadow_casters=args.shadow_casters,
+        shadow_casters=args.shadow_casters, rasterize_mode=rasterize_mode,
         densify=not args.no_densify,
         refine_camera=args.refine_camera, exposure=not args.no_exposure, lambda_app=args.lambda_app,
         lambda_mask=args.lambda_mask, lambda_pose=args.lambda_pose, seed=args.seed, device=device, compile=args.compile,
@@ -312,7 +321,7 @@ def _config(args: argparse.Namespace, device: str, iters: int, compiled: str | N
 def _build_one(args: argparse.Namespace, prompt, config, training: str):
     """Load, plan and align one episode: (reconstruction, alignments), or None after ``--plan``
     printed the plan and ``training`` (:func:`_training_summary`). ``config``: makes the training
-    configuration once the plan is logged."""
+    configuration, given the number of cameras trained, once the plan is logged."""
     from manisplat.reconstruct.data import ReconstructionInputError, load_episode_data
     from manisplat.reconstruct.masks import ObjectPrompt, complete_masks
     from manisplat.reconstruct.pipeline import build
@@ -341,7 +350,7 @@ def _build_one(args: argparse.Namespace, prompt, config, training: str):
         print(training)
         return None
     log.info("plan:\n%s", plan.summary())
-    return build(data, plan, config(), tau=args.tau, table_z=args.table_z, masks_from_model=masks_from_model,
+    return build(data, plan, config(1 + len(views)), tau=args.tau, table_z=args.table_z, masks_from_model=masks_from_model,
                  check_extrinsic=not args.keep_extrinsic, views=views, progress=not args.quiet)
 
 

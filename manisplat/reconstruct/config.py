@@ -33,6 +33,11 @@ class TrainConfig:
             320x240 camera, 96 for the built-in 160x120 sample). A coarse map blurs the
             shadows' edges (at 128 their outlines were the largest errors left on the test
             set); a finer one costs time and adds nothing the camera resolves.
+        rasterize_mode: "classic" (gsplat's default: the 0.3 px^2 dilation that keeps splats at
+            least a pixel wide adds area at full opacity) or "antialiased" (Mip-Splatting's 2D
+            filter, gsplat's mode of that name: the opacity scaled so that a splat keeps its
+            integral; Gaussians fitted to a wrist camera's close-ups, seen from the head camera
+            a metre away, are then drawn as faint as they are small). The twin keeps it.
         sh_degree, sh_every: view-dependent colour bands (evaluated in each node's frame), one
             more band switched on every ``sh_every`` iterations.
         refine_camera: also optimise a correction of the camera extrinsic.
@@ -70,6 +75,7 @@ class TrainConfig:
     shadow_resolution: int | None = None
     shadow_receivers: str = "all"
     shadow_casters: str = "gaussians"
+    rasterize_mode: str = "classic"
     sh_degree: int = 2
     sh_every: int = 500
     refine_camera: bool = False
@@ -102,6 +108,22 @@ COMPILE_CHOICES = ("auto", "on", "off")
 SHADOW_RECEIVERS = ("all", "background")
 #: TrainConfig.shadow_casters' values
 SHADOW_CASTERS = ("meshes", "gaussians")
+#: TrainConfig.rasterize_mode's values (manisplat.splat.RASTERIZE_MODES, here without torch)
+RASTERIZE_MODES = ("classic", "antialiased")
+#: manisplat-reconstruct --rasterize-mode's choices (:func:`resolve_rasterize_mode`)
+RASTERIZE_CHOICES = ("auto", *RASTERIZE_MODES)
+
+
+def resolve_rasterize_mode(name: str, cameras: int) -> str:
+    """The rasterize mode of a run training ``cameras`` cameras, for ``name``: "classic",
+    "antialiased", or "auto": antialiased with several cameras (a wrist camera's close-ups and the
+    head camera a metre away see the same Gaussians at scales 10-20 times apart), classic with one
+    (docs/benchmarks.md, antialiased splats)."""
+    if name not in RASTERIZE_CHOICES:
+        raise ValueError(f"unknown rasterize mode {name!r}; choose one of {', '.join(RASTERIZE_CHOICES)}")
+    if name == "auto":
+        return "antialiased" if cameras > 1 else "classic"
+    return name
 #: "auto" compiles a CUDA run of at least this many iterations: on an H100, over whole runs of
 #: sim_pick_place_small (densification, held-out estimates, 65 600 Gaussians), an iteration took
 #: 39.4 ms eagerly (gpu_eager/tests_long_pp_10000.json) and 19.7 ms compiled after about 240 s of

@@ -20,7 +20,7 @@ import torch
 from tqdm import tqdm
 
 from manisplat.compilation import compilation
-from manisplat.reconstruct.config import SHADOW_CASTERS, TrainConfig, resolve_compile, resolve_device
+from manisplat.reconstruct.config import RASTERIZE_MODES, SHADOW_CASTERS, TrainConfig, resolve_compile, resolve_device
 from manisplat.reconstruct.data import EpisodeData
 from manisplat.reconstruct.exposure import FrameExposure
 from manisplat.reconstruct.extrinsic import ExtrinsicCorrection
@@ -72,6 +72,9 @@ class Reconstruction:
         self.views = {data.camera_name: self.data, **{name: v.to(self.device) for name, v in (views or {}).items()}}
         if len(self.views) != 1 + len(views or {}):
             raise ValueError(f"camera {data.camera_name} is both the reference and another view")
+        if config.rasterize_mode not in RASTERIZE_MODES:
+            raise ValueError(f"rasterize_mode must be one of {RASTERIZE_MODES}, not {config.rasterize_mode!r}")
+        self.graph.rasterize_mode = config.rasterize_mode
         self.graph.to(self.device)
         for t in trajectories.values():
             t.to(self.device)
@@ -472,6 +475,10 @@ class Reconstruction:
         if self.trajectories and "pose_optimizer" not in state:
             raise ValueError("the checkpoint was written by an older manisplat-reconstruct (object poses in the "
                              "shared Adam); start a new run (--overwrite)")
+        trained = state["config"].get("rasterize_mode", "classic")  # checkpoints before the option: classic
+        if trained != self.config.rasterize_mode:
+            raise ValueError(f"the checkpoint was trained with --rasterize-mode {trained}, this run asks for "
+                             f"{self.config.rasterize_mode}; resume with the same mode, or start a new run (--overwrite)")
         dev = self.device
 
         def here(x):

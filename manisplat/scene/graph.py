@@ -61,6 +61,9 @@ class SceneGraph:
         self.link_index = {name: i for i, name in enumerate(link_order)}
         self.objects = objects
         self.shadows: DirectionalShadows | None = None  # cast shadows of the moving nodes (DirectionalShadows.receivers)
+        #: how the Gaussians are drawn, as they were fitted: "classic" or "antialiased"
+        #: (:func:`manisplat.splat.rasterization`'s ``rasterize_mode``)
+        self.rasterize_mode = "classic"
         self._index_cache: tuple | None = None  # see _node_index
 
     @property

@@ -41,7 +41,8 @@ def render_graph(graph: SceneGraph, link_poses: torch.Tensor, object_poses: dict
     camera) and ``K`` [3, 3] (the rasterizer's half-pixel convention), over ``background`` [3].
 
     ``groups_per_node``: one alpha group per node in :meth:`SceneGraph.nodes` order (for label
-    images) instead of the graph's background / robot / object groups.
+    images) instead of the graph's background / robot / object groups. Drawn in the graph's
+    ``rasterize_mode``.
     """
     V = viewmat.float()
     camera_center = -(V[:3, :3].transpose(0, 1) @ V[:3, 3])
@@ -57,7 +58,7 @@ def render_graph(graph: SceneGraph, link_poses: torch.Tensor, object_poses: dict
     colors, alphas, meta = rasterization(
         composed.means, composed.quats, composed.scales, composed.opacities, composed.colors,
         V[None], K.float()[None], width, height, group_ids=groups, num_groups=num_groups, backend=backend,
-        backgrounds=background[None], render_mode="RGB+ED" if depth else "RGB",
+        backgrounds=background[None], render_mode="RGB+ED" if depth else "RGB", rasterize_mode=graph.rasterize_mode,
     )
     alpha = alphas[0, ..., 0]
     z = torch.where(alpha > 0.5, colors[0, ..., 3], torch.zeros_like(alpha)) if depth else None

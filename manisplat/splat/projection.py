@@ -151,6 +151,22 @@ def project_gaussians(
     )
 
 
+def opacity_compensation(conics: torch.Tensor, eps2d: float) -> torch.Tensor:
+    """[...] the factor ``sqrt(det(cov2d) / det(cov2d + eps2d I))`` of dilated 2D Gaussians given their
+    ``conics`` [..., 3] (the inverse of the dilated covariance, :class:`Projection`) and the
+    dilation ``eps2d`` (px^2): Mip-Splatting's 2D filter, gsplat's ``rasterize_mode="antialiased"``.
+
+    Multiplying a splat's opacity by it keeps its integral: a Gaussian far smaller than a pixel
+    (fitted to a close-up, seen from afar) covers a pixel's worth of area at a fraction of its
+    opacity, where the plain dilation draws it a whole pixel wide at full opacity. In float64,
+    from ``det(cov2d) / det(cov2d + eps I) = 1 - eps tr(conic) + eps^2 det(conic)``; floored at
+    0.01 (the square at 1e-4), so that its gradient stays finite.
+    """
+    a, b, c = conics.double().unbind(-1)
+    ratio = 1.0 - eps2d * (a + c) + eps2d**2 * (a * c - b * b)
+    return torch.sqrt(ratio.clamp_min(1e-4)).to(conics.dtype)
+
+
 def opencv_to_splat_K(K: torch.Tensor) -> torch.Tensor:
     """Intrinsics with OpenCV's integer pixel centres (episodes) -> the rasterizer's half-pixel ones.
 
@@ -163,4 +179,5 @@ def opencv_to_splat_K(K: torch.Tensor) -> torch.Tensor:
     return out
 
 
-__all__ = ["ALPHA_THRESHOLD", "Projection", "opencv_to_splat_K", "project_gaussians", "quat_scale_to_covariance", "splat_rotations"]
+__all__ = ["ALPHA_THRESHOLD", "Projection", "opacity_compensation", "opencv_to_splat_K", "project_gaussians",
+           "quat_scale_to_covariance", "splat_rotations"]

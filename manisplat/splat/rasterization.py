@@ -14,9 +14,11 @@ from collections.abc import Iterator
 import torch
 
 from manisplat.splat.backends import resolve_backend
+from manisplat.splat.projection import opacity_compensation
 from manisplat.splat.sh import num_sh_bases, spherical_harmonics
 
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
+RASTERIZE_MODES = ("classic", "antialiased")
 
 
 class RasterizationError(ValueError):
@@ -92,6 +94,7 @@ def rasterization(
     num_groups: int | None = None,
     backend: str = "auto",
     tile_size: int = 16,
+    rasterize_mode: str = "classic",
 ) -> tuple[torch.Tensor, torch.Tensor, dict]:
     """Render N Gaussians into C cameras.
 
@@ -110,6 +113,9 @@ def rasterization(
         group_ids: [N] int64 in [0, num_groups): also return each group's alpha map.
         backend: "auto" (gsplat on CUDA tensors when installed, else the C++ "cpu" backend),
             "cpu", "torch" (pure PyTorch reference) or "gsplat".
+        rasterize_mode: "classic" (the 2D dilation adds area at full opacity) or "antialiased"
+            (each opacity scaled by :func:`~manisplat.splat.projection.opacity_compensation`, as
+            gsplat's mode of that name: Gaussians far below a pixel keep their integral).
 
     Returns:
         render_colors: [C, H, W, X]; render_alphas: [C, H, W, 1];
@@ -119,6 +125,8 @@ def rasterization(
     """
     if render_mode not in RENDER_MODES:
         raise RasterizationError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
+    if rasterize_mode not in RASTERIZE_MODES:
+        raise RasterizationError(f"rasterize_mode must be one of {RASTERIZE_MODES}, got {rasterize_mode!r}")
     _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree)
     impl = resolve_backend(backend, means.device)
     C, N = viewmats.shape[0], means.shape[0]
@@ -136,12 +144,16 @@ def rasterization(
             means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane=near_plane,
             far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, backgrounds=backgrounds,
             render_mode=render_mode, group_ids=group_ids, num_groups=G, tile_size=tile_size,
+            rasterize_mode=rasterize_mode,
         )
 
     proj = impl.project(
         means, quats, scales, opacities, viewmats, Ks, width, height,
         near_plane=near_plane, far_plane=far_plane, eps2d=eps2d,
     )
+    splat_opacities = proj.opacities
+    if rasterize_mode == "antialiased":
+        splat_opacities = proj.opacities * opacity_compensation(proj.conics, eps2d)
     want_rgb = render_mode.startswith("RGB")
     want_depth = render_mode != "RGB"
     outputs, alphas, group_alphas = [], [], []
@@ -155,7 +167,7 @@ def rasterization(
             channels.append(torch.nn.functional.one_hot(group_ids.long(), G).to(means.dtype))
         feats = torch.cat(channels, dim=-1) if channels else means.new_zeros(N, 0)
         image, alpha = impl.composite(
-            proj.means2d[cam], proj.conics[cam], proj.opacities[cam], feats, proj.depths[cam],
+            proj.means2d[cam], proj.conics[cam], splat_opacities[cam], feats, proj.depths[cam],
             proj.radii[cam], width, height, tile_size,
         )
         D_rgb = colors.shape[-1] if want_rgb else 0

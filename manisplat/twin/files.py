@@ -30,6 +30,7 @@ from manisplat.robot import RobotModel, load_robot
 from manisplat.robot.arms import ArmSet
 from manisplat.scene import GaussianSet, SceneGraph
 from manisplat.scene.shadows import DirectionalShadows
+from manisplat.splat import RASTERIZE_MODES
 from manisplat.twin.commands import CommandRelation
 from manisplat.twin.rig import BASE_FRAME, TwinArm, TwinCamera, one_arm
 from manisplat.twin.support import SupportMap
@@ -69,7 +70,7 @@ def save_twin(twin: Twin, folder: Path) -> None:
         "frame": twin.frame, "arms": [arm.to_dict() for arm in twin.arms], "link_order": list(twin.graph.link_index),
         "cameras": [cam.to_dict() for cam in twin.cameras.values()],
         "labels": {str(k): v for k, v in sorted(twin.labels.items())},
-        "nodes": nodes, "shadows": light, "support": support,
+        "nodes": nodes, "shadows": light, "support": support, "rasterize_mode": twin.graph.rasterize_mode,
     }
     if len(demos) > 1:
         meta["demonstrations"] = [_demonstration_meta(d, twin.graph.objects) for d in demos[1:]]
@@ -140,6 +141,9 @@ def load_twin(folder: Path, *, backend: str = "auto", device: torch.device | str
                               f"{robot.name!r} ({list(robot.link_names)})")
     background, links, objects = _nodes(meta, tensor, tensors_path, device)
     graph = SceneGraph(background, links, list(meta["link_order"]), objects)
+    graph.rasterize_mode = meta.get("rasterize_mode", "classic")  # twins before the option: classic
+    if graph.rasterize_mode not in RASTERIZE_MODES:
+        raise TwinFormatError(f"{folder / TWIN_JSON}: rasterize_mode {graph.rasterize_mode!r} is not one of {RASTERIZE_MODES}")
     if meta["shadows"] is not None:
         light = meta["shadows"]
         casters = None

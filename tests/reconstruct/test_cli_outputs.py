@@ -107,6 +107,23 @@ def test_summary_has_units_and_names_the_files_to_look_at(finished):
     assert "nan" not in text
 
 
+def test_one_camera_is_drawn_classic_by_default(finished):
+    """--rasterize-mode auto: classic with one camera (several: antialiased, test_two_arms)."""
+    out, _ = finished
+    assert json.loads((out / "metrics.json").read_text())["rasterize_mode"] == "classic"
+    assert json.loads((out / "twin.json").read_text())["rasterize_mode"] == "classic"
+
+
+def test_the_rasterize_mode_resolves_by_the_number_of_cameras():
+    from manisplat.reconstruct.config import resolve_rasterize_mode
+
+    assert [resolve_rasterize_mode("auto", n) for n in (1, 2, 3)] == ["classic", "antialiased", "antialiased"]
+    assert [resolve_rasterize_mode(m, 1) for m in ("classic", "antialiased")] == ["classic", "antialiased"]
+    assert resolve_rasterize_mode("classic", 3) == "classic"
+    with pytest.raises(ValueError, match="unknown rasterize mode 'mip'"):
+        resolve_rasterize_mode("mip", 1)
+
+
 def test_sheets_are_labelled_with_columns_and_frame(finished):
     import cv2
 

@@ -216,6 +216,30 @@ def test_a_checkpoint_from_before_shadow_receivers_resumes_with_shadows_on_the_b
     assert resumed.step == 12
 
 
+def test_a_checkpoint_resumes_only_in_the_rasterize_mode_it_was_trained_in(pick):
+    """Gaussians fitted antialiased are drawn too bright and wide in classic mode (and the other
+    way round): a resume that changes the mode is refused; checkpoints from before the option
+    are classic."""
+    rec, _ = _reconstruction(pick, iters=2, device="cpu", rasterize_mode="antialiased")
+    assert rec.graph.rasterize_mode == "antialiased"
+    rec.train(progress=False)
+    state = rec.state_dict()
+    classic, _ = _reconstruction(pick, iters=4, device="cpu")
+    with pytest.raises(ValueError, match="trained with --rasterize-mode antialiased, this run asks for classic"):
+        classic.load_state_dict(state)
+    del state["config"]["rasterize_mode"]
+    classic.load_state_dict(state)
+    assert classic.step == 2 and classic.graph.rasterize_mode == "classic"
+
+
+@pytest.mark.parametrize("option, value", [("rasterize_mode", "mip"), ("shadow_casters", "points")])
+def test_an_unknown_drawing_option_is_refused_by_name(pick, option, value):
+    """Not taken for one of the known values (the casters are checked when the shadows start)."""
+    with pytest.raises(ValueError, match=f"must be one of .*not '{value}'"):
+        rec, _ = _reconstruction(pick, iters=2, device="cpu", shadow_start=1, **{option: value})
+        rec.train(progress=False)
+
+
 def test_a_checkpoint_of_the_older_per_node_format_is_refused_clearly(pick):
     rec, _ = _reconstruction(pick, iters=2, device="cpu")
     state = rec.state_dict()

@@ -87,6 +87,7 @@ def test_both_arms_are_drawn_and_every_camera_is_scored(two_arms):
     for name, scores in cameras.items():
         assert all(scores["psnr"][k] is not None for k in ("full", "robot", "object")), name
     assert metrics["psnr"] == cameras["cam_high"]["psnr"]  # the top-level figures are the head camera's
+    assert metrics["rasterize_mode"] == "antialiased", "several cameras trained: --rasterize-mode auto antialiases"
     assert sorted(p.name for p in (out / "renders" / "cam_left_wrist" / "sheets").iterdir())
 
 

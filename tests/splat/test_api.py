@@ -50,6 +50,8 @@ def test_bad_options(scene):
         call(scene, backend="vulkan")
     with pytest.raises(RasterizationError, match="SH colours"):
         call(scene, sh_degree=2)
+    with pytest.raises(RasterizationError, match="rasterize_mode must be one of"):
+        call(scene, rasterize_mode="mip")
 
 
 def test_gsplat_needs_cuda_and_says_so(scene):

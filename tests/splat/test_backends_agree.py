@@ -48,10 +48,13 @@ def test_the_cpu_depth_order_is_torchs_stable_argsort(dtype):
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize("mode", ["RGB", "RGB+D", "RGB+ED", "D"])
-def test_float64_images_and_gradients_match(seed, mode):
+@pytest.mark.parametrize("rasterize_mode", ["classic", "antialiased"])
+def test_float64_images_and_gradients_match(seed, mode, rasterize_mode):
+    """Antialiased, the opacities' compensation is a function of the conics: its gradient flows
+    back through the C++ projection's conic gradient."""
     params, V, K, W, H = random_scene(80, seed)
-    torch_out = render_and_grad("torch", params, V, K, W, H, render_mode=mode)
-    cpu_out = render_and_grad("cpu", params, V, K, W, H, render_mode=mode)
+    torch_out = render_and_grad("torch", params, V, K, W, H, render_mode=mode, rasterize_mode=rasterize_mode)
+    cpu_out = render_and_grad("cpu", params, V, K, W, H, render_mode=mode, rasterize_mode=rasterize_mode)
     assert torch.allclose(torch_out[0], cpu_out[0], atol=1e-12, rtol=0)
     assert torch.allclose(torch_out[1], cpu_out[1], atol=1e-12, rtol=0)
     names = ["means", "quats", "scales", "opacities", "colors", "viewmats"]
@@ -114,12 +117,15 @@ def test_float32_eight_pixel_rows_agree_for_every_tile_size_and_channel_count(ti
 
 
 @pytest.mark.parametrize("backend", ["torch", "cpu"])
-def test_gradcheck_on_a_tiny_scene(backend):
-    """Finite differences on 3 Gaussians in a 10x8 image (opacities below the 0.999 clamp)."""
+@pytest.mark.parametrize("rasterize_mode", ["classic", "antialiased"])
+def test_gradcheck_on_a_tiny_scene(backend, rasterize_mode):
+    """Finite differences on 3 Gaussians in a 10x8 image (opacities below the 0.999 clamp), about
+    a pixel wide (antialiased: opacities scaled by 0.6-0.9)."""
     params, V, K, _, _ = random_scene(3, 11, width=10, height=8, scale=(0.2, 0.4), opacity=(0.3, 0.7))
 
     def render(means, quats, scales, opacities, colors):
-        img, alpha, _ = rasterization(means, quats, scales, opacities, colors, V, K, 10, 8, backend=backend)
+        img, alpha, _ = rasterization(means, quats, scales, opacities, colors, V, K, 10, 8, backend=backend,
+                                      rasterize_mode=rasterize_mode)
         return img, alpha
 
     inputs = tuple(p.clone().requires_grad_(True) for p in params)

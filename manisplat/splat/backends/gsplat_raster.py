@@ -22,7 +22,7 @@ def available() -> bool:
 
 
 def rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *, near_plane, far_plane,
-              eps2d, sh_degree, backgrounds, render_mode, group_ids, num_groups, tile_size):
+              eps2d, sh_degree, backgrounds, render_mode, group_ids, num_groups, tile_size, rasterize_mode):
     """Same contract as :func:`manisplat.splat.rasterization` on CUDA tensors."""
     import gsplat
 
@@ -30,7 +30,7 @@ def rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, heig
         return gsplat.rasterization(
             means, quats, scales, opacities, cols, viewmats, Ks, width, height, near_plane=near_plane,
             far_plane=far_plane, eps2d=eps2d, sh_degree=degree, backgrounds=bgs, render_mode=mode,
-            packed=False, tile_size=tile_size,
+            packed=False, tile_size=tile_size, rasterize_mode=rasterize_mode,
         )
 
     C = viewmats.shape[0]
