@@ -11,9 +11,9 @@ benchmark reads: held-out PSNR / SSIM per camera and region (the simulator's mas
 errors in the world frame (fitted and start-anchored), wall time and time per iteration.
 
 ``python -m benchmarks reconstruct_cobot [--samples cobot_dual_small,...] [--settings all,head] [--iters 3000]
-[--shadow-casters meshes|gaussians] [--rasterize-mode auto|classic|antialiased] [--out FILE]``: ``--settings all
---iters 9000`` gives the head camera about as many iterations as ``--settings head --iters 3000`` (one
-camera's image an iteration).
+[--shadow-casters meshes|gaussians] [--rasterize-mode auto|classic|antialiased] [--lambda-mask L]
+[--out FILE]``: ``--settings all --iters 9000`` gives the head camera about as many iterations as
+``--settings head --iters 3000`` (one camera's image an iteration).
 """
 
 from __future__ import annotations
@@ -51,6 +51,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="manisplat-reconstruct --shadow-casters (default gaussians)")
     p.add_argument("--rasterize-mode", choices=RASTERIZE_CHOICES, default="auto",
                    help="manisplat-reconstruct --rasterize-mode (default auto, as the command's)")
+    p.add_argument("--lambda-mask", type=float, help="manisplat-reconstruct --lambda-mask (default: the command's)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_reconstruct" / "reconstruct_cobot.json")
     args = p.parse_args(argv)
     settings = args.settings.split(",")
@@ -64,8 +65,10 @@ def main(argv: list[str] | None = None) -> int:
             episode, prompts = imported_sample(shared, sample, Path(tmp))
             for setting, cameras in (SETTINGS[key] for key in settings):
                 out = Path(tmp) / f"{sample}_{len(cameras)}"
-                row = reconstruct(episode, out, cameras, prompts, args.iters,
-                                  ("--shadow-casters", args.shadow_casters, "--rasterize-mode", args.rasterize_mode))
+                options = ("--shadow-casters", args.shadow_casters, "--rasterize-mode", args.rasterize_mode)
+                if args.lambda_mask is not None:
+                    options += ("--lambda-mask", str(args.lambda_mask))
+                row = reconstruct(episode, out, cameras, prompts, args.iters, options)
                 rows.append(row | {"sample": sample, "setting": setting})
                 print(json.dumps(rows[-1], default=float), flush=True)
     result = {"benchmark": "reconstruct_cobot",
@@ -103,7 +106,7 @@ def reconstruct(episode: Path, out: Path, cameras: tuple[str, ...], prompts: dic
         raise RuntimeError(f"{episode.name}: manisplat-reconstruct exited {code}")
     metrics = json.loads((out / "metrics.json").read_text())
     return {"cameras": list(cameras), "iters": iters, "wall_s": round(wall, 1), "ms_per_iter": metrics.get("ms_per_iter"),
-            "light": metrics.get("light"), "rasterize_mode": metrics.get("rasterize_mode"),
+            "options": list(options), "light": metrics.get("light"), "rasterize_mode": metrics.get("rasterize_mode"),
             "prompts": {k: [round(u), round(v)] for k, (u, v) in prompts.items()},
             "per_camera": {name: {"psnr": m["psnr"], "ssim": m["ssim"]}
                            for name, m in metrics.get("cameras", {HEAD: metrics}).items()},
