@@ -17,7 +17,7 @@ them (each arm's ``a1..a6, a_gripper``), go to the simulator directly. Rendering
 source with ``gen_bimanual.py --seed S`` (the sample's task) instead of reading the shared sample.
 
 ``MANISPLAT_SIMENV=SIMENV/bin/python python -m benchmarks augment_cobot [--sample cobot_dual_small] [--n 100]
-[--planned 0] [--source-seed S] [--iters 1000] [--render-check 10] [--work DIR] [--out FILE]``
+[--planned 0] [--source-seed S] [--iters 1000] [--lambda-mask L] [--render-check 10] [--work DIR] [--out FILE]``
 """
 
 from __future__ import annotations
@@ -54,6 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--planned", type=int, default=0, help="more demonstrations planned only, executed in physics (default 0)")
     p.add_argument("--source-seed", type=int, help="make the source with gen_bimanual.py --seed S instead")
     p.add_argument("--iters", type=int, default=1000, help="reconstruction iterations (default 1000)")
+    p.add_argument("--lambda-mask", type=float, help="manisplat-reconstruct --lambda-mask (default: the command's)")
     p.add_argument("--render-check", type=int, default=10, help="demonstrations the simulator also renders (default 10)")
     p.add_argument("--work", type=Path, help="stage outputs, reused when present (default a temporary folder)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_augment" / "augment_cobot.json")
@@ -77,9 +78,12 @@ def main(argv: list[str] | None = None) -> int:
                          "--out", str(episode)]) != 0:
             raise RuntimeError(f"{args.sample}: import failed")
     prompts = add_ground_truth(episode, source) if not (episode / "gt.npz").exists() else _prompts(episode, source)
-    if not (twin_dir / "twin.json").exists():
+    options = () if args.lambda_mask is None else ("--lambda-mask", str(args.lambda_mask))
+    if (twin_dir / "twin.json").exists():
+        _check_reused(twin_dir, args.lambda_mask)
+    else:
         t0 = time.perf_counter()
-        recon = reconstruct(episode, twin_dir, CAMERAS, prompts, args.iters)
+        recon = reconstruct(episode, twin_dir, CAMERAS, prompts, args.iters, options)
         stages["reconstruct_s"] = round(time.perf_counter() - t0, 1)
         print(json.dumps({k: recon[k] for k in ("wall_s", "ms_per_iter", "pose_anchored")}, default=float), flush=True)
     if not (aug / "augment_report.json").exists():
@@ -105,6 +109,7 @@ def main(argv: list[str] | None = None) -> int:
 
     result = {
         "benchmark": "augment_cobot", "sample": args.sample, "source_seed": args.source_seed,
+        "lambda_mask": json.loads((twin_dir / "metrics.json").read_text()).get("lambda_mask"),
         "command": "python -m benchmarks augment_cobot " + " ".join(argv if argv is not None else sys.argv[1:]),
         "augment": {k: report.get(k) for k in ("requested", "drawn", "valid", "validity_rate", "reasons",
                                                 "min_arm_clearance_m", "timing_s", "plan_s_per_sample")},
@@ -118,6 +123,17 @@ def main(argv: list[str] | None = None) -> int:
     print(json.dumps({k: result.get(k) for k in ("augment", "physics", "physics_planned", "renders_vs_simulator")},
                      indent=1, default=float))
     return 0
+
+
+def _check_reused(twin_dir: Path, lambda_mask: float | None) -> None:
+    """Refuse a twin of ``--work`` made with another mask-loss weight than asked (unset: the drawn
+    masks' default; twins from before metrics.json recorded it were made with 1)."""
+    from manisplat.reconstruct.config import resolve_lambda_mask
+
+    made = json.loads((twin_dir / "metrics.json").read_text()).get("lambda_mask", 1.0)
+    wanted = resolve_lambda_mask(lambda_mask, masks_drawn=True)
+    if made != wanted:
+        raise RuntimeError(f"{twin_dir} was reconstructed with --lambda-mask {made}, not {wanted}: use another --work")
 
 
 def _prompts(episode: Path, source: Path) -> dict[str, tuple[float, float]]:

@@ -107,6 +107,7 @@ def reconstruct(episode: Path, out: Path, cameras: tuple[str, ...], prompts: dic
     metrics = json.loads((out / "metrics.json").read_text())
     return {"cameras": list(cameras), "iters": iters, "wall_s": round(wall, 1), "ms_per_iter": metrics.get("ms_per_iter"),
             "options": list(options), "light": metrics.get("light"), "rasterize_mode": metrics.get("rasterize_mode"),
+            "lambda_mask": metrics.get("lambda_mask"),
             "prompts": {k: [round(u), round(v)] for k, (u, v) in prompts.items()},
             "per_camera": {name: {"psnr": m["psnr"], "ssim": m["ssim"]}
                            for name, m in metrics.get("cameras", {HEAD: metrics}).items()},

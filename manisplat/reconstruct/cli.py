@@ -24,7 +24,8 @@ from manisplat.exit_codes import ExitCode, exit_status_help
 from manisplat.output_folder import check_output_folder
 from manisplat.reconstruct.config import (COMPILE_CHOICES, COMPILE_MIN_ITERS, GPU_ITERS, RASTERIZE_CHOICES,
                                           SHADOW_CASTERS, SHADOW_RECEIVERS, DeviceUnavailable, TrainConfig,
-                                          default_iters, resolve_compile, resolve_device, resolve_rasterize_mode)
+                                          default_iters, resolve_compile, resolve_device, resolve_lambda_mask,
+                                          resolve_rasterize_mode)
 from manisplat.threads import THREADS_HELP, use_threads
 
 log = logging.getLogger("manisplat.reconstruct")
@@ -115,7 +116,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-exposure", action="store_true",
                    help="no per-frame exposure / white-balance gains (for a camera with fixed exposure and white balance)")
     p.add_argument("--lambda-app", type=non_negative(), default=1.0, help="weight of the masked appearance loss (default 1)")
-    p.add_argument("--lambda-mask", type=non_negative(), default=1.0, help="weight of the dynamic-mask loss (default 1)")
+    p.add_argument("--lambda-mask", type=non_negative(), default=None,
+                   help="weight of the dynamic-mask loss (default: 1 with the episode's masks, 0 with masks drawn "
+                        "here, whose outlines miss what the robot model lacks)")
     p.add_argument("--lambda-pose", type=non_negative(), default=1.0, help="weight of the pose prior loss (default 1)")
     inputs = p.add_argument_group(
         "episodes without depth or masks",
@@ -225,10 +228,10 @@ def _run(args: argparse.Namespace, prompt: list[tuple[str, tuple | None, tuple |
                     print(f"{path}:\n{make_plan(load_episode_data(path, robot=args.robot)).summary()}")
                 print(_training_summary(args, device, iters, compiled))
                 return ExitCode.OK
-            fused = _build_fused(args, _config(args, device, iters, compiled, cameras=1))
+            fused = _build_fused(args, _config(args, device, iters, compiled, cameras=1, masks_drawn=False))
             rec, alignments = fused.reconstruction, fused.alignments
         else:
-            built = _build_one(args, prompt, lambda cameras: _config(args, device, iters, compiled, cameras),
+            built = _build_one(args, prompt, lambda cameras, masks_drawn: _config(args, device, iters, compiled, cameras, masks_drawn),
                                _training_summary(args, device, iters, compiled))
             if built is None:
                 return ExitCode.OK
@@ -303,25 +306,32 @@ def _training_summary(args: argparse.Namespace, device: str, iters: int, compile
     return f"training      on {device} (rasterizer backend {args.backend}), {budget}; {mode}; {densify}"
 
 
-def _config(args: argparse.Namespace, device: str, iters: int, compiled: str | None, cameras: int) -> TrainConfig:
-    """The training configuration of a run training ``cameras`` cameras (logged)."""
+def _config(args: argparse.Namespace, device: str, iters: int, compiled: str | None, cameras: int,
+            masks_drawn: bool) -> TrainConfig:
+    """The training configuration of a run training ``cameras`` cameras, with masks drawn by the
+    reconstruction (``masks_drawn``) or the episode's (logged)."""
     log.info("%s", _training_summary(args, device, iters, compiled))
     rasterize_mode = resolve_rasterize_mode(args.rasterize_mode, cameras)
     log.info("splats drawn %s (--rasterize-mode %s, %d camera%s trained)", rasterize_mode, args.rasterize_mode,
              cameras, "s" if cameras > 1 else "")
+    lambda_mask = resolve_lambda_mask(args.lambda_mask, masks_drawn)
+    log.info("mask loss weight %g (%s; masks %s)", lambda_mask,
+             "--lambda-mask" if args.lambda_mask is not None else "by the masks' source",
+             "drawn here" if masks_drawn else "the episode's")
     return TrainConfig(
         iters=iters, backend=args.backend, shadows=not args.no_shadows, shadow_receivers=args.shadow_receivers,
         shadow_casters=args.shadow_casters, rasterize_mode=rasterize_mode,
         densify=not args.no_densify,
         refine_camera=args.refine_camera, exposure=not args.no_exposure, lambda_app=args.lambda_app,
-        lambda_mask=args.lambda_mask, lambda_pose=args.lambda_pose, seed=args.seed, device=device, compile=args.compile,
+        lambda_mask=lambda_mask, lambda_pose=args.lambda_pose, seed=args.seed, device=device, compile=args.compile,
     )
 
 
 def _build_one(args: argparse.Namespace, prompt, config, training: str):
     """Load, plan and align one episode: (reconstruction, alignments), or None after ``--plan``
     printed the plan and ``training`` (:func:`_training_summary`). ``config``: makes the training
-    configuration, given the number of cameras trained, once the plan is logged."""
+    configuration, given the number of cameras trained and whether the masks are drawn here, once the
+    plan is logged."""
     from manisplat.reconstruct.data import ReconstructionInputError, load_episode_data
     from manisplat.reconstruct.masks import ObjectPrompt, complete_masks
     from manisplat.reconstruct.pipeline import build
@@ -337,6 +347,7 @@ def _build_one(args: argparse.Namespace, prompt, config, training: str):
     for view in views.values():
         view.robot = data.robot  # one model (with its meshes) for every camera
     masks_from_model = False
+    masks_drawn = data.masks is None or any(view.masks is None for view in views.values())
     if data.masks is None:
         links = [name for name in data.robot.link_names if data.robot.visuals.get(name)]
         prompts = [ObjectPrompt(name, point=point, box=box) for name, point, box in prompt]
@@ -350,8 +361,8 @@ def _build_one(args: argparse.Namespace, prompt, config, training: str):
         print(training)
         return None
     log.info("plan:\n%s", plan.summary())
-    return build(data, plan, config(1 + len(views)), tau=args.tau, table_z=args.table_z, masks_from_model=masks_from_model,
-                 check_extrinsic=not args.keep_extrinsic, views=views, progress=not args.quiet)
+    return build(data, plan, config(1 + len(views), masks_drawn), tau=args.tau, table_z=args.table_z,
+                 masks_from_model=masks_from_model, check_extrinsic=not args.keep_extrinsic, views=views, progress=not args.quiet)
 
 
 def _build_fused(args: argparse.Namespace, config: TrainConfig):

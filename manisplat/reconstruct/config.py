@@ -12,7 +12,8 @@ class TrainConfig:
 
     Attributes:
         iters: training iterations (one frame each).
-        lambda_app, lambda_mask, lambda_pose: loss weights (paper: 1.0 each).
+        lambda_app, lambda_mask, lambda_pose: loss weights (paper: 1.0 each; the command line
+            weighs the mask loss by where the masks come from: :func:`resolve_lambda_mask`).
         ssim_weight: D-SSIM share of the render and appearance losses.
         densify: clone/split/prune (gsplat defaults; refine every ``refine_every`` from
             ``refine_start`` to ``refine_stop_fraction`` of the iterations), each node growing to
@@ -187,3 +188,19 @@ def resolve_device(name: str, backend: str = "auto") -> str:
             raise DeviceUnavailable(f"--device {name} renders with gsplat, which is not installed ({exc}); "
                                     f"{GPU_HINT} (or --backend torch, ~80x slower)") from exc
     return name
+
+
+#: manisplat-reconstruct's mask-loss weight by where the masks come from (:func:`resolve_lambda_mask`)
+MASK_LOSS_WEIGHTS = {"episode": 1.0, "drawn": 0.0}
+
+
+def resolve_lambda_mask(weight: float | None, masks_drawn: bool) -> float:
+    """The dynamic-mask loss's weight: ``weight`` when one is given (``--lambda-mask``), else by where
+    the masks come from (:data:`MASK_LOSS_WEIGHTS`): 1 with the episode's own masks (the simulator's,
+    a segmenter's), 0 with masks drawn by the reconstruction (the robot from its model, which has no
+    cables or camera housings; objects segmented from depth from a click): pulling the rendered
+    alpha to those outlines cost 0.8-1.7 dB of the object region held out (docs/benchmarks.md, the
+    mask loss against drawn masks)."""
+    if weight is not None:
+        return weight
+    return MASK_LOSS_WEIGHTS["drawn" if masks_drawn else "episode"]

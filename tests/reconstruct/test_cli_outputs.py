@@ -114,6 +114,20 @@ def test_one_camera_is_drawn_classic_by_default(finished):
     assert json.loads((out / "twin.json").read_text())["rasterize_mode"] == "classic"
 
 
+def test_the_episode_masks_keep_the_mask_loss(finished):
+    """--lambda-mask unset: 1 with the episode's masks (0 with drawn ones: test_without_masks_or_depth)."""
+    out, _ = finished
+    assert json.loads((out / "metrics.json").read_text())["lambda_mask"] == 1.0
+
+
+def test_the_mask_loss_weight_resolves_by_the_masks_source():
+    from manisplat.reconstruct.config import resolve_lambda_mask
+
+    assert resolve_lambda_mask(None, masks_drawn=False) == 1.0
+    assert resolve_lambda_mask(None, masks_drawn=True) == 0.0
+    assert resolve_lambda_mask(0.25, masks_drawn=True) == 0.25 and resolve_lambda_mask(0.0, masks_drawn=False) == 0.0
+
+
 def test_the_rasterize_mode_resolves_by_the_number_of_cameras():
     from manisplat.reconstruct.config import resolve_rasterize_mode
 

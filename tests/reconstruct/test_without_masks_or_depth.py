@@ -165,6 +165,16 @@ def test_cli_reconstructs_without_masks_or_depth(pick, tmp_path, flags):
     assert set(metrics["pose"]["box"]) == {"et_cm", "er_deg"}
     assert metrics["plan"]["depth"] == ("--no-depth" not in flags)
     assert metrics["plan"]["masks"].startswith("drawn robot" if "--no-masks" in flags else "episode")
+    assert metrics["lambda_mask"] == (0.0 if "--no-masks" in flags else 1.0), "the mask loss weighed by the masks' source"
+
+
+def test_an_explicit_mask_loss_weight_overrides_the_masks_source(pick, tmp_path):
+    _, _, box = true_regions(pick)
+    rows, cols = np.nonzero(box[0])
+    out = tmp_path / "o"
+    assert main([str(pick), "--out", str(out), "--iters", "5", "-q", "--no-masks",
+                 "--object-point", f"{cols.mean():.1f},{rows.mean():.1f}", "--lambda-mask", "0.5"]) == 0
+    assert json.loads((out / "metrics.json").read_text())["lambda_mask"] == 0.5
 
 
 def test_cli_prompt_errors(pick, tmp_path, capsys):
