@@ -12,7 +12,7 @@ errors in the world frame (fitted and start-anchored), wall time and time per it
 
 ``python -m benchmarks reconstruct_cobot [--samples cobot_dual_small,...] [--settings all,head] [--iters 3000]
 [--shadow-casters meshes|gaussians] [--rasterize-mode auto|classic|antialiased] [--lambda-mask L]
-[--out FILE]``: ``--settings all --iters 9000`` gives the head camera about as many iterations as
+[--seed S] [--out FILE]``: ``--settings all --iters 9000`` gives the head camera about as many iterations as
 ``--settings head --iters 3000`` (one camera's image an iteration).
 """
 
@@ -52,6 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rasterize-mode", choices=RASTERIZE_CHOICES, default="auto",
                    help="manisplat-reconstruct --rasterize-mode (default auto, as the command's)")
     p.add_argument("--lambda-mask", type=float, help="manisplat-reconstruct --lambda-mask (default: the command's)")
+    p.add_argument("--seed", type=int, default=0, help="manisplat-reconstruct --seed (default 0, the command's)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_reconstruct" / "reconstruct_cobot.json")
     args = p.parse_args(argv)
     settings = args.settings.split(",")
@@ -65,7 +66,8 @@ def main(argv: list[str] | None = None) -> int:
             episode, prompts = imported_sample(shared, sample, Path(tmp))
             for setting, cameras in (SETTINGS[key] for key in settings):
                 out = Path(tmp) / f"{sample}_{len(cameras)}"
-                options = ("--shadow-casters", args.shadow_casters, "--rasterize-mode", args.rasterize_mode)
+                options = ("--shadow-casters", args.shadow_casters, "--rasterize-mode", args.rasterize_mode,
+                           "--seed", str(args.seed))
                 if args.lambda_mask is not None:
                     options += ("--lambda-mask", str(args.lambda_mask))
                 row = reconstruct(episode, out, cameras, prompts, args.iters, options)
