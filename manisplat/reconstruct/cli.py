@@ -118,7 +118,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lambda-app", type=non_negative(), default=1.0, help="weight of the masked appearance loss (default 1)")
     p.add_argument("--lambda-mask", type=non_negative(), default=None,
                    help="weight of the dynamic-mask loss (default: 1 with the episode's masks, 0 with masks drawn "
-                        "here, whose outlines miss what the robot model lacks)")
+                        "here, whose approximate outlines cost the object region)")
     p.add_argument("--lambda-pose", type=non_negative(), default=1.0, help="weight of the pose prior loss (default 1)")
     inputs = p.add_argument_group(
         "episodes without depth or masks",

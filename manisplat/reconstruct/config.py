@@ -197,10 +197,10 @@ MASK_LOSS_WEIGHTS = {"episode": 1.0, "drawn": 0.0}
 def resolve_lambda_mask(weight: float | None, masks_drawn: bool) -> float:
     """The dynamic-mask loss's weight: ``weight`` when one is given (``--lambda-mask``), else by where
     the masks come from (:data:`MASK_LOSS_WEIGHTS`): 1 with the episode's own masks (the simulator's,
-    a segmenter's), 0 with masks drawn by the reconstruction (the robot from its model, which has no
-    cables or camera housings; objects segmented from depth from a click): pulling the rendered
-    alpha to those outlines cost 0.8-1.7 dB of the object region held out (docs/benchmarks.md, the
-    mask loss against drawn masks)."""
+    a segmenter's), 0 with masks drawn by the reconstruction (the robot's from its model, objects
+    segmented from depth from a click): pulling the rendered alpha to those approximate outlines
+    cost the object region 0.2-4.1 dB held out at 3000 iterations (docs/benchmarks.md, no mask
+    loss against drawn masks)."""
     if weight is not None:
         return weight
     return MASK_LOSS_WEIGHTS["drawn" if masks_drawn else "episode"]
