@@ -16,6 +16,7 @@ import argparse
 import logging
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 from manisplat.align.phases import DEFAULT_TAU
@@ -231,7 +232,7 @@ def _run(args: argparse.Namespace, prompt: list[tuple[str, tuple | None, tuple |
             fused = _build_fused(args, _config(args, device, iters, compiled, cameras=1, masks_drawn=False))
             rec, alignments = fused.reconstruction, fused.alignments
         else:
-            built = _build_one(args, prompt, lambda cameras, masks_drawn: _config(args, device, iters, compiled, cameras, masks_drawn),
+            built = _build_one(args, prompt, partial(_config, args, device, iters, compiled),
                                _training_summary(args, device, iters, compiled))
             if built is None:
                 return ExitCode.OK
@@ -362,7 +363,8 @@ def _build_one(args: argparse.Namespace, prompt, config, training: str):
         return None
     log.info("plan:\n%s", plan.summary())
     return build(data, plan, config(1 + len(views), masks_drawn), tau=args.tau, table_z=args.table_z,
-                 masks_from_model=masks_from_model, check_extrinsic=not args.keep_extrinsic, views=views, progress=not args.quiet)
+                 masks_from_model=masks_from_model, check_extrinsic=not args.keep_extrinsic, views=views,
+                 progress=not args.quiet)
 
 
 def _build_fused(args: argparse.Namespace, config: TrainConfig):
