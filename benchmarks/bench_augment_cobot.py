@@ -79,13 +79,12 @@ def main(argv: list[str] | None = None) -> int:
             raise RuntimeError(f"{args.sample}: import failed")
     prompts = add_ground_truth(episode, source) if not (episode / "gt.npz").exists() else _prompts(episode, source)
     options = () if args.lambda_mask is None else ("--lambda-mask", str(args.lambda_mask))
-    if (twin_dir / "twin.json").exists():
-        _check_reused(twin_dir, args.lambda_mask)
-    else:
+    if not (twin_dir / "twin.json").exists():
         t0 = time.perf_counter()
         recon = reconstruct(episode, twin_dir, CAMERAS, prompts, args.iters, options)
         stages["reconstruct_s"] = round(time.perf_counter() - t0, 1)
         print(json.dumps({k: recon[k] for k in ("wall_s", "ms_per_iter", "pose_anchored")}, default=float), flush=True)
+    lambda_mask = _mask_loss_weight(twin_dir, args.lambda_mask)
     if not (aug / "augment_report.json").exists():
         t0 = time.perf_counter()
         augment_main([str(twin_dir), "--n", str(args.n), "--out", str(aug), "--workers", "2", "--seed", "0", "-q",
@@ -109,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
 
     result = {
         "benchmark": "augment_cobot", "sample": args.sample, "source_seed": args.source_seed,
-        "lambda_mask": json.loads((twin_dir / "metrics.json").read_text()).get("lambda_mask"),
+        "lambda_mask": lambda_mask,
         "command": "python -m benchmarks augment_cobot " + " ".join(argv if argv is not None else sys.argv[1:]),
         "augment": {k: report.get(k) for k in ("requested", "drawn", "valid", "validity_rate", "reasons",
                                                 "min_arm_clearance_m", "timing_s", "plan_s_per_sample")},
@@ -125,15 +124,17 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _check_reused(twin_dir: Path, lambda_mask: float | None) -> None:
-    """Refuse a twin of ``--work`` made with another mask-loss weight than asked (unset: the drawn
-    masks' default; twins from before metrics.json recorded it were made with 1)."""
+def _mask_loss_weight(twin_dir: Path, lambda_mask: float | None) -> float:
+    """The mask-loss weight the twin in ``twin_dir`` was reconstructed with; a twin of ``--work``
+    made with another weight than asked (unset: the drawn masks' default; twins from before
+    metrics.json recorded it were made with 1) is refused."""
     from manisplat.reconstruct.config import resolve_lambda_mask
 
     made = json.loads((twin_dir / "metrics.json").read_text()).get("lambda_mask", 1.0)
     wanted = resolve_lambda_mask(lambda_mask, masks_drawn=True)
     if made != wanted:
         raise RuntimeError(f"{twin_dir} was reconstructed with --lambda-mask {made}, not {wanted}: use another --work")
+    return made
 
 
 def _prompts(episode: Path, source: Path) -> dict[str, tuple[float, float]]:
