@@ -129,7 +129,10 @@ def test_the_mask_loss_weight_resolves_by_the_masks_source():
 
 
 def test_the_rasterize_mode_resolves_by_the_number_of_cameras():
-    from manisplat.reconstruct.config import resolve_rasterize_mode
+    from manisplat.reconstruct.config import RASTERIZE_MODES, resolve_rasterize_mode
+    from manisplat.splat import RASTERIZE_MODES as RASTERIZER_MODES
+
+    assert RASTERIZE_MODES == RASTERIZER_MODES  # the command line's torch-free copy
 
     assert [resolve_rasterize_mode("auto", n) for n in (1, 2, 3)] == ["classic", "antialiased", "antialiased"]
     assert [resolve_rasterize_mode(m, 1) for m in ("classic", "antialiased")] == ["classic", "antialiased"]
