@@ -25,6 +25,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from manisplat.reconstruct.sensor import clipped
+
 #: weight of the prior gain 1 against the frame's pixels (per pixel, in the normal equations)
 RIDGE = 0.01
 
@@ -91,12 +93,15 @@ class FrameExposure:
 
 
 def fit_gains(render: torch.Tensor, target: torch.Tensor, region: torch.Tensor | None) -> torch.Tensor:
-    """[3] the gains that best map ``render`` onto ``target`` ([H, W, 3]) over ``region`` [H, W]
-    (0/1 weights; None: every pixel), by least squares with a ridge of :data:`RIDGE` towards 1."""
+    """[3] the gains that best map ``render`` onto ``target`` ([H, W, 3], float in [0, 1]) over
+    ``region`` [H, W] (0/1 weights; None: every pixel), by least squares with a ridge of
+    :data:`RIDGE` towards 1. A channel the sensor clipped (:func:`~manisplat.reconstruct.sensor.clipped`)
+    is left out of its channel's fit: its recorded value is not its brightness."""
     w = torch.ones_like(render[..., 0]) if region is None else region
-    count = w.sum().clamp_min(1.0)
-    rt = (render * target * w[..., None]).sum((0, 1))
-    rr = (render * render * w[..., None]).sum((0, 1))
+    w = w[..., None] * (~clipped(target)).to(render.dtype)  # [H, W, 3]
+    count = w.sum((0, 1)).clamp_min(1.0)
+    rt = (render * target * w).sum((0, 1))
+    rr = (render * render * w).sum((0, 1))
     return (rt + RIDGE * count) / (rr + RIDGE * count)
 
 

@@ -5,7 +5,8 @@ s D-SSIM on the frame; L_app the same over the dynamic pixels (robot and objects
 mask); L_mask the L1 between the dynamic nodes' rendered alpha and that mask; L_pose the object
 corrections' squared SE(3) distance to the pseudo ground truth. With per-frame exposure the render
 is first scaled by the frame's gains, fitted in closed form on its static pixels
-(:mod:`manisplat.reconstruct.exposure`). :func:`frame_loss` is
+(:mod:`manisplat.reconstruct.exposure`); then it is compared as the sensor records it, a render
+brighter than a clipped recorded channel counting as that channel (:mod:`manisplat.reconstruct.sensor`). :func:`frame_loss` is
 :func:`~manisplat.compilation.compilable`: compiled, the whole of it (and its backward) is a few
 fused kernels.
 """
@@ -18,6 +19,7 @@ import torch
 from manisplat.compilation import compilable
 from manisplat.reconstruct.exposure import fit_gains, relative_gains
 from manisplat.reconstruct.poses import pose_penalty
+from manisplat.reconstruct.sensor import as_recorded, clipped
 
 
 @compilable
@@ -41,6 +43,7 @@ def frame_loss(image: torch.Tensor, dynamic_alpha: torch.Tensor, target: torch.T
     Returns (loss [] float32, this frame's gains [3] as fitted, to be kept; None without exposure).
     """
     ssim_weight, lambda_app, lambda_mask, lambda_pose = weights
+    clip = clipped(target)
     target = target.float() / 255.0
     dynamic = None if dynamic_mask is None else dynamic_mask.float()
     gains = None
@@ -50,7 +53,7 @@ def frame_loss(image: torch.Tensor, dynamic_alpha: torch.Tensor, target: torch.T
             static = valid if static is None else static * valid
         gains = fit_gains(image.detach(), target, static)
         image = image * relative_gains(gains, *exposure)
-    l1, ssim = error_maps(image, target)  # computed once for the render and appearance terms
+    l1, ssim = error_maps(as_recorded(image, target, clip), target)  # computed once for the render and appearance terms
     loss = photometric(l1, ssim, valid, ssim_weight)
     if dynamic is not None:
         mask_error = (dynamic_alpha - dynamic).abs()

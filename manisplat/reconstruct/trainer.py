@@ -25,6 +25,7 @@ from manisplat.reconstruct.data import EpisodeData
 from manisplat.reconstruct.exposure import FrameExposure
 from manisplat.reconstruct.extrinsic import ExtrinsicCorrection
 from manisplat.reconstruct.rig_check import RigCheck
+from manisplat.reconstruct.sensor import clipped
 from manisplat.reconstruct.loss import frame_loss
 from manisplat.reconstruct.metrics import psnr
 from manisplat.reconstruct.plan import Plan
@@ -414,7 +415,9 @@ class Reconstruction:
             valid = inside & d.region(f, d.labels.static)[px[:, 1], px[:, 0]]
             if d.depth is not None:
                 valid &= (d.depth[f][px[:, 1], px[:, 0]] - cam[:, 2]).abs() < 0.02
-            observations.append((occluders, d.image(f)[px[:, 1], px[:, 0]], valid))
+            observed = d.image(f)[px[:, 1], px[:, 0]]
+            valid &= ~clipped(observed).any(-1)  # a clipped colour is not the surface's brightness
+            observations.append((occluders, observed, valid))
         t0 = time.perf_counter()
         direction, strength, _ = search_direction(model, points, colors, observations)
         model.direction.copy_(direction)
