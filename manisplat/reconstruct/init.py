@@ -11,10 +11,12 @@ matters little to its images; an object's is refined by training.
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 
 import numpy as np
 import torch
 import trimesh
+from scipy.spatial import cKDTree
 
 from manisplat.reconstruct.data import EpisodeData, ReconstructionInputError
 from manisplat.robot import RobotModel, link_meshes
@@ -110,12 +112,15 @@ def _pixel_rays(data: EpisodeData, W: int, H: int) -> tuple[np.ndarray, np.ndarr
 
 
 def background_gaussians(data: EpisodeData, *, stride: int = 2, frames: list[int] | None = None,
-                         sh_degree: int = 0, table_z: float = 0.0) -> GaussianSet:
+                         sh_degree: int = 0, table_z: float = 0.0, riding: Sequence[EpisodeData] = (),
+                         riding_frames: list[int] | None = None) -> GaussianSet:
     """Static Gaussians from the depth of a few frames (or :func:`monocular_depth`), robot and
     object pixels excluded.
 
     Frame 0 gives most points; later frames only add pixels that no earlier frame saw as static
-    (the table the arm hid), so nothing is duplicated.
+    (the table the arm hid), so nothing is duplicated. The ``riding`` cameras' views (with depth
+    and masks) add their close-ups in ``riding_frames`` (default ``frames``):
+    :func:`close_up_points`.
     """
     assumed = monocular_depth(data, table_z=table_z) if data.depth is None else None
     frames = frames or sorted({0, data.n_frames // 2, data.n_frames - 1})
@@ -133,11 +138,54 @@ def background_gaussians(data: EpisodeData, *, stride: int = 2, frames: list[int
         colors.append(data.image(i)[rows, cols])
         spacing.append(depth[rows, cols] / float(data.K_opencv[0, 0]) * stride)
         seen |= static
-    pts = torch.cat(points)
+    pts, cols_, gaps = torch.cat(points), torch.cat(colors), torch.cat(spacing)
     log.info("background: %d Gaussians from %s of frames %s", len(pts),
              "depth" if assumed is None else "the monocular table and backdrop", frames)
-    return GaussianSet.from_points(pts, torch.cat(colors), torch.cat(spacing), scene_scale=_extent(pts),
-                                   sh_degree=sh_degree)
+    for view in riding:
+        p, c, g = close_up_points(view, riding_frames or frames, pts, gaps)
+        log.info("background: %d more from camera %s's close-ups", len(p), view.camera_name)
+        pts, cols_, gaps = torch.cat([pts, p]), torch.cat([cols_, c]), torch.cat([gaps, g])
+    return GaussianSet.from_points(pts, cols_, gaps, scene_scale=_extent(pts), sh_degree=sh_degree)
+
+
+def close_up_points(view: EpisodeData, frames: list[int], seeds: torch.Tensor, seed_spacing: torch.Tensor, *,
+                    stride: int = 4, finer: float = 0.5) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """What a riding camera (a wrist camera) adds to the background's seeds: (points [M, 3] in the
+    base frame, colours [M, 3], spacing [M] m) of its static pixels with depth in ``frames``, every
+    ``stride`` pixels, where it sees the surface at least 1 / ``finer`` times as finely as the
+    nearest of the ``seeds`` [N, 3] (spacing ``seed_spacing`` [N] m), or where no seed is within
+    two of their spacings; a point a previous frame added within its own spacing is not added again.
+
+    Why: a wrist camera a few centimetres above the table sees it in millimetres, the fixed camera
+    a metre away in 5-7 mm steps; Gaussians seeded at those steps show the wrist camera a blur
+    that densification (capped per node) does not split away within the budget.
+    """
+    if view.depth is None or view.masks is None:
+        raise ValueError(f"camera {view.camera_name}: close-up seeds need its depth and masks")
+    seed_tree = cKDTree(seeds.double().numpy())
+    seed_gap = seed_spacing.double().numpy()
+    added: list[tuple[np.ndarray, torch.Tensor, np.ndarray]] = []
+    for f in frames:
+        static = view.region(f, view.labels.static)
+        if view.valid is not None:
+            static &= view.valid
+        depth = view.depth[f]
+        T_base_cam = torch.linalg.inv(view.view_at(f).double())
+        p, rows, cols = backproject(depth, view.K_opencv, T_base_cam, static, stride)
+        if not len(p):
+            continue
+        xyz = p.double().numpy()
+        gap = (depth[rows, cols] / float(view.K_opencv[0, 0]) * stride).double().numpy()
+        distance, nearest = seed_tree.query(xyz)
+        keep = (gap < finer * seed_gap[nearest]) | (distance > 2 * seed_gap[nearest])
+        if added:
+            earlier = cKDTree(np.concatenate([a[0] for a in added]))
+            keep &= earlier.query(xyz)[0] > gap
+        added.append((xyz[keep], view.image(f)[rows, cols][torch.from_numpy(keep)], gap[keep]))
+    if not added:
+        return torch.zeros(0, 3), torch.zeros(0, 3), torch.zeros(0)
+    return (torch.from_numpy(np.concatenate([a[0] for a in added])).float(), torch.cat([a[1] for a in added]),
+            torch.from_numpy(np.concatenate([a[2] for a in added])).float())
 
 
 def object_points(data: EpisodeData, label: int, frame: int = 0, *, stride: int = 1,

@@ -32,6 +32,8 @@ from manisplat.scene.transforms import transform_gaussians
 from manisplat.splat import rasterization
 
 log = logging.getLogger(__name__)
+#: training frames of each riding camera (wrist cameras) whose close-ups seed the background
+CLOSE_UP_FRAMES = 8
 
 
 @dataclass
@@ -88,9 +90,6 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
             add_camera_bodies(robot, bodies)
         if data.mask_source.startswith("drawn robot"):
             redraw_robot_masks(data, progress=False)
-    # no pixel of a held-out frame reaches the Gaussians: the first, middle and last training frames seed them
-    background = background_gaussians(data, frames=sorted({train[0], train[len(train) // 2], train[-1]}),
-                                      sh_degree=config.sh_degree, table_z=table_z)
     links = link_gaussians(data.robot, plan.links, total=robot_gaussians, sh_degree=config.sh_degree)
     objects, trajectories, alignments = {}, {}, {}
     for obj in plan.objects:
@@ -111,9 +110,6 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
         trajectories[obj.name] = ObjectTrajectory(alignment.pseudo.poses, alignment.pseudo.source, static=not obj.moves)
         log.info("object %s: %d pose parameters; phases %s", obj.name, trajectories[obj.name].n_params,
                  ", ".join(f"{s.name} {s.start}-{s.end - 1}" for s in alignment.segments))
-    for g in [*links.values(), *objects.values()]:
-        g.scene_scale = background.scene_scale
-    graph = SceneGraph(background, links, list(data.robot.link_names), objects)
     for name, view in views.items():
         if view.masks is None:
             labels = {label: obj for label, obj in data.labels.objects.items()}
@@ -122,6 +118,15 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
                             {obj: (label, objects[obj], alignments[obj].pseudo.poses) for label, obj in labels.items()
                              if obj in objects}, data.label_names, progress=progress)
             log.info("camera %s: masks drawn (robot at each frame's FK, objects at their pseudo poses)", name)
+    # no pixel of a held-out frame reaches the Gaussians: the first, middle and last training frames
+    # seed them, and the riding cameras with depth add their close-ups from up to CLOSE_UP_FRAMES
+    close_ups = [view for view in views.values() if view.riding and view.depth is not None]
+    background = background_gaussians(data, frames=sorted({train[0], train[len(train) // 2], train[-1]}),
+                                      sh_degree=config.sh_degree, table_z=table_z, riding=close_ups,
+                                      riding_frames=train[::max(1, -(-len(train) // CLOSE_UP_FRAMES))])
+    for g in [*links.values(), *objects.values()]:
+        g.scene_scale = background.scene_scale
+    graph = SceneGraph(background, links, list(data.robot.link_names), objects)
     rec = Reconstruction(data, plan, graph, trajectories, config, views=views)
     rec.extrinsic = None if rig is None else rig.camera
     rec.rig = rig if rig is not None and (rig.bases or rig.riding) else None
