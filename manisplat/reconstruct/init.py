@@ -158,7 +158,7 @@ def close_up_points(view: EpisodeData, frames: list[int], seeds: torch.Tensor, s
 
     Why: a wrist camera a few centimetres above the table sees it in millimetres, the fixed camera
     a metre away in 5-7 mm steps; Gaussians seeded at those steps show the wrist camera a blur
-    that densification (capped per node) does not split away within the budget.
+    that densification does not split away within the budget (its growth cap is not what stops it).
     """
     if view.depth is None or view.masks is None:
         raise ValueError(f"camera {view.camera_name}: close-up seeds need its depth and masks")
