@@ -143,7 +143,10 @@ def background_gaussians(data: EpisodeData, *, stride: int = 2, frames: list[int
              "depth" if assumed is None else "the monocular table and backdrop", frames)
     for view in riding:
         p, c, g = close_up_points(view, riding_frames or frames, pts, gaps)
-        log.info("background: %d more from camera %s's close-ups", len(p), view.camera_name)
+        keep = ~seen_through(data, frames, p) if assumed is None else torch.ones(len(p), dtype=torch.bool)
+        log.info("background: %d more from camera %s's close-ups (%d in space the fixed camera saw past left out)",
+                 int(keep.sum()), view.camera_name, int((~keep).sum()))
+        p, c, g = p[keep], c[keep], g[keep]
         pts, cols_, gaps = torch.cat([pts, p]), torch.cat([cols_, c]), torch.cat([gaps, g])
     return GaussianSet.from_points(pts, cols_, gaps, scene_scale=_extent(pts), sh_degree=sh_degree)
 
@@ -186,6 +189,26 @@ def close_up_points(view: EpisodeData, frames: list[int], seeds: torch.Tensor, s
         return torch.zeros(0, 3), torch.zeros(0, 3), torch.zeros(0)
     return (torch.from_numpy(np.concatenate([a[0] for a in added])).float(), torch.cat([a[1] for a in added]),
             torch.from_numpy(np.concatenate([a[2] for a in added])).float())
+
+
+def seen_through(data: EpisodeData, frames: list[int], points: torch.Tensor, margin: float = 0.01) -> torch.Tensor:
+    """[N] bool: the points [N, 3] (base frame) that the fixed camera ``data`` saw past in one of
+    ``frames``: its pixel there is static and its depth more than ``margin`` m beyond the point.
+    Such a point is not a static surface (a riding camera's pixel at the edge of a moving part's
+    drawn mask, which the fixed camera's view of the background shows to be empty space)."""
+    V, K = data.viewmat.double(), data.K_opencv.double()
+    cam = points.double() @ V[:3, :3].T + V[:3, 3]
+    z = cam[:, 2].clamp_min(1e-6)
+    u = (cam[:, 0] / z * K[0, 0] + K[0, 2]).round().long()
+    v = (cam[:, 1] / z * K[1, 1] + K[1, 2]).round().long()
+    W, H = data.size
+    inside = (cam[:, 2] > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    u, v = u.clamp(0, W - 1), v.clamp(0, H - 1)
+    through = torch.zeros(len(points), dtype=torch.bool)
+    for f in frames:
+        static = data.region(f, data.labels.static)[v, u]
+        through |= inside & static & (data.depth[f][v, u].double() > z + margin)
+    return through
 
 
 def object_points(data: EpisodeData, label: int, frame: int = 0, *, stride: int = 1,

@@ -9,7 +9,7 @@ import torch
 from manisplat.episode.synthetic_arms import write_two_arm_sample_episode
 from manisplat.reconstruct.config import TrainConfig
 from manisplat.reconstruct.data import load_episode_data
-from manisplat.reconstruct.init import backproject, close_up_points
+from manisplat.reconstruct.init import backproject, background_gaussians, close_up_points, seen_through
 from manisplat.reconstruct.pipeline import build
 from manisplat.reconstruct.plan import make_plan
 
@@ -64,6 +64,35 @@ def test_a_surface_two_frames_show_is_added_once(wrist):
     once = close_up_points(wrist, FRAMES[:1], *coarse)[0]
     twice = close_up_points(wrist, FRAMES[:1] * 2, *coarse)[0]
     assert len(twice) == len(once)
+
+
+def test_points_in_space_the_fixed_camera_saw_past_are_found(episode):
+    """A point 5 cm in front of a static surface the head camera saw (a riding camera's pixel at
+    a moving part's edge) is in empty space; on the surface or behind it (hidden) it is not."""
+    head = load_episode_data(episode, load_meshes=False)
+    f = FRAMES[0]
+    keep = head.region(f, head.labels.static)
+    surface, rows, cols = backproject(head.depth[f], head.K_opencv, torch.linalg.inv(head.viewmat.double()), keep, 8)
+    eye = torch.linalg.inv(head.viewmat.double())[:3, 3]
+    ray = surface.double() - eye
+    ray = ray / ray.norm(dim=1, keepdim=True)
+    in_front, behind = (surface.double() - 0.05 * ray).float(), (surface.double() + 0.05 * ray).float()
+    assert seen_through(head, [f], in_front).float().mean() > 0.95
+    assert not seen_through(head, [f], surface).any()
+    assert not seen_through(head, [f], behind).any()
+
+
+def test_close_ups_in_space_the_fixed_camera_saw_past_are_left_out(episode):
+    """A wrist camera's depth 10 % short in one frame puts its close-ups in the air above the
+    table: the head camera saw the table through them, so none seeds the background."""
+    head = load_episode_data(episode, load_meshes=False)
+    wrist = load_episode_data(episode, camera="cam_left_wrist", load_meshes=False)
+    f = FRAMES[0]
+    wrist.depth[f] *= 0.9
+    floating = close_up_points(wrist, [f], torch.zeros(1, 3), torch.full((1,), 10.0))[0]
+    assert seen_through(head, [f], floating).sum() > 50
+    background = background_gaussians(head, frames=[f], riding=[wrist])
+    assert not seen_through(head, [f], background.params["means"].detach()).any()
 
 
 def test_a_camera_without_depth_cannot_seed_close_ups(episode):
