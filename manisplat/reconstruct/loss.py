@@ -6,9 +6,9 @@ mask); L_mask the L1 between the dynamic nodes' rendered alpha and that mask; L_
 corrections' squared SE(3) distance to the pseudo ground truth. With per-frame exposure the render
 is first scaled by the frame's gains, fitted in closed form on its static pixels
 (:mod:`manisplat.reconstruct.exposure`); then it is compared as the sensor records it, a render
-brighter than a clipped recorded channel counting as that channel (:mod:`manisplat.reconstruct.sensor`). :func:`frame_loss` is
-:func:`~manisplat.compilation.compilable`: compiled, the whole of it (and its backward) is a few
-fused kernels.
+brighter than a clipped recorded channel counting as that channel
+(:mod:`manisplat.reconstruct.sensor`). :func:`frame_loss` is :func:`~manisplat.compilation.compilable`:
+compiled, the whole of it (and its backward) is a few fused kernels.
 """
 
 from __future__ import annotations

@@ -31,7 +31,8 @@ def own_points(view, frames, stride):
     points, spacing = [], []
     for f in frames:
         keep = view.region(f, view.labels.static)
-        p, rows, cols = backproject(view.depth[f], view.K_opencv, torch.linalg.inv(view.view_at(f).double()), keep, stride)
+        T_base_cam = torch.linalg.inv(view.view_at(f).double())
+        p, rows, cols = backproject(view.depth[f], view.K_opencv, T_base_cam, keep, stride)
         points.append(p)
         spacing.append(view.depth[f][rows, cols] / float(view.K_opencv[0, 0]) * stride)
     return torch.cat(points), torch.cat(spacing)
