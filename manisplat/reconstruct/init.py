@@ -45,6 +45,13 @@ def backproject(depth: torch.Tensor, K: torch.Tensor, T_base_cam: torch.Tensor, 
     return (cam @ T[:3, :3].T + T[:3, 3]).float(), rows, cols
 
 
+def sample_spacing(depth: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor, K: torch.Tensor,
+                   stride: int) -> torch.Tensor:
+    """[M] m between neighbouring samples taken every ``stride`` pixels at ``rows``, ``cols`` of
+    ``depth`` [H, W] (z-depth, m) by a camera of focal length ``K[0, 0]`` (pixels)."""
+    return depth[rows, cols] / float(K[0, 0]) * stride
+
+
 def monocular_depth(data: EpisodeData, *, table_z: float = 0.0, radius: float = 1.5,
                     backdrop: float = 1.25) -> torch.Tensor:
     """The z-depth [H, W] a monocular start assumes: where a pixel's ray meets the table plane
@@ -136,7 +143,7 @@ def background_gaussians(data: EpisodeData, *, stride: int = 2, frames: list[int
         p, rows, cols = backproject(depth, data.K_opencv, T_base_cam, new, stride)
         points.append(p)
         colors.append(data.image(i)[rows, cols])
-        spacing.append(depth[rows, cols] / float(data.K_opencv[0, 0]) * stride)
+        spacing.append(sample_spacing(depth, rows, cols, data.K_opencv, stride))
         seen |= static
     pts, cols_, gaps = torch.cat(points), torch.cat(colors), torch.cat(spacing)
     log.info("background: %d Gaussians from %s of frames %s", len(pts),
@@ -178,7 +185,7 @@ def close_up_points(view: EpisodeData, frames: list[int], seeds: torch.Tensor, s
         if not len(p):
             continue
         xyz = p.double().numpy()
-        gap = (depth[rows, cols] / float(view.K_opencv[0, 0]) * stride).double().numpy()
+        gap = sample_spacing(depth, rows, cols, view.K_opencv, stride).double().numpy()
         distance, nearest = seed_tree.query(xyz)
         keep = (gap < finer * seed_gap[nearest]) | (distance > 2 * seed_gap[nearest])
         if added:
@@ -223,7 +230,7 @@ def object_points(data: EpisodeData, label: int, frame: int = 0, *, stride: int 
     p, rows, cols = backproject(depth, data.K_opencv, torch.linalg.inv(data.viewmat.double()), keep, stride)
     if len(p) < 10:
         raise ValueError(f"object label {label}: only {len(p)} pixels with depth in frame {frame}")
-    spacing = depth[rows, cols] / float(data.K_opencv[0, 0]) * stride
+    spacing = sample_spacing(depth, rows, cols, data.K_opencv, stride)
     return p.double(), data.image(frame)[rows, cols], spacing
 
 

@@ -9,7 +9,8 @@ import torch
 from manisplat.episode.synthetic_arms import write_two_arm_sample_episode
 from manisplat.reconstruct.config import TrainConfig
 from manisplat.reconstruct.data import load_episode_data
-from manisplat.reconstruct.init import backproject, background_gaussians, close_up_points, seen_through
+from manisplat.reconstruct.init import (backproject, background_gaussians, close_up_points, sample_spacing,
+                                        seen_through)
 from manisplat.reconstruct.pipeline import build
 from manisplat.reconstruct.plan import make_plan
 
@@ -34,7 +35,7 @@ def own_points(view, frames, stride):
         T_base_cam = torch.linalg.inv(view.view_at(f).double())
         p, rows, cols = backproject(view.depth[f], view.K_opencv, T_base_cam, keep, stride)
         points.append(p)
-        spacing.append(view.depth[f][rows, cols] / float(view.K_opencv[0, 0]) * stride)
+        spacing.append(sample_spacing(view.depth[f], rows, cols, view.K_opencv, stride))
     return torch.cat(points), torch.cat(spacing)
 
 
