@@ -162,9 +162,8 @@ def close_up_points(view: EpisodeData, frames: list[int], seeds: torch.Tensor, s
                     stride: int = 4, finer: float = 0.5) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """What a riding camera (a wrist camera) adds to the background's seeds: (points [M, 3] in the
     base frame, colours [M, 3], spacing [M] m) of its static pixels with depth in ``frames``, every
-    ``stride`` pixels, where it sees the surface at least 1 / ``finer`` times as finely as the
-    nearest of the ``seeds`` [N, 3] (spacing ``seed_spacing`` [N] m), or where no seed is within
-    two of their spacings; a point a previous frame added within its own spacing is not added again.
+    ``stride`` pixels, that :func:`finer_points` keeps against the ``seeds`` [N, 3] (spacing
+    ``seed_spacing`` [N] m).
 
     Why: a wrist camera a few centimetres above the table sees it in millimetres, the fixed camera
     a metre away in 5-7 mm steps; Gaussians seeded at those steps show the wrist camera a blur
@@ -172,26 +171,70 @@ def close_up_points(view: EpisodeData, frames: list[int], seeds: torch.Tensor, s
     """
     if view.depth is None or view.masks is None:
         raise ValueError(f"camera {view.camera_name}: close-up seeds need its depth and masks")
-    seed_tree = cKDTree(seeds.double().numpy())
-    seed_gap = seed_spacing.double().numpy()
-    added: list[tuple[np.ndarray, torch.Tensor, np.ndarray]] = []
+    samples = []
     for f in frames:
         static = view.region(f, view.labels.static)
         if view.valid is not None:
             static &= view.valid
-        depth = view.depth[f]
         T_base_cam = torch.linalg.inv(view.view_at(f).double())
-        p, rows, cols = backproject(depth, view.K_opencv, T_base_cam, static, stride)
-        if not len(p):
-            continue
+        p, rows, cols = backproject(view.depth[f], view.K_opencv, T_base_cam, static, stride)
+        gap = sample_spacing(view.depth[f], rows, cols, view.K_opencv, stride)
+        samples.append((p.double().numpy(), view.image(f)[rows, cols], gap.double().numpy()))
+    return finer_points(samples, seeds, seed_spacing, finer=finer)
+
+
+def object_close_up_points(view: EpisodeData, frames: list[int], poses: np.ndarray, seeds: torch.Tensor,
+                           seed_spacing: torch.Tensor, *, stride: int = 2, finer: float = 0.5, margin: float = 0.005,
+                           floor: float = 0.003) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """What a riding camera adds to one object's seeds: (points [M, 3] in the object's frame,
+    colours [M, 3], spacing [M] m) of its pixels with depth in ``frames``, every ``stride``
+    pixels, that are not the robot's (its masks) and that the object's pose there (``poses``
+    [T, 4, 4] ``T_base_obj``) puts inside the box around the ``seeds`` [N, 3] (object frame,
+    z up at the start), ``margin`` m wider and above their lowest point by ``floor`` m (not the
+    support it stands on); kept by :func:`finer_points` against the seeds (spacing
+    ``seed_spacing`` [N] m).
+
+    Why: the object's seeds are what the fixed camera's first frame shows, its far sides missing
+    and the rest at that camera's 4-5 mm steps, where a wrist camera sees the object from a few
+    centimetres: its close-ups there scored 15-20 dB against its held-out frames.
+    """
+    if view.depth is None or view.masks is None:
+        raise ValueError(f"camera {view.camera_name}: close-up seeds need its depth and masks")
+    model = seeds.double().numpy()
+    low, high = model.min(0) - margin, model.max(0) + margin
+    low[2] = model[:, 2].min() + floor
+    samples = []
+    for f in frames:
+        free = ~view.region(f, list(view.labels.robot))
+        if view.valid is not None:
+            free &= view.valid
+        T_obj_cam = np.linalg.inv(poses[f]) @ torch.linalg.inv(view.view_at(f).double()).numpy()
+        p, rows, cols = backproject(view.depth[f], view.K_opencv, torch.from_numpy(T_obj_cam), free, stride)
         xyz = p.double().numpy()
-        gap = sample_spacing(depth, rows, cols, view.K_opencv, stride).double().numpy()
+        inside = np.all((xyz >= low) & (xyz <= high), axis=1)
+        gap = sample_spacing(view.depth[f], rows, cols, view.K_opencv, stride).double().numpy()
+        keep = torch.from_numpy(inside)
+        samples.append((xyz[inside], view.image(f)[rows[keep], cols[keep]], gap[inside]))
+    return finer_points(samples, seeds, seed_spacing, finer=finer)
+
+
+def finer_points(samples: list[tuple[np.ndarray, torch.Tensor, np.ndarray]], seeds: torch.Tensor,
+                 seed_spacing: torch.Tensor, *, finer: float = 0.5) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Of each frame's ``samples`` (points [K, 3], colours [K, 3], spacing [K] m), the points that
+    show the surface at least 1 / ``finer`` times as finely as the nearest of the ``seeds``
+    [N, 3] (spacing ``seed_spacing`` [N] m), or where no seed is within two of their spacings;
+    the frames that see most finely (median spacing) first, a point a previous one added within
+    its own spacing not added again. Returns (points [M, 3], colours [M, 3], spacing [M]) as float32."""
+    seed_tree = cKDTree(seeds.double().numpy())
+    seed_gap = seed_spacing.double().numpy()
+    added: list[tuple[np.ndarray, torch.Tensor, np.ndarray]] = []
+    for xyz, colours, gap in sorted((s for s in samples if len(s[0])), key=lambda s: float(np.median(s[2]))):
         distance, nearest = seed_tree.query(xyz)
         keep = (gap < finer * seed_gap[nearest]) | (distance > 2 * seed_gap[nearest])
         if added:
             earlier = cKDTree(np.concatenate([a[0] for a in added]))
             keep &= earlier.query(xyz)[0] > gap
-        added.append((xyz[keep], view.image(f)[rows, cols][torch.from_numpy(keep)], gap[keep]))
+        added.append((xyz[keep], colours[torch.from_numpy(keep)], gap[keep]))
     if not added:
         return torch.zeros(0, 3), torch.zeros(0, 3), torch.zeros(0)
     return (torch.from_numpy(np.concatenate([a[0] for a in added])).float(), torch.cat([a[1] for a in added]),
@@ -236,17 +279,28 @@ def object_points(data: EpisodeData, label: int, frame: int = 0, *, stride: int 
 
 def object_gaussians(data: EpisodeData, label: int, frame: int = 0, *, stride: int = 1,
                      sh_degree: int = 0, table_z: float = 0.0) -> tuple[GaussianSet, torch.Tensor]:
-    """Canonical Gaussians of one object from what ``frame`` shows of it (:func:`object_points`).
+    """Canonical Gaussians of one object from what ``frame`` shows of it
+    (:func:`canonical_object_points`) and ``T_base_obj`` [4, 4] of its canonical frame."""
+    points, colours, spacing, T = canonical_object_points(data, label, frame, stride=stride, table_z=table_z)
+    return object_model(points, colours, spacing, sh_degree=sh_degree), T
 
-    The canonical frame has the base's axes and its origin at the points' centroid. Returns the
-    set and ``T_base_obj`` [4, 4] of that frame (the object's pose at ``frame``).
-    """
+
+def canonical_object_points(data: EpisodeData, label: int, frame: int = 0, *, stride: int = 1,
+                            table_z: float = 0.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`object_points` in the object's canonical frame, which has the base's axes and its
+    origin at the points' centroid: (points [N, 3] float64, colours [N, 3], spacing [N] m,
+    ``T_base_obj`` [4, 4] float64 of that frame, the object's pose at ``frame``)."""
     p, colours, spacing = object_points(data, label, frame, stride=stride, table_z=table_z)
-    center = p.mean(0)
     T = torch.eye(4, dtype=torch.float64)
-    T[:3, 3] = center
-    gs = GaussianSet.from_points((p - center).float(), colours, spacing, opacity=0.8, sh_degree=sh_degree)
-    return gs, T
+    T[:3, 3] = p.mean(0)
+    return p - T[:3, 3], colours, spacing, T
+
+
+def object_model(points: torch.Tensor, colours: torch.Tensor, spacing: torch.Tensor, *,
+                 sh_degree: int = 0) -> GaussianSet:
+    """An object's Gaussians at ``points`` [N, 3] of its frame, ``colours`` [N, 3] in [0, 1], the
+    samples' ``spacing`` [N] (m)."""
+    return GaussianSet.from_points(points.float(), colours, spacing, opacity=0.8, sh_degree=sh_degree)
 
 
 def link_gaussians(robot: RobotModel, links: list[str], *, total: int = 20_000, seed: int = 0,

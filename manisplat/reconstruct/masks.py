@@ -159,16 +159,13 @@ def redraw_robot_masks(data: EpisodeData, *, progress: bool = True) -> None:
     data.masks = masks
 
 
-def draw_view_masks(view: EpisodeData, links: list[str], objects: dict[str, tuple[int, GaussianSet, np.ndarray]],
-                    label_names: dict[int, str], *, occlusion_margin: float = 0.02, progress: bool = True) -> None:
-    """Give another camera's view (a wrist camera) its masks, labelled as the reference camera's:
-    the robot's links drawn at each frame's FK (as :func:`render_robot_labels`), each object its
-    model at its pose in each frame, where no robot link was drawn and, with depth, where no
-    measured surface lies ``occlusion_margin`` m in front of it.
+def draw_view_robot_masks(view: EpisodeData, links: list[str], label_names: dict[int, str], objects: list[str], *,
+                          progress: bool = True) -> None:
+    """Give another camera's view (a wrist camera) masks of the robot, labelled as the reference
+    camera's: its links drawn at each frame's FK (as :func:`render_robot_labels`); the
+    ``objects`` are named in its labels and drawn by :func:`draw_view_object_masks`.
 
     Args:
-        objects: name -> (label value, the object's Gaussians in its frame, poses [T, 4, 4]
-            ``T_base_obj``), e.g. the pseudo ground truth of alignment.
         label_names: the reference camera's label values -> names (``robot/<link>`` for the
             links, which take the same values here).
     """
@@ -180,6 +177,23 @@ def draw_view_masks(view: EpisodeData, links: list[str], objects: dict[str, tupl
     masks = torch.zeros_like(drawn)
     for value, link in drawn_links.items():
         masks[drawn == value] = value_of[f"robot/{link}"]
+    view.masks = masks
+    view.label_names = dict(label_names)
+    view.objects = list(objects)
+    view.labels = Labels.from_meta(label_names, view.objects)
+    view.mask_source = "drawn robot"
+
+
+def draw_view_object_masks(view: EpisodeData, objects: dict[str, tuple[int, GaussianSet, np.ndarray]], *,
+                           occlusion_margin: float = 0.02) -> None:
+    """Add each object to a view's drawn masks (:func:`draw_view_robot_masks`): its model at its
+    pose in each frame, where no robot link was drawn and, with depth, where no measured surface
+    lies ``occlusion_margin`` m in front of it.
+
+    Args:
+        objects: name -> (label value, the object's Gaussians in its frame, poses [T, 4, 4]
+            ``T_base_obj``), e.g. the pseudo ground truth of alignment.
+    """
     W, H = view.size
     for name, (label, gaussians, poses) in objects.items():
         means, quats, scales, opacities, _ = (x.detach().cpu() for x in gaussians.activated())
@@ -188,15 +202,11 @@ def draw_view_masks(view: EpisodeData, links: list[str], objects: dict[str, tupl
             with torch.no_grad():
                 depth, alpha, _ = rasterization(m, q, scales, opacities, torch.zeros_like(means), view.view_at(f)[None],
                                                 view.K[None], W, H, render_mode="ED")
-            seen = (alpha[0, ..., 0] > 0.5) & (masks[f] == 0)
+            seen = (alpha[0, ..., 0] > 0.5) & (view.masks[f] == 0)
             if view.depth is not None:
                 measured = view.depth[f]
                 seen &= ~((measured > 0) & (measured < depth[0, ..., 0] - occlusion_margin))
-            masks[f][seen] = label
-    view.masks = masks
-    view.label_names = dict(label_names)
-    view.objects = list(objects)
-    view.labels = Labels.from_meta(label_names, view.objects)
+            view.masks[f][seen] = label
     view.mask_source = "drawn robot, objects from their models at their poses"
 
 
@@ -415,6 +425,7 @@ def complete_masks(data: EpisodeData, links: list[str], prompts: list[ObjectProm
 
 
 __all__ = [
-    "OBJECT_LABEL", "ObjectPrompt", "Plane", "backproject_pixels", "complete_masks", "draw_view_masks", "fit_plane_ransac", "follow_object_masks", "object_carrier",
-    "object_mask_from_depth", "object_mask_grabcut", "redraw_robot_masks", "render_robot_labels", "table_plane",
+    "OBJECT_LABEL", "ObjectPrompt", "Plane", "backproject_pixels", "complete_masks", "draw_view_object_masks",
+    "draw_view_robot_masks", "fit_plane_ransac", "follow_object_masks", "object_carrier", "object_mask_from_depth",
+    "object_mask_grabcut", "redraw_robot_masks", "render_robot_labels", "table_plane",
 ]

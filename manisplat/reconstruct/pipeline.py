@@ -11,7 +11,8 @@ import numpy as np
 import torch
 
 from manisplat.align.phases import DEFAULT_TAU, GripperEvents, Segment, gripper_events, segment_phases
-from manisplat.align.pseudo_gt import PseudoPoses, hybrid_pseudo_poses, make_tracker, tracked_baseline
+from manisplat.align.pseudo_gt import (ATTACHED, STATIC, PseudoPoses, hybrid_pseudo_poses, make_tracker,
+                                      tracked_baseline)
 from manisplat.align.surface_fit import ModelViews
 from manisplat.align.support import support_height
 from manisplat.align.tracking import ObjectView, TrackerSettings, visible_surface
@@ -20,8 +21,10 @@ from manisplat.reconstruct.data import EpisodeData, ReconstructionInputError
 from manisplat.reconstruct.fusion import (CameraConsensus, EpisodeSpan, JoinedAlignment, camera_consensus,
                                           check_same_scene, join_alignments, joined, joined_plan, merged_model,
                                           spans_of)
-from manisplat.reconstruct.init import background_gaussians, link_gaussians, object_gaussians, object_points
-from manisplat.reconstruct.masks import draw_view_masks, object_carrier, redraw_robot_masks
+from manisplat.reconstruct.init import (background_gaussians, canonical_object_points, link_gaussians,
+                                        object_close_up_points, object_model, object_points)
+from manisplat.reconstruct.masks import (draw_view_object_masks, draw_view_robot_masks, object_carrier,
+                                         redraw_robot_masks)
 from manisplat.reconstruct.plan import Plan
 from manisplat.reconstruct.poses import ObjectTrajectory
 from manisplat.reconstruct.register import register_start
@@ -92,9 +95,10 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
             redraw_robot_masks(data, progress=False)
     links = link_gaussians(data.robot, plan.links, total=robot_gaussians, sh_degree=config.sh_degree)
     objects, trajectories, alignments = {}, {}, {}
+    seen = {}  # each object's first-frame points, colours and spacing (its frame)
     for obj in plan.objects:
-        gaussians, T_start = object_gaussians(data, obj.label, 0, sh_degree=config.sh_degree, table_z=table_z)
-        objects[obj.name] = gaussians
+        *seen[obj.name], T_start = canonical_object_points(data, obj.label, 0, table_z=table_z)
+        gaussians = objects[obj.name] = object_model(*seen[obj.name], sh_degree=config.sh_degree)
         model = object_view(gaussians, data) if data.depth is None or masks_from_model else None
         track, width, held_by = object_carrier(data, T_start[:3, 3].double().numpy())
         if len(data.arm_names) > 1:
@@ -110,17 +114,22 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
         trajectories[obj.name] = ObjectTrajectory(alignment.pseudo.poses, alignment.pseudo.source, static=not obj.moves)
         log.info("object %s: %d pose parameters; phases %s", obj.name, trajectories[obj.name].n_params,
                  ", ".join(f"{s.name} {s.start}-{s.end - 1}" for s in alignment.segments))
-    for name, view in views.items():
-        if view.masks is None:
-            labels = {label: obj for label, obj in data.labels.objects.items()}
-            drawn = [data.labels.robot[v] for v in sorted(data.labels.robot) if data.robot.visuals.get(data.labels.robot[v])]
-            draw_view_masks(view, drawn,
-                            {obj: (label, objects[obj], alignments[obj].pseudo.poses) for label, obj in labels.items()
-                             if obj in objects}, data.label_names, progress=progress)
-            log.info("camera %s: masks drawn (robot at each frame's FK, objects at their pseudo poses)", name)
+    drawn = [data.labels.robot[v] for v in sorted(data.labels.robot) if data.robot.visuals.get(data.labels.robot[v])]
+    unmasked = [name for name, view in views.items() if view.masks is None]
+    for name in unmasked:
+        draw_view_robot_masks(views[name], drawn, data.label_names, list(data.labels.objects.values()),
+                              progress=progress)
+    # the riding cameras' close-ups of each object, where its pseudo pose is its start's or its grip's
+    close_ups = [view for view in views.values() if view.riding and view.depth is not None]
+    for obj in (o for o in plan.objects if close_ups):
+        objects[obj.name] = _with_close_ups(obj.name, seen[obj.name], close_ups, alignments[obj.name].pseudo, train,
+                                            sh_degree=config.sh_degree)
+    for name in unmasked:
+        draw_view_object_masks(views[name], {obj: (label, objects[obj], alignments[obj].pseudo.poses)
+                                             for label, obj in data.labels.objects.items() if obj in objects})
+        log.info("camera %s: masks drawn (robot at each frame's FK, objects at their pseudo poses)", name)
     # no pixel of a held-out frame reaches the Gaussians: the first, middle and last training frames
     # seed them, and the riding cameras with depth add their close-ups from up to CLOSE_UP_FRAMES
-    close_ups = [view for view in views.values() if view.riding and view.depth is not None]
     background = background_gaussians(data, frames=sorted({train[0], train[len(train) // 2], train[-1]}),
                                       sh_degree=config.sh_degree, table_z=table_z, riding=close_ups,
                                       riding_frames=train[::max(1, -(-len(train) // CLOSE_UP_FRAMES))])
@@ -131,6 +140,21 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
     rec.extrinsic = None if rig is None else rig.camera
     rec.rig = rig if rig is not None and (rig.bases or rig.riding) else None
     return rec, alignments
+
+
+def _with_close_ups(name: str, seen: tuple[torch.Tensor, torch.Tensor, torch.Tensor], views: list[EpisodeData],
+                    pseudo: PseudoPoses, frames: list[int], *, sh_degree: int) -> GaussianSet:
+    """One object's Gaussians from what the reference camera's first frame shows (``seen``: its
+    points [N, 3] in the object's frame, colours, spacing) and what the riding ``views`` add
+    (:func:`~manisplat.reconstruct.init.object_close_up_points`) in the training ``frames`` where
+    its pseudo pose is the start's or follows the gripper that holds it (not where it is tracked)."""
+    points, colours, spacing = seen
+    placed = [f for f in frames if pseudo.source[f] in (STATIC, ATTACHED)]
+    for view in views:
+        p, c, g = object_close_up_points(view, placed, pseudo.poses, points.float(), spacing)
+        log.info("object %s: %d more Gaussians from camera %s's close-ups", name, len(p), view.camera_name)
+        points, colours, spacing = (torch.cat([points.float(), p]), torch.cat([colours, c]), torch.cat([spacing, g]))
+    return object_model(points, colours, spacing, sh_degree=sh_degree)
 
 
 @dataclass

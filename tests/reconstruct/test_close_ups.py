@@ -1,5 +1,6 @@
 """The wrist cameras' close-ups seed the background where they see it more finely than the fixed
-camera's seeds: static surface points placed by the camera's pose at that frame, each added once."""
+camera's seeds: static surface points placed by the camera's pose at that frame, each added once;
+and, built, the objects' seeds (their close-ups: test_object_close_ups.py)."""
 
 from __future__ import annotations
 
@@ -103,12 +104,23 @@ def test_a_camera_without_depth_cannot_seed_close_ups(episode):
         close_up_points(view, FRAMES, torch.zeros(1, 3), torch.ones(1))
 
 
-def test_the_wrist_cameras_add_to_the_fixed_camera_s_background_seeds(episode):
-    def background(with_wrists: bool) -> int:
+@pytest.fixture(scope="module")
+def builds(episode):
+    """The sample's reconstruction built without and with its two wrist cameras."""
+    def built(with_wrists: bool):
         data = load_episode_data(episode)
         views = {name: load_episode_data(episode, camera=name) for name in ("cam_left_wrist", "cam_right_wrist")}
-        rec, _ = build(data, make_plan(data), TrainConfig(iters=1), views=views if with_wrists else None)
-        return len(rec.graph.background)
+        return build(data, make_plan(data), TrainConfig(iters=1), views=views if with_wrists else None)[0]
 
-    alone, with_wrists = background(False), background(True)
+    return built(False), built(True)
+
+
+def test_the_wrist_cameras_add_to_the_fixed_camera_s_background_seeds(builds):
+    alone, with_wrists = (len(rec.graph.background) for rec in builds)
     assert with_wrists > 1.1 * alone, (alone, with_wrists)
+
+
+def test_the_wrist_cameras_add_to_the_objects_seeds(builds):
+    alone, with_wrists = ({name: len(g) for name, g in rec.graph.objects.items()} for rec in builds)
+    assert set(alone) == {"box_left", "box_right"}
+    assert all(with_wrists[name] > 1.1 * alone[name] for name in alone), (alone, with_wrists)
