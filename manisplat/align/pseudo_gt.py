@@ -78,6 +78,9 @@ MAX_CENTRING = 0.015  # m: a larger offset between the pads' centre and the obje
 CENTRING_WIDTH_TOLERANCE = 0.004  # m: the model's extent along the closing axis against the pads' opening
 MAX_SETTLE_DEG = 10.0  # a larger tilt at the release is a deliberate re-orientation, not a slip
 MAX_REST_SHIFT = 0.01  # m: a larger shift of where an object was let go is not a slip or a drop
+#: deg: an object let go turned further than this from how it stood at its start (its up axis) does not
+#: sit on its lowest model points as it sat there (another face down; the model may lack either)
+MAX_REST_TILT_DEG = 10.0
 MIN_REST_POINTS = 100  # fewer surface points after a release than this, and the prior stands
 MIN_SLIP_POINTS = 30  # a held frame with fewer visible surface points says nothing about a slip
 SLIP_WINDOW = 3  # frames each side of the running median over the per-frame slips
@@ -387,6 +390,11 @@ def rest_on_support(poses: np.ndarray, events: list[GripperEvents],
         if e.release is None:
             continue
         end = _rest_end(events, e.release, T)
+        tilt = np.degrees(np.arccos(np.clip(poses[0][:3, 2] @ poses[e.release][:3, 2], -1.0, 1.0)))
+        if tilt > MAX_REST_TILT_DEG:
+            log.info("release at frame %d: it rests turned %.0f deg from how it stood at its start, another face "
+                     "down: its height stands", e.release, tilt)
+            continue
         hull, low = footprint(model_points, poses[e.release])
         under = support(hull, low, frames(0, e.grasp))
         if under is None:

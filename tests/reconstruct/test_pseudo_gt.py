@@ -7,11 +7,12 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 
 from manisplat.align.phases import GripperEvents, Segment
-from manisplat.align.pseudo_gt import (ATTACHED, MAX_REST_SHIFT, STATIC, TRACKED, close_end, follow_slip,
-                                      hybrid_pseudo_poses, kinematic_prior, noise_floor, open_end, pad_push,
-                                      rest_on_support, settle_at_rest)
+from manisplat.align.pseudo_gt import (ATTACHED, MAX_REST_SHIFT, MAX_REST_TILT_DEG, STATIC, TRACKED, close_end,
+                                      follow_slip, hybrid_pseudo_poses, kinematic_prior, noise_floor, open_end,
+                                      pad_push, rest_on_support, settle_at_rest)
 from manisplat.align.surface_fit import MAX_VIEW_CHANGE_DEG, ModelViews, SurfaceModel
 from manisplat.align.tracking import DepthEvidence, TrackerSettings, track_object
 from manisplat.geometry import so3_exp
@@ -359,6 +360,30 @@ def test_a_released_object_stands_on_the_support_under_it_as_it_stood_at_the_sta
     line[:, 2] = np.linspace(-0.025, 0.025, 20)
     kept = poses.copy()
     assert rest_on_support(kept, [GripperEvents(10, 25)], support, line) == [] and np.allclose(kept, poses)
+
+
+def test_an_object_let_go_on_another_face_keeps_its_height():
+    """A box whose model lacks its lower 8 mm (as a camera from above sees it) stands 8 mm above
+    its lowest model points at the start; handed over and laid on its side, another face (whole in
+    the model) is down: the start's 8 mm do not apply, and its height stands. Turned by a few
+    degrees it still stands on its support."""
+    model = box_points(n=21)
+    model = model[model[:, 2] > -0.017]
+    T = 40
+    poses = np.repeat(np.eye(4)[None], T, axis=0)
+    poses[:, :3, 3] = [0.3, -0.1, 0.025]
+    poses[10:25, :3, 3] = [0.32, 0.0, 0.1]
+    poses[25:, :3, 3] = [0.32, 0.06, 0.027]  # carried onto the table 2 mm high
+    support = lambda hull_xy, z_low, frames: 0.0  # noqa: E731
+    for degrees, change in ((90.0, None), (MAX_REST_TILT_DEG / 2, -0.002)):
+        rested = poses.copy()
+        rested[25:, :3, :3] = Rotation.from_euler("x", degrees, degrees=True).as_matrix()
+        turned = rested.copy()
+        heights = rest_on_support(rested, [GripperEvents(10, 25)], support, model)
+        if change is None:
+            assert heights == [] and np.allclose(rested, turned), "laid on its side: its height stands"
+        else:
+            assert heights == [pytest.approx(change, abs=1e-3)], "turned a little: set on the support"
 
 
 def test_model_views_see_an_object_turned_less_than_the_limit():
