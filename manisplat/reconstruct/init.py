@@ -184,7 +184,7 @@ def close_up_points(view: EpisodeData, frames: list[int], seeds: torch.Tensor, s
 
 
 def object_close_up_points(view: EpisodeData, frames: list[int], poses: np.ndarray, seeds: torch.Tensor,
-                           seed_spacing: torch.Tensor, *, stride: int = 2, finer: float = 0.5, margin: float = 0.005,
+                           seed_spacing: torch.Tensor, *, stride: int = 4, finer: float = 0.5, margin: float = 0.005,
                            floor: float = 0.003) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """What a riding camera adds to one object's seeds: (points [M, 3] in the object's frame,
     colours [M, 3], spacing [M] m) of its pixels with depth in ``frames``, every ``stride``

@@ -60,7 +60,10 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
         data: the reference camera's view: a fixed camera; it seeds every node and the alignment.
         views: other cameras' views trained at once (wrist cameras riding on a link); those
             without masks get the robot's drawn at each frame and each object's model at its
-            pseudo pose (:func:`~manisplat.reconstruct.masks.draw_view_masks`).
+            pseudo pose (:mod:`~manisplat.reconstruct.masks`); those with depth seed the
+            background and each object with their close-ups
+            (:func:`~manisplat.reconstruct.init.close_up_points`,
+            :func:`~manisplat.reconstruct.init.object_close_up_points`).
         robot_gaussians: the budget shared by the link meshes (default: a quarter of the image's
             pixels, 2 000 to 20 000): more Gaussians than the robot has pixels add no detail.
         table_z: the table's height in the base frame (m), for a start without depth.
@@ -121,9 +124,10 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
                               progress=progress)
     # the riding cameras' close-ups of each object, where its pseudo pose is its start's or its grip's
     close_ups = [view for view in views.values() if view.riding and view.depth is not None]
-    for obj in (o for o in plan.objects if close_ups):
-        objects[obj.name] = _with_close_ups(obj.name, seen[obj.name], close_ups, alignments[obj.name].pseudo, train,
-                                            sh_degree=config.sh_degree)
+    if close_ups:
+        for obj in plan.objects:
+            objects[obj.name] = _with_close_ups(obj.name, seen[obj.name], close_ups, alignments[obj.name].pseudo,
+                                                train, sh_degree=config.sh_degree)
     for name in unmasked:
         draw_view_object_masks(views[name], {obj: (label, objects[obj], alignments[obj].pseudo.poses)
                                              for label, obj in data.labels.objects.items() if obj in objects})
