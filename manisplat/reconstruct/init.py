@@ -169,17 +169,9 @@ def close_up_points(view: EpisodeData, frames: list[int], seeds: torch.Tensor, s
     a metre away in 5-7 mm steps; Gaussians seeded at those steps show the wrist camera a blur
     that densification does not split away within the budget (its growth cap is not what stops it).
     """
-    if view.depth is None or view.masks is None:
-        raise ValueError(f"camera {view.camera_name}: close-up seeds need its depth and masks")
-    samples = []
-    for f in frames:
-        static = view.region(f, view.labels.static)
-        if view.valid is not None:
-            static &= view.valid
-        T_base_cam = torch.linalg.inv(view.view_at(f).double())
-        p, rows, cols = backproject(view.depth[f], view.K_opencv, T_base_cam, static, stride)
-        gap = sample_spacing(view.depth[f], rows, cols, view.K_opencv, stride)
-        samples.append((p.double().numpy(), view.image(f)[rows, cols], gap.double().numpy()))
+    _check_close_ups(view)
+    samples = [_frame_samples(view, f, view.region(f, view.labels.static), torch.linalg.inv(view.view_at(f).double()),
+                              stride) for f in frames]
     return finer_points(samples, seeds, seed_spacing, finer=finer)
 
 
@@ -198,24 +190,35 @@ def object_close_up_points(view: EpisodeData, frames: list[int], poses: np.ndarr
     and the rest at that camera's 4-5 mm steps, where a wrist camera sees the object from a few
     centimetres: its close-ups there scored 15-20 dB against its held-out frames.
     """
-    if view.depth is None or view.masks is None:
-        raise ValueError(f"camera {view.camera_name}: close-up seeds need its depth and masks")
+    _check_close_ups(view)
     model = seeds.double().numpy()
     low, high = model.min(0) - margin, model.max(0) + margin
     low[2] = model[:, 2].min() + floor
     samples = []
     for f in frames:
-        free = ~view.region(f, list(view.labels.robot))
-        if view.valid is not None:
-            free &= view.valid
-        T_obj_cam = np.linalg.inv(poses[f]) @ torch.linalg.inv(view.view_at(f).double()).numpy()
-        p, rows, cols = backproject(view.depth[f], view.K_opencv, torch.from_numpy(T_obj_cam), free, stride)
-        xyz = p.double().numpy()
+        T_obj_cam = torch.from_numpy(np.linalg.inv(poses[f])) @ torch.linalg.inv(view.view_at(f).double())
+        xyz, colours, gap = _frame_samples(view, f, ~view.region(f, list(view.labels.robot)), T_obj_cam, stride)
         inside = np.all((xyz >= low) & (xyz <= high), axis=1)
-        gap = sample_spacing(view.depth[f], rows, cols, view.K_opencv, stride).double().numpy()
-        keep = torch.from_numpy(inside)
-        samples.append((xyz[inside], view.image(f)[rows[keep], cols[keep]], gap[inside]))
+        samples.append((xyz[inside], colours[torch.from_numpy(inside)], gap[inside]))
     return finer_points(samples, seeds, seed_spacing, finer=finer)
+
+
+def _check_close_ups(view: EpisodeData) -> None:
+    """Refuse a riding camera without depth or masks: its close-ups cannot be placed or sorted."""
+    if view.depth is None or view.masks is None:
+        raise ValueError(f"camera {view.camera_name}: close-up seeds need its depth and masks")
+
+
+def _frame_samples(view: EpisodeData, f: int, keep: torch.Tensor, T_frame_cam: torch.Tensor,
+                   stride: int) -> tuple[np.ndarray, torch.Tensor, np.ndarray]:
+    """Frame ``f`` of ``view`` where ``keep`` [H, W] (and the recording covers), every ``stride``
+    pixels with depth: (points [K, 3] float64 in the frame ``T_frame_cam`` [4, 4] takes the camera's
+    to, colours [K, 3], spacing [K] m)."""
+    if view.valid is not None:
+        keep = keep & view.valid
+    p, rows, cols = backproject(view.depth[f], view.K_opencv, T_frame_cam, keep, stride)
+    gap = sample_spacing(view.depth[f], rows, cols, view.K_opencv, stride)
+    return p.double().numpy(), view.image(f)[rows, cols], gap.double().numpy()
 
 
 def finer_points(samples: list[tuple[np.ndarray, torch.Tensor, np.ndarray]], seeds: torch.Tensor,

@@ -152,12 +152,12 @@ def _with_close_ups(name: str, seen: tuple[torch.Tensor, torch.Tensor, torch.Ten
     points [N, 3] in the object's frame, colours, spacing) and what the riding ``views`` add
     (:func:`~manisplat.reconstruct.init.object_close_up_points`) in the training ``frames`` where
     its pseudo pose is the start's or follows the gripper that holds it (not where it is tracked)."""
-    points, colours, spacing = seen
+    points, colours, spacing = seen[0].float(), seen[1], seen[2]
     placed = [f for f in frames if pseudo.source[f] in (STATIC, ATTACHED)]
     for view in views:
-        p, c, g = object_close_up_points(view, placed, pseudo.poses, points.float(), spacing)
+        p, c, g = object_close_up_points(view, placed, pseudo.poses, points, spacing)
         log.info("object %s: %d more Gaussians from camera %s's close-ups", name, len(p), view.camera_name)
-        points, colours, spacing = (torch.cat([points.float(), p]), torch.cat([colours, c]), torch.cat([spacing, g]))
+        points, colours, spacing = torch.cat([points, p]), torch.cat([colours, c]), torch.cat([spacing, g])
     return object_model(points, colours, spacing, sh_degree=sh_degree)
 
 
