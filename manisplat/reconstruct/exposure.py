@@ -92,13 +92,15 @@ class FrameExposure:
         return self.fitted[self._train].mean(0)
 
 
-def fit_gains(render: torch.Tensor, target: torch.Tensor, region: torch.Tensor | None) -> torch.Tensor:
+def fit_gains(render: torch.Tensor, target: torch.Tensor, region: torch.Tensor | None,
+              clip: torch.Tensor | None = None) -> torch.Tensor:
     """[3] the gains that best map ``render`` onto ``target`` ([H, W, 3], float in [0, 1]) over
     ``region`` [H, W] (0/1 weights; None: every pixel), by least squares with a ridge of
-    :data:`RIDGE` towards 1. A channel the sensor clipped (:func:`~manisplat.reconstruct.sensor.clipped`)
-    is left out of its channel's fit: its recorded value is not its brightness."""
+    :data:`RIDGE` towards 1. A channel the sensor clipped (``clip`` [H, W, 3] bool, where the
+    caller has it; else :func:`~manisplat.reconstruct.sensor.clipped` of ``target``) is left out
+    of its channel's fit: its recorded value is not its brightness."""
     w = torch.ones_like(render[..., 0]) if region is None else region
-    w = w[..., None] * (~clipped(target)).to(render.dtype)  # [H, W, 3]
+    w = w[..., None] * (~(clipped(target) if clip is None else clip)).to(render.dtype)  # [H, W, 3]
     count = w.sum((0, 1)).clamp_min(1.0)
     rt = (render * target * w).sum((0, 1))
     rr = (render * render * w).sum((0, 1))

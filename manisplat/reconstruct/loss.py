@@ -51,7 +51,7 @@ def frame_loss(image: torch.Tensor, dynamic_alpha: torch.Tensor, target: torch.T
         static = None if dynamic is None else 1 - dynamic
         if valid is not None:
             static = valid if static is None else static * valid
-        gains = fit_gains(image.detach(), target, static)
+        gains = fit_gains(image.detach(), target, static, clip)
         image = image * relative_gains(gains, *exposure)
     l1, ssim = error_maps(as_recorded(image, target, clip), target)  # computed once for the render and appearance terms
     loss = photometric(l1, ssim, valid, ssim_weight)

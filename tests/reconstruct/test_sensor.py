@@ -77,3 +77,6 @@ def test_exposure_gains_are_fitted_on_the_channels_the_sensor_did_not_clip():
     rt, rr = (render * recorded).sum((0, 1)), (render * render).sum((0, 1))
     naive = rt[0] / rr[0]  # what every pixel would give, without the ridge
     assert float(naive) < 1.06
+    # the clipped channels as the loss already has them: the same fit; none declared clipped: the low one
+    assert torch.equal(fit_gains(render, recorded, None, clipped(recorded)), gains)
+    assert float(fit_gains(render, recorded, None, torch.zeros_like(recorded, dtype=torch.bool))[0]) < 1.06
