@@ -25,7 +25,10 @@ commanded a1..a6, a_gripper); no ground truth reaches training or the policy; th
 scores. Each stage's output is kept in ``--work`` and reused when the same command runs again.
 Needs ``$MANISPLAT_SIMENV``, the python of a venv with mujoco 4.0.0 (shared/tools/sim/README.md).
 Writes ``policy_sim.json`` (and ``policy_sim_quick.json`` with --quick), the heatmaps and a contact
-sheet to ``--out`` (default benchmarks/results_policy).
+sheet to ``--out`` (default benchmarks/results_policy). With B, the JSON's ``fidelity`` also holds
+how the twin drew B's first frames against the simulator's renders of the same starts, by the
+start's turn and distance (``benchmarks/policy/fidelity.py``; ``--fidelity-only`` computes just that,
+into ``policy_fidelity.json`` and its sheet of the worst starts).
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -121,6 +125,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--n-action-steps", type=bounded(1, CHUNK, int), metavar="K",
                    help="run the first K actions of each predicted chunk open loop, then predict again (LeRobot's "
                         "n_action_steps; default: ACT's temporal ensembling, a chunk every step)")
+    p.add_argument("--fidelity-only", action="store_true",
+                   help="only score the twin's first frames of B's demonstrations against the simulator's renders of "
+                        "the same starts, by the start's turn and distance (benchmarks/policy/fidelity.py; about a "
+                        "minute once the twin and demonstrations exist), then stop: no policy is trained")
     p.add_argument("--work", type=Path, help="stage outputs, reused when present (default a new temporary folder)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_policy", help="JSON and plots")
     p.add_argument("--quick", action="store_true", help="a smoke run: 4 demonstrations, short training, 4 rollouts")
@@ -164,19 +172,26 @@ def main(argv: list[str] | None = None) -> int:
     started = time.perf_counter()
     args.out.mkdir(parents=True, exist_ok=True)
     suffix = "_quick" if quick else ""
+    if args.fidelity_only:
+        for n in ns:
+            _write_fidelity(args, argv, seeded[0], n, suffix)
+        return 0
     rows: list[dict[str, Any]] = []
     rollouts: dict[str, list] = {}
+    fidelity: dict[str, Any] = {}
     for n in ns:
         for condition in conditions:
             if condition == "A" and n != ns[0]:
                 continue  # the source alone does not depend on N
+            if condition == "B":
+                fidelity[seeded[0].key_over_seeds("B", n)] = _print_fidelity(seeded[0].fidelity(n))
             for stages in seeded:
                 row, runs = stages.condition(condition, n, steps, eval_seeds, envs=ENVS)
                 rows.append(row)
                 rollouts[row["condition"]] = runs
                 print(f"  {row['condition']}: {row['successes']}/{row['rollouts']} = {row['success_rate']:.0%} "
                       f"(95 % {row['ci95'][0]:.0%}-{row['ci95'][1]:.0%}), trained {row['train_s']:.0f} s", flush=True)
-                path = _write(args, argv, seeded, source, eval_seeds, steps, rows, rollouts, started, suffix)
+                path = _write(args, argv, seeded, source, eval_seeds, steps, rows, rollouts, fidelity, started, suffix)
     for total in over_seeds(rows):
         print(f"  {total['data']} over training seeds {total['train_seeds']}: {total['successes']}/{total['rollouts']}"
               f" = {total['success_rate']:.0%} ({', '.join(map(str, total['per_seed']))})")
@@ -200,10 +215,38 @@ def over_seeds(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return list(totals.values())
 
 
+def _print_fidelity(report: dict[str, Any]) -> dict[str, Any]:
+    """Print :meth:`Stages.fidelity`'s bins; return them."""
+    print(f"  the twin's first frames against the simulator's ({report['object']} region dB, outline IoU, rest dB):")
+    for name, b in report["bins"].items():
+        print(f"    {name:34s} {b['starts']:3d} starts  {b['object_psnr']:6.2f}  {b['outline_iou']:.3f}  "
+              f"{b['rest_psnr']:6.2f}", flush=True)
+    return report["bins"]
+
+
+def _write_fidelity(args: argparse.Namespace, argv: list[str] | None, stages: Any, n: int, suffix: str) -> Path:
+    """``--fidelity-only``: B's ``n`` demonstrations scored (:meth:`Stages.fidelity`), the JSON and
+    its sheet of the worst starts copied to ``--out`` as ``policy_fidelity{suffix}.json``."""
+    report = stages.fidelity(n)
+    _print_fidelity(report)
+    sheet = args.out / f"policy_fidelity{suffix}.png"
+    shutil.copyfile(stages.work / f"fidelity_{n}{stages.variant_tag}.png", sheet)
+    result = {"benchmark": "policy_sim --fidelity-only", "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+              "command": "python -m benchmarks policy_sim " + " ".join(argv if argv is not None else sys.argv[1:]),
+              "machine": machine_info(), "source": str(stages.source), "n": n, "data": stages.key_over_seeds("B", n),
+              **{k: v for k, v in report.items() if k != "sheet"}, "sheet": sheet.name, "work": str(stages.work)}
+    path = args.out / f"policy_fidelity{suffix}.json"
+    path.write_text(json.dumps(result, indent=1) + "\n")
+    print(f"wrote {path} and {sheet.name}")
+    return path
+
+
 def _write(args: argparse.Namespace, argv: list[str] | None, seeded: list[Any], source: Path, eval_seeds: list[int],
-           steps: int, rows: list[dict[str, Any]], rollouts: dict[str, list], started: float, suffix: str) -> Path:
+           steps: int, rows: list[dict[str, Any]], rollouts: dict[str, list], fidelity: dict[str, Any], started: float,
+           suffix: str) -> Path:
     """The results so far (rewritten after every condition and seed): JSON, heatmaps, contact sheet
-    (``seeded``: the stages of each training seed, which share their data)."""
+    (``seeded``: the stages of each training seed, which share their data; ``fidelity``: B's
+    images against the simulator's, per B data set)."""
     from benchmarks.policy.report import contact_sheet, heatmaps
     from benchmarks.policy.stages import ENV_OPTIONS
 
@@ -221,6 +264,7 @@ def _write(args: argparse.Namespace, argv: list[str] | None, seeded: list[Any], 
         "action_steps": stages.action_steps, "train_seeds": args.train_seed, "rows": rows,
         "over_training_seeds": over_seeds(rows),
         "data": {key: report for each in seeded for key, report in each.data_report.items()},
+        "fidelity": fidelity,
         "rollouts": {k: [{"seed": r.seed, "phase": r.phase, **{f: r.result[f] for f in (
             "success", "object_start", "dist_to_mat_m", "tilt_deg", "lifted_m", "steps", "failed")}} for r in v]
             for k, v in rollouts.items()},

@@ -3,8 +3,9 @@
     SIMENV/bin/python env_server.py SIM_TOOLS_DIR
 
 Requests and replies are pickled tuples, each behind its 8-byte length. Requests: ``("open", source,
-kwargs)``, ``("reset", seed)``, ``("step", action)``, ``("evaluate",)``, ``("close",)``. Replies:
-``("ok", value)`` or ``("error", text)``. Anything the environment prints goes to stderr."""
+kwargs)``, ``("reset", seed)``, ``("reset", None, (x, y, yaw))`` (the object at that pose),
+``("step", action)``, ``("evaluate",)``, ``("close",)``. Replies: ``("ok", value)`` or
+``("error", text)``. Anything the environment prints goes to stderr."""
 
 import os
 import pickle
@@ -44,7 +45,7 @@ def main():
                 env = policy_env.PickPlaceEnv.from_episode(request[1], **request[2])
                 value = {"fps": env.fps, "max_steps": env.max_steps}
             elif request[0] == "reset":
-                value = env.reset(seed=request[1])
+                value = env.reset(seed=request[1], object_pose=request[2] if len(request) > 2 else None)
             elif request[0] == "step":
                 value = env.step(request[1])
             elif request[0] == "evaluate":

@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import torch
 
@@ -161,6 +162,39 @@ class Stages:
         if len(folders) < n:
             raise RuntimeError(f"manisplat-augment wrote {len(folders)} of {n} demonstrations ({out})")
         return folders
+
+    def fidelity(self, n: int) -> dict[str, Any]:
+        """The twin's first frames of B's ``n`` demonstrations against the simulator's renders of
+        the same starts (:mod:`benchmarks.policy.fidelity`; the simulator's object placed from the
+        source's ground-truth start, read to score only), kept in ``fidelity_<n><variant tag>.json``."""
+        from benchmarks.policy.fidelity import by_bin, object_crops, score_start, simulator_start, worst_first
+
+        path = self.work / f"fidelity_{n}{self.variant_tag}.json"
+        if not path.exists():
+            folders = self.augmented(n)
+            meta = json.loads((self.source / "episode.json").read_text())
+            name = meta["objects"][0]
+            labels = {v: int(k) for k, v in meta["labels"].items()}
+            robot = [value for label, value in labels.items() if label.startswith("robot/")]
+            T0 = np.load(self.source / "gt.npz", allow_pickle=True)[f"T_base_{name}"][0]
+            yaw0 = float(np.arctan2(T0[1, 0], T0[0, 0]))
+            _log(f"the twin's first frames of {n} augmented demonstrations against the simulator's")
+            scores, crops = [], []
+            with SimEnv(self.simenv, self.tools, self.source, mask=True) as env:
+                for folder in folders:
+                    x, y, yaw = simulator_start(folder, T0, name)
+                    obs = env.call("reset", None, (x, y, yaw))
+                    twin_rgb = cv2.cvtColor(cv2.imread(str(folder / "rgb" / "000000.png")), cv2.COLOR_BGR2RGB)
+                    twin_mask = cv2.imread(str(folder / "masks" / "000000.png"), cv2.IMREAD_UNCHANGED)
+                    turn = float(np.degrees((yaw - yaw0 + np.pi) % (2 * np.pi) - np.pi))
+                    scores.append(score_start(folder.name, twin_rgb, twin_mask, obs["rgb"], obs["mask"],
+                                              labels[f"object/{name}"], robot, turn, float(np.hypot(x, y))))
+                    crops.append(object_crops(twin_rgb, obs["rgb"], obs["mask"] == labels[f"object/{name}"]))
+            worst_first(scores, crops, path.with_suffix(".png"))
+            path.write_text(json.dumps({"object": name, "starts": [s.__dict__ for s in scores],
+                                        "bins": by_bin(scores), "sheet": path.with_suffix(".png").name},
+                                       indent=1) + "\n")
+        return json.loads(path.read_text())
 
     def oracle(self, n: int) -> list[Path]:
         """n successful gen_demos.py demonstrations, seeds 1, 2, ... (failed seeds skipped)."""
