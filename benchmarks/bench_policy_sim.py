@@ -217,10 +217,11 @@ def over_seeds(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 def _print_fidelity(report: dict[str, Any]) -> dict[str, Any]:
     """Print :meth:`Stages.fidelity`'s bins; return them."""
-    print(f"  the twin's first frames against the simulator's ({report['object']} region dB, outline IoU, rest dB):")
+    print(f"  the twin's first frames against the simulator's ({report['object']} region dB, outline IoU, "
+          "the twin's area over the simulator's, rest dB):")
     for name, b in report["bins"].items():
         print(f"    {name:34s} {b['starts']:3d} starts  {b['object_psnr']:6.2f}  {b['outline_iou']:.3f}  "
-              f"{b['rest_psnr']:6.2f}", flush=True)
+              f"{b['area_ratio']:.3f}  {b['rest_psnr']:6.2f}", flush=True)
     return report["bins"]
 
 

@@ -5,7 +5,7 @@ The simulator's object starts where the demonstration's own rigid motion (its fi
 ``T`` in ``augmentation.json``) takes the source's start pose; the robot stands at the source's
 first joints there and at the demonstration's own in the twin's image, so robot pixels are left
 out. Scored per start: the object region (both masks' union, grown by :data:`GROW` px) PSNR, the
-outline overlap (IoU of the two masks) and the rest of the image (which holds the arms' shadows,
+outline overlap (IoU of the two masks), the twin's object area over the simulator's and the rest of the image (which holds the arms' shadows,
 different as the arms stand differently); then by the start's turn from
 the source's yaw and its distance from the base (the bins where the policies fail,
 docs/benchmarks.md), and a sheet of the worst starts (twin above simulator)."""
@@ -36,6 +36,7 @@ class StartScore:
     distance_m: float
     object_psnr: float
     outline_iou: float
+    area_ratio: float
     rest_psnr: float
     object_px: int
 
@@ -60,11 +61,12 @@ def score_start(episode: str, twin_rgb: np.ndarray, twin_mask: np.ndarray, sim_r
     union = (twin_object | sim_object).sum()
     return StartScore(episode, turn_deg, distance_m, _psnr(twin_rgb, sim_rgb, region),
                       float((twin_object & sim_object).sum() / union) if union else float("nan"),
+                      float(twin_object.sum() / sim_object.sum()) if sim_object.any() else float("nan"),
                       _psnr(twin_rgb, sim_rgb, ~region & ~robot), int(sim_object.sum()))
 
 
 def by_bin(scores: list[StartScore]) -> dict[str, dict[str, float | int]]:
-    """Mean object PSNR, outline IoU and rest PSNR of the starts in each bin (and of all)."""
+    """Mean object PSNR, outline IoU, area ratio and rest PSNR of the starts in each bin (and of all)."""
     low, high = TURN_BINS_DEG
     bins = {"all": scores,
             f"clockwise_beyond_{-low:g}_deg": [s for s in scores if s.turn_deg < low],
@@ -75,6 +77,7 @@ def by_bin(scores: list[StartScore]) -> dict[str, dict[str, float | int]]:
     return {name: {"starts": len(group),
                    "object_psnr": _mean([s.object_psnr for s in group]),
                    "outline_iou": _mean([s.outline_iou for s in group]),
+                   "area_ratio": _mean([s.area_ratio for s in group]),
                    "rest_psnr": _mean([s.rest_psnr for s in group])} for name, group in bins.items()}
 
 

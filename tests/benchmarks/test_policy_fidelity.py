@@ -64,6 +64,10 @@ def test_a_start_drawn_where_the_simulator_has_it_scores_perfectly_and_a_shifted
     shifted = score_start("e", *_images(shift=2), *sim, OBJECT, ROBOT, 0.0, 0.3)
     assert shifted.outline_iou == pytest.approx(24 / 48) and shifted.object_psnr < 20.0
     assert shifted.rest_psnr == pytest.approx(100.0)  # the difference stays inside the object region
+    assert same.area_ratio == shifted.area_ratio == 1.0  # moved, not grown
+    twin_rgb, twin_mask = _images()
+    twin_mask[26, 30:36] = OBJECT  # the twin's outline a row taller
+    assert score_start("e", twin_rgb, twin_mask, *sim, OBJECT, ROBOT, 0.0, 0.3).area_ratio == pytest.approx(42 / 36)
 
 
 def test_the_robot_standing_elsewhere_is_not_scored():
@@ -114,11 +118,12 @@ def test_the_simulators_object_starts_where_the_demonstrations_first_skill_moves
 
 def test_starts_are_binned_by_their_turn_and_distance():
     def start(turn: float, distance: float, psnr: float) -> StartScore:
-        return StartScore("e", turn, distance, psnr, 0.9, 30.0, 40)
+        return StartScore("e", turn, distance, psnr, 0.9, 1.1, 30.0, 40)
 
     bins = by_bin([start(-40, 0.25, 18.0), start(-30, 0.35, 20.0), start(0, 0.30, 24.0), start(30, 0.40, 22.0)])
     assert bins["all"]["starts"] == 4 and bins["all"]["object_psnr"] == pytest.approx(21.0)
-    assert bins["clockwise_beyond_22_deg"] == {"starts": 2, "object_psnr": 19.0, "outline_iou": 0.9, "rest_psnr": 30.0}
+    assert bins["clockwise_beyond_22_deg"] == {"starts": 2, "object_psnr": 19.0, "outline_iou": 0.9, "area_ratio": 1.1,
+                                               "rest_psnr": 30.0}
     assert bins["within_22_deg"]["starts"] == 1 and bins["counter_clockwise_beyond_22_deg"]["object_psnr"] == 22.0
     assert bins["near_base_under_0.27_m"]["starts"] == 1 and bins["far_from_base_over_0.32_m"]["starts"] == 2
 
