@@ -5,10 +5,10 @@ The simulator's object starts where the demonstration's own rigid motion (its fi
 ``T`` in ``augmentation.json``) takes the source's start pose; the robot stands at the source's
 first joints there and at the demonstration's own in the twin's image, so robot pixels are left
 out. Scored per start: the object region (both masks' union, grown by :data:`GROW` px) PSNR, the
-outline overlap (IoU of the two masks), the twin's object area over the simulator's and the rest of the image (which holds the arms' shadows,
-different as the arms stand differently); then by the start's turn from
-the source's yaw and its distance from the base (the bins where the policies fail,
-docs/benchmarks.md), and a sheet of the worst starts (twin above simulator)."""
+outline overlap (IoU of the two masks), the twin's object area over the simulator's and the rest
+of the image (which holds the arms' shadows, different as the arms stand differently); then by
+the start's turn from the source's yaw and its distance from the base (the bins where the
+policies fail, docs/benchmarks.md), and a sheet of the worst starts (twin above simulator)."""
 
 from __future__ import annotations
 

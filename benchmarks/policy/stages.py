@@ -176,6 +176,7 @@ class Stages:
             name = meta["objects"][0]
             labels = {v: int(k) for k, v in meta["labels"].items()}
             robot = [value for label, value in labels.items() if label.startswith("robot/")]
+            object_label = labels[f"object/{name}"]
             T0 = np.load(self.source / "gt.npz", allow_pickle=True)[f"T_base_{name}"][0]
             yaw0 = float(np.arctan2(T0[1, 0], T0[0, 0]))
             _log(f"the twin's first frames of {n} augmented demonstrations against the simulator's")
@@ -188,8 +189,8 @@ class Stages:
                     twin_mask = cv2.imread(str(folder / "masks" / "000000.png"), cv2.IMREAD_UNCHANGED)
                     turn = float(np.degrees((yaw - yaw0 + np.pi) % (2 * np.pi) - np.pi))
                     scores.append(score_start(folder.name, twin_rgb, twin_mask, obs["rgb"], obs["mask"],
-                                              labels[f"object/{name}"], robot, turn, float(np.hypot(x, y))))
-                    crops.append(object_crops(twin_rgb, obs["rgb"], obs["mask"] == labels[f"object/{name}"]))
+                                              object_label, robot, turn, float(np.hypot(x, y))))
+                    crops.append(object_crops(twin_rgb, obs["rgb"], obs["mask"] == object_label))
             worst_first(scores, crops, path.with_suffix(".png"))
             path.write_text(json.dumps({"object": name, "starts": [s.__dict__ for s in scores],
                                         "bins": by_bin(scores), "sheet": path.with_suffix(".png").name},
