@@ -109,6 +109,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "antialiased (dilated at the opacity that keeps their integral: Gaussians fitted to a wrist "
                         "camera's close-ups, seen from the head camera) or auto (default: antialiased when several "
                         "cameras are trained, classic with one)")
+    p.add_argument("--object-position-rate", type=positive(), default=TrainConfig.object_position_rate,
+                   help="the objects' Gaussians' position learning rate as a fraction of the scene's (default "
+                        f"{TrainConfig.object_position_rate}: a few-centimetre object's Gaussians then stay on its "
+                        "faces; 1: the scene's rate)")
     p.add_argument("--no-densify", action="store_true", help="keep the initial Gaussians (no clone/split/prune)")
     p.add_argument("--refine-camera", action="store_true", help="also optimise a correction of the camera extrinsic")
     p.add_argument("--keep-extrinsic", action="store_true",
@@ -322,7 +326,7 @@ def _config(args: argparse.Namespace, device: str, iters: int, compiled: str | N
     return TrainConfig(
         iters=iters, backend=args.backend, shadows=not args.no_shadows, shadow_receivers=args.shadow_receivers,
         shadow_casters=args.shadow_casters, rasterize_mode=rasterize_mode,
-        densify=not args.no_densify,
+        object_position_rate=args.object_position_rate, densify=not args.no_densify,
         refine_camera=args.refine_camera, exposure=not args.no_exposure, lambda_app=args.lambda_app,
         lambda_mask=lambda_mask, lambda_pose=args.lambda_pose, seed=args.seed, device=device, compile=args.compile,
     )

@@ -152,6 +152,38 @@ def test_one_optimizer_updates_every_node(pick):
     assert rec.pose_optimizer.trajectories["box"] is rec.trajectories["box"]  # poses: their own optimizer
 
 
+@pytest.mark.parametrize("rate", [1.0, 0.1])
+def test_the_objects_positions_learn_at_their_own_fraction_of_the_scenes_rate(pick, rate):
+    """Adam's first step moves a position by its learning rate at most: the object's Gaussians by
+    ``object_position_rate`` of the scene's (whose rate the schedule keeps applying), the
+    background's and the links' by the scene's."""
+    rec, _ = _reconstruction(pick, iters=1, device="cpu", object_position_rate=rate, densify=False, shadows=False)
+    before = {n.name: n.gaussians.params["means"].detach().clone() for n in rec.graph.nodes()}
+    scene_rate = rec._means_lr()
+    rec.train(progress=False)
+    for node in rec.graph.nodes():
+        step = (node.gaussians.params["means"] - before[node.name]).abs().max().item()
+        expected = scene_rate * (rate if node.name.startswith("object") else 1.0)
+        if node.name in ("background", "object/box"):  # seen in the frame: at least one moves by about the rate
+            assert 0.5 * expected < step <= 1.001 * expected, (node.name, step, expected)
+        assert step <= 1.001 * expected, (node.name, step, expected)
+    rates = sorted(g["lr"] / scene_rate for g in rec.optimizer.param_groups if g["name"] == "means")
+    assert rates == pytest.approx(sorted({1.0, rate}))  # the schedule's rate, the objects' apart
+
+
+def test_a_checkpoint_resumes_only_at_the_object_position_rate_it_was_trained_at(pick):
+    """Checkpoints from before the option trained the objects at the scene's rate."""
+    rec, _ = _reconstruction(pick, iters=2, device="cpu", object_position_rate=0.3)
+    rec.train(progress=False)
+    state = rec.state_dict()
+    other, _ = _reconstruction(pick, iters=4, device="cpu", object_position_rate=0.5)
+    with pytest.raises(ValueError, match="trained with --object-position-rate 0.3, this run asks for 0.5"):
+        other.load_state_dict(state)
+    del state["config"]["object_position_rate"]
+    with pytest.raises(ValueError, match="trained with --object-position-rate 1, this run asks for 0.3"):
+        rec.load_state_dict(state)
+
+
 def test_the_view_dependent_colours_take_no_step_before_their_first_band(pick):
     """Before ``sh_every`` the bands above the base colour are weighed 0 (a tensor, for the
     compiled code's sake) and must not step: their Adam moments start with the first band."""
