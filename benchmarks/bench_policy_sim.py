@@ -109,6 +109,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--twin-episodes", type=positive(int), default=1,
                    help="demonstrations of the scene the twin is made of: the source and gen_demos.py ones (seeds 501-); "
                         "augmentation still starts from the source alone (default 1)")
+    p.add_argument("--object-position-rate", type=positive(), metavar="R",
+                   help="manisplat-reconstruct --object-position-rate of the twin (default: the product's; another "
+                        "value gets its own twin, demonstrations, policies and rollouts)")
     p.add_argument("--symmetry", action="append", default=[], metavar="OBJECT=ORDER|round",
                    help="manisplat-augment --symmetry for B and D (e.g. box=4: the 4 x 4 cm box's grasps on the face "
                         "nearest the source's wrist; default none)")
@@ -165,7 +168,8 @@ def main(argv: list[str] | None = None) -> int:
                      object_range=OBJECT_RANGE, place_range=PLACE_RANGE, twin_iters=args.twin_iters or
                      (300 if quick else 1000), image_size=args.image_size, augment_speed=args.augment_speed,
                      augment_profile=args.augment_profile, augment_object_range=args.augment_object_range,
-                     twin_episodes=args.twin_episodes, symmetry=tuple(args.symmetry),
+                     twin_episodes=args.twin_episodes, object_position_rate=args.object_position_rate,
+                     symmetry=tuple(args.symmetry),
                      train_seed=seed, state_noise=args.state_noise, image_transforms=args.image_transforms,
                      augment_start_range=args.augment_start_range,
                      action_steps=args.n_action_steps) for seed in args.train_seed]

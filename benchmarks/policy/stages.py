@@ -54,6 +54,8 @@ class Stages:
             renders with depth and masks). Augmentation still starts from the source alone
             (``--sources``): only the twin's appearance changes. Other than 1, it gets its own
             folders, policies and rollouts.
+        object_position_rate: manisplat-reconstruct's --object-position-rate for the twin (None:
+            the product's default); a value gets its own twin, folders, policies and rollouts.
         augment_start_range: manisplat-augment's --start-range (deg): each augmented demonstration's
             arm starts that far from the source's on every joint; other than 0 gets its own folders.
         symmetry: manisplat-augment's --symmetry items ("box=4"): grasps on the face nearest the
@@ -75,7 +77,7 @@ class Stages:
                  place_range: tuple[float, ...], twin_iters: int, image_size: tuple[int, int] | None = None,
                  augment_speed: float = 1.0, augment_profile: str = "time-optimal",
                  augment_object_range: tuple[float, ...] | None = None, twin_episodes: int = 1,
-                 symmetry: tuple[str, ...] = (), train_seed: int = 0, state_noise: float = 0.0,
+                 object_position_rate: float | None = None, symmetry: tuple[str, ...] = (), train_seed: int = 0, state_noise: float = 0.0,
                  augment_start_range: float = 0.0, action_steps: int | None = None,
                  image_transforms: bool = False) -> None:
         self.source, self.work, self.simenv, self.tools = source, work, simenv, tools
@@ -87,12 +89,15 @@ class Stages:
         self.augment_profile = augment_profile
         self.augment_object_range = tuple(object_range if augment_object_range is None else augment_object_range)
         self.twin_episodes = int(twin_episodes)
+        self.object_position_rate = object_position_rate
+        #: the twin's folder suffix (and part of the variant tag) for another object position rate
+        self.twin_tag = "" if object_position_rate is None else f"_objrate{object_position_rate:g}"
         #: B's and D's folders, policies and rollouts of another speed, twin or symmetry: "", "_speed0.6", "_twin5", ...
         self.variant_tag = ("" if self.augment_speed == 1.0 else f"_speed{self.augment_speed:g}") + \
             ("" if augment_profile == "time-optimal" else f"_{augment_profile}") + \
             ("" if self.augment_object_range == tuple(object_range) else
              "_range{:g}x{:g}x{:g}".format(*self.augment_object_range)) + \
-            ("" if self.twin_episodes == 1 else f"_twin{self.twin_episodes}") + \
+            ("" if self.twin_episodes == 1 else f"_twin{self.twin_episodes}") + self.twin_tag + \
             "".join(f"_sym-{item.replace('=', '')}" for item in symmetry) + \
             (f"_start{augment_start_range:g}" if augment_start_range else "")
         self.augment_start_range = float(augment_start_range)
@@ -106,7 +111,7 @@ class Stages:
 
     # ------------------------------------------------------------------ demonstrations
     def twin(self) -> Path:
-        out = self.work / ("twin" if self.twin_episodes == 1 else f"twin_{self.twin_episodes}_episodes")
+        out = self.work / (("twin" if self.twin_episodes == 1 else f"twin_{self.twin_episodes}_episodes") + self.twin_tag)
         if not (out / "twin.json").exists():
             from benchmarks._degraded import robot_of
             from manisplat.reconstruct.cli import main as reconstruct
@@ -114,8 +119,9 @@ class Stages:
             episodes = [self.source, *self._twin_demos(self.twin_episodes - 1)]
             _log(f"reconstructing the twin of {', '.join(e.name for e in episodes)} ({self.twin_iters} iterations)")
             start = time.perf_counter()
+            rate = [] if self.object_position_rate is None else ["--object-position-rate", str(self.object_position_rate)]
             if reconstruct([*map(str, episodes), "--out", str(out), "--iters", str(self.twin_iters), "-q",
-                            "--robot", robot_of(self.source), "--overwrite"]) != 0:
+                            "--robot", robot_of(self.source), "--overwrite", *rate]) != 0:
                 raise RuntimeError("manisplat-reconstruct failed")
             self.data_report["twin_s"] = round(time.perf_counter() - start, 1)
         metrics = json.loads((out / "metrics.json").read_text())

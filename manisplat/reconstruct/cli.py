@@ -109,10 +109,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "antialiased (dilated at the opacity that keeps their integral: Gaussians fitted to a wrist "
                         "camera's close-ups, seen from the head camera) or auto (default: antialiased when several "
                         "cameras are trained, classic with one)")
-    p.add_argument("--object-position-rate", type=positive(), default=TrainConfig.object_position_rate,
+    p.add_argument("--object-position-rate", type=positive(), default=TrainConfig.object_position_rate, metavar="R",
                    help="the objects' Gaussians' position learning rate as a fraction of the scene's (default "
-                        f"{TrainConfig.object_position_rate}: a few-centimetre object's Gaussians then stay on its "
-                        "faces; 1: the scene's rate)")
+                        f"{TrainConfig.object_position_rate:g}; 0.3 keeps a few-centimetre object's Gaussians nearer "
+                        "its faces: docs/benchmarks.md, policies trained on the output)")
     p.add_argument("--no-densify", action="store_true", help="keep the initial Gaussians (no clone/split/prune)")
     p.add_argument("--refine-camera", action="store_true", help="also optimise a correction of the camera extrinsic")
     p.add_argument("--keep-extrinsic", action="store_true",

@@ -40,10 +40,11 @@ class TrainConfig:
             integral; Gaussians fitted to a wrist camera's close-ups, seen from the head camera
             a metre away, are then drawn as faint as they are small). The twin keeps it.
         object_position_rate: the objects' Gaussians' position learning rate as a fraction of
-            the scene's (1.6e-4 x the scene's scale, about 1.2 m, decaying 100x): at the scene's
-            rate a 4 cm box took the same steps as the table and half its Gaussians sank 2-5 mm
-            inside its faces; at 0.3 they stay within about 1.6 mm and the box, drawn at new poses,
-            is 0.7 dB nearer the simulator's (docs/benchmarks.md, policies trained on the output).
+            the scene's (1.6e-4 x the scene's scale, about 1.2 m, decaying 100x). At 1 a 4 cm box
+            takes a room's steps and half its Gaussians sink 2-5 mm inside its faces; at 0.3 they
+            stay within about 1.6 mm and the box is drawn 0.7 dB nearer the simulator's at 50 new
+            starts, yet policies trained on that twin's demonstrations did worse (docs/benchmarks.md,
+            policies trained on the output), so 1 stays the default.
         sh_degree, sh_every: view-dependent colour bands (evaluated in each node's frame), one
             more band switched on every ``sh_every`` iterations.
         refine_camera: also optimise a correction of the camera extrinsic.
@@ -82,7 +83,7 @@ class TrainConfig:
     shadow_receivers: str = "all"
     shadow_casters: str = "gaussians"
     rasterize_mode: str = "classic"
-    object_position_rate: float = 0.3
+    object_position_rate: float = 1.0
     sh_degree: int = 2
     sh_every: int = 500
     refine_camera: bool = False

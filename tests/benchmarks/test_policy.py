@@ -230,6 +230,29 @@ def test_another_start_range_and_state_noise_get_their_own_names(tmp_path):
     assert (open_loop.rollout_tag, started.rollout_tag) == ("linear_stop_steps8", "linear_stop")
 
 
+def test_another_object_position_rate_gets_its_own_twin_trained_at_that_rate(tmp_path):
+    """--object-position-rate changes the twin, so B's and D's demonstrations, policies and rollouts
+    (their own names); the twin is reconstructed with that rate (its metrics.json says so)."""
+    import json
+
+    from manisplat.episode.synthetic import write_sample_episode
+
+    from benchmarks.policy.stages import Stages
+
+    source = write_sample_episode(tmp_path / "sample", frames=8, width=80, height=60)
+
+    def stages(**kw) -> Stages:
+        return Stages(source, tmp_path / "work", tmp_path / "python", tmp_path / "tools", (0.05, 0.05, 30.0),
+                      (0.02, 0.02, 30.0), 4, **kw)
+
+    slower, default = stages(object_position_rate=0.5), stages()
+    assert [slower.key(c, 50) for c in "ABCD"] == ["A", "B50_objrate0.5", "C50", "D50_objrate0.5"]
+    assert [default.key(c, 50) for c in "ABCD"] == ["A", "B50", "C50", "D50"]
+    twin = slower.twin()
+    assert twin.name == "twin_objrate0.5"
+    assert json.loads((twin / "metrics.json").read_text())["object_position_rate"] == 0.5
+
+
 def test_the_chunk_length_the_options_allow_is_the_policys():
     from benchmarks.bench_policy_sim import CHUNK, _parser
 
