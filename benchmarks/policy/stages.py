@@ -77,7 +77,8 @@ class Stages:
                  place_range: tuple[float, ...], twin_iters: int, image_size: tuple[int, int] | None = None,
                  augment_speed: float = 1.0, augment_profile: str = "time-optimal",
                  augment_object_range: tuple[float, ...] | None = None, twin_episodes: int = 1,
-                 object_position_rate: float | None = None, symmetry: tuple[str, ...] = (), train_seed: int = 0, state_noise: float = 0.0,
+                 object_position_rate: float | None = None, symmetry: tuple[str, ...] = (), train_seed: int = 0,
+                 state_noise: float = 0.0,
                  augment_start_range: float = 0.0, action_steps: int | None = None,
                  image_transforms: bool = False) -> None:
         self.source, self.work, self.simenv, self.tools = source, work, simenv, tools
@@ -111,7 +112,8 @@ class Stages:
 
     # ------------------------------------------------------------------ demonstrations
     def twin(self) -> Path:
-        out = self.work / (("twin" if self.twin_episodes == 1 else f"twin_{self.twin_episodes}_episodes") + self.twin_tag)
+        name = "twin" if self.twin_episodes == 1 else f"twin_{self.twin_episodes}_episodes"
+        out = self.work / (name + self.twin_tag)
         if not (out / "twin.json").exists():
             from benchmarks._degraded import robot_of
             from manisplat.reconstruct.cli import main as reconstruct
@@ -119,7 +121,8 @@ class Stages:
             episodes = [self.source, *self._twin_demos(self.twin_episodes - 1)]
             _log(f"reconstructing the twin of {', '.join(e.name for e in episodes)} ({self.twin_iters} iterations)")
             start = time.perf_counter()
-            rate = [] if self.object_position_rate is None else ["--object-position-rate", str(self.object_position_rate)]
+            rate = [] if self.object_position_rate is None else \
+                ["--object-position-rate", str(self.object_position_rate)]
             if reconstruct([*map(str, episodes), "--out", str(out), "--iters", str(self.twin_iters), "-q",
                             "--robot", robot_of(self.source), "--overwrite", *rate]) != 0:
                 raise RuntimeError("manisplat-reconstruct failed")

@@ -130,11 +130,8 @@ class Reconstruction:
                 groups.setdefault(key, {"params": [], "lr": float(group["lr"]) * scale, "name": name,
                                         "eps": group["eps"], "lr_scale": scale})
                 groups[key]["params"] += group["params"]
-        if self.graph.background is not None:
-            for group in groups.values():
-                if group["name"] == "means":
-                    group["lr"] = self._means_lr() * group["lr_scale"]
         param_groups = list(groups.values())
+        self._schedule_means(param_groups)
         param_groups.append({"params": [self.background_logit], "lr": 1e-2, "name": "background"})
         if self.config.refine_camera:
             param_groups.append({"params": [self.camera_delta], "lr": 1e-4, "name": "camera"})
@@ -350,11 +347,17 @@ class Reconstruction:
                         "radii": meta["radii"][:, start:end], "width": meta["width"], "height": meta["height"],
                         "n_cameras": meta["n_cameras"]}
                 self.strategies[node.name].step_post_backward(g.params, g.optimizers, g.strategy_state, self.step, info)
-        if self.graph.background is not None:
-            lr = self._means_lr()
-            for group in self.optimizer.param_groups:
-                if group["name"] == "means":
-                    group["lr"] = lr * group["lr_scale"]
+        self._schedule_means(self.optimizer.param_groups)
+
+    def _schedule_means(self, param_groups: list[dict]) -> None:
+        """Set the positions' groups to the schedule's rate at the current step (times each group's
+        ``lr_scale``) when there is a background; without one they keep their own rate."""
+        if self.graph.background is None:
+            return
+        lr = self._means_lr()
+        for group in param_groups:
+            if group["name"] == "means":
+                group["lr"] = lr * group["lr_scale"]
 
     def _means_lr(self) -> float:
         """The positions' learning rate at the current step: 1.6e-4 x scene scale, decaying 100x over training."""
