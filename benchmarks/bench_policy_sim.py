@@ -1,7 +1,7 @@
 """Policy in the loop: success of one policy trained on A (source), B (source + augmented), C (oracle), D (B in sim renders).
 
     python -m benchmarks policy_sim [--source EP] [--n 50 [200]] [--eval-seeds 1000-1049] [--work DIR] [--quick]
-        [--augment-start-range DEG] [--state-noise RAD] [--train-seed S[,S...]] [--image-transforms]
+        [--augment-start-range DEG] [--augment-sampling random|even] [--state-noise RAD] [--train-seed S[,S...]] [--image-transforms]
         (and the options of --help)
 
 From one source episode of ``gen_pick_place.py`` (default shared/data/sim_pick_place_small), each
@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks._harness import BENCH_DIR, MissingBenchmarkData, machine_info, shared_dir
+from manisplat.augment.draws import SAMPLINGS
 from manisplat.augment.timing import PROFILES
 from manisplat.cli_args import bounded, finite_numbers, positive
 
@@ -105,6 +106,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="manisplat-augment --start-range for B and D: each augmented demonstration's arm starts up "
                         "to +-DEG from the source's start on every joint (default %(default)g; 0: the source's "
                         "start; the evaluation always starts there)")
+    p.add_argument("--augment-sampling", choices=SAMPLINGS, default="random",
+                   help="manisplat-augment --sampling for B and D: random draws or an even spread of the same "
+                        "number over the ranges (default %(default)s; even gets its own folders)")
     p.add_argument("--twin-iters", type=positive(int), help="reconstruction iterations (default 1000; --quick 300)")
     p.add_argument("--twin-episodes", type=positive(int), default=1,
                    help="demonstrations of the scene the twin is made of: the source and gen_demos.py ones (seeds 501-); "
@@ -171,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
                      twin_episodes=args.twin_episodes, object_position_rate=args.object_position_rate,
                      symmetry=tuple(args.symmetry),
                      train_seed=seed, state_noise=args.state_noise, image_transforms=args.image_transforms,
-                     augment_start_range=args.augment_start_range,
+                     augment_start_range=args.augment_start_range, augment_sampling=args.augment_sampling,
                      action_steps=args.n_action_steps) for seed in args.train_seed]
     started = time.perf_counter()
     args.out.mkdir(parents=True, exist_ok=True)

@@ -58,6 +58,8 @@ class Stages:
             the product's default); a value gets its own twin, folders, policies and rollouts.
         augment_start_range: manisplat-augment's --start-range (deg): each augmented demonstration's
             arm starts that far from the source's on every joint; other than 0 gets its own folders.
+        augment_sampling: manisplat-augment's --sampling ("random", its default, keeps the folder
+            names of earlier runs; "even" gets its own folders, policies and rollouts).
         symmetry: manisplat-augment's --symmetry items ("box=4"): grasps on the face nearest the
             source's wrist; any gets its own folders, policies and rollouts.
         train_seed: the policy's training seed (initial weights, batches); other than 0, its
@@ -80,7 +82,7 @@ class Stages:
                  object_position_rate: float | None = None, symmetry: tuple[str, ...] = (), train_seed: int = 0,
                  state_noise: float = 0.0,
                  augment_start_range: float = 0.0, action_steps: int | None = None,
-                 image_transforms: bool = False) -> None:
+                 image_transforms: bool = False, augment_sampling: str = "random") -> None:
         self.source, self.work, self.simenv, self.tools = source, work, simenv, tools
         self.object_range, self.place_range, self.twin_iters = object_range, place_range, twin_iters
         self.data_report: dict[str, Any] = {}
@@ -100,7 +102,9 @@ class Stages:
              "_range{:g}x{:g}x{:g}".format(*self.augment_object_range)) + \
             ("" if self.twin_episodes == 1 else f"_twin{self.twin_episodes}") + self.twin_tag + \
             "".join(f"_sym-{item.replace('=', '')}" for item in symmetry) + \
-            (f"_start{augment_start_range:g}" if augment_start_range else "")
+            (f"_start{augment_start_range:g}" if augment_start_range else "") + \
+            ("" if augment_sampling == "random" else f"_{augment_sampling}")
+        self.augment_sampling = augment_sampling
         self.augment_start_range = float(augment_start_range)
         self.symmetry = tuple(symmetry)
         self.train_seed = int(train_seed)
@@ -162,7 +166,7 @@ class Stages:
                      "--sources", self.source.name,
                      "--object-range", ",".join(map(str, self.augment_object_range)),
                      "--target-range", ",".join(map(str, self.place_range)),
-                     "--start-range", str(self.augment_start_range),
+                     "--start-range", str(self.augment_start_range), "--sampling", self.augment_sampling,
                      *(f"--symmetry={item}" for item in self.symmetry)])
             self.data_report[f"augment_{n}_s"] = round(time.perf_counter() - start, 1)
         report = json.loads((out / "augment_report.json").read_text())

@@ -12,6 +12,7 @@ import math
 import sys
 from pathlib import Path
 
+from manisplat.augment.draws import SAMPLINGS
 from manisplat.augment.planning import MAX_CHECKS, SAFETY_TIMEOUT_S
 from manisplat.augment.timing import PROFILES
 from manisplat.cli_args import add_version, bounded, finite_numbers, positive
@@ -75,6 +76,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--n", type=positive(int), default=10, help="valid demonstrations to write (default %(default)s)")
     p.add_argument("--out", type=Path, required=True, help="output folder: new or empty unless --overwrite")
     p.add_argument("--seed", type=int, default=0, help="random seed of the sampled poses (default %(default)s)")
+    p.add_argument("--sampling", choices=SAMPLINGS, default="random",
+                   help="how the new poses (and starts) spread over their ranges: random (independent draws; each "
+                        "sample made again from its seed) or even (a scrambled Sobol sequence seeded by --seed: "
+                        "as many samples cover the ranges without the holes and clusters of independent draws) "
+                        "(default %(default)s)")
     p.add_argument("--object-range", type=finite_numbers((3,)), default=[0.08, 0.08, 45.0], metavar="X,Y,YAW",
                    help="each object's start pose is moved by up to +-X, +-Y metres and +-YAW degrees on the "
                         "table (default 0.08,0.08,45)")

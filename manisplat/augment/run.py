@@ -19,6 +19,7 @@ from tqdm import tqdm
 
 from manisplat.augment.bimanual import BimanualPlanner, BimanualTrajectory
 from manisplat.augment.cli import REPORT, load_poses_file
+from manisplat.augment.draws import SampleDraws
 from manisplat.augment.frames import from_centre_frame, to_centre_frame
 from manisplat.augment.symmetry import Symmetry
 from manisplat.augment.trajectory import (AugmentConfig, NewTrajectory, ObjectTarget, Rejected, augment_trajectory,
@@ -76,15 +77,16 @@ def run_augmentation(args: argparse.Namespace) -> dict:
     limit = len(explicit) if explicit is not None else (args.max_samples or max(10, 3 * args.n))
     object_range = (args.object_range[0], args.object_range[1], np.radians(args.object_range[2]))
     target_range = (args.target_range[0], args.target_range[1], np.radians(args.target_range[2]))
+    draws = SampleDraws(args.sampling, args.seed, limit)
 
     samples: list[Sample] = []
     bar = tqdm(total=wanted, desc="planning", unit="demo", disable=args.quiet)
     while sum(s.trajectory is not None for s in samples) < wanted and len(samples) < limit:
         index = len(samples)
-        seed = args.seed * 1_000_003 + index
+        seed = draws.seed_of(index)
         name = list(sources)[index % len(sources)]
         source, arms = sources[name], planners[name]
-        rng = np.random.default_rng(seed)
+        rng = draws(index)
         if explicit is not None:
             targets = explicit[index]
         elif arms is not None:
@@ -300,7 +302,8 @@ def _report(twin: Twin, args: argparse.Namespace, samples: list[Sample], wanted:
     several = [s.trajectory for s in valid if isinstance(s.trajectory, BimanualTrajectory)]
     clearances = [traj.validation["min_arm_clearance_m"] for traj in several]
     return {
-        "parent": twin.episode, "recon": str(args.recon), "seed": args.seed, "requested": wanted,
+        "parent": twin.episode, "recon": str(args.recon), "seed": args.seed, "sampling": args.sampling,
+        "requested": wanted,
         "sources": dict(Counter(s.source for s in valid)),
         "drawn": len(samples), "valid": len(valid), "written": len(valid),
         "validity_rate": len(valid) / max(len(samples), 1), "reasons": reasons,

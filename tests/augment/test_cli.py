@@ -16,10 +16,13 @@ import torch
 import pytest
 
 from manisplat.augment.cli import main, summary
+from manisplat.augment.frames import from_centre_frame
 from manisplat.augment.run import Sample, _report
+from manisplat.augment.source import source_demo
 from manisplat.episode import Episode, validate
 from manisplat.episode.synthetic import write_sample_episode
 from manisplat.reconstruct.cli import main as reconstruct
+from manisplat.twin import Twin
 
 
 @pytest.fixture(scope="module")
@@ -182,7 +185,8 @@ def test_the_report_counts_how_the_motions_were_planned():
                                       {"method": "stop along the last velocity"})),
                Sample(2, 2, {}, None, reason="collision")]
     args = SimpleNamespace(recon="twin", seed=0, object_range=(0.08, 0.08, 45), target_range=(0.05, 0.05, 45),
-                           speed=1.0, profile="time-optimal", workers=1, symmetries={}, start_range=0.0)
+                           speed=1.0, profile="time-optimal", workers=1, symmetries={}, start_range=0.0,
+                           sampling="random")
     report = _report(SimpleNamespace(episode="ep"), args, samples, 2, {})
     assert report["motions"] == {"planned": 4, "joined_at_rest": 2,
                                  "by_method": {"straight": 1, "rrtconnect": 2, "stop along the last velocity": 1}}
@@ -256,3 +260,25 @@ def test_start_range_moves_each_demonstrations_first_joints_and_keeps_its_object
         assert np.abs(offset).max() <= 8.0 + 1e-6 and np.abs(offset).max() > 1.0
         q_plain, q_moved = Episode.open(plain / name).frames.q[0], Episode.open(moved / name).frames.q[0]
         np.testing.assert_allclose(np.degrees(q_moved - q_plain), offset, atol=1e-3)
+
+
+def test_an_even_spread_draws_other_poses_within_the_same_ranges_and_says_so(recon, tmp_path):
+    """--sampling even: the report names it, the objects' starts differ from the random draws of the
+    same seed and stay within --object-range of the source's start."""
+    runs = {}
+    for sampling in ("random", "even"):
+        out = tmp_path / sampling
+        assert main([str(recon), "--n", "3", "--out", str(out), "--seed", "3", "-q", "--sampling", sampling,
+                     "--object-range", "0.03,0.03,20"]) == 0
+        assert json.loads((out / "augment_report.json").read_text())["sampling"] == sampling
+        runs[sampling] = [np.array(json.loads((out / f"episode_{k:04d}" / "augmentation.json").read_text())
+                                   ["objects"]["box"]["T_start"]) for k in range(3)]
+    twin = Twin.load(recon)
+    T_rest = source_demo(twin).objects["box"].T_rest
+    runs = {k: [from_centre_frame(twin, "box", T) for T in starts] for k, starts in runs.items()}
+    for random_start, even_start in zip(runs["random"], runs["even"]):
+        assert not np.allclose(random_start, even_start)
+    for start in runs["random"] + runs["even"]:
+        assert np.abs(start[:2, 3] - T_rest[:2, 3]).max() <= 0.03 + 1e-9 and abs(start[2, 3] - T_rest[2, 3]) < 1e-9
+        turn = np.degrees(np.arctan2(*(start[:3, :3] @ T_rest[:3, :3].T)[[1, 0], 0]))
+        assert abs(turn) <= 20.0 + 1e-6

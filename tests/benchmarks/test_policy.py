@@ -207,9 +207,10 @@ def test_a_declared_symmetry_another_range_and_another_training_seed_get_their_o
                                                              for c in "ABCD"] == ["A", "B50", "C50", "D50"]
 
 
-def test_another_start_range_and_state_noise_get_their_own_names(tmp_path):
-    """--augment-start-range changes B's and D's demonstrations (their own folders and policies);
-    --state-noise changes every condition's policy (trained with it) but no demonstrations."""
+def test_another_start_range_sampling_and_state_noise_get_their_own_names(tmp_path):
+    """--augment-start-range and --augment-sampling change B's and D's demonstrations (their own
+    folders and policies); --state-noise changes every condition's policy (trained with it) but no
+    demonstrations."""
     from manisplat.episode.synthetic import write_sample_episode
 
     from benchmarks.policy.stages import Stages
@@ -222,6 +223,8 @@ def test_another_start_range_and_state_noise_get_their_own_names(tmp_path):
 
     started, noisy = stages(augment_start_range=10.0), stages(state_noise=0.1)
     assert [started.key(c, 50) for c in "ABCD"] == ["A", "B50_start10", "C50", "D50_start10"]
+    even = stages(augment_sampling="even", augment_start_range=10.0)
+    assert [even.key(c, 50) for c in "ABCD"] == ["A", "B50_start10_even", "C50", "D50_start10_even"]
     assert [noisy.key(c, 50) for c in "ABCD"] == ["A_statenoise0.1", "B50_statenoise0.1", "C50_statenoise0.1",
                                                   "D50_statenoise0.1"]
     assert noisy.budget_of(9000).state_noise == 0.1 and started.budget_of(9000).state_noise == 0.0
