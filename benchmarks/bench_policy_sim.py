@@ -1,7 +1,7 @@
 """Policy in the loop: success of one policy trained on A (source), B (source + augmented), C (oracle), D (B in sim renders).
 
     python -m benchmarks policy_sim [--source EP] [--n 50 [200]] [--eval-seeds 1000-1049] [--work DIR] [--quick]
-        [--augment-start-range DEG] [--augment-sampling random|even] [--state-noise RAD] [--train-seed S[,S...]] [--image-transforms]
+        [--augment-start-range DEG] [--augment-sampling even|random] [--state-noise RAD] [--train-seed S[,S...]] [--image-transforms]
         (and the options of --help)
 
 From one source episode of ``gen_pick_place.py`` (default shared/data/sim_pick_place_small), each
@@ -13,8 +13,8 @@ within +-8 cm, +-8 cm, +-45 deg; no training demonstration starts there):
 - **A** the source demonstration alone;
 - **B** the source plus N demonstrations written by ``manisplat-augment`` from a twin that
   ``manisplat-reconstruct`` made of the source (the twin's renders; objects within +-10 cm,
-  +-55 deg, the arm's start scattered by up to 10 deg per joint, as docs/training-policies.md
-  recommends);
+  +-55 deg and the arm's start scattered by up to 10 deg per joint, spread evenly, as
+  docs/training-policies.md recommends);
 - **C** N scripted demonstrations of ``gen_demos.py`` over the same ranges (the reference: as many
   real demonstrations);
 - **D** B's demonstrations with the simulator's renders of the same motions (``execute_episode.py
@@ -28,7 +28,9 @@ Writes ``policy_sim.json`` (and ``policy_sim_quick.json`` with --quick), the hea
 sheet to ``--out`` (default benchmarks/results_policy). With B, the JSON's ``fidelity`` also holds
 how the twin drew B's first frames against the simulator's renders of the same starts, by the
 start's turn and distance (``benchmarks/policy/fidelity.py``; ``--fidelity-only`` computes just that,
-into ``policy_fidelity.json`` and its sheet of the worst starts).
+into ``policy_fidelity.json`` and its sheet of the worst starts). Each row's ``coverage`` counts
+successes by how far each evaluation start lies from the nearest training demonstration's start
+(``benchmarks/policy/coverage.py``).
 """
 
 from __future__ import annotations
@@ -106,9 +108,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="manisplat-augment --start-range for B and D: each augmented demonstration's arm starts up "
                         "to +-DEG from the source's start on every joint (default %(default)g; 0: the source's "
                         "start; the evaluation always starts there)")
-    p.add_argument("--augment-sampling", choices=SAMPLINGS, default="random",
-                   help="manisplat-augment --sampling for B and D: random draws or an even spread of the same "
-                        "number over the ranges (default %(default)s; even gets its own folders)")
+    p.add_argument("--augment-sampling", choices=SAMPLINGS, default="even",
+                   help="manisplat-augment --sampling for B and D: an even spread over the ranges or random draws "
+                        "(default %(default)s, its own; even gets its own folders, random keeps those of the runs "
+                        "before 2026-12-03)")
     p.add_argument("--twin-iters", type=positive(int), help="reconstruction iterations (default 1000; --quick 300)")
     p.add_argument("--twin-episodes", type=positive(int), default=1,
                    help="demonstrations of the scene the twin is made of: the source and gen_demos.py ones (seeds 501-); "
@@ -199,6 +202,8 @@ def main(argv: list[str] | None = None) -> int:
                 rollouts[row["condition"]] = runs
                 print(f"  {row['condition']}: {row['successes']}/{row['rollouts']} = {row['success_rate']:.0%} "
                       f"(95 % {row['ci95'][0]:.0%}-{row['ci95'][1]:.0%}), trained {row['train_s']:.0f} s", flush=True)
+                print("    by the distance to the nearest training start (evaluation half-ranges): " + ", ".join(
+                    f"{name} {b['successes']}/{b['starts']}" for name, b in row["coverage"]["bins"].items()), flush=True)
                 path = _write(args, argv, seeded, source, eval_seeds, steps, rows, rollouts, fidelity, started, suffix)
     for total in over_seeds(rows):
         print(f"  {total['data']} over training seeds {total['train_seeds']}: {total['successes']}/{total['rollouts']}"

@@ -16,7 +16,7 @@ PHASE_COLOURS = {"success": "tab:green", "reach": "tab:red", "grasp": "tab:orang
 
 def heatmaps(rollouts: dict[str, list[Rollout]], training_starts: dict[str, np.ndarray], out: Path) -> Path:
     """One panel per condition: each evaluation start (x, y) coloured by its outcome (failures by the
-    phase they failed in), the training demonstrations' starts as small grey dots."""
+    phase they failed in), the training demonstrations' starts ([N, 2+] x, y, ...) as small grey dots."""
     import matplotlib
 
     matplotlib.use("Agg")

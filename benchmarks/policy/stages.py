@@ -86,6 +86,7 @@ class Stages:
         self.source, self.work, self.simenv, self.tools = source, work, simenv, tools
         self.object_range, self.place_range, self.twin_iters = object_range, place_range, twin_iters
         self.data_report: dict[str, Any] = {}
+        #: key -> [N, 3] (x m, y m, yaw rad) of its training demonstrations' object starts
         self.training_starts: dict[str, np.ndarray] = {}
         self.viewport: Viewport = workspace_viewport(source, max(object_range[:2]), image_size or IMAGE_SIZE)
         self.augment_speed = float(augment_speed)
@@ -295,7 +296,7 @@ class Stages:
         """Train the policy on the condition's demonstrations and evaluate it from ``seeds``."""
         key = self.key(condition, n)
         folders = self.folders(condition, n)
-        self.training_starts[key] = np.array([_start_xy(f, self.source) for f in folders])
+        self.training_starts[key] = np.array([_start_pose(f, self.source) for f in folders])
         budget = self.budget_of(steps)
         policy = self._policy(key, folders, budget)
         rollouts = self._rollouts(key, policy, seeds, envs)
@@ -308,8 +309,19 @@ class Stages:
                "train_loss_end": round(policy.final_loss, 4), "failed_in": phases,
                "action_steps": self.action_steps,
                "arm_hit_scene": sum(any(f.startswith("arm hit") for f in r.result["failed"]) for r in rollouts),
-               "mean_steps": float(np.mean([r.result["steps"] for r in rollouts]))}
+               "mean_steps": float(np.mean([r.result["steps"] for r in rollouts])),
+               "coverage": self.coverage(key, rollouts)}
         return row, rollouts
+
+    def coverage(self, key: str, rollouts: list[Rollout]) -> dict[str, Any]:
+        """Success by each evaluation start's distance to the nearest of ``key``'s training starts
+        (:mod:`benchmarks.policy.coverage`, in the evaluation's half-ranges)."""
+        from benchmarks.policy.coverage import nearest_distances, success_by_distance
+
+        x, y, yaw = self.object_range
+        eval_starts = np.array([r.result["object_start"] for r in rollouts])
+        distances = nearest_distances(eval_starts, self.training_starts[key], (x, y, np.radians(yaw)))
+        return success_by_distance(distances, np.array([r.result["success"] for r in rollouts]))
 
     def _policy(self, key: str, folders: list[Path], budget: Budget) -> TrainedPolicy:
         path = self.work / "policies" / f"{key}_{budget.steps}_{self.viewport.tag}.pt"
@@ -377,20 +389,21 @@ def _cached_rollouts(folder: Path, stem: str, tag: str, seeds: set[int]) -> dict
     return found
 
 
-def _start_xy(folder: Path, source: Path) -> tuple[float, float]:
-    """The object's start (x, y) of a training demonstration, for the plots only: augmentation.json's
-    T_start, gen_demos' record, or the source's first-frame pose."""
-    aug = folder / "augmentation.json"
-    if aug.exists():
-        T = np.array(next(iter(json.loads(aug.read_text())["objects"].values()))["T_start"])
-        return float(T[0, 3]), float(T[1, 3])
+def _start_pose(folder: Path, source: Path) -> tuple[float, float, float]:
+    """The object's start (x m, y m, yaw rad; the simulator's frame) of a training demonstration:
+    an augmented one's first skill applied to the source's start (``fidelity.simulator_start``),
+    gen_demos' record, or the source's first-frame pose."""
+    name = json.loads((source / "episode.json").read_text())["objects"][0]
+    T0 = np.load(source / "gt.npz", allow_pickle=True)[f"T_base_{name}"][0]
+    if (folder / "augmentation.json").exists():
+        from benchmarks.policy.fidelity import simulator_start
+
+        return simulator_start(folder, T0, name)
     demos = folder.parent / "demos.json"
     if demos.exists():
         record = next(d for d in json.loads(demos.read_text())["demos"] if d["dir"] == folder.name)
-        return float(record["object_pose"][0]), float(record["object_pose"][1])
-    gt = np.load(source / "gt.npz", allow_pickle=True)
-    name = json.loads((source / "episode.json").read_text())["objects"][0]
-    return float(gt[f"T_base_{name}"][0][0, 3]), float(gt[f"T_base_{name}"][0][1, 3])
+        return float(record["object_pose"][0]), float(record["object_pose"][1]), float(record["object_pose"][2])
+    return float(T0[0, 3]), float(T0[1, 3]), float(np.arctan2(T0[1, 0], T0[0, 0]))
 
 
 def _print_rollout(rollout: Rollout) -> None:

@@ -34,6 +34,7 @@ import torch
 
 from manisplat.augment.arm_view import ArmTwin, arm_twins, handling
 from manisplat.augment.collision import CollisionSettings, _object_box
+from manisplat.augment.draws import Draws
 from manisplat.augment.errors import Rejected
 from manisplat.augment.handover import (HANDOVER_RANGE, HANDOVER_SKILL, Handover, entry_delays, handed_track,
                                         moved_handover, output_frame, skill_segment)
@@ -243,7 +244,7 @@ class BimanualPlanner:
                                   range(handover.skill.start, handover.skill.end), self.min_clearance_m, (whole,))
         return frozenset(p for p in pairs if not any(label.startswith("object ") for label in p))
 
-    def sample_targets(self, rng: np.random.Generator, object_range=(0.08, 0.08, math.radians(45)),
+    def sample_targets(self, rng: Draws, object_range=(0.08, 0.08, math.radians(45)),
                        target_range=(0.05, 0.05, math.radians(45)), handover_range=HANDOVER_RANGE
                        ) -> dict[str, dict[str, ObjectTarget]]:
         """Arm name -> new start (and place) poses of the objects it handles, in its base frame
@@ -262,7 +263,7 @@ class BimanualPlanner:
                                                   taker.T_place)
         return out
 
-    def sample_starts(self, rng: np.random.Generator, half_range: float) -> dict[str, np.ndarray]:
+    def sample_starts(self, rng: Draws, half_range: float) -> dict[str, np.ndarray]:
         """Arm name -> its first joints (rad) for a new demonstration: the source's moved by up to
         +-``half_range`` rad each, within the limits the augmentation plans in (arms in the twin's
         order, one draw each)."""

@@ -76,10 +76,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--n", type=positive(int), default=10, help="valid demonstrations to write (default %(default)s)")
     p.add_argument("--out", type=Path, required=True, help="output folder: new or empty unless --overwrite")
     p.add_argument("--seed", type=int, default=0, help="random seed of the sampled poses (default %(default)s)")
-    p.add_argument("--sampling", choices=SAMPLINGS, default="random",
-                   help="how the new poses (and starts) spread over their ranges: random (independent draws; each "
-                        "sample made again from its seed) or even (a scrambled Sobol sequence seeded by --seed: "
-                        "as many samples cover the ranges without the holes and clusters of independent draws) "
+    p.add_argument("--sampling", choices=SAMPLINGS, default="even",
+                   help="how the new poses (and starts) spread over their ranges: even (a scrambled Sobol sequence "
+                        "seeded by --seed: as many samples cover the ranges without holes) or random (independent "
+                        "draws, each sample made again from its seed alone; the default before 2026-12-03) "
                         "(default %(default)s)")
     p.add_argument("--object-range", type=finite_numbers((3,)), default=[0.08, 0.08, 45.0], metavar="X,Y,YAW",
                    help="each object's start pose is moved by up to +-X, +-Y metres and +-YAW degrees on the "

@@ -1,12 +1,12 @@
-"""Where each sample's random numbers come from: independent draws, or an even spread.
+"""Where each sample's random numbers come from: an even spread, or independent draws.
 
-``random``: sample ``k`` draws from its own generator (``numpy.random.default_rng``), so the
-samples are independent and any one can be made again from its seed alone. ``even``: sample ``k``
-takes point ``k`` of a scrambled Sobol sequence (``scipy.stats.qmc.Sobol``), one coordinate per
-draw in the order the sampler asks for them (object start x, y, yaw, then its place, then the
-arm's start joints). Fifty independent draws leave holes and clusters in the (x, y, yaw) box;
-a low-discrepancy sequence spreads the same number evenly, as a grid would, for any count
-(a prefix of the sequence is as even as its length allows; a discarded sample leaves its point
+``even`` (``manisplat-augment``'s default): sample ``k`` takes point ``k`` of a scrambled Sobol
+sequence (``scipy.stats.qmc.Sobol``), one coordinate per draw in the order the sampler asks for
+them (object start x, y, yaw, then its place, then the arm's start joints). ``random``: sample
+``k`` draws from its own generator (``numpy.random.default_rng``), so that any one can be made
+again from its seed alone. Fifty independent draws leave holes and clusters in the (x, y, yaw)
+box; a low-discrepancy sequence spreads the same number evenly, as a grid would, for any count (a
+prefix of the sequence is as even as its length allows; a discarded sample leaves its point
 unused). Both give uniform marginals within the same ranges.
 """
 

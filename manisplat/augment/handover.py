@@ -27,6 +27,7 @@ import numpy as np
 
 from manisplat.align.acting_arm import Hold
 from manisplat.align.phases import DEFAULT_TAU, HYSTERESIS, gripper_events, interval_around
+from manisplat.augment.draws import Draws
 from manisplat.augment.errors import Rejected
 from manisplat.augment.source import SourceError, rigid
 from manisplat.twin import Phase
@@ -120,7 +121,7 @@ def _skills(handover: Handover, phases: list[Phase], before: bool) -> list[Phase
     return [p for p in phases if p.kind == "skill" and ((p.end <= start) if before else (p.start >= end))]
 
 
-def moved_handover(T_world_obj: np.ndarray, rng: np.random.Generator,
+def moved_handover(T_world_obj: np.ndarray, rng: Draws,
                    handover_range: tuple[float, float, float] = HANDOVER_RANGE) -> np.ndarray:
     """The handover pose [4, 4] moved by an offset drawn uniformly within +- ``handover_range``
     (m, the world's x, y, z); its orientation kept."""

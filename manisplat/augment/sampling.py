@@ -3,7 +3,8 @@ and, for a pick-and-place, where it is placed; and, when asked, a new start of t
 
 A perturbation keeps the pose's height, roll and pitch: ``T' = [Rz(yaw) R, p + (dx, dy, 0)]``,
 the yaw turning the object about the vertical through its own origin. ``dx, dy, yaw`` are drawn
-uniformly within +- the ranges, from the ``rng`` given (so one seed gives one set of targets).
+uniformly within +- the ranges, from the draws given (:mod:`manisplat.augment.draws`: a generator,
+or a sample's point of an even spread; the same draws give the same targets).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from manisplat.augment.draws import Draws
 from manisplat.augment.source import rigid, source_demo
 
 
@@ -46,14 +48,14 @@ def perturb(T: np.ndarray, dx: float, dy: float, yaw: float) -> np.ndarray:
     return out
 
 
-def _draw(rng: np.random.Generator, ranges) -> tuple[float, float, float]:
+def _draw(rng: Draws, ranges) -> tuple[float, float, float]:
     rx, ry, ryaw = (float(r) for r in ranges)
     if min(rx, ry, ryaw) < 0 or not all(map(math.isfinite, (rx, ry, ryaw))):
         raise ValueError(f"ranges must be finite and >= 0, got {ranges}")
     return tuple(float(rng.uniform(-r, r)) if r > 0 else 0.0 for r in (rx, ry, ryaw))  # type: ignore[return-value]
 
 
-def sample_targets(twin, rng: np.random.Generator, object_range=(0.08, 0.08, math.radians(45)),
+def sample_targets(twin, rng: Draws, object_range=(0.08, 0.08, math.radians(45)),
                    target_range=(0.05, 0.05, math.radians(45))) -> dict[str, ObjectTarget]:
     """New start (and place) poses for every manipulated object of ``twin``.
 
@@ -72,7 +74,7 @@ def sample_targets(twin, rng: np.random.Generator, object_range=(0.08, 0.08, mat
     return out
 
 
-def sample_start(rng: np.random.Generator, q_source: np.ndarray, half_range: float, lower: np.ndarray,
+def sample_start(rng: Draws, q_source: np.ndarray, half_range: float, lower: np.ndarray,
                  upper: np.ndarray) -> np.ndarray:
     """The arm's first joint positions [dof] (rad) for a new demonstration: the source's first ones
     ``q_source`` [dof] moved on every joint by a uniform draw within +-``half_range`` (rad), then

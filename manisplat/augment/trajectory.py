@@ -43,6 +43,7 @@ import numpy as np
 
 from manisplat.augment.collision import BoxObstacle, SceneCollision
 from manisplat.augment.commands import SourceCommands
+from manisplat.augment.draws import Draws
 from manisplat.augment.errors import Rejected
 from manisplat.augment.frames import solid_points
 from manisplat.augment.kinematics import PinRobot
@@ -328,7 +329,7 @@ class Augmenter:
         start can be planned from."""
         return not self.src.skills or self.src.skills[0].first > 0
 
-    def sample_start(self, rng: np.random.Generator, half_range: float) -> np.ndarray:
+    def sample_start(self, rng: Draws, half_range: float) -> np.ndarray:
         """First joints (rad) for a new demonstration: the source's moved by up to +-``half_range``
         rad each, within the limits the augmentation plans in."""
         return sample_start(rng, self.src.q[0], half_range, self.kin.lower, self.kin.upper)

@@ -51,6 +51,12 @@ def test_an_even_spread_is_made_again_by_its_seed_and_changed_by_another():
     assert not np.allclose(a, c)
 
 
+def test_a_samples_point_does_not_depend_on_how_many_may_be_drawn():
+    """--n and --max-samples change how many points are made, not which: the same seed gives the
+    same first demonstrations."""
+    np.testing.assert_array_equal(_first(SampleDraws("even", 5, 10), 10, 6), _first(SampleDraws("even", 5, 300), 10, 6))
+
+
 def test_an_even_spread_serves_draws_in_order_and_in_range():
     draw = SampleDraws("even", 0, 4)(2)
     first = draw.uniform(-0.1, 0.1)

@@ -267,7 +267,7 @@ def test_the_chunk_length_the_options_allow_is_the_policys():
 
 
 def test_the_benchmarks_augmentation_is_the_documented_recipe():
-    """B's default --augment-object-range and --augment-start-range are the ones
+    """B's default --augment-object-range, --augment-start-range and --augment-sampling are the ones
     docs/training-policies.md tells users to pass to manisplat-augment."""
     import re
     import shlex
@@ -281,6 +281,9 @@ def test_the_benchmarks_augmentation_is_the_documented_recipe():
     defaults = _parser().parse_args([])
     assert [float(v) for v in option["--object-range"].split(",")] == list(defaults.augment_object_range)
     assert float(option["--start-range"]) == defaults.augment_start_range
+    from manisplat.augment.cli import build_parser
+
+    assert defaults.augment_sampling == option.get("--sampling", build_parser().get_default("sampling")) == "even"
     assert defaults.state_noise == 0.1 and defaults.train_seed == [0]
 
 
