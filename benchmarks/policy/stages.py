@@ -187,11 +187,10 @@ class Stages:
         if not path.exists():
             folders = self.augmented(n)
             meta = json.loads((self.source / "episode.json").read_text())
-            name = meta["objects"][0]
+            name, T0 = _source_start(self.source)
             labels = {v: int(k) for k, v in meta["labels"].items()}
             robot = [value for label, value in labels.items() if label.startswith("robot/")]
             object_label = labels[f"object/{name}"]
-            T0 = np.load(self.source / "gt.npz", allow_pickle=True)[f"T_base_{name}"][0]
             yaw0 = float(np.arctan2(T0[1, 0], T0[0, 0]))
             _log(f"the twin's first frames of {n} augmented demonstrations against the simulator's")
             scores, crops = [], []
@@ -296,7 +295,8 @@ class Stages:
         """Train the policy on the condition's demonstrations and evaluate it from ``seeds``."""
         key = self.key(condition, n)
         folders = self.folders(condition, n)
-        self.training_starts[key] = np.array([_start_pose(f, self.source) for f in folders])
+        source_start = _source_start(self.source)
+        self.training_starts[key] = np.array([_start_pose(f, source_start) for f in folders])
         budget = self.budget_of(steps)
         policy = self._policy(key, folders, budget)
         rollouts = self._rollouts(key, policy, seeds, envs)
@@ -389,12 +389,18 @@ def _cached_rollouts(folder: Path, stem: str, tag: str, seeds: set[int]) -> dict
     return found
 
 
-def _start_pose(folder: Path, source: Path) -> tuple[float, float, float]:
-    """The object's start (x m, y m, yaw rad; the simulator's frame) of a training demonstration:
-    an augmented one's first skill applied to the source's start (``fidelity.simulator_start``),
-    gen_demos' record, or the source's first-frame pose."""
+def _source_start(source: Path) -> tuple[str, np.ndarray]:
+    """The source's manipulated object and its first-frame pose [4, 4] (base frame, gt.npz: the
+    simulator's; read to score and to place the simulator's object only)."""
     name = json.loads((source / "episode.json").read_text())["objects"][0]
-    T0 = np.load(source / "gt.npz", allow_pickle=True)[f"T_base_{name}"][0]
+    return name, np.load(source / "gt.npz", allow_pickle=True)[f"T_base_{name}"][0]
+
+
+def _start_pose(folder: Path, source_start: tuple[str, np.ndarray]) -> tuple[float, float, float]:
+    """The object's start (x m, y m, yaw rad; the simulator's frame) of a training demonstration:
+    an augmented one's first skill applied to the source's start (``source_start``:
+    :func:`_source_start`; ``fidelity.simulator_start``), gen_demos' record, or the source's own."""
+    name, T0 = source_start
     if (folder / "augmentation.json").exists():
         from benchmarks.policy.fidelity import simulator_start
 

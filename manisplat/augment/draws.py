@@ -61,7 +61,7 @@ class SampleDraws:
     def __init__(self, sampling: str, seed: int, count: int) -> None:
         if sampling not in SAMPLINGS:
             raise ValueError(f"sampling must be one of {', '.join(SAMPLINGS)}, got {sampling!r}")
-        self.sampling, self.seed = sampling, int(seed)
+        self.seed = int(seed)
         self._points = None
         if sampling == "even":
             from scipy.stats import qmc

@@ -48,7 +48,7 @@ def test_training_starts_are_read_in_the_simulators_frame(tmp_path):
     scripted demonstration's record."""
     import json
 
-    from benchmarks.policy.stages import _start_pose
+    from benchmarks.policy.stages import _source_start, _start_pose
 
     source = tmp_path / "source"
     source.mkdir()
@@ -56,7 +56,7 @@ def test_training_starts_are_read_in_the_simulators_frame(tmp_path):
     T0 = np.eye(4)
     T0[:3, 3] = (0.3, -0.08, 0.02)
     np.savez(source / "gt.npz", T_base_box=T0[None])
-    assert _start_pose(source, source) == pytest.approx((0.3, -0.08, 0.0))
+    assert _start_pose(source, _source_start(source)) == pytest.approx((0.3, -0.08, 0.0))
 
     c, s = math.cos(0.5), math.sin(0.5)
     skill = np.array([[c, -s, 0, 0.01], [s, c, 0, 0.02], [0, 0, 1, 0], [0, 0, 0, 1]])
@@ -64,11 +64,11 @@ def test_training_starts_are_read_in_the_simulators_frame(tmp_path):
     augmented.mkdir(parents=True)
     (augmented / "augmentation.json").write_text(json.dumps({"segments": [
         {"kind": "motion"}, {"kind": "skill", "object": "box", "T": skill.tolist()}]}))
-    x, y, yaw = _start_pose(augmented, source)
+    x, y, yaw = _start_pose(augmented, _source_start(source))
     assert (x, y, yaw) == pytest.approx((c * 0.3 + s * 0.08 + 0.01, s * 0.3 - c * 0.08 + 0.02, 0.5))
 
     scripted = tmp_path / "oracle" / "demo_0001"
     scripted.mkdir(parents=True)
     (scripted.parent / "demos.json").write_text(json.dumps({"demos": [
         {"dir": "demo_0001", "object_pose": [0.25, -0.1, -0.3]}]}))
-    assert _start_pose(scripted, source) == pytest.approx((0.25, -0.1, -0.3))
+    assert _start_pose(scripted, _source_start(source)) == pytest.approx((0.25, -0.1, -0.3))
