@@ -133,8 +133,10 @@ def in_simulator_frame(episode: Path, source: Twin, parent: Path, out: Path) -> 
     ground truth at the source's first frame, read here only to set the simulator up). The twin's
     object frame keeps the base's axes at the object's first-frame centroid; the simulator's turns
     with the object and sits at its geometric centre: without this, a source object turned by 20
-    deg is promised 20 deg off."""
+    deg is promised 20 deg off. The per-frame poses the twin drew (``object_poses.npz``, where the
+    demonstration has it) are mapped the same way, for ``sim_render_states.py``."""
     from manisplat.augment.frames import to_centre_frame
+    from manisplat.augment.writer import OBJECT_POSES_FILE
     from manisplat.reconstruct.data import load_ground_truth
 
     gt = load_ground_truth(parent)
@@ -146,6 +148,11 @@ def in_simulator_frame(episode: Path, source: Twin, parent: Path, out: Path) -> 
         X = np.linalg.inv(to_centre_frame(source, name, source.object_poses[name][0])) @ gt[f"T_base_{name}"][0]
         augmentation["objects"][name] = {k: (np.asarray(v) @ X).tolist() for k, v in poses.items()}
     (out / "augmentation.json").write_text(json.dumps(augmentation))
+    if (episode / OBJECT_POSES_FILE).exists():
+        with np.load(episode / OBJECT_POSES_FILE) as drawn:
+            np.savez(out / OBJECT_POSES_FILE, **{
+                name: drawn[name] @ np.linalg.inv(source.object_poses[name][0]) @ gt[f"T_base_{name}"][0]
+                for name in drawn.files})
     return out
 
 

@@ -19,9 +19,14 @@ at new poses, where the simulator says what the new demonstrations look like (is
    twin (the same source and samples: the same new demonstrations, up to the few tenths of a
    millimetre the twins' poses of the source differ by), each executed by
    ``execute_episode.py --render``, the object started and aimed in the simulator's own frame
-   (:func:`benchmarks.bench_augment_shared.in_simulator_frame`); our images against the simulator's of the executed states:
-   PSNR per region (the simulator's masks), the object region's the figure issue 34 asks for.
-   A contact sheet shows one new demonstration: the simulator's render beside each twin's.
+   (:func:`benchmarks.bench_augment_shared.in_simulator_frame`), and drawn by the simulator at
+   the states the twin drew (``benchmarks/sim_render_states.py``: the same joints, fingers and
+   object poses, posed without physics). Our images against both: PSNR per region (the
+   simulator's masks). Against the executed states (``mean``) the figures hold what physics did
+   differently (the arm lagging its targets, the object slipping in the pads); against the same
+   states (``mean_same_states``) only how the twin draws them: the object region's is the figure
+   issue 34 asks for. A contact sheet shows one new demonstration: both simulator renders beside
+   each twin's.
 4. **Registration** of each episode's first frame to the first's (what a fused reconstruction
    starts each object from, :func:`manisplat.reconstruct.register.register_start`), against the
    ground truth's relative pose: rotation (deg) and position (mm) errors per episode.
@@ -50,6 +55,7 @@ from manisplat.reconstruct.config import RASTERIZE_MODES, SHADOW_CASTERS, SHADOW
 
 OWN_OPTIONS = True
 SOURCE = "episode_0001"
+STATE_RENDERER = BENCH_DIR / "sim_render_states.py"
 PEAK_RSS = ("import resource, subprocess, sys; code = subprocess.run(sys.argv[1:]).returncode; "
             "print('peak_rss_kb', resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss); sys.exit(code)")
 
@@ -86,7 +92,8 @@ def main(argv: list[str] | None = None) -> int:
     for count in counts:
         twins[count]["new_poses"] = _new_poses(simenv, work / f"twin_{count}", work / f"aug_{count}", episodes[0],
                                                args.demos)
-        print(f"{count} episodes, new poses: {json.dumps(twins[count]['new_poses']['mean'])}", flush=True)
+        print(f"{count} episodes, new poses: executed {json.dumps(twins[count]['new_poses']['mean'])}, "
+              f"same states {json.dumps(twins[count]['new_poses']['mean_same_states'])}", flush=True)
     registration = _registration(episodes) if len(episodes) > 1 else None  # one episode: nothing to register
     if registration is not None:
         print(f"registration: rotation error median {registration['rotation_deg_median']:.2f} deg, "
@@ -162,8 +169,10 @@ def _anchored(anchored: dict | None) -> dict | None:
 
 
 def _new_poses(simenv: Path, twin: Path, out: Path, parent: Path, demos: int) -> dict:
-    """``demos`` new demonstrations from ``twin`` (source episode_0001, seed 0), executed and
-    rendered by the simulator; our renders scored against its."""
+    """``demos`` new demonstrations from ``twin`` (source episode_0001, seed 0), executed by the
+    simulator with contact physics and drawn by it twice: the states physics made of their commands
+    (``sim_render``) and their own states, posed without physics (``sim_states``); our renders
+    scored against both."""
     from benchmarks.bench_augment_shared import in_simulator_frame, render_scores
     from manisplat.augment.cli import main as augment
     from manisplat.twin import Twin
@@ -174,19 +183,28 @@ def _new_poses(simenv: Path, twin: Path, out: Path, parent: Path, demos: int) ->
             raise MissingBenchmarkData(f"manisplat-augment failed on {twin}")
     source = Twin.load(twin).source(SOURCE)
     episodes = sorted(out.glob("episode_*"))
-    jobs = [SimJob("execute_episode.py", (str(in_simulator_frame(path, source, parent, out / "sim_input" / path.name)),
-                                          "--parent", str(parent), "--render", str(out / "sim_render" / path.name)),
-                   out / "sim_render" / path.name / "physics.json") for path in episodes]
-    run_sim_jobs(simenv, jobs)
+    inputs = [in_simulator_frame(path, source, parent, out / "sim_input" / path.name) for path in episodes]
+    executed = [SimJob("execute_episode.py", (str(copy), "--parent", str(parent), "--render",
+                                              str(out / "sim_render" / path.name)),
+                       out / "sim_render" / path.name / "physics.json") for path, copy in zip(episodes, inputs)]
+    posed = [SimJob(str(STATE_RENDERER), (str(copy), "--parent", str(parent), "--render",
+                                          str(out / "sim_states" / path.name)),
+                    out / "sim_states" / path.name / "render.json") for path, copy in zip(episodes, inputs)]
+    run_sim_jobs(simenv, executed + posed)
     rows = {}
-    for path, job in zip(episodes, jobs):
-        sim = out / "sim_render" / path.name
+    for path, job in zip(episodes, executed):
         physics = json.loads(job.report.read_text())
-        rows[path.name] = {**render_scores(path, sim), "success_clean": physics["success_clean"],
-                           "final_pos_err_cm": physics["final_pos_err_cm"]}
+        rows[path.name] = {**render_scores(path, out / "sim_render" / path.name),
+                           "same_states": render_scores(path, out / "sim_states" / path.name),
+                           "success_clean": physics["success_clean"], "final_pos_err_cm": physics["final_pos_err_cm"]}
     keys = [k for k in next(iter(rows.values())) if k.startswith(("psnr_", "ssim_"))]
-    return {"demonstrations": rows, "mean": {k: round(float(np.mean([r[k] for r in rows.values()])), 3) for k in keys},
+    return {"demonstrations": rows, "mean": _means(list(rows.values()), keys),
+            "mean_same_states": _means([r["same_states"] for r in rows.values()], keys),
             "success_clean": sum(r["success_clean"] for r in rows.values())}
+
+
+def _means(rows: list[dict], keys: list[str]) -> dict[str, float]:
+    return {k: round(float(np.mean([r[k] for r in rows])), 3) for k in keys}
 
 
 def _registration(episodes: list[Path]) -> dict:
@@ -221,16 +239,20 @@ def _registration(episodes: list[Path]) -> dict:
 
 
 def _sheet(work: Path, counts: list[int], path: Path, demo: str = "episode_0000") -> None:
-    """Three frames of one new demonstration: the simulator's render, then each twin's, in columns."""
+    """Three frames of one new demonstration in columns: the simulator's render of what physics made
+    of it, of its own states, then each twin's."""
     import cv2
 
-    simulator = sorted((work / f"aug_{counts[0]}" / "sim_render" / demo / "rgb").iterdir())
+    aug = work / f"aug_{counts[0]}"
+    executed = sorted((aug / "sim_render" / demo / "rgb").iterdir())
+    posed = sorted((aug / "sim_states" / demo / "rgb").iterdir())
     ours = {c: sorted((work / f"aug_{c}" / demo / "rgb").iterdir()) for c in counts}
-    n = min(len(simulator), *(len(v) for v in ours.values()))
+    n = min(len(executed), len(posed), *(len(v) for v in ours.values()))
     rows = []
     for i in (n // 4, n // 2, 3 * n // 4):
-        tiles = [cv2.imread(str(simulator[i]))] + [cv2.imread(str(ours[c][i])) for c in counts]
-        for tile, label in zip(tiles, ["simulator", *(f"twin of {c} episode{'s' * (c > 1)}" for c in counts)]):
+        tiles = [cv2.imread(str(executed[i])), cv2.imread(str(posed[i]))] + [cv2.imread(str(ours[c][i])) for c in counts]
+        for tile, label in zip(tiles, ["simulator, executed", "simulator, same states",
+                                       *(f"twin of {c} episode{'s' * (c > 1)}" for c in counts)]):
             cv2.putText(tile, f"{label}  frame {i}", (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1,
                         cv2.LINE_AA)
         rows.append(np.concatenate(tiles, axis=1))
