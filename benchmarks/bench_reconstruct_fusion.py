@@ -31,7 +31,12 @@ at new poses, where the simulator says what the new demonstrations look like (is
    starts each object from, :func:`manisplat.reconstruct.register.register_start`), against the
    ground truth's relative pose: rotation (deg) and position (mm) errors per episode.
 
-Ground truth is read only by the scoring (metrics.json's pose errors, the simulator's renders).
+5. **The state renderer's check**: the first episode's own states drawn by
+   ``sim_render_states.py`` against its recorded images (``renderer_check``): what the scoring
+   above gives a perfect twin.
+
+Ground truth is read only by the scoring (metrics.json's pose errors, the simulator's renders,
+the renderer's check).
 Writes ``benchmarks/results_reconstruct/reconstruct_fusion.json`` and
 ``reconstruct_fusion_sheet.png``.
 """
@@ -39,7 +44,9 @@ Writes ``benchmarks/results_reconstruct/reconstruct_fusion.json`` and
 from __future__ import annotations
 
 import argparse
+import csv
 import json
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -94,6 +101,8 @@ def main(argv: list[str] | None = None) -> int:
                                                args.demos)
         print(f"{count} episodes, new poses: executed {json.dumps(twins[count]['new_poses']['mean'])}, "
               f"same states {json.dumps(twins[count]['new_poses']['mean_same_states'])}", flush=True)
+    renderer_check = _renderer_check(simenv, episodes[0], work / "renderer_check")
+    print(f"the state renderer on {episodes[0].name}'s own states: {json.dumps(renderer_check)}", flush=True)
     registration = _registration(episodes) if len(episodes) > 1 else None  # one episode: nothing to register
     if registration is not None:
         print(f"registration: rotation error median {registration['rotation_deg_median']:.2f} deg, "
@@ -107,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
               "shadow_receivers": args.shadow_receivers, "shadow_casters": args.shadow_casters,
               "rasterize_mode": args.rasterize_mode, "object_position_rate": args.object_position_rate,
               "episodes": [e.name for e in episodes], "twins": {str(k): v for k, v in twins.items()},
-              "registration": registration, "sheet": sheet.name, "wall_s": round(time.perf_counter() - started, 1)}
+              "renderer_check": renderer_check, "registration": registration, "sheet": sheet.name, "wall_s": round(time.perf_counter() - started, 1)}
     args.out.write_text(json.dumps(result, indent=1) + "\n")
     print(f"wrote {args.out}")
     return 0
@@ -205,6 +214,30 @@ def _new_poses(simenv: Path, twin: Path, out: Path, parent: Path, demos: int) ->
 
 def _means(rows: list[dict], keys: list[str]) -> dict[str, float]:
     return {k: round(float(np.mean([r[k] for r in rows])), 3) for k in keys}
+
+
+def _renderer_check(simenv: Path, episode: Path, work: Path) -> dict[str, float]:
+    """What the new poses' scoring gives a perfect twin: ``episode``'s own states (its ground
+    truth's joints, gap and object poses) drawn by ``sim_render_states.py``, scored against its
+    recorded images as the new demonstrations are scored against the simulator's."""
+    from benchmarks.bench_augment_shared import render_scores
+    from manisplat.augment.writer import OBJECT_POSES_FILE
+    from manisplat.episode import Episode
+
+    recorded = Episode.open(episode)
+    gt = recorded.gt()
+    states = work / "states"
+    states.mkdir(parents=True, exist_ok=True)
+    shutil.copy(episode / "episode.json", states / "episode.json")
+    with open(states / "frames.csv", "w", newline="") as f:
+        rows = csv.writer(f)
+        rows.writerow(["index", "t", *(f"q{j}" for j in range(1, 7)), "gripper"])
+        rows.writerows([k, t, *q, gap] for k, (t, q, gap) in enumerate(zip(gt["t"], gt["q"], gt["gripper"])))
+    np.savez(states / OBJECT_POSES_FILE, **{name: gt[f"T_base_{name}"] for name in recorded.meta.objects})
+    render = work / "render"
+    run_sim_jobs(simenv, [SimJob(str(STATE_RENDERER), (str(states), "--parent", str(episode), "--render", str(render)),
+                                 render / "render.json")])
+    return {k: round(v, 2) for k, v in render_scores(episode, render).items() if k.startswith("psnr_")}
 
 
 def _registration(episodes: list[Path]) -> dict:
