@@ -7,8 +7,12 @@ exported demonstration is then executed by ``shared/tools/sim/execute_bimanual.p
 the sample was made in, with each object's new start and intended end: the source's
 (``episode_0.objects.json``, read only to score) moved by the same world transforms the
 demonstration moved the twin's object by. For the first ``--render-check`` demonstrations the
-simulator also renders every camera at the executed states, and the twin's images are scored
-against them per region (the simulator's masks).
+simulator also renders every camera twice, at the executed states (``renders_vs_simulator``: what
+physics made of the commands; the arms lag their targets, and a wrist camera's whole image moves
+with its link) and at the demonstration's own states, posed without physics
+(``renders_vs_simulator_same_states``, ``benchmarks/sim_render_bimanual_states.py``: how the twin
+draws what it was asked to), and the twin's images are scored against both per region (the
+simulator's masks).
 
 ``--planned M`` executes M more demonstrations that are planned (the planner manisplat-augment
 runs, its default ranges, another seed) but not rendered: their commands, as the export writes
@@ -100,6 +104,9 @@ def main(argv: list[str] | None = None) -> int:
     physics = execute_all(simenv, source, Twin.load(twin_dir), episodes, act, work / "physics", args.render_check)
     stages["physics_s"] = round(time.perf_counter() - t0, 1)
     renders = [score_renders(ep, work / "physics" / f"render_{k}", source) for k, ep in enumerate(episodes[:args.render_check])]
+    posed = render_same_states(simenv, source, Twin.load(twin_dir), episodes[:args.render_check], act,
+                               work / "same_states")
+    renders_same = [score_renders(ep, render, source) for ep, render in zip(episodes, posed)]
     planned = {}
     if args.planned:
         t0 = time.perf_counter()
@@ -114,12 +121,14 @@ def main(argv: list[str] | None = None) -> int:
                                                 "min_arm_clearance_m", "timing_s", "plan_s_per_sample")},
         "physics": summarise_physics(physics),
         **({"planned": planned["plan"], "physics_planned": summarise_physics(planned["physics"])} if planned else {}),
-        "renders_vs_simulator": summarise_renders(renders), "stages_s": stages,
+        "renders_vs_simulator": summarise_renders(renders),
+        "renders_vs_simulator_same_states": summarise_renders(renders_same), "stages_s": stages,
         "wall_s": round(time.perf_counter() - started, 1), "work": str(work),
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1, default=float) + "\n")
-    print(json.dumps({k: result.get(k) for k in ("augment", "physics", "physics_planned", "renders_vs_simulator")},
+    print(json.dumps({k: result.get(k) for k in ("augment", "physics", "physics_planned", "renders_vs_simulator",
+                                                 "renders_vs_simulator_same_states")},
                      indent=1, default=float))
     return 0
 
@@ -182,6 +191,32 @@ def execute_all(simenv: Path, source: Path, twin: Twin, episodes: list[Path], ac
     out.mkdir(parents=True, exist_ok=True)
     run_sim_jobs(simenv, jobs(), ok_codes=(0, 2))
     return [json.loads((out / f"episode_{k}.json").read_text()) | {"episode": ep.name} for k, ep in enumerate(episodes)]
+
+
+def render_same_states(simenv: Path, source: Path, twin: Twin, episodes: list[Path], act: Path, out: Path) -> list[Path]:
+    """The simulator's images of each demonstration's own states, posed without physics
+    (``benchmarks/sim_render_bimanual_states.py``): its exported joints (``/observations/qpos``,
+    what the twin drew) and each manipulated object's drawn poses in the simulator's frame (moved
+    from the source's start as the twin's object was moved from its own). The folders, one per
+    demonstration."""
+    spec = json.loads((source / "episode_0.objects.json").read_text())
+    jobs, renders = [], []
+    for k, ep in enumerate(episodes):
+        drawn = np.load(ep / "object_poses.npz")
+        with h5py.File(act / f"episode_{k}.hdf5", "r") as f:
+            states = {"q": np.asarray(f["observations/qpos"], np.float64)}
+        for name, o in spec["objects"].items():
+            if o["role"] == "manipulated":
+                to_simulator = np.linalg.inv(twin.object_poses[name][0]) @ np.asarray(o["T_start"])
+                states[f"T_world_{name}"] = drawn[name] @ to_simulator
+        out.mkdir(parents=True, exist_ok=True)
+        np.savez(out / f"states_{k}.npz", **states)
+        renders.append(out / f"render_{k}")
+        jobs.append(SimJob(str(BENCH_DIR / "sim_render_bimanual_states.py"),
+                           (str(out / f"states_{k}.npz"), "--calib", str(source / "episode_0.calib.json"),
+                            "--task", spec["task"], "--render", str(renders[-1])), out / f"render_{k}.json"))
+    run_sim_jobs(simenv, jobs)
+    return renders
 
 
 def summarise_physics(physics: list[dict]) -> dict:
