@@ -101,6 +101,8 @@ def main(argv: list[str] | None = None) -> int:
                                                args.demos)
         print(f"{count} episodes, new poses: executed {json.dumps(twins[count]['new_poses']['mean'])}, "
               f"same states {json.dumps(twins[count]['new_poses']['mean_same_states'])}", flush=True)
+    common = _common_samples({count: work / f"aug_{count}" for count in counts}, twins)
+    print(f"the {len(common['samples'])} samples every twin made: {json.dumps(common['mean_same_states'])}", flush=True)
     renderer_check = _renderer_check(simenv, episodes[0], work / "renderer_check")
     print(f"the state renderer on {episodes[0].name}'s own states: {json.dumps(renderer_check)}", flush=True)
     registration = _registration(episodes) if len(episodes) > 1 else None  # one episode: nothing to register
@@ -116,7 +118,8 @@ def main(argv: list[str] | None = None) -> int:
               "shadow_receivers": args.shadow_receivers, "shadow_casters": args.shadow_casters,
               "rasterize_mode": args.rasterize_mode, "object_position_rate": args.object_position_rate,
               "episodes": [e.name for e in episodes], "twins": {str(k): v for k, v in twins.items()},
-              "renderer_check": renderer_check, "registration": registration, "sheet": sheet.name, "wall_s": round(time.perf_counter() - started, 1)}
+              "new_poses_common_samples": common, "renderer_check": renderer_check, "registration": registration,
+              "sheet": sheet.name, "wall_s": round(time.perf_counter() - started, 1)}
     args.out.write_text(json.dumps(result, indent=1) + "\n")
     print(f"wrote {args.out}")
     return 0
@@ -210,6 +213,23 @@ def _new_poses(simenv: Path, twin: Path, out: Path, parent: Path, demos: int) ->
     return {"demonstrations": rows, "mean": _means(list(rows.values()), keys),
             "mean_same_states": _means([r["same_states"] for r in rows.values()], keys),
             "success_clean": sum(r["success_clean"] for r in rows.values())}
+
+
+def _common_samples(augmented: dict[int, Path], twins: dict[int, dict]) -> dict:
+    """The new poses' figures per twin over the samples (``manisplat-augment`` seeds) that every
+    twin turned into a demonstration: a twin's support map can refuse a sample another accepts,
+    and then their five demonstrations are not all the same ones."""
+    reports = {count: json.loads((folder / "augment_report.json").read_text()) for count, folder in augmented.items()}
+    episode_of = {count: {s["seed"]: s["episode"] for s in report["samples"] if s["valid"]}
+                  for count, report in reports.items()}
+    seeds = sorted(set.intersection(*(set(found) for found in episode_of.values())))
+    means: dict[str, dict[str, dict[str, float]]] = {"mean": {}, "mean_same_states": {}}
+    for count, found in episode_of.items():
+        rows = [twins[count]["new_poses"]["demonstrations"][found[seed]] for seed in seeds]
+        keys = [k for k in rows[0] if k.startswith(("psnr_", "ssim_"))] if rows else []
+        means["mean"][str(count)] = _means(rows, keys)
+        means["mean_same_states"][str(count)] = _means([r["same_states"] for r in rows], keys)
+    return {"samples": seeds, **means}
 
 
 def _means(rows: list[dict], keys: list[str]) -> dict[str, float]:
