@@ -17,7 +17,8 @@ at new poses, where the simulator says what the new demonstrations look like (is
    one offset for every episode).
 3. **New poses**: ``manisplat-augment TWIN --sources episode_0001 --n DEMOS --seed 0`` from each
    twin (the same source and samples: the same new demonstrations, up to the few tenths of a
-   millimetre the twins' poses of the source differ by), each executed by
+   millimetre the twins' poses of the source differ by, unless a twin's support map refuses a
+   sample another accepts: ``new_poses_common_samples`` compares the samples all made), each executed by
    ``execute_episode.py --render``, the object started and aimed in the simulator's own frame
    (:func:`benchmarks.bench_augment_shared.in_simulator_frame`), and drawn by the simulator at
    the states the twin drew (``benchmarks/sim_render_states.py``: the same joints, fingers and
@@ -233,6 +234,7 @@ def _common_samples(augmented: dict[int, Path], twins: dict[int, dict]) -> dict:
 
 
 def _means(rows: list[dict], keys: list[str]) -> dict[str, float]:
+    """The mean of each of ``keys`` over ``rows``, rounded to 3 decimals."""
     return {k: round(float(np.mean([r[k] for r in rows])), 3) for k in keys}
 
 
