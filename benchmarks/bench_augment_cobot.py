@@ -101,16 +101,17 @@ def main(argv: list[str] | None = None) -> int:
                          "--overwrite"]) != 0:
             raise RuntimeError("export failed")
     t0 = time.perf_counter()
-    physics = execute_all(simenv, source, Twin.load(twin_dir), episodes, act, work / "physics", args.render_check)
+    twin = Twin.load(twin_dir)
+    physics = execute_all(simenv, source, twin, episodes, act, work / "physics", args.render_check)
     stages["physics_s"] = round(time.perf_counter() - t0, 1)
-    renders = [score_renders(ep, work / "physics" / f"render_{k}", source) for k, ep in enumerate(episodes[:args.render_check])]
-    posed = render_same_states(simenv, source, Twin.load(twin_dir), episodes[:args.render_check], act,
-                               work / "same_states")
-    renders_same = [score_renders(ep, render, source) for ep, render in zip(episodes, posed)]
+    checked = episodes[:args.render_check]
+    renders = [score_renders(ep, work / "physics" / f"render_{k}", source) for k, ep in enumerate(checked)]
+    posed = render_same_states(simenv, source, twin, checked, act, work / "same_states")
+    renders_same = [score_renders(ep, render, source) for ep, render in zip(checked, posed)]
     planned = {}
     if args.planned:
         t0 = time.perf_counter()
-        planned = plan_and_execute(simenv, source, Twin.load(twin_dir), args.planned, work / "planned")
+        planned = plan_and_execute(simenv, source, twin, args.planned, work / "planned")
         stages["planned_s"] = round(time.perf_counter() - t0, 1)
 
     result = {
@@ -201,6 +202,7 @@ def render_same_states(simenv: Path, source: Path, twin: Twin, episodes: list[Pa
     demonstration."""
     spec = json.loads((source / "episode_0.objects.json").read_text())
     jobs, renders = [], []
+    out.mkdir(parents=True, exist_ok=True)
     for k, ep in enumerate(episodes):
         drawn = np.load(ep / "object_poses.npz")
         with h5py.File(act / f"episode_{k}.hdf5", "r") as f:
@@ -209,7 +211,6 @@ def render_same_states(simenv: Path, source: Path, twin: Twin, episodes: list[Pa
             if o["role"] == "manipulated":
                 to_simulator = np.linalg.inv(twin.object_poses[name][0]) @ np.asarray(o["T_start"])
                 states[f"T_world_{name}"] = drawn[name] @ to_simulator
-        out.mkdir(parents=True, exist_ok=True)
         np.savez(out / f"states_{k}.npz", **states)
         renders.append(out / f"render_{k}")
         jobs.append(SimJob(str(BENCH_DIR / "sim_render_bimanual_states.py"),

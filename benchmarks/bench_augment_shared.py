@@ -135,7 +135,7 @@ def in_simulator_frame(episode: Path, source: Twin, parent: Path, out: Path) -> 
     with the object and sits at its geometric centre: without this, a source object turned by 20
     deg is promised 20 deg off. The per-frame poses the twin drew (``object_poses.npz``, where the
     demonstration has it) are mapped the same way, for ``sim_render_states.py``."""
-    from manisplat.augment.frames import to_centre_frame
+    from manisplat.augment.frames import from_centre_frame
     from manisplat.augment.writer import OBJECT_POSES_FILE
     from manisplat.reconstruct.data import load_ground_truth
 
@@ -144,15 +144,15 @@ def in_simulator_frame(episode: Path, source: Twin, parent: Path, out: Path) -> 
     for name in ("frames.csv", "episode.json"):
         shutil.copy(episode / name, out / name)
     augmentation = json.loads((episode / "augmentation.json").read_text())
+    to_simulator = {name: np.linalg.inv(source.object_poses[name][0]) @ gt[f"T_base_{name}"][0]
+                    for name in augmentation["objects"]}  # the twin's object frame -> the simulator's
     for name, poses in augmentation["objects"].items():
-        X = np.linalg.inv(to_centre_frame(source, name, source.object_poses[name][0])) @ gt[f"T_base_{name}"][0]
-        augmentation["objects"][name] = {k: (np.asarray(v) @ X).tolist() for k, v in poses.items()}
+        mapped = from_centre_frame(source, name, np.asarray(list(poses.values()))) @ to_simulator[name]
+        augmentation["objects"][name] = {k: T.tolist() for k, T in zip(poses, mapped)}
     (out / "augmentation.json").write_text(json.dumps(augmentation))
     if (episode / OBJECT_POSES_FILE).exists():
         with np.load(episode / OBJECT_POSES_FILE) as drawn:
-            np.savez(out / OBJECT_POSES_FILE, **{
-                name: drawn[name] @ np.linalg.inv(source.object_poses[name][0]) @ gt[f"T_base_{name}"][0]
-                for name in drawn.files})
+            np.savez(out / OBJECT_POSES_FILE, **{name: drawn[name] @ to_simulator[name] for name in drawn.files})
     return out
 
 
