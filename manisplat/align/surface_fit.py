@@ -21,12 +21,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from scipy.spatial import cKDTree
+from manisplat.geometry.normals import point_normals
 
 MAX_VIEW_CHANGE_DEG = 50.0  # farther from every view the model was seen from, a frame is not fitted (ModelViews)
 NORMAL_AGREEMENT_DEG = 30.0  # a seen point and its nearest model point pair up when their normals agree this well
@@ -49,8 +47,9 @@ class SurfaceModel:
 
     @cached_property
     def normals(self) -> np.ndarray:
-        """Unit normals [M, 3] of the model points (sign arbitrary; :func:`point_normals`), made
-        when :meth:`fit_shift` first needs them: the tracker's depth check uses the misfit only."""
+        """Unit normals [M, 3] of the model points (sign arbitrary;
+        :func:`~manisplat.geometry.normals.point_normals`), made when :meth:`fit_shift` first needs
+        them: the tracker's depth check uses the misfit only."""
         return point_normals(self.points, MODEL_NORMAL_NEIGHBOURS, self._tree)
 
     def match(self, surfaces: list[np.ndarray], poses: list[np.ndarray],
@@ -117,20 +116,6 @@ class SurfaceModel:
         spread = np.concatenate(distances) if distances else np.zeros(0)
         return normal_eq, rhs, float(spread.mean()) if len(spread) else self.cap
 
-
-def point_normals(points: np.ndarray, neighbours: int, tree: cKDTree | None = None) -> np.ndarray:
-    """Unit normals [M, 3] (sign arbitrary) of the points [M, 3]: the direction of least spread of
-    each point's ``neighbours`` nearest (zero where there are fewer than 3 points); ``tree``: a
-    cKDTree of ``points`` already built."""
-    from scipy.spatial import cKDTree
-
-    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    if len(points) < 3:
-        return np.zeros_like(points)
-    _, idx = (tree or cKDTree(points)).query(points, k=min(neighbours, len(points)))
-    patch = points[idx] - points[idx].mean(axis=1, keepdims=True)
-    _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", patch, patch))
-    return vectors[:, :, 0]
 
 
 @dataclass(frozen=True)
