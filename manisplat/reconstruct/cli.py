@@ -100,7 +100,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-shadows", action="store_true", help="do not model the moving parts' cast shadows")
     p.add_argument("--shadow-receivers", default="all", choices=SHADOW_RECEIVERS,
                    help="what the cast shadows darken: all (the background and the moving parts: the gripper's "
-                        "shadow on the object; default) or background (the parts keep recorded shadows in their colour)")
+                        "shadow on the object; default), background (the parts keep recorded shadows in their colour) "
+                        "or shaded (as all, and the objects lit by their surfaces' angle to the light: a face turned "
+                        "to a new yaw takes that pose's light)")
     p.add_argument("--shadow-casters", default="gaussians", choices=SHADOW_CASTERS,
                    help="what casts the links' shadows: gaussians (the links' fitted Gaussians, whose shadows come out "
                         "wider; default) or meshes (the robot description's link meshes: the links' outlines)")

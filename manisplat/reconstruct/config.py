@@ -21,8 +21,10 @@ class TrainConfig:
             synthetic images multiplied the Gaussians by 6 and the time with them).
         shadows: learn cast shadows of the moving parts (searched at ``shadow_start``).
         shadow_receivers: what they darken: "all" (the background and the moving parts: the
-            gripper's shadow on the object, the arm's on itself) or "background" (the earlier
-            model, whose moving parts bake what shadows they had in the recording into colour).
+            gripper's shadow on the object, the arm's on itself), "background" (the earlier
+            model, whose moving parts bake what shadows they had in the recording into colour) or
+            "shaded" ("all", and the objects lit by their surfaces' angle to the light:
+            :mod:`manisplat.scene.shadows`).
         shadow_casters: what casts the links' shadows: "gaussians" (the links' fitted Gaussians,
             which reach past the surface: wider shadows) or "meshes" (points sampled over the robot
             description's link meshes: the links' outlines; the Gaussians where it has none).
@@ -113,7 +115,7 @@ def default_iters(device: str) -> int:
 
 COMPILE_CHOICES = ("auto", "on", "off")
 #: TrainConfig.shadow_receivers' values (manisplat.scene.shadows.RECEIVERS, here without torch)
-SHADOW_RECEIVERS = ("all", "background")
+SHADOW_RECEIVERS = ("all", "background", "shaded")
 #: TrainConfig.shadow_casters' values
 SHADOW_CASTERS = ("meshes", "gaussians")
 #: TrainConfig.rasterize_mode's values (manisplat.splat.RASTERIZE_MODES, here without torch)

@@ -166,7 +166,7 @@ class Reconstruction:
     def _light_groups(model: DirectionalShadows) -> list[dict]:
         groups = [{"params": [model.direction], "lr": 1e-3, "name": "light_direction"},
                   {"params": [model.strength_logit], "lr": 1e-2, "name": "light_strength"}]
-        if model.receivers == "all":
+        if model.receivers != "background":
             groups.append({"params": [model.moving_strength_logit], "lr": 1e-2, "name": "light_strength_moving"})
         return groups
 
@@ -348,6 +348,8 @@ class Reconstruction:
                         "n_cameras": meta["n_cameras"]}
                 self.strategies[node.name].step_post_backward(g.params, g.optimizers, g.strategy_state, self.step, info)
         self._schedule_means(self.optimizer.param_groups)
+        if self.step % max(self.config.refine_every, 1) == 0:
+            self.graph.refresh_normals()  # the objects' Gaussians have moved: remake their normals when next used
 
     def _schedule_means(self, param_groups: list[dict]) -> None:
         """Set the positions' groups to the schedule's rate at the current step (times each group's

@@ -12,12 +12,14 @@ from dataclasses import dataclass
 import torch
 
 from manisplat.compilation import compilable
+from manisplat.geometry.normals import outward_normals
 from manisplat.scene.gaussians import GaussianSet
 from manisplat.scene.placement import Activated, join, place_scene
 from manisplat.scene.shadows import DirectionalShadows, darken
 from manisplat.scene.transforms import transform_gaussians
 
 BACKGROUND, ROBOT = 0, 1
+NORMAL_NEIGHBOURS = 12  # an object Gaussian's normal: the plane of its nearest centres (shaded receivers)
 
 
 @dataclass(frozen=True)
@@ -65,6 +67,7 @@ class SceneGraph:
         #: (:func:`manisplat.splat.rasterization`'s ``rasterize_mode``)
         self.rasterize_mode = "classic"
         self._index_cache: tuple | None = None  # see _node_index
+        self._normals: dict[str, torch.Tensor] = {}  # see object_normals
 
     @property
     def object_names(self) -> list[str]:
@@ -131,7 +134,7 @@ class SceneGraph:
             return Composed(*parts[0][:5], groups, slices=slices)
         bg = tuple(parts[0][:5]) if self.background is not None else None
         moving = tuple(torch.cat([part[k] for part in dynamic]) for k in range(5))
-        return Composed(*self._join_shaded(bg, moving, link_poses), groups, slices=slices)
+        return Composed(*self._join_shaded(bg, moving, link_poses, object_poses), groups, slices=slices)
 
     def _compose_batched(self, link_poses: torch.Tensor, object_poses: dict[str, torch.Tensor],
                          camera_center: torch.Tensor | None) -> Composed | None:
@@ -168,23 +171,57 @@ class SceneGraph:
         for n, count in zip(dynamic, counts):
             slices[n.name] = (start, start + count)
             start += count
-        return Composed(*self._join_shaded(bg, moving, link_poses), groups, slices=slices)
+        return Composed(*self._join_shaded(bg, moving, link_poses, object_poses), groups, slices=slices)
+
+    def object_normals(self, name: str) -> torch.Tensor:
+        """[N, 3] float32 the outward unit normals of object ``name``'s Gaussians in its frame
+        (:func:`~manisplat.geometry.normals.outward_normals` of their centres), made when first
+        needed and again when their number changes or after :meth:`refresh_normals`."""
+        g = self.objects[name]
+        cached = self._normals.get(name)
+        if cached is None or len(cached) != len(g):
+            means = g.params["means"].detach().cpu().double().numpy()
+            cached = torch.as_tensor(outward_normals(means, NORMAL_NEIGHBOURS), dtype=torch.float32).to(g.device)
+            self._normals[name] = cached
+        return cached
+
+    def refresh_normals(self) -> None:
+        """Let the next use remake the objects' normals (their Gaussians have moved)."""
+        self._normals.clear()
+
+    def _lit(self, object_poses: dict[str, torch.Tensor], moving: int) -> torch.Tensor:
+        """[moving] the cosine (clamped at 0) of each moving Gaussian's surface to the light: the
+        objects' from their normals at ``object_poses``, the links' 1 (they are darkened as with
+        "all" receivers)."""
+        towards = self.shadows.direction / self.shadows.direction.norm().clamp_min(1e-12)
+        parts = [towards.new_ones(self.link_gaussians)]
+        for name in self.objects:
+            R = object_poses[name][:3, :3].to(towards.dtype)
+            parts.append(((self.object_normals(name) @ R.T) @ towards).clamp_min(0.0))
+        lit = torch.cat(parts)
+        if len(lit) != moving:
+            raise ValueError(f"shaded receivers: {len(lit)} link and object Gaussians, the union moves {moving}")
+        return lit
 
     @property
     def link_gaussians(self) -> int:
         """How many of the moving nodes' Gaussians (the links', then the objects', in a union) are the links'."""
         return sum(len(g) for g in self.links.values())
 
-    def _join_shaded(self, background: Activated | None, moving: Activated, link_poses: torch.Tensor) -> Activated:
+    def _join_shaded(self, background: Activated | None, moving: Activated, link_poses: torch.Tensor,
+                     object_poses: dict[str, torch.Tensor]) -> Activated:
         """The background's and the moving nodes' placed Gaussians as one set, darkened where the
-        moving nodes (the links at ``link_poses`` [L, 4, 4]) shadow the light
-        (:meth:`DirectionalShadows.occluders`, :func:`_shade_and_join`; the moving nodes too when
-        the shadows fall on every receiver)."""
+        moving nodes (the links at ``link_poses`` [L, 4, 4], the objects at ``object_poses``)
+        shadow the light (:meth:`DirectionalShadows.occluders`, :func:`_shade_and_join`; the moving
+        nodes too when the shadows fall on every receiver, the objects by their surfaces' angle to
+        the light too when "shaded")."""
         if self.shadows is None or background is None:
             return _shade_and_join(background, moving, None)
         shadow = self.shadows.shadow_inputs(self.shadows.occluders(moving, link_poses, self.link_gaussians))
-        moving_strength = self.shadows.moving_strength_logit if self.shadows.receivers == "all" else None
-        return _shade_and_join(background, moving, shadow, moving_strength)
+        receivers = self.shadows.receivers
+        moving_strength = self.shadows.moving_strength_logit if receivers != "background" else None
+        lit = self._lit(object_poses, len(moving[0])) if receivers == "shaded" else None
+        return _shade_and_join(background, moving, shadow, moving_strength, lit)
 
     def _node_index(self, background: int, counts: tuple[int, ...], groups: list[int],
                     device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
@@ -205,11 +242,11 @@ class SceneGraph:
 
 @compilable
 def _shade_and_join(background: Activated | None, moving: Activated, shadow: tuple | None,
-                    moving_strength_logit: torch.Tensor | None = None) -> Activated:
+                    moving_strength_logit: torch.Tensor | None = None, lit: torch.Tensor | None = None) -> Activated:
     """The union of the background (its colours darkened where ``shadow``, the inputs of
     :func:`~manisplat.scene.shadows.darken` after the colours and points, says) and the moving nodes
     (darkened too, by ``moving_strength_logit`` [3] in place of the background's strength, when
-    given; their positions detached)."""
+    given, and by their surfaces' ``lit`` [M] when given; their positions detached)."""
     if background is None:
         return moving
     if shadow is not None:
@@ -218,5 +255,5 @@ def _shade_and_join(background: Activated | None, moving: Activated, shadow: tup
         if moving_strength_logit is not None:
             means, quats, scales, opacities, colors = moving
             moving = (means, quats, scales, opacities,
-                      darken(colors, means.detach(), moving_strength_logit, *shadow[1:]))
+                      darken(colors, means.detach(), moving_strength_logit, *shadow[1:], lit))
     return join([background, moving])

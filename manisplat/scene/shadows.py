@@ -19,6 +19,14 @@ likewise), with a strength of their own (a table and a link's surface turned els
 different shares of their light): the gripper darkens the object under it and the arm darkens
 itself, as in the images, instead of that darkening being baked into their colours where the
 recording had it and missing where a new demonstration puts it.
+
+With ``receivers="shaded"`` the objects are also lit by the angle of their surface to the light:
+a face turned away loses the light's share whether anything occludes it or not, one turned
+towards it keeps it where nothing does (:func:`darken`'s ``lit``, each Gaussian's outward normal
+from its neighbours, :func:`~manisplat.geometry.normals.outward_normals`). An object's learned
+colours then hold its surface, not the shading of the poses it was recorded in: turned to a new
+yaw (augmentation; another episode of a fused twin) a face takes the light that pose gives it.
+The links, which have no such normals here, keep the "all" darkening.
 """
 
 from __future__ import annotations
@@ -35,7 +43,7 @@ from manisplat.splat import rasterization
 CASTER_SPACING = 0.004  # m between the surface samples that cast the links' shadows (surface_casters)
 CASTER_SIGMA = 0.5 * CASTER_SPACING  # m, standard deviation of each sample's round Gaussian: neighbours overlap
 LIGHT_DISTANCE = 100.0  # m: far enough that the pinhole light camera is nearly orthographic
-RECEIVERS = ("all", "background")  # which Gaussians receive the shadows (DirectionalShadows.receivers)
+RECEIVERS = ("all", "background", "shaded")  # which Gaussians receive the shadows (DirectionalShadows.receivers)
 
 
 @compilable
@@ -94,8 +102,9 @@ class DirectionalShadows(torch.nn.Module):
         center, extent: where the shadow map looks (m) and how wide it is; cover the robot's reach.
         resolution: shadow-map size in pixels.
         softness: occluder depth margin (m) below which a point is not considered shadowed.
-        receivers: which Gaussians the shadows darken: "background" or "all" (the moving nodes
-            too; see the module's docstring).
+        receivers: which Gaussians the shadows darken: "background", "all" (the moving nodes
+            too) or "shaded" (as "all", the objects also by their surfaces' angle to the light; see
+            the module's docstring).
         casters: (points [P, 3] each in its link's frame, link index [P] in FK order) of the
             links' surfaces (:func:`surface_casters`), which then cast the links' shadows in place
             of their Gaussians; None: the links' Gaussians cast.
@@ -124,8 +133,8 @@ class DirectionalShadows(torch.nn.Module):
 
     @property
     def moving_strength(self) -> torch.Tensor | None:
-        """[3] the same for the moving nodes' Gaussians (None unless ``receivers == "all"``)."""
-        return torch.sigmoid(self.moving_strength_logit) if self.receivers == "all" else None
+        """[3] the same for the moving nodes' Gaussians (None when only the background receives)."""
+        return torch.sigmoid(self.moving_strength_logit) if self.receivers != "background" else None
 
     @property
     def has_casters(self) -> bool:
@@ -203,11 +212,15 @@ def _sample_occlusion(points: torch.Tensor, alpha_map: torch.Tensor, depth_map: 
 
 
 def darken(colors: torch.Tensor, points: torch.Tensor, strength_logit: torch.Tensor, alpha_map: torch.Tensor,
-           depth_map: torch.Tensor, view: torch.Tensor, K: torch.Tensor, softness: float) -> torch.Tensor:
-    """Colours [N, 3] of points [N, 3] scaled by ``1 - strength * occlusion`` (strength [3] from its
-    logit; the occlusion from the shadow map, as :func:`_sample_occlusion`)."""
+           depth_map: torch.Tensor, view: torch.Tensor, K: torch.Tensor, softness: float,
+           lit: torch.Tensor | None = None) -> torch.Tensor:
+    """Colours [N, 3] of points [N, 3] scaled by ``1 - strength * (1 - lit * (1 - occlusion))``
+    (strength [3] from its logit: the light's share of a surface facing it; the occlusion from the
+    shadow map, as :func:`_sample_occlusion`; ``lit`` [N] the cosine of each surface's angle to the
+    light, clamped at 0; None: 1, ``1 - strength * occlusion``)."""
     occlusion = _sample_occlusion(points, alpha_map, depth_map, view, K, softness)
-    return colors * (1.0 - torch.sigmoid(strength_logit) * occlusion[:, None])
+    unlit = occlusion if lit is None else 1.0 - lit * (1.0 - occlusion)
+    return colors * (1.0 - torch.sigmoid(strength_logit) * unlit[:, None])
 
 
 @torch.no_grad()

@@ -125,6 +125,59 @@ def test_the_moving_parts_receive_shadows_with_their_own_strength(path, receiver
         assert darkened == {"shaded": pytest.approx(0.0, abs=1e-6), "lit": pytest.approx(0.0, abs=1e-6)}
 
 
+def _cube_surface(half: float = 0.02, n: int = 7) -> torch.Tensor:
+    """Points [6 n^2, 3] on the faces of a cube of half-side ``half`` (m) centred at the origin."""
+    u = torch.linspace(-half, half, n)
+    a, b = (x.reshape(-1) for x in torch.meshgrid(u, u, indexing="ij"))
+    faces = []
+    for axis in range(3):
+        for sign in (-1.0, 1.0):
+            p = torch.zeros(len(a), 3)
+            p[:, axis] = sign * half
+            p[:, [k for k in range(3) if k != axis]] = torch.stack([a, b], dim=1)
+            faces.append(p)
+    return torch.cat(faces)
+
+
+@pytest.mark.parametrize("path", ["batched", "node by node"])
+def test_shaded_objects_take_the_light_their_pose_turns_them_to(path):
+    """With "shaded" receivers a cube's face the light only grazes loses the moving parts' share of
+    it though nothing occludes it ("all" leaves it half lit), the face towards it keeps most; turned a
+    quarter round, the same Gaussians swap: the shading follows the pose, not the colours. A link
+    keeps the "all" darkening."""
+    light = direction_from_angles(0.0, math.radians(30))  # from +x, 30 deg up: the +-y faces grazed
+    cube = _cube_surface()
+    graph = SceneGraph(_node(torch.tensor([[0.0, 0.0, -0.5], [0.5, 0.5, -0.5]])),
+                       {"link1": _node(blob(torch.zeros(3))[0], sh_degree=int(path == "node by node"))},
+                       ["link1"], {"box": _node(cube)})
+    graph.shadows = DirectionalShadows(light, torch.zeros(3), extent=1.2, receivers="shaded")
+    with torch.no_grad():
+        graph.shadows.moving_strength_logit.fill_(math.log(0.6 / 0.4))  # the moving parts' surfaces facing it: 60 %
+    far = torch.eye(4)
+    far[:3, 3] = torch.tensor([0.4, 0.4, 0.3])
+    base = float(torch.sigmoid(torch.logit(torch.tensor(0.8))))
+    inner = (cube[:, 2].abs() < 0.015)  # off the top and bottom edges, whose normals lean
+    plus_x = inner & (cube[:, 0] > 0.019) & (cube[:, 1].abs() < 0.015)
+    plus_y = inner & (cube[:, 1] > 0.019) & (cube[:, 0].abs() < 0.015)
+
+    def darkened(turn: float, receivers: str) -> tuple[float, float, torch.Tensor]:
+        graph.shadows.receivers = receivers
+        pose = torch.eye(4)
+        pose[:2, :2] = torch.tensor([[math.cos(turn), -math.sin(turn)], [math.sin(turn), math.cos(turn)]])
+        with torch.no_grad():
+            g = graph.compose(far[None], {"box": pose})
+        start, end = g.slices["object/box"]
+        box = 1 - g.colors[start:end].mean(-1) / base
+        return float(box[plus_x].mean()), float(box[plus_y].mean()), g.colors[slice(*g.slices["robot/link1"])]
+
+    facing, grazed, link = darkened(0.0, "shaded")
+    assert grazed == pytest.approx(0.6, abs=0.05) and facing < 0.3
+    unshaded_facing, unshaded_grazed, unshaded_link = darkened(0.0, "all")
+    assert unshaded_grazed < grazed - 0.15 and torch.allclose(link, unshaded_link, atol=1e-6)
+    turned_x, turned_y, _ = darkened(-math.pi / 2, "shaded")  # +y now faces the light, +x is grazed
+    assert turned_x == pytest.approx(0.6, abs=0.05) and turned_y == pytest.approx(facing, abs=0.05)
+
+
 def test_surface_casters_cover_each_link_about_a_spacing_apart():
     plate = trimesh.creation.box((0.1, 0.1, 0.01))
     points, links = surface_casters({2: plate, 0: trimesh.creation.box((0.02, 0.02, 0.02))}, spacing=0.005)
