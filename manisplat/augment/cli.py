@@ -95,6 +95,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "that all start from one pose and run straight to their targets let a policy read the "
                         "target off its own joints instead of the image (default 0: the source's start; on a "
                         "two-arm twin, every arm)")
+    p.add_argument("--max-view-change", type=bounded(0.0, 180.0), metavar="DEG",
+                   help="discard a new demonstration that shows an object from more than DEG away from every view "
+                        "the recording's fixed cameras had of it (a side the twin never saw: drawn in colours it "
+                        "never fitted; above 15 deg it is reported and warned of; default: not discarded)")
     p.add_argument("--sources", default="all", metavar="all|EPISODE,...",
                    help="the source demonstrations of a twin of several episodes: all (the default), or those named; "
                         "sample k starts from the k-th of them in turn, and the report names each one's source")
@@ -180,6 +184,10 @@ def summary(report: dict, out: Path) -> str:
         motions = report["motions"]
         lines.append(f"motions: {motions['planned']} (" + ", ".join(f"{v} {k}" for k, v in motions["by_method"].items())
                      + f"); {motions['joined_at_rest']} stopped at a skill to turn (joined at rest)")
+    views = report.get("view_change_deg")
+    if views:
+        lines.append(f"view change from the recording: median {views['median']:.0f} deg, max {views['max']:.0f} deg; "
+                     f"{views['above_warning']} above {views['warning_deg']:g} deg (sides the twin never saw)")
     lines.append(f"look at: {out / 'tcp_paths.png'}, {out / 'sheets'}/, {out / REPORT}")
     return "\n".join(lines)
 

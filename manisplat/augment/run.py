@@ -11,7 +11,7 @@ import shutil
 import time
 from collections import Counter
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +24,7 @@ from manisplat.augment.frames import from_centre_frame, to_centre_frame
 from manisplat.augment.symmetry import Symmetry
 from manisplat.augment.trajectory import (AugmentConfig, NewTrajectory, ObjectTarget, Rejected, augment_trajectory,
                                           augmenter_for, sample_targets)
+from manisplat.augment.views import UNSEEN_WARN_DEG, SeenViews
 from manisplat.augment.writer import write_demonstration
 from manisplat.episode.fsio import atomic_write_bytes
 from manisplat.robot.arms import ArmSet
@@ -52,6 +53,8 @@ class Sample:
     plan_s: float = 0.0
     episode: str | None = None
     source: str = ""  # the source demonstration it was planned from (its episode's name)
+    #: object -> the largest angle (deg) from a recorded view it is seen at (:mod:`.views`)
+    view_change_deg: dict[str, float] = field(default_factory=dict)
     #: first joints (rad; arm name -> joints on a two-arm twin) when --start-range moved them
     start_q: np.ndarray | dict[str, np.ndarray] | None = None
 
@@ -78,6 +81,9 @@ def run_augmentation(args: argparse.Namespace) -> dict:
     object_range = (args.object_range[0], args.object_range[1], np.radians(args.object_range[2]))
     target_range = (args.target_range[0], args.target_range[1], np.radians(args.target_range[2]))
     draws = SampleDraws(args.sampling, args.seed, limit)
+    views = SeenViews.of(twin)
+    if views is None and args.max_view_change is not None:
+        raise AugmentError("--max-view-change: the twin has no fixed camera whose views could be compared")
 
     samples: list[Sample] = []
     bar = tqdm(total=wanted, desc="planning", unit="demo", disable=args.quiet)
@@ -100,8 +106,12 @@ def run_augmentation(args: argparse.Namespace) -> dict:
                 half_range = np.radians(args.start_range)
                 sample.start_q = arms.sample_starts(rng, half_range) if arms is not None else \
                     augmenter_for(source).sample_start(rng, half_range)
-            sample.trajectory = arms.run(targets, config, sample.start_q) if arms is not None else \
+            trajectory = arms.run(targets, config, sample.start_q) if arms is not None else \
                 augment_trajectory(source, targets, config, sample.start_q)
+            if views is not None:
+                sample.view_change_deg = views.change_deg(trajectory.object_poses)
+                _check_views(sample.view_change_deg, args.max_view_change)
+            sample.trajectory = trajectory
             bar.update(1)
         except Rejected as exc:
             sample.reason, sample.detail = exc.reason, exc.detail
@@ -112,6 +122,11 @@ def run_augmentation(args: argparse.Namespace) -> dict:
     bar.close()
     plan_s = time.perf_counter() - start
     valid = [s for s in samples if s.trajectory is not None]
+    unseen = [s for s in valid if max(s.view_change_deg.values(), default=0.0) > UNSEEN_WARN_DEG]
+    if unseen:
+        log.warning("%d of %d new demonstrations show an object from more than %g deg away from every view the "
+                    "recording had of it: sides the twin never saw (--max-view-change discards them; more "
+                    "demonstrations of the scene add views)", len(unseen), len(valid), UNSEEN_WARN_DEG)
     for k, s in enumerate(valid):
         s.episode = f"episode_{k:04d}"
 
@@ -127,6 +142,14 @@ def run_augmentation(args: argparse.Namespace) -> dict:
                      handover=any(a is not None and bool(a.handovers) for a in planners.values()))
     atomic_write_bytes(args.out / REPORT, (json.dumps(report, indent=1) + "\n").encode())
     return report
+
+
+def _check_views(change_deg: dict[str, float], limit: float | None) -> None:
+    """Rejected("unseen_side") when an object's view change (deg) exceeds ``limit`` (None: never)."""
+    for name, angle in change_deg.items():
+        if limit is not None and angle > limit:
+            raise Rejected("unseen_side", f"{name} is seen {angle:.0f} deg from every recorded view of it "
+                                          f"(--max-view-change {limit:g})")
 
 
 def reconstruct_command(recon: Path) -> str:
@@ -310,6 +333,8 @@ def _report(twin: Twin, args: argparse.Namespace, samples: list[Sample], wanted:
         "ranges": {"object": args.object_range, "target": args.target_range, "units": "m, m, deg",
                    **({"handover": args.handover_range, "handover_units": "m, m, m"} if handover else {})},
         "start_range_deg": args.start_range,
+        "max_view_change_deg": args.max_view_change,
+        "view_change_deg": _view_summary(valid),
         "speed": args.speed, "profile": args.profile, "workers": args.workers,
         "symmetry": {name: "round" if sym.order is None else sym.order for name, sym in args.symmetries.items()},
         "skill_error_max": {"mm": max(skill_mm, default=0.0), "deg": max(skill_deg, default=0.0)},
@@ -318,10 +343,21 @@ def _report(twin: Twin, args: argparse.Namespace, samples: list[Sample], wanted:
         "timing_s": {k: round(v, 2) for k, v in timing.items()},
         "plan_s_per_sample": round(float(np.mean([s.plan_s for s in samples])) if samples else 0.0, 4),
         "samples": [{"index": s.index, "seed": s.seed, "source": s.source, "valid": s.trajectory is not None,
-                     "episode": s.episode, "reason": s.reason, "detail": s.detail, "plan_s": round(s.plan_s, 4)} for s in samples],
+                     "episode": s.episode, "reason": s.reason, "detail": s.detail, "plan_s": round(s.plan_s, 4),
+                     "view_change_deg": s.view_change_deg} for s in samples],
         **({"min_arm_clearance_m": min(clearances),  # and how many needed one arm to wait
             "arm_waited": sum("waited" in traj.validation for traj in several)} if clearances else {}),
     }
+
+
+def _view_summary(valid: list[Sample]) -> dict | None:
+    """The written demonstrations' view changes (:mod:`.views`): median, largest, how many above
+    :data:`~manisplat.augment.views.UNSEEN_WARN_DEG`; None without a fixed camera."""
+    worst = [max(s.view_change_deg.values(), default=0.0) for s in valid if s.view_change_deg]
+    if not worst:
+        return None
+    return {"median": round(float(np.median(worst)), 2), "max": round(max(worst), 2),
+            "above_warning": sum(w > UNSEEN_WARN_DEG for w in worst), "warning_deg": UNSEEN_WARN_DEG}
 
 
 def _per_arm(traj: NewTrajectory | BimanualTrajectory) -> list[NewTrajectory]:

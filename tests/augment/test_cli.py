@@ -124,6 +124,21 @@ def test_explicit_poses_and_an_unreachable_one(recon, tmp_path, capsys):
     assert "ik_unreachable 1" in capsys.readouterr().out
 
 
+def test_views_the_recording_never_had_are_reported_and_discarded_on_request(augmented, recon, tmp_path):
+    report = json.loads((augmented[1] / "augment_report.json").read_text())
+    changes = [s["view_change_deg"]["box"] for s in report["samples"] if s["valid"]]
+    assert len(changes) == 2 and all(0 <= c <= 180 for c in changes)
+    assert report["view_change_deg"]["max"] == max(changes) and report["max_view_change_deg"] is None
+    assert f"max {max(changes):.0f} deg" in summary(report, augmented[1])
+    out = tmp_path / "aug"
+    limit = min(changes) / 2  # below both written demonstrations' view changes (the same seed draws them again)
+    main([str(recon), "--n", "2", "--out", str(out), "--seed", "3", "--max-samples", "2",
+          "--max-view-change", f"{limit:.4f}", "-q"])
+    strict = json.loads((out / "augment_report.json").read_text())
+    assert strict["reasons"] == {"unseen_side": 2} and strict["written"] == 0
+    assert "deg from every recorded view of it" in strict["samples"][0]["detail"]
+
+
 def test_a_folder_without_a_twin_is_a_clear_error(tmp_path, capsys):
     assert main([str(tmp_path), "--out", str(tmp_path / "aug"), "-q"]) == 2
     err = capsys.readouterr().err
@@ -186,7 +201,7 @@ def test_the_report_counts_how_the_motions_were_planned():
                Sample(2, 2, {}, None, reason="collision")]
     args = SimpleNamespace(recon="twin", seed=0, object_range=(0.08, 0.08, 45), target_range=(0.05, 0.05, 45),
                            speed=1.0, profile="time-optimal", workers=1, symmetries={}, start_range=0.0,
-                           sampling="random")
+                           sampling="random", max_view_change=None)
     report = _report(SimpleNamespace(episode="ep"), args, samples, 2, {})
     assert report["motions"] == {"planned": 4, "joined_at_rest": 2,
                                  "by_method": {"straight": 1, "rrtconnect": 2, "stop along the last velocity": 1}}
