@@ -26,8 +26,10 @@ at new poses, where the simulator says what the new demonstrations look like (is
    simulator's masks). Against the executed states (``mean``) the figures hold what physics did
    differently (the arm lagging its targets, the object slipping in the pads); against the same
    states (``mean_same_states``) only how the twin draws them: the object region's is the figure
-   issue 34 asks for. A contact sheet shows one new demonstration: both simulator renders beside
-   each twin's.
+   issue 34 asks for. Each demonstration's view change (``manisplat-augment``'s: how far it turns
+   the box from every view the twin's demonstrations had of it, :mod:`manisplat.augment.views`)
+   is listed, and ``mean_same_states_seen_views`` averages those within 15 deg. A contact sheet
+   shows one new demonstration: both simulator renders beside each twin's.
 4. **Registration** of each episode's first frame to the first's (what a fused reconstruction
    starts each object from, :func:`manisplat.reconstruct.register.register_start`), against the
    ground truth's relative pose: rotation (deg) and position (mm) errors per episode.
@@ -188,6 +190,7 @@ def _new_poses(simenv: Path, twin: Path, out: Path, parent: Path, demos: int) ->
     scored against both."""
     from benchmarks.bench_augment_shared import in_simulator_frame, render_scores
     from manisplat.augment.cli import main as augment
+    from manisplat.augment.views import UNSEEN_WARN_DEG
     from manisplat.twin import Twin
 
     if not (out / "augment_report.json").exists():
@@ -204,15 +207,21 @@ def _new_poses(simenv: Path, twin: Path, out: Path, parent: Path, demos: int) ->
                                           str(out / "sim_states" / path.name)),
                     out / "sim_states" / path.name / "render.json") for path, copy in zip(episodes, inputs)]
     run_sim_jobs(simenv, executed + posed)
+    view_change = {s["episode"]: s.get("view_change_deg", {}).get("box")
+                   for s in json.loads((out / "augment_report.json").read_text())["samples"] if s["valid"]}
     rows = {}
     for path, job in zip(episodes, executed):
         physics = json.loads(job.report.read_text())
         rows[path.name] = {**render_scores(path, out / "sim_render" / path.name),
                            "same_states": render_scores(path, out / "sim_states" / path.name),
+                           "view_change_deg": view_change.get(path.name),
                            "success_clean": physics["success_clean"], "final_pos_err_cm": physics["final_pos_err_cm"]}
     keys = [k for k in next(iter(rows.values())) if k.startswith(("psnr_", "ssim_"))]
+    seen = [r["same_states"] for r in rows.values() if r["view_change_deg"] is not None
+            and r["view_change_deg"] <= UNSEEN_WARN_DEG]
     return {"demonstrations": rows, "mean": _means(list(rows.values()), keys),
             "mean_same_states": _means([r["same_states"] for r in rows.values()], keys),
+            "mean_same_states_seen_views": {"demonstrations": len(seen), **(_means(seen, keys) if seen else {})},
             "success_clean": sum(r["success_clean"] for r in rows.values())}
 
 
