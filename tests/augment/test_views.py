@@ -8,6 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from manisplat.augment.sampling import perturb
 from manisplat.augment.views import SeenViews
 from manisplat.twin.rig import TwinCamera
 
@@ -25,11 +26,7 @@ def _camera(mount: str = "base") -> TwinCamera:
 
 
 def _turned(yaw_deg: float, x: float = 0.0) -> np.ndarray:
-    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
-    T = np.eye(4)
-    T[:2, :2] = [[c, -s], [s, c]]
-    T[0, 3] = x
-    return T
+    return perturb(np.eye(4), x, 0.0, math.radians(yaw_deg))
 
 
 def _twin(poses: np.ndarray, camera: TwinCamera) -> SimpleNamespace:
