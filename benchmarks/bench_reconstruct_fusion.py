@@ -272,13 +272,14 @@ def _renderer_check(simenv: Path, episode: Path, work: Path) -> dict[str, float]
 
 
 def _registration(episodes: list[Path]) -> dict:
-    """Each later episode's object start as registered to the first's, against the truth:
-    ``T_k = G_k G_0^-1 T_0`` with ``G`` the ground-truth pose at the first frame and ``T_0`` the
+    """Each later episode's object start as registered to the first's and those before it
+    (:func:`~manisplat.reconstruct.register.register_starts`, as a fused reconstruction does),
+    against the truth: ``T_k = G_k G_0^-1 T_0`` with ``G`` the ground-truth pose at the first frame and ``T_0`` the
     canonical frame (the first episode's points' centroid, the base's axes)."""
     from benchmarks._degraded import robot_of
     from manisplat.reconstruct.data import load_episode_data, load_ground_truth
     from manisplat.reconstruct.init import object_points
-    from manisplat.reconstruct.register import register_start
+    from manisplat.reconstruct.register import register_starts
 
     robot = robot_of(shared_dir() / "data" / "sim_pick_place_small")
     first = load_episode_data(episodes[0], robot=robot)
@@ -288,9 +289,10 @@ def _registration(episodes: list[Path]) -> dict:
     T0[:3, 3] = p0.mean(0).numpy()
     G0 = load_ground_truth(episodes[0])[f"T_base_{name}"][0]
     rows = {}
-    for path in episodes[1:]:
-        p, c, _ = object_points(load_episode_data(path, robot=robot), label, 0)
-        found = register_start(p0.numpy() - T0[:3, 3], c0.numpy(), p.numpy(), c.numpy()).T_base_obj
+    seen = [object_points(load_episode_data(path, robot=robot), label, 0)[:2] for path in episodes[1:]]
+    registered = register_starts(p0.numpy() - T0[:3, 3], c0.numpy(), [(p.numpy(), c.numpy()) for p, c in seen])
+    for path, reg in zip(episodes[1:], registered):
+        found = reg.T_base_obj
         truth = load_ground_truth(path)[f"T_base_{name}"][0] @ np.linalg.inv(G0) @ T0
         cos = (np.trace(truth[:3, :3].T @ found[:3, :3]) - 1) / 2
         rows[path.name] = {"rotation_deg": round(float(np.degrees(np.arccos(np.clip(cos, -1, 1)))), 3),

@@ -27,7 +27,7 @@ from manisplat.reconstruct.masks import (draw_view_object_masks, draw_view_robot
                                          redraw_robot_masks)
 from manisplat.reconstruct.plan import Plan
 from manisplat.reconstruct.poses import ObjectTrajectory
-from manisplat.reconstruct.register import register_start
+from manisplat.reconstruct.register import register_starts
 from manisplat.reconstruct.rig_check import check_rig
 from manisplat.reconstruct.trainer import Reconstruction, TrainConfig
 from manisplat.scene import GaussianSet, SceneGraph
@@ -244,8 +244,8 @@ def _object_starts(datas: list[EpisodeData], spans: list[EpisodeSpan], label: in
     starts = [T0]
     points = [seen[0][0].numpy() - centre]
     colours, spacings = [seen[0][1].numpy()], [seen[0][2].numpy()]
-    for (p, c, s), span in zip(seen[1:], spans[1:]):
-        reg = register_start(points[0], colours[0], p.numpy(), c.numpy())
+    found = register_starts(points[0], colours[0], [(p.numpy(), c.numpy()) for p, c, _ in seen[1:]])
+    for (p, c, s), span, reg in zip(seen[1:], spans[1:], found):
         log.info("%s: object label %d starts at (%.3f, %.3f, %.3f) m, turned %.1f deg from the first episode's "
                  "(residual %.1f mm, next best turn %.1f mm)", span.name, label, *reg.T_base_obj[:3, 3],
                  np.degrees(np.arctan2(reg.T_base_obj[1, 0], reg.T_base_obj[0, 0])), 1e3 * reg.residual_m,
