@@ -146,8 +146,10 @@ def run_augmentation(args: argparse.Namespace) -> dict:
 
 def _check_views(change_deg: dict[str, float], limit: float | None) -> None:
     """Rejected("unseen_side") when an object's view change (deg) exceeds ``limit`` (None: never)."""
+    if limit is None:
+        return
     for name, angle in change_deg.items():
-        if limit is not None and angle > limit:
+        if angle > limit:
             raise Rejected("unseen_side", f"{name} is seen {angle:.0f} deg from every recorded view of it "
                                           f"(--max-view-change {limit:g})")
 

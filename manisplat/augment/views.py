@@ -40,11 +40,11 @@ class SeenViews:
             return None
         directions: dict[str, list[np.ndarray]] = {name: [] for name in twin.objects}
         for demo in twin.demonstrations.values():
-            for name, poses in demo.object_poses.items():
+            for name, recorded in demo.object_poses.items():
+                poses = np.asarray(recorded, np.float64)
                 for cam in fixed:
-                    inside = _in_image(cam, np.asarray(poses, np.float64)[:, :3, 3])
-                    if inside.any():
-                        directions[name].append(_directions(cam.T_mount_cam, np.asarray(poses, np.float64)[inside]))
+                    inside = _in_image(cam, poses[:, :3, 3])
+                    directions[name].append(_directions(cam.T_mount_cam, poses[inside]))
         return cls(np.stack([cam.T_mount_cam for cam in fixed]),
                    {name: np.concatenate(d) if d else np.zeros((0, 3)) for name, d in directions.items()})
 

@@ -119,9 +119,10 @@ def _icp(tree: cKDTree, observed: np.ndarray, colours: np.ndarray, yaw: float,
 
 def _plane_icp(tree: cKDTree, normals: np.ndarray, observed: np.ndarray, colours: np.ndarray, yaw: float,
                t: np.ndarray) -> tuple[float, np.ndarray, float]:
-    """Trimmed point-to-plane ICP in (yaw, t) from a start (``normals`` [N, 3] of the model
-    points, object frame): each step the Gauss-Newton step of sum (n . (R^T (x - t) - q))^2 over
-    the best-matched points; returns (yaw, t [3], trimmed RMS m, as :func:`_icp`'s)."""
+    """Point-to-plane ICP in (yaw, t) from a start (``normals`` [N, 3] of the model points, object
+    frame): each step the Gauss-Newton step of sum (n . (R^T (x - t) - q))^2 over the pairs within
+    :data:`PLANE_MAX_M` whose normals agree within :data:`PLANE_AGREE_DEG`; returns (yaw, t [3],
+    the trimmed RMS m of :func:`_icp`)."""
     seen_normals = point_normals(observed, PLANE_NEIGHBOURS)
     for _ in range(ICP_ITERATIONS):
         R = _rz(yaw)
