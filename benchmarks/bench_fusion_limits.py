@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks._harness import BENCH_DIR, MissingBenchmarkData, machine_info
+from manisplat.episode.images import MASK, RGB, ImageKind, load_image
 
 OWN_OPTIONS = True
 OBJECT = "box"
@@ -129,11 +130,11 @@ def _new_poses(aug: Path) -> dict:
         sim = aug / "sim_states" / path.name
         frames, errors = 0, np.zeros((len(SHIFTS), len(SHIFTS)))
         for i, (rgb, mask) in enumerate(zip(sorted((sim / "rgb").iterdir()), sorted((sim / "masks").iterdir()))):
-            target = _read_rgb(rgb)
-            region = np.isin(_read_mask(mask), box)
+            pred = ours.rgb(i).astype(np.float32) / 255
+            region = np.isin(_read(mask, MASK, pred), box)
             if region.sum() < MIN_PIXELS:
                 continue
-            pred = ours.rgb(i).astype(np.float32) / 255
+            target = _read(rgb, RGB, pred).astype(np.float32) / 255
             parts.append(outline_split(pred, target, region))
             errors += shift_errors(pred, target, region)
             frames += 1
@@ -166,20 +167,15 @@ def _held_out(twin: Path, demos: Path) -> dict:
         region = np.isin(episode.mask(i), box)
         if region.sum() < MIN_PIXELS:
             continue
-        parts.append(outline_split(_read_rgb(png), episode.rgb(i).astype(np.float32) / 255, region))
+        target = episode.rgb(i).astype(np.float32) / 255
+        parts.append(outline_split(_read(png, RGB, target).astype(np.float32) / 255, target, region))
     return summary(parts)
 
 
-def _read_rgb(path: Path) -> np.ndarray:
-    import cv2
-
-    return cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB).astype(np.float32) / 255
-
-
-def _read_mask(path: Path) -> np.ndarray:
-    import cv2
-
-    return cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+def _read(path: Path, kind: ImageKind, like: np.ndarray) -> np.ndarray:
+    """The image ``path`` (an episode's ``RGB`` or ``MASK`` kind, RGB order), checked to be as large
+    as ``like`` [H, W, ...] (:func:`~manisplat.episode.images.load_image`: a clear error otherwise)."""
+    return load_image(path, kind, like.shape[1], like.shape[0])
 
 
 if __name__ == "__main__":
