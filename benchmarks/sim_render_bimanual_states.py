@@ -1,7 +1,7 @@
 """The Cobot Magic simulator's images of given states, without physics: run by the simulator's venv.
 
     MUJOCO_GL=osmesa SIMENV/bin/python sim_render_bimanual_states.py STATES.npz --calib CALIB.json \\
-        --task handover|dual_pick_place --render DIR --json REPORT
+        --task handover|dual_pick_place --render DIR --json REPORT [--shadow-map-px N]
 
 STATES.npz holds ``q`` [T, 14] in ``/observations/qpos``'s layout ([left q1..q6, left gap, right
 q1..q6, right gap]; rad in the AgileX URDF convention, gaps in m) and ``T_world_<object>`` [T, 4, 4]
@@ -12,7 +12,9 @@ the three cameras: ``DIR/<camera>/rgb/NNNNNN.png`` and ``DIR/<camera>/masks/NNNN
 (``gen_bimanual.py``'s labels). ``execute_bimanual.py --render`` draws what contact physics made
 of a demonstration's commands (the arms lag their targets: a wrist camera's whole image moves
 with its link); this draws the states the demonstration's own images show. Run with the working
-directory ``shared/tools/sim`` (``benchmarks._simulator.run_sim_jobs`` does)."""
+directory ``shared/tools/sim`` (``benchmarks._simulator.run_sim_jobs`` does). ``--shadow-map-px``
+draws the key light's shadows from a map of that many pixels a side instead of the scene's
+(MuJoCo's ``visual/quality/shadowsize``, 2048 in the samples)."""
 
 import argparse
 import json
@@ -62,6 +64,7 @@ def main(argv=None) -> int:
     ap.add_argument("--task", required=True, choices=gb.TASKS)
     ap.add_argument("--render", required=True, help="write <camera>/rgb/ and <camera>/masks/ here")
     ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--shadow-map-px", type=int, help="the shadow map's size (default: the scene's)")
     ap.add_argument("--json", required=True, help="write the report here")
     a = ap.parse_args(argv)
     t_wall = time.time()
@@ -71,6 +74,10 @@ def main(argv=None) -> int:
     T = np.array(head["T_mount_cam"], float)
     m, _, _ = gb.build_model(gb.DEFAULT_SCENE, gb.DEFAULT_ROBOT, None, T[:3, 3].tolist(), (T[:3, 3] + T[:3, 2]).tolist(),
                              head.get("fovy_deg", gb.CAM_HIGH_FOVY))
+    if a.shadow_map_px is not None:
+        if a.shadow_map_px < 1:
+            raise SystemExit(f"--shadow-map-px must be positive, got {a.shadow_map_px}")
+        m.vis.quality.shadowsize = a.shadow_map_px
     qpos = posed_states(m, dict(np.load(a.states)), a.task)
     for camera in gb.CAMERAS:
         for sub in ("rgb", "masks"):
@@ -85,6 +92,7 @@ def main(argv=None) -> int:
                   workers=a.workers, consume=save)
     with open(a.json, "w") as fh:
         fh.write(json.dumps({"states": os.path.basename(a.states), "frames": len(qpos),
+                             "shadow_map_px": int(m.vis.quality.shadowsize),
                              "wall_s": round(time.time() - t_wall, 2)}) + "\n")
     return 0
 
