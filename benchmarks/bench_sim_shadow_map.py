@@ -1,5 +1,6 @@
-"""Issue 33: how much of a Cobot Magic sample's images is its simulator's shadow map. The held-out
-frames' exact states (``*.gt.npz``) drawn again by the simulator
+"""Issue 33: how much of a Cobot Magic sample's images is its simulator's shadow map.
+
+The held-out frames' exact states (``*.gt.npz``) drawn again by the simulator
 (``benchmarks/sim_render_bimanual_states.py``, no physics) with the scene's shadow map and with a
 finer one, each through the recorder's JPEG, and scored against the recording per camera and
 region: the first shows the re-render reproduces the recording; the second, what a renderer
