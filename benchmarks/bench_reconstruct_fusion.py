@@ -60,7 +60,7 @@ import numpy as np
 
 from benchmarks._harness import BENCH_DIR, MissingBenchmarkData, machine_info, shared_dir, simulator_python
 from benchmarks._simulator import SimJob, run_sim_jobs, sim_env, sim_tools
-from manisplat.cli_args import positive
+from manisplat.cli_args import non_negative, positive
 from manisplat.reconstruct.config import RASTERIZE_MODES, SHADOW_CASTERS, SHADOW_RECEIVERS, TrainConfig
 
 OWN_OPTIONS = True
@@ -83,6 +83,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="manisplat-reconstruct --rasterize-mode of every twin (default classic, what auto gives one camera)")
     p.add_argument("--object-position-rate", type=positive(), default=TrainConfig.object_position_rate, metavar="R",
                    help="manisplat-reconstruct --object-position-rate of every twin (default the product's)")
+    p.add_argument("--lambda-pose", type=non_negative(), default=TrainConfig.lambda_pose, metavar="W",
+                   help="manisplat-reconstruct --lambda-pose of every twin (default the product's)")
     p.add_argument("--work", type=Path, help="outputs (default a temporary folder; kept)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_reconstruct" / "reconstruct_fusion.json")
     args = p.parse_args(argv)
@@ -96,7 +98,8 @@ def main(argv: list[str] | None = None) -> int:
         twins[count] = _twin(episodes[:count], work / f"twin_{count}", args.iters,
                              {"shadow_receivers": args.shadow_receivers, "shadow_casters": args.shadow_casters,
                               "rasterize_mode": args.rasterize_mode,
-                              "object_position_rate": f"{args.object_position_rate:g}"})
+                              "object_position_rate": f"{args.object_position_rate:g}",
+                              "lambda_pose": f"{args.lambda_pose:g}"})
         print(f"{count} episodes: {json.dumps({k: twins[count][k] for k in ('wall_s', 'peak_rss_mb', 'psnr')})}",
               flush=True)
     for count in counts:
@@ -120,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
               "machine": machine_info(), "work": str(work), "iters": args.iters,
               "shadow_receivers": args.shadow_receivers, "shadow_casters": args.shadow_casters,
               "rasterize_mode": args.rasterize_mode, "object_position_rate": args.object_position_rate,
-              "episodes": [e.name for e in episodes], "twins": {str(k): v for k, v in twins.items()},
+              "lambda_pose": args.lambda_pose, "episodes": [e.name for e in episodes], "twins": {str(k): v for k, v in twins.items()},
               "new_poses_common_samples": common, "renderer_check": renderer_check, "registration": registration,
               "sheet": sheet.name, "wall_s": round(time.perf_counter() - started, 1)}
     args.out.write_text(json.dumps(result, indent=1) + "\n")
@@ -145,7 +148,7 @@ def _demonstrations(simenv: Path, out: Path, n: int) -> list[Path]:
 def _twin(episodes: list[Path], out: Path, iters: int, options: dict[str, str]) -> dict:
     """Reconstruct ``episodes`` into ``out`` in a process of its own, with manisplat-reconstruct's
     ``options`` (``shadow_receivers``, ``shadow_casters``, ``rasterize_mode``,
-    ``object_position_rate``); its time, peak
+    ``object_position_rate``, ``lambda_pose``); its time, peak
     memory, figures."""
     if (out / "metrics.json").exists():
         metrics = json.loads((out / "metrics.json").read_text())
@@ -153,7 +156,8 @@ def _twin(episodes: list[Path], out: Path, iters: int, options: dict[str, str]) 
         made = {"shadow_receivers": light.get("receivers", "background"),
                 "shadow_casters": light.get("casters", "gaussians"),
                 "rasterize_mode": metrics.get("rasterize_mode", "classic"),
-                "object_position_rate": f"{metrics.get('object_position_rate', 1.0):g}"}
+                "object_position_rate": f"{metrics.get('object_position_rate', 1.0):g}",
+                "lambda_pose": f"{metrics.get('lambda_pose', 1.0):g}"}
         if made != options:
             raise MissingBenchmarkData(f"{out} was made with {made}, not {options}: use another --work")
     else:
