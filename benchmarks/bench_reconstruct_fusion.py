@@ -123,7 +123,8 @@ def main(argv: list[str] | None = None) -> int:
               "machine": machine_info(), "work": str(work), "iters": args.iters,
               "shadow_receivers": args.shadow_receivers, "shadow_casters": args.shadow_casters,
               "rasterize_mode": args.rasterize_mode, "object_position_rate": args.object_position_rate,
-              "lambda_pose": args.lambda_pose, "episodes": [e.name for e in episodes], "twins": {str(k): v for k, v in twins.items()},
+              "lambda_pose": args.lambda_pose, "episodes": [e.name for e in episodes],
+              "twins": {str(k): v for k, v in twins.items()},
               "new_poses_common_samples": common, "renderer_check": renderer_check, "registration": registration,
               "sheet": sheet.name, "wall_s": round(time.perf_counter() - started, 1)}
     args.out.write_text(json.dumps(result, indent=1) + "\n")
