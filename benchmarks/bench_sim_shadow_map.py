@@ -28,12 +28,11 @@ import numpy as np
 
 from benchmarks._harness import BENCH_DIR, shared_dir, simulator_python
 from benchmarks._simulator import SimJob, run_sim_jobs
+from manisplat.cli_args import positive
 
 OWN_OPTIONS = True
 SAMPLES = ("cobot_dual_small", "cobot_handover_small")
 CAMERAS = ("cam_high", "cam_left_wrist", "cam_right_wrist")
-#: the reconstruction's held-out frames (manisplat.reconstruct.plan: every 8th from the 4th)
-HOLDOUT_OFFSET, HOLDOUT_EVERY = 4, 8
 
 
 def recorder_jpeg(rgb: np.ndarray, quality: int) -> np.ndarray:
@@ -93,10 +92,12 @@ def rendered(folder: Path, camera: str, count: int) -> np.ndarray:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks sim_shadow_map", description=__doc__.splitlines()[0])
     p.add_argument("--samples", default=",".join(SAMPLES), help=f"shared Cobot Magic samples (default {','.join(SAMPLES)})")
-    p.add_argument("--map-px", type=int, default=8192, help="the finer shadow map's size (default 8192)")
+    p.add_argument("--map-px", type=positive(int), default=8192, help="the finer shadow map's size (default 8192)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_reconstruct" / "sim_shadow_map.json")
     args = p.parse_args(argv)
     options = sys.argv[1:] if argv is None else argv
+    from manisplat.reconstruct.plan import HOLDOUT_EVERY, HOLDOUT_OFFSET  # after the arguments: --help stays quick
+
     simenv, shared = simulator_python(), shared_dir()
     t0 = time.perf_counter()
     results = {}
@@ -105,12 +106,11 @@ def main(argv: list[str] | None = None) -> int:
             sample = shared / "data" / name
             gt = np.load(sample / "episode_0.gt.npz")
             info = json.loads(str(gt["info"]))
-            frames = list(range(HOLDOUT_OFFSET, len(gt["q"]), HOLDOUT_EVERY))
-            objects = [k for k in gt.files if k.startswith("T_world_") and k.removeprefix("T_world_") in ("box", "can", "mug")]
-            states = Path(tmp) / f"{name}_states.npz"
-            np.savez(states, q=gt["q"][frames], **{k: gt[k][frames] for k in objects})
+            frames = list(range(HOLDOUT_OFFSET, len(gt["q"]), HOLDOUT_EVERY))  # the reconstruction's held-out frames
             spec = json.loads((sample / "episode_0.objects.json").read_text())
             task = spec["task"]
+            states = Path(tmp) / f"{name}_states.npz"
+            np.savez(states, q=gt["q"][frames], **{f"T_world_{k}": gt[f"T_world_{k}"][frames] for k in spec["objects"]})
             manipulated = [k for k, o in spec["objects"].items() if o["role"] == "manipulated"]
             maps = {"scene": (), "fine": ("--shadow-map-px", str(args.map_px))}
             jobs = [SimJob(str(BENCH_DIR / "sim_render_bimanual_states.py"),
