@@ -5,7 +5,7 @@ extrinsic error before and after the camera check, wall time; ``manisplat-recons
 default budget (``--iters 3000`` on the CPU), one episode after the other.
 
 ``python -m benchmarks reconstruct_viewpoints [--viewpoints NAME,...] [--seeds 1] [--iters 3000]
-[--out FILE]``
+[--lambda-pose L] [--out FILE]``
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ import numpy as np
 from benchmarks._harness import BENCH_DIR, BenchContext, shared_dir
 from benchmarks._viewpoints import clean_episodes, select
 from benchmarks.bench_camera_check import degraded_copy
+from manisplat.cli_args import non_negative
 
 OWN_OPTIONS = True
 #: the 320x240 viewpoints (a 640x480 run takes about four times as long on 2 cores)
@@ -34,8 +35,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--viewpoints", type=select, default=",".join(DEFAULT_VIEWPOINTS))
     p.add_argument("--seeds", default="1", help="degrade seeds (default 1)")
     p.add_argument("--iters", type=int, default=3000, help="training iterations (default 3000, the CPU default)")
+    p.add_argument("--lambda-pose", type=non_negative(), help="manisplat-reconstruct --lambda-pose (default: the command's)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_reconstruct" / "reconstruct_viewpoints.json")
     args = p.parse_args(argv)
+    extra = () if args.lambda_pose is None else ("--lambda-pose", str(args.lambda_pose))
     options = sys.argv[1:] if argv is None else argv  # as run, for the result's command
     from benchmarks._degraded import reconstruct, robot_of, row  # after the arguments: --help stays quick
     from manisplat.episode import Episode
@@ -50,12 +53,13 @@ def main(argv: list[str] | None = None) -> int:
             for seed in map(int, args.seeds.split(",")):
                 episode, T_true = degraded_copy(ctx, clean, "oak", seed)
                 T_recorded = Episode.open(episode).camera.T_mount_cam
-                twin = reconstruct(episode, Path(tmp) / episode.name, args.iters, robot_of(episode))
+                twin = reconstruct(episode, Path(tmp) / episode.name, args.iters, robot_of(episode), *extra)
                 r = {"viewpoint": v.name, "distance_m": round(v.distance_m, 3), "size": f"{v.size[0]}x{v.size[1]}",
-                     "degrade_seed": seed, **row(twin, T_true, T_recorded)}
+                     "degrade_seed": seed, **row(twin, T_true, T_recorded),
+                     "lambda_pose": json.loads((twin / "metrics.json").read_text())["lambda_pose"]}
                 rows.append(r)
                 print(json.dumps(r, default=float), flush=True)
-    keys = [k for k in rows[0] if isinstance(rows[0][k], float)]
+    keys = [k for k in rows[0] if isinstance(rows[0][k], float) and k != "lambda_pose"]
     summary = {k: {"mean": float(np.mean([r[k] for r in rows if r.get(k) is not None])),
                    "p90": float(np.percentile([r[k] for r in rows if r.get(k) is not None], 90))}
                for k in keys if any(r.get(k) is not None for r in rows)}
