@@ -43,6 +43,7 @@ import numpy as np
 from benchmarks._harness import BENCH_DIR, shared_dir, simulator_python
 from benchmarks._simulator import SimJob, run_sim_jobs, sim_tools
 from benchmarks.bench_reconstruct_cobot import CAMERAS, add_ground_truth, reconstruct
+from manisplat.cli_args import non_negative
 
 if TYPE_CHECKING:  # the planner and the twin load torch and the robot model: not for --help
     from manisplat.augment.bimanual import BimanualTrajectory
@@ -58,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--planned", type=int, default=0, help="more demonstrations planned only, executed in physics (default 0)")
     p.add_argument("--source-seed", type=int, help="make the source with gen_bimanual.py --seed S instead")
     p.add_argument("--iters", type=int, default=1000, help="reconstruction iterations (default 1000)")
-    p.add_argument("--lambda-mask", type=float, help="manisplat-reconstruct --lambda-mask (default: the command's)")
+    p.add_argument("--lambda-mask", type=non_negative(), help="manisplat-reconstruct --lambda-mask (default: the command's)")
     p.add_argument("--render-check", type=int, default=10, help="demonstrations the simulator also renders (default 10)")
     p.add_argument("--work", type=Path, help="stage outputs, reused when present (default a temporary folder)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_augment" / "augment_cobot.json")

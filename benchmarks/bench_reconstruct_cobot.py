@@ -52,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="manisplat-reconstruct --shadow-casters (default gaussians)")
     p.add_argument("--rasterize-mode", choices=RASTERIZE_CHOICES, default="auto",
                    help="manisplat-reconstruct --rasterize-mode (default auto, as the command's)")
-    p.add_argument("--lambda-mask", type=float, help="manisplat-reconstruct --lambda-mask (default: the command's)")
+    p.add_argument("--lambda-mask", type=non_negative(), help="manisplat-reconstruct --lambda-mask (default: the command's)")
     p.add_argument("--lambda-pose", type=non_negative(), help="manisplat-reconstruct --lambda-pose (default: the command's)")
     p.add_argument("--seed", type=int, default=0, help="manisplat-reconstruct --seed (default 0, the command's)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_reconstruct" / "reconstruct_cobot.json")
