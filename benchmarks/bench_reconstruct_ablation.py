@@ -2,7 +2,8 @@
 
 "none" trains with the render loss alone (object poses start at the pseudo ground truth and move
 freely); each row adds one term with weight 1: the pose prior, the masked appearance loss, the
-dynamic-mask loss (the last row is the default). Held-out PSNR/SSIM and the box's pose error.
+dynamic-mask loss (the last row is the paper's weights; the command's default weighs the pose
+prior 0.01). Held-out PSNR/SSIM and the box's pose error.
 Runs at the current torch thread count (the default on the 2-core machine: 2).
 """
 

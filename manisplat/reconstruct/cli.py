@@ -126,7 +126,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lambda-mask", type=non_negative(), default=None,
                    help="weight of the dynamic-mask loss (default: 1 with the episode's masks, 0 with masks drawn "
                         "here, whose approximate outlines cost the object region)")
-    p.add_argument("--lambda-pose", type=non_negative(), default=1.0, help="weight of the pose prior loss (default 1)")
+    p.add_argument("--lambda-pose", type=non_negative(), default=TrainConfig.lambda_pose,
+                   help=f"weight of the pose prior loss (default {TrainConfig.lambda_pose:g}: light enough for the images "
+                        "to correct the pseudo ground truth by millimetres; 1, the paper's, keeps it)")
     inputs = p.add_argument_group(
         "episodes without depth or masks",
         "Without masks, the robot's are drawn from its meshes at each frame's forward kinematics and the "
