@@ -12,7 +12,7 @@ errors in the world frame (fitted and start-anchored), wall time and time per it
 
 ``python -m benchmarks reconstruct_cobot [--samples cobot_dual_small,...] [--settings all,head] [--iters 3000]
 [--shadow-casters meshes|gaussians] [--rasterize-mode auto|classic|antialiased] [--lambda-mask L]
-[--lambda-pose L] [--seed S] [--out FILE]``: ``--settings all --iters 9000`` gives the head camera about as many iterations as
+[--lambda-pose L] [--lambda-smooth L] [--seed S] [--out FILE]``: ``--settings all --iters 9000`` gives the head camera about as many iterations as
 ``--settings head --iters 3000`` (one camera's image an iteration).
 """
 
@@ -54,6 +54,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="manisplat-reconstruct --rasterize-mode (default auto, as the command's)")
     p.add_argument("--lambda-mask", type=non_negative(), help="manisplat-reconstruct --lambda-mask (default: the command's)")
     p.add_argument("--lambda-pose", type=non_negative(), help="manisplat-reconstruct --lambda-pose (default: the command's)")
+    p.add_argument("--lambda-smooth", type=non_negative(),
+                   help="manisplat-reconstruct --lambda-smooth (default: the command's)")
     p.add_argument("--seed", type=int, default=0, help="manisplat-reconstruct --seed (default 0, the command's)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_reconstruct" / "reconstruct_cobot.json")
     args = p.parse_args(argv)
@@ -70,10 +72,10 @@ def main(argv: list[str] | None = None) -> int:
                 out = Path(tmp) / f"{sample}_{len(cameras)}"
                 options = ("--shadow-casters", args.shadow_casters, "--rasterize-mode", args.rasterize_mode,
                            "--seed", str(args.seed))
-                if args.lambda_mask is not None:
-                    options += ("--lambda-mask", str(args.lambda_mask))
-                if args.lambda_pose is not None:
-                    options += ("--lambda-pose", str(args.lambda_pose))
+                for flag, weight in (("--lambda-mask", args.lambda_mask), ("--lambda-pose", args.lambda_pose),
+                                     ("--lambda-smooth", args.lambda_smooth)):
+                    if weight is not None:
+                        options += (flag, str(weight))
                 row = reconstruct(episode, out, cameras, prompts, args.iters, options)
                 rows.append(row | {"sample": sample, "setting": setting})
                 print(json.dumps(rows[-1], default=float), flush=True)
@@ -114,6 +116,7 @@ def reconstruct(episode: Path, out: Path, cameras: tuple[str, ...], prompts: dic
     return {"cameras": list(cameras), "iters": iters, "wall_s": round(wall, 1), "ms_per_iter": metrics.get("ms_per_iter"),
             "options": list(options), "light": metrics.get("light"), "rasterize_mode": metrics.get("rasterize_mode"),
             "lambda_mask": metrics.get("lambda_mask"), "lambda_pose": metrics.get("lambda_pose"),
+            "lambda_smooth": metrics.get("lambda_smooth"),
             "prompts": {k: [round(u), round(v)] for k, (u, v) in prompts.items()},
             "per_camera": {name: {"psnr": m["psnr"], "ssim": m["ssim"]}
                            for name, m in metrics.get("cameras", {HEAD: metrics}).items()},

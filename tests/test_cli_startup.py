@@ -47,6 +47,7 @@ BAD_ARGUMENTS = [
     ("manisplat-reconstruct", ["ep", "--out", "o", "--checkpoint-every", "0"]),
     ("manisplat-reconstruct", ["ep", "--out", "o", "--tau", "nan"]),
     ("manisplat-reconstruct", ["ep", "--out", "o", "--lambda-pose", "-1"]),
+    ("manisplat-reconstruct", ["ep", "--out", "o", "--lambda-smooth", "nan"]),
     ("manisplat-episode", ["sample", "out", "--frames", "0"]),
     ("manisplat-episode", ["sample", "out", "--fps", "nan"]),
     ("manisplat-episode", ["import-act", "f.hdf5", "--out", "o", "--K", "30,30,16,12", "--fps", "-1"]),

@@ -26,7 +26,7 @@ from manisplat.output_folder import check_output_folder
 from manisplat.reconstruct.config import (COMPILE_CHOICES, COMPILE_MIN_ITERS, GPU_ITERS, RASTERIZE_CHOICES,
                                           SHADOW_CASTERS, SHADOW_RECEIVERS, DeviceUnavailable, TrainConfig,
                                           default_iters, resolve_compile, resolve_device, resolve_lambda_mask,
-                                          resolve_rasterize_mode)
+                                          resolve_lambda_smooth, resolve_rasterize_mode)
 from manisplat.threads import THREADS_HELP, use_threads
 
 log = logging.getLogger("manisplat.reconstruct")
@@ -129,6 +129,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lambda-pose", type=non_negative(), default=TrainConfig.lambda_pose,
                    help=f"weight of the pose prior loss (default {TrainConfig.lambda_pose:g}: light enough for the images "
                         "to correct the pseudo ground truth by millimetres; 1, the paper's, keeps it)")
+    p.add_argument("--lambda-smooth", type=non_negative(), default=None,
+                   help="weight of the pose corrections' smoothness loss: each moving frame's against its trained "
+                        "neighbours' (default: 1 when a camera riding on an arm is trained, whose close views jitter "
+                        "the corrections; 0 with fixed cameras only)")
     inputs = p.add_argument_group(
         "episodes without depth or masks",
         "Without masks, the robot's are drawn from its meshes at each frame's forward kinematics and the "
@@ -237,7 +241,8 @@ def _run(args: argparse.Namespace, prompt: list[tuple[str, tuple | None, tuple |
                     print(f"{path}:\n{make_plan(load_episode_data(path, robot=args.robot)).summary()}")
                 print(_training_summary(args, device, iters, compiled))
                 return ExitCode.OK
-            fused = _build_fused(args, _config(args, device, iters, compiled, cameras=1, masks_drawn=False))
+            fused = _build_fused(args, _config(args, device, iters, compiled, cameras=1, masks_drawn=False,
+                                               riding=False))
             rec, alignments = fused.reconstruction, fused.alignments
         else:
             built = _build_one(args, prompt, partial(_config, args, device, iters, compiled),
@@ -316,9 +321,9 @@ def _training_summary(args: argparse.Namespace, device: str, iters: int, compile
 
 
 def _config(args: argparse.Namespace, device: str, iters: int, compiled: str | None, cameras: int,
-            masks_drawn: bool) -> TrainConfig:
+            masks_drawn: bool, riding: bool) -> TrainConfig:
     """The training configuration of a run training ``cameras`` cameras, with masks drawn by the
-    reconstruction (``masks_drawn``) or the episode's (logged)."""
+    reconstruction (``masks_drawn``) or the episode's, ``riding``: one of them on an arm (logged)."""
     log.info("%s", _training_summary(args, device, iters, compiled))
     rasterize_mode = resolve_rasterize_mode(args.rasterize_mode, cameras)
     log.info("splats drawn %s (--rasterize-mode %s, %d camera%s trained)", rasterize_mode, args.rasterize_mode,
@@ -327,20 +332,25 @@ def _config(args: argparse.Namespace, device: str, iters: int, compiled: str | N
     log.info("mask loss weight %g (%s; masks %s)", lambda_mask,
              "--lambda-mask" if args.lambda_mask is not None else "by the masks' source",
              "drawn here" if masks_drawn else "the episode's")
+    lambda_smooth = resolve_lambda_smooth(args.lambda_smooth, riding)
+    log.info("pose corrections' smoothness weight %g (%s)", lambda_smooth,
+             "--lambda-smooth" if args.lambda_smooth is not None
+             else "a camera riding on an arm is trained" if riding else "fixed cameras only")
     return TrainConfig(
         iters=iters, backend=args.backend, shadows=not args.no_shadows, shadow_receivers=args.shadow_receivers,
         shadow_casters=args.shadow_casters, rasterize_mode=rasterize_mode,
         object_position_rate=args.object_position_rate, densify=not args.no_densify,
         refine_camera=args.refine_camera, exposure=not args.no_exposure, lambda_app=args.lambda_app,
-        lambda_mask=lambda_mask, lambda_pose=args.lambda_pose, seed=args.seed, device=device, compile=args.compile,
+        lambda_mask=lambda_mask, lambda_pose=args.lambda_pose, lambda_smooth=lambda_smooth,
+        seed=args.seed, device=device, compile=args.compile,
     )
 
 
 def _build_one(args: argparse.Namespace, prompt, config, training: str):
     """Load, plan and align one episode: (reconstruction, alignments), or None after ``--plan``
     printed the plan and ``training`` (:func:`_training_summary`). ``config``: makes the training
-    configuration, given the number of cameras trained and whether the masks are drawn here, once the
-    plan is logged."""
+    configuration, given the number of cameras trained, whether the masks are drawn here and whether
+    a camera trained rides on an arm, once the plan is logged."""
     from manisplat.reconstruct.data import ReconstructionInputError, load_episode_data
     from manisplat.reconstruct.masks import ObjectPrompt, complete_masks
     from manisplat.reconstruct.pipeline import build
@@ -370,7 +380,8 @@ def _build_one(args: argparse.Namespace, prompt, config, training: str):
         print(training)
         return None
     log.info("plan:\n%s", plan.summary())
-    return build(data, plan, config(1 + len(views), masks_drawn), tau=args.tau, table_z=args.table_z,
+    riding = any(view.riding for view in views.values())
+    return build(data, plan, config(1 + len(views), masks_drawn, riding), tau=args.tau, table_z=args.table_z,
                  masks_from_model=masks_from_model, check_extrinsic=not args.keep_extrinsic, views=views,
                  progress=not args.quiet)
 

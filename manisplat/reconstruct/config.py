@@ -16,6 +16,9 @@ class TrainConfig:
             weighs the mask loss by where the masks come from: :func:`resolve_lambda_mask`). The
             pose prior weighs 0.01: at 1 its gradient outweighs the images' for an object a few
             hundred pixels large, and the poses stay where the pseudo ground truth put them.
+        lambda_smooth: weight of the pose corrections' smoothness loss (each moving frame's
+            correction against its trained neighbours'; :mod:`manisplat.reconstruct.poses`); the
+            command line weighs it by the cameras trained: :func:`resolve_lambda_smooth`.
         ssim_weight: D-SSIM share of the render and appearance losses.
         densify: clone/split/prune (gsplat defaults; refine every ``refine_every`` from
             ``refine_start`` to ``refine_stop_fraction`` of the iterations), each node growing to
@@ -74,6 +77,7 @@ class TrainConfig:
     lambda_app: float = 1.0
     lambda_mask: float = 1.0
     lambda_pose: float = 0.01
+    lambda_smooth: float = 0.0
     ssim_weight: float = 0.2
     densify: bool = True
     refine_start: int = 300
@@ -203,6 +207,22 @@ def resolve_device(name: str, backend: str = "auto") -> str:
 
 #: manisplat-reconstruct's mask-loss weight by where the masks come from (:func:`resolve_lambda_mask`)
 MASK_LOSS_WEIGHTS = {"episode": 1.0, "drawn": 0.0}
+
+
+#: manisplat-reconstruct's smoothness weight by whether a camera riding on an arm is trained
+#: (:func:`resolve_lambda_smooth`)
+SMOOTHNESS_WEIGHTS = {"fixed": 0.0, "riding": 1.0}
+
+
+def resolve_lambda_smooth(weight: float | None, riding: bool) -> float:
+    """The pose corrections' smoothness weight: ``weight`` when one is given (``--lambda-smooth``),
+    else by the cameras trained (:data:`SMOOTHNESS_WEIGHTS`): 1 where a camera rides on an arm (a
+    wrist camera), whose close views, posed by each frame's kinematics, jittered the corrections by
+    millimetres and cost the wrist images 0.3-1.0 dB; 0 with fixed cameras only, where it held back
+    corrections the images asked for (docs/benchmarks.md, the corrections' smoothness)."""
+    if weight is not None:
+        return weight
+    return SMOOTHNESS_WEIGHTS["riding" if riding else "fixed"]
 
 
 def resolve_lambda_mask(weight: float | None, masks_drawn: bool) -> float:

@@ -215,7 +215,7 @@ def write_evaluation(rec: Reconstruction, alignments: dict, out: Path, *, wall_s
     evaluation = rec.evaluation_poses()
     metrics = {"psnr": {}, "ssim": {}, "iters": rec.step, "wall_s": round(wall_s, 1), "plan": rec.plan.to_dict(),
                "rasterize_mode": rec.graph.rasterize_mode, "lambda_mask": rec.config.lambda_mask,
-               "lambda_pose": rec.config.lambda_pose,
+               "lambda_pose": rec.config.lambda_pose, "lambda_smooth": rec.config.lambda_smooth,
                "object_position_rate": rec.config.object_position_rate}
     if ms_per_iter is not None:
         metrics["ms_per_iter"] = round(ms_per_iter, 1)

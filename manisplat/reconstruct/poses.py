@@ -3,8 +3,10 @@
 ``T_obj(t) = T_pseudo(t) @ exp(xi_k(t))`` with a correction twist ``xi`` (object frame): one shared
 by every frame of a static stretch (an object at rest has one pose), one per frame where it moves.
 The pose loss is the squared SE(3) distance to the pseudo pose in units of ``sigma_t`` and
-``sigma_r``. Held-out frames are never rendered in training, so their corrections are
-interpolated from the nearest trained frames of the same stretch.
+``sigma_r``; the smoothness loss the same distance between a moving frame's correction and the
+mean of its trained neighbours' in the same stretch (the pseudo ground truth's errors drift, they
+do not jump from frame to frame). Held-out frames are never rendered in training, so their
+corrections are interpolated from the nearest trained frames of the same stretch.
 
 The twists are stepped by :class:`TwistAdam`, which moves only the twists the rendered frame used
 (a twist table in a dense Adam moves every row on its momentum each iteration, though one frame
@@ -54,6 +56,7 @@ class ObjectTrajectory(torch.nn.Module):
         #: per frame, the episode it belongs to (index into ``episode_starts``, sorted)
         self._episode_of = np.searchsorted(np.array(sorted(starts | {0})), np.arange(T), side="right") - 1
         self.xi = torch.nn.Parameter(torch.zeros(k + 1, 6, dtype=torch.float64))
+        self._source = list(source)
 
     @property
     def n_params(self) -> int:
@@ -70,6 +73,33 @@ class ObjectTrajectory(torch.nn.Module):
     def pose_loss(self, t: int) -> torch.Tensor:
         """[] float64: the squared SE(3) distance of frame ``t``'s correction, in sigma units."""
         return pose_penalty(self.twist(t))
+
+    def trained_neighbours(self, trained: list[int]) -> dict[int, tuple[int, ...]]:
+        """Trained frame -> the twists (indices) of the nearest trained frames before and after it
+        that have twists of their own, within its stretch: the same episode and the same pseudo
+        source (a grasp or a release may change the correction at once). Frames of a static
+        stretch, which share one twist, have none."""
+        trained_set, T = set(trained), len(self._source)
+        neighbours = {}
+        for i in sorted(trained_set):
+            found = []
+            for step in (-1, 1):
+                j = i + step
+                while 0 <= j < T and self._episode_of[j] == self._episode_of[i] and self._source[j] == self._source[i]:
+                    if j in trained_set and self._twist_of[j] != self._twist_of[i]:
+                        found.append(self._twist_of[j])
+                        break
+                    j += step
+            if found:
+                neighbours[i] = tuple(found)
+        return neighbours
+
+    def smoothness_loss(self, t: int, neighbours: tuple[int, ...]) -> torch.Tensor:
+        """[] float64: the squared SE(3) distance (sigma units) of frame ``t``'s correction to the
+        mean of its neighbours' twists (indices, from :meth:`trained_neighbours`), those held
+        fixed: only frame ``t``'s twist is pulled."""
+        mean = sum(self.xi[k] for k in neighbours).detach() / len(neighbours)
+        return pose_penalty(self.twist(t) - mean)
 
     @torch.no_grad()
     def evaluation_poses(self, trained: list[int]) -> np.ndarray:

@@ -104,6 +104,8 @@ class Reconstruction:
             node.gaussians.strategy_state = self.strategies[node.name].initialize_state(self.scene_scale)
         self.optimizer = self._make_optimizer()
         self.pose_optimizer = TwistAdam(trajectories)
+        #: object -> {trained frame: its trained neighbours' twists} for the smoothness loss
+        self._neighbours = {name: t.trained_neighbours(plan.train_frames) for name, t in trajectories.items()}
         # per camera, [T, H, W] bool: the dynamic pixels of every frame, computed once (no label look-ups per iteration)
         self._dynamic_masks = {name: _dynamic_pixels(v) for name, v in self.views.items()}
         self._valid = {name: v.valid.float() if v.valid is not None else None for name, v in self.views.items()}
@@ -241,6 +243,10 @@ class Reconstruction:
         twists = [t.twist(frame) for t in self.trajectories.values()]
         loss, gains = frame_loss(image, dynamic_alpha, view.rgb[frame], dynamic, self._valid[name], exposure, twists,
                                  (c.ssim_weight, c.lambda_app, c.lambda_mask, c.lambda_pose))
+        smoothness = [t.smoothness_loss(frame, self._neighbours[k][frame]) for k, t in self.trajectories.items()
+                      if c.lambda_smooth and frame in self._neighbours[k]]
+        if smoothness:
+            loss = loss + c.lambda_smooth * sum(smoothness).float()
         if gains is not None:
             self.exposures[name].keep(frame, gains)
         return loss, meta, composed

@@ -75,6 +75,34 @@ def test_held_out_frames_interpolate_the_trained_neighbours():
     assert traj.pose_loss(1).item() == (0.01 / 0.01) ** 2
 
 
+def test_smoothing_neighbours_are_the_nearest_trained_frames_of_the_same_stretch_and_episode():
+    source = ["static"] * 4 + ["attached"] * 5 + ["tracked"] * 3 + ["static"] * 3
+    traj = ObjectTrajectory(np.repeat(np.eye(4)[None], 15, axis=0), source, episode_starts=(0, 7))
+    neighbours = traj.trained_neighbours([0, 2, 4, 5, 7, 8, 9, 11, 12, 14])
+    twist = traj._twist_of
+    # frame 4 (attached) looks past the static frame 3 for nothing; 5 has 4 before it and no
+    # trained frame after it in its episode's stretch (6 is held out, 7 starts another episode)
+    assert neighbours[4] == (twist[5],) and neighbours[5] == (twist[4],)
+    assert neighbours[7] == (twist[8],) and neighbours[8] == (twist[7],)
+    assert neighbours[9] == (twist[11],) and neighbours[11] == (twist[9],)  # tracked: 10 held out
+    assert not {0, 2, 12, 14} & neighbours.keys()  # static stretches share one twist: nothing to smooth
+
+
+def test_the_smoothness_loss_pulls_a_frame_towards_its_neighbours_mean_and_nothing_else():
+    traj = ObjectTrajectory(np.repeat(np.eye(4)[None], 3, axis=0), ["tracked"] * 3)
+    with torch.no_grad():
+        traj.xi[0, 0], traj.xi[1, 0], traj.xi[2, 0] = 0.001, 0.004, 0.003
+    neighbours = traj.trained_neighbours([0, 1, 2])
+    assert neighbours == {0: (1,), 1: (0, 2), 2: (1,)}
+    loss = traj.smoothness_loss(1, neighbours[1])
+    assert loss.item() == pytest.approx(((0.004 - 0.002) / 0.01) ** 2)
+    loss.backward()
+    assert traj.xi.grad[1, 0] > 0 and torch.count_nonzero(traj.xi.grad[[0, 2]]) == 0
+    with torch.no_grad():
+        traj.xi[1, 0] = 0.002
+    assert traj.smoothness_loss(1, neighbours[1]).item() == 0
+
+
 def test_pose_errors_remove_one_constant_offset():
     rng = torch.Generator().manual_seed(0)
     gt = torch.stack([make_transform(so3_exp(torch.randn(3, dtype=torch.float64, generator=rng)),
@@ -118,3 +146,11 @@ def test_psnr_and_ssim_over_regions():
     assert math.isinf(psnr(pred, target, region)) is False and psnr(pred, target, region) > 100
     assert abs(psnr(pred, target) - (-10 * math.log10(0.5 * 0.01))) < 1e-4
     assert ssim(target, target) > 0.999 and math.isnan(psnr(pred, target, torch.zeros_like(region)))
+
+
+def test_the_smoothness_weight_is_on_with_a_riding_camera_unless_given():
+    from manisplat.reconstruct.config import resolve_lambda_smooth
+
+    assert resolve_lambda_smooth(None, riding=True) == 1.0
+    assert resolve_lambda_smooth(None, riding=False) == 0.0
+    assert resolve_lambda_smooth(0.3, riding=True) == 0.3 and resolve_lambda_smooth(0.0, riding=True) == 0.0

@@ -38,6 +38,7 @@ def test_cli_writes_every_output(pick, tmp_path, capsys):
     assert metrics["iters"] == 40 and metrics["wall_s"] > 0 and metrics["plan"]["frames"] == 24
     assert set(metrics["pose"]["box"]) == {"et_cm", "er_deg"} and "box" in metrics["pose_baseline"]
     assert metrics["psnr"]["full"] > 15.0
+    assert (metrics["lambda_pose"], metrics["lambda_smooth"]) == (0.01, 0.0), "a fixed camera: no smoothness"
     # the box's pose after it first moves and where it is left, with the offset fixed before it
     # moves (measured 0.21 cm / 0.08 deg, left 0.18 cm; a box left 2.3 cm off failed this)
     anchored = metrics["pose_anchored"]["box"]
@@ -96,6 +97,26 @@ def test_an_object_that_never_moves_gets_one_pose_and_no_tracking(reach):
     assert not obj.moves
     rec, alignments = build(data, plan, TrainConfig(iters=1))
     assert rec.trajectories["box"].n_params == 1 and alignments["box"].baseline is None
+
+
+def test_a_moving_frames_loss_holds_its_correction_to_its_trained_neighbours(pick):
+    """The training loss of a carried frame grows by lambda_smooth times the squared distance (in
+    sigma units) of its correction from its trained neighbours' mean; a frame at rest adds none."""
+    data = load_episode_data(pick)
+    rec, _ = build(data, make_plan(data), TrainConfig(iters=1, lambda_pose=0.0))
+    traj, neighbours = rec.trajectories["box"], rec._neighbours["box"]
+    frame = next(f for f in sorted(neighbours) if len(neighbours[f]) == 2)
+    at_rest = next(f for f in rec.plan.train_frames if f not in neighbours)
+    with torch.no_grad():
+        traj.twist(frame)[0] = 0.002  # 2 mm off its neighbours (which stay at 0): 0.04 in sigma units
+
+    def loss(f: int, weight: float) -> float:
+        rec.config.lambda_smooth = weight
+        with torch.no_grad():
+            return rec.losses(f)[0].item()
+
+    assert loss(frame, 1.0) - loss(frame, 0.0) == pytest.approx(0.04, rel=1e-4)
+    assert loss(at_rest, 1.0) == loss(at_rest, 0.0)
 
 
 def test_shadows_are_searched_and_learned(pick, tmp_path):

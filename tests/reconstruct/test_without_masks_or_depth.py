@@ -175,9 +175,9 @@ def test_an_explicit_mask_loss_weight_overrides_the_masks_source(pick, tmp_path)
     out = tmp_path / "o"
     assert main([str(pick), "--out", str(out), "--iters", "5", "-q", "--no-masks",
                  "--object-point", f"{cols.mean():.1f},{rows.mean():.1f}", "--lambda-mask", "0.5",
-                 "--lambda-pose", "0.25"]) == 0
+                 "--lambda-pose", "0.25", "--lambda-smooth", "0.5"]) == 0
     metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["lambda_mask"] == 0.5 and metrics["lambda_pose"] == 0.25
+    assert metrics["lambda_mask"] == 0.5 and metrics["lambda_pose"] == 0.25 and metrics["lambda_smooth"] == 0.5
 
 
 def test_cli_prompt_errors(pick, tmp_path, capsys):
