@@ -21,7 +21,8 @@ them (each arm's ``a1..a6, a_gripper``), go to the simulator directly. Rendering
 source with ``gen_bimanual.py --seed S`` (the sample's task) instead of reading the shared sample.
 
 ``MANISPLAT_SIMENV=SIMENV/bin/python python -m benchmarks augment_cobot [--sample cobot_dual_small] [--n 100]
-[--planned 0] [--source-seed S] [--iters 1000] [--lambda-mask L] [--render-check 10] [--work DIR] [--out FILE]``
+[--planned 0] [--source-seed S] [--iters 1000] [--lambda-mask L] [--lambda-pose L] [--lambda-smooth L]
+[--render-check 10] [--work DIR] [--out FILE]``
 """
 
 from __future__ import annotations
@@ -59,7 +60,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--planned", type=int, default=0, help="more demonstrations planned only, executed in physics (default 0)")
     p.add_argument("--source-seed", type=int, help="make the source with gen_bimanual.py --seed S instead")
     p.add_argument("--iters", type=int, default=1000, help="reconstruction iterations (default 1000)")
-    p.add_argument("--lambda-mask", type=non_negative(), help="manisplat-reconstruct --lambda-mask (default: the command's)")
+    for flag in ("--lambda-mask", "--lambda-pose", "--lambda-smooth"):
+        p.add_argument(flag, type=non_negative(), help=f"manisplat-reconstruct {flag} (default: the command's)")
     p.add_argument("--render-check", type=int, default=10, help="demonstrations the simulator also renders (default 10)")
     p.add_argument("--work", type=Path, help="stage outputs, reused when present (default a temporary folder)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_augment" / "augment_cobot.json")
@@ -83,13 +85,15 @@ def main(argv: list[str] | None = None) -> int:
                          "--out", str(episode)]) != 0:
             raise RuntimeError(f"{args.sample}: import failed")
     prompts = add_ground_truth(episode, source) if not (episode / "gt.npz").exists() else _prompts(episode, source)
-    options = () if args.lambda_mask is None else ("--lambda-mask", str(args.lambda_mask))
+    asked = {"lambda_mask": args.lambda_mask, "lambda_pose": args.lambda_pose, "lambda_smooth": args.lambda_smooth}
+    options = tuple(part for key, weight in asked.items() if weight is not None
+                    for part in ("--" + key.replace("_", "-"), str(weight)))
     if not (twin_dir / "twin.json").exists():
         t0 = time.perf_counter()
         recon = reconstruct(episode, twin_dir, CAMERAS, prompts, args.iters, options)
         stages["reconstruct_s"] = round(time.perf_counter() - t0, 1)
         print(json.dumps({k: recon[k] for k in ("wall_s", "ms_per_iter", "pose_anchored")}, default=float), flush=True)
-    lambda_mask = _mask_loss_weight(twin_dir, args.lambda_mask)
+    weights = loss_weights(twin_dir, asked)
     if not (aug / "augment_report.json").exists():
         t0 = time.perf_counter()
         augment_main([str(twin_dir), "--n", str(args.n), "--out", str(aug), "--workers", "2", "--seed", "0", "-q",
@@ -117,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
 
     result = {
         "benchmark": "augment_cobot", "sample": args.sample, "source_seed": args.source_seed,
-        "lambda_mask": lambda_mask,
+        **weights,
         "command": "python -m benchmarks augment_cobot " + " ".join(argv if argv is not None else sys.argv[1:]),
         "augment": {k: report.get(k) for k in ("requested", "drawn", "valid", "validity_rate", "reasons",
                                                 "min_arm_clearance_m", "timing_s", "plan_s_per_sample")},
@@ -135,16 +139,23 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _mask_loss_weight(twin_dir: Path, lambda_mask: float | None) -> float:
-    """The mask-loss weight the twin in ``twin_dir`` was reconstructed with; a twin of ``--work``
-    made with another weight than asked (unset: the drawn masks' default; twins from before
-    metrics.json recorded it were made with 1) is refused."""
-    from manisplat.reconstruct.config import resolve_lambda_mask
+def loss_weights(twin_dir: Path, asked: dict[str, float | None]) -> dict[str, float]:
+    """The loss weights (``lambda_mask``, ``lambda_pose``, ``lambda_smooth``) the twin in
+    ``twin_dir`` was reconstructed with; a twin of ``--work`` made with other weights than
+    ``asked`` (None: the command's default for three cameras, two of them on the arms) is refused.
+    Twins from before ``metrics.json`` recorded a weight were made with the defaults of then:
+    mask 1, pose 1, no smoothness loss."""
+    from manisplat.reconstruct.config import TrainConfig, resolve_lambda_mask, resolve_lambda_smooth
 
-    made = json.loads((twin_dir / "metrics.json").read_text()).get("lambda_mask", 1.0)
-    wanted = resolve_lambda_mask(lambda_mask, masks_drawn=True)
-    if made != wanted:
-        raise RuntimeError(f"{twin_dir} was reconstructed with --lambda-mask {made}, not {wanted}: use another --work")
+    metrics = json.loads((twin_dir / "metrics.json").read_text())
+    made = {"lambda_mask": metrics.get("lambda_mask", 1.0), "lambda_pose": metrics.get("lambda_pose", 1.0),
+            "lambda_smooth": metrics.get("lambda_smooth", 0.0)}
+    wanted = {"lambda_mask": resolve_lambda_mask(asked["lambda_mask"], masks_drawn=True),
+              "lambda_pose": TrainConfig.lambda_pose if asked["lambda_pose"] is None else asked["lambda_pose"],
+              "lambda_smooth": resolve_lambda_smooth(asked["lambda_smooth"], riding=True)}
+    differ = [f"--{k.replace('_', '-')} {made[k]}, not {wanted[k]}" for k in made if made[k] != wanted[k]]
+    if differ:
+        raise RuntimeError(f"{twin_dir} was reconstructed with {'; '.join(differ)}: use another --work")
     return made
 
 

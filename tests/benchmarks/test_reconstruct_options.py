@@ -1,7 +1,10 @@
 """The whole-reconstruction benchmarks refuse a loss weight the command would refuse, before they
-import, generate or train anything."""
+import, generate or train anything, and a twin reused from ``--work`` is refused when it was made
+with other weights than asked."""
 
 from __future__ import annotations
+
+import json
 
 import pytest
 
@@ -10,7 +13,8 @@ from benchmarks import bench_augment_cobot, bench_reconstruct_cobot, bench_recon
 #: (benchmark, its loss-weight flag) for every such flag a benchmark passes on to manisplat-reconstruct
 WEIGHT_FLAGS = [(bench_reconstruct_cobot, "--lambda-pose"), (bench_reconstruct_viewpoints, "--lambda-pose"),
                 (bench_reconstruct_cobot, "--lambda-mask"), (bench_augment_cobot, "--lambda-mask"),
-                (bench_reconstruct_cobot, "--lambda-smooth")]
+                (bench_reconstruct_cobot, "--lambda-smooth"), (bench_augment_cobot, "--lambda-pose"),
+                (bench_augment_cobot, "--lambda-smooth")]
 
 
 @pytest.mark.parametrize(("bench", "flag"), WEIGHT_FLAGS, ids=lambda x: x if isinstance(x, str) else x.__name__)
@@ -21,3 +25,30 @@ def test_a_negative_or_unreadable_loss_weight_is_refused_at_the_command_line(ben
     assert exit_.value.code == 2
     assert flag in capsys.readouterr().err
     assert not (tmp_path / "result.json").exists()
+
+
+DEFAULTS = {"lambda_mask": None, "lambda_pose": None, "lambda_smooth": None}
+
+
+def _twin(tmp_path, **recorded):
+    (tmp_path / "metrics.json").write_text(json.dumps(recorded))
+    return tmp_path
+
+
+def test_a_reused_twin_made_with_the_asked_weights_is_taken_with_them(tmp_path):
+    twin = _twin(tmp_path, lambda_mask=0.0, lambda_pose=0.01, lambda_smooth=1.0)
+    assert bench_augment_cobot.loss_weights(twin, DEFAULTS) == {"lambda_mask": 0.0, "lambda_pose": 0.01,
+                                                                 "lambda_smooth": 1.0}
+    asked = {"lambda_mask": None, "lambda_pose": 1.0, "lambda_smooth": 0.0}
+    assert bench_augment_cobot.loss_weights(_twin(tmp_path, lambda_mask=0.0, lambda_pose=1.0, lambda_smooth=0.0),
+                                            asked)["lambda_pose"] == 1.0
+
+
+@pytest.mark.parametrize(("recorded", "named"), [
+    ({"lambda_mask": 0.0, "lambda_pose": 1.0, "lambda_smooth": 1.0}, "--lambda-pose 1.0, not 0.01"),
+    ({"lambda_mask": 0.0, "lambda_pose": 0.01, "lambda_smooth": 0.0}, "--lambda-smooth 0.0, not 1.0"),
+    ({"lambda_mask": 0.0}, "--lambda-pose 1.0, not 0.01"),  # made before metrics.json recorded the weight
+])
+def test_a_reused_twin_made_with_other_weights_is_refused_by_name(tmp_path, recorded, named):
+    with pytest.raises(RuntimeError, match=named):
+        bench_augment_cobot.loss_weights(_twin(tmp_path, **recorded), DEFAULTS)
