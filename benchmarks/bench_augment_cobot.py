@@ -43,8 +43,7 @@ import numpy as np
 
 from benchmarks._harness import BENCH_DIR, shared_dir, simulator_python
 from benchmarks._simulator import SimJob, run_sim_jobs, sim_tools
-from benchmarks.bench_reconstruct_cobot import CAMERAS, add_ground_truth, reconstruct
-from manisplat.cli_args import non_negative
+from benchmarks.bench_reconstruct_cobot import CAMERAS, add_ground_truth, add_weight_flags, reconstruct, weight_options
 
 if TYPE_CHECKING:  # the planner and the twin load torch and the robot model: not for --help
     from manisplat.augment.bimanual import BimanualTrajectory
@@ -60,8 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--planned", type=int, default=0, help="more demonstrations planned only, executed in physics (default 0)")
     p.add_argument("--source-seed", type=int, help="make the source with gen_bimanual.py --seed S instead")
     p.add_argument("--iters", type=int, default=1000, help="reconstruction iterations (default 1000)")
-    for flag in ("--lambda-mask", "--lambda-pose", "--lambda-smooth"):
-        p.add_argument(flag, type=non_negative(), help=f"manisplat-reconstruct {flag} (default: the command's)")
+    add_weight_flags(p)
     p.add_argument("--render-check", type=int, default=10, help="demonstrations the simulator also renders (default 10)")
     p.add_argument("--work", type=Path, help="stage outputs, reused when present (default a temporary folder)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_augment" / "augment_cobot.json")
@@ -86,8 +84,7 @@ def main(argv: list[str] | None = None) -> int:
             raise RuntimeError(f"{args.sample}: import failed")
     prompts = add_ground_truth(episode, source) if not (episode / "gt.npz").exists() else _prompts(episode, source)
     asked = {"lambda_mask": args.lambda_mask, "lambda_pose": args.lambda_pose, "lambda_smooth": args.lambda_smooth}
-    options = tuple(part for key, weight in asked.items() if weight is not None
-                    for part in ("--" + key.replace("_", "-"), str(weight)))
+    options = weight_options(args)
     if not (twin_dir / "twin.json").exists():
         t0 = time.perf_counter()
         recon = reconstruct(episode, twin_dir, CAMERAS, prompts, args.iters, options)

@@ -52,10 +52,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="manisplat-reconstruct --shadow-casters (default gaussians)")
     p.add_argument("--rasterize-mode", choices=RASTERIZE_CHOICES, default="auto",
                    help="manisplat-reconstruct --rasterize-mode (default auto, as the command's)")
-    p.add_argument("--lambda-mask", type=non_negative(), help="manisplat-reconstruct --lambda-mask (default: the command's)")
-    p.add_argument("--lambda-pose", type=non_negative(), help="manisplat-reconstruct --lambda-pose (default: the command's)")
-    p.add_argument("--lambda-smooth", type=non_negative(),
-                   help="manisplat-reconstruct --lambda-smooth (default: the command's)")
+    add_weight_flags(p)
     p.add_argument("--seed", type=int, default=0, help="manisplat-reconstruct --seed (default 0, the command's)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_reconstruct" / "reconstruct_cobot.json")
     args = p.parse_args(argv)
@@ -72,10 +69,7 @@ def main(argv: list[str] | None = None) -> int:
                 out = Path(tmp) / f"{sample}_{len(cameras)}"
                 options = ("--shadow-casters", args.shadow_casters, "--rasterize-mode", args.rasterize_mode,
                            "--seed", str(args.seed))
-                for flag, weight in (("--lambda-mask", args.lambda_mask), ("--lambda-pose", args.lambda_pose),
-                                     ("--lambda-smooth", args.lambda_smooth)):
-                    if weight is not None:
-                        options += (flag, str(weight))
+                options += weight_options(args)
                 row = reconstruct(episode, out, cameras, prompts, args.iters, options)
                 rows.append(row | {"sample": sample, "setting": setting})
                 print(json.dumps(rows[-1], default=float), flush=True)
@@ -96,6 +90,22 @@ def imported_sample(shared: Path, sample: str, folder: Path) -> tuple[Path, dict
                      "--out", str(episode)]) != 0:
         raise RuntimeError(f"{sample}: import failed")
     return episode, add_ground_truth(episode, source)
+
+
+#: the loss-weight flags passed on to manisplat-reconstruct when given
+WEIGHT_FLAGS = ("--lambda-mask", "--lambda-pose", "--lambda-smooth")
+
+
+def add_weight_flags(parser: argparse.ArgumentParser) -> None:
+    """Add :data:`WEIGHT_FLAGS` to ``parser`` (unset: the command's default), validated as the command does."""
+    for flag in WEIGHT_FLAGS:
+        parser.add_argument(flag, type=non_negative(), help=f"manisplat-reconstruct {flag} (default: the command's)")
+
+
+def weight_options(args: argparse.Namespace) -> tuple[str, ...]:
+    """manisplat-reconstruct's options for the weights of :data:`WEIGHT_FLAGS` given in ``args``."""
+    return tuple(part for flag in WEIGHT_FLAGS if (weight := getattr(args, flag[2:].replace("-", "_"))) is not None
+                 for part in (flag, str(weight)))
 
 
 def reconstruct(episode: Path, out: Path, cameras: tuple[str, ...], prompts: dict[str, tuple[float, float]],
