@@ -146,8 +146,9 @@ class TwistAdam:
         self.steps = {k: [0] * t.n_params for k, t in trajectories.items()}
 
     @torch.no_grad()
-    def step(self, frame: int) -> None:
-        """Step the twists frame ``frame`` used from their gradients, then clear the gradients."""
+    def step(self, frame: int, scale: float = 1.0) -> None:
+        """Step the twists frame ``frame`` used from their gradients, at ``scale`` times the learning
+        rate (the training's decay), then clear the gradients."""
         b1, b2 = self.betas
         for name, traj in self.trajectories.items():
             if traj.xi.grad is None:
@@ -158,7 +159,7 @@ class TwistAdam:
             m.mul_(b1).add_(g, alpha=1 - b1)
             v.mul_(b2).addcmul_(g, g, value=1 - b2)
             denom = (v / (1 - b2 ** n)).sqrt_().add_(self.eps)
-            traj.xi[k].addcdiv_(m, denom, value=-self.lr / (1 - b1 ** n))
+            traj.xi[k].addcdiv_(m, denom, value=-self.lr * scale / (1 - b1 ** n))
             traj.xi.grad = None
 
     def state_dict(self) -> dict:

@@ -342,7 +342,7 @@ class Reconstruction:
                 g.params["shN"].grad = None
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
-        self.pose_optimizer.step(frame)
+        self.pose_optimizer.step(frame, scale=self._decay())
         if self.config.densify and any(self.step < s.refine_stop_iter for s in self.strategies.values()):
             # the image-space statistics of the whole union at once, each node given its slice
             norms, visible = gradient_statistics(meta["means2d"].grad, meta["radii"], meta["width"], meta["height"])
@@ -368,9 +368,16 @@ class Reconstruction:
                 group["lr"] = lr * group["lr_scale"]
 
     def _means_lr(self) -> float:
-        """The positions' learning rate at the current step: 1.6e-4 x scene scale, decaying 100x over training."""
-        frac = min(self.step / max(self.config.iters, 1), 1.0)
-        return 1.6e-4 * self.scene_scale * 0.01 ** frac
+        """The positions' learning rate at the current step: 1.6e-4 x scene scale, times :meth:`_decay`."""
+        return 1.6e-4 * self.scene_scale * self._decay()
+
+    def _decay(self) -> float:
+        """The positions' and the object poses' learning-rate factor at the current step: 1 at the
+        start, 0.01 at the end of training (exponential). The poses decay with the Gaussians they
+        place: at a constant rate a twist stepped often (an object at rest, one twist for all its
+        frames) wandered a millimetre from where every camera's images put it once the Gaussians
+        had stopped moving."""
+        return 0.01 ** min(self.step / max(self.config.iters, 1), 1.0)
 
     @torch.no_grad()
     def refit_exposure(self) -> None:

@@ -171,6 +171,21 @@ def test_the_objects_positions_learn_at_their_own_fraction_of_the_scenes_rate(pi
     assert rates == pytest.approx(sorted({1.0, rate}))  # the schedule's rate, the objects' apart
 
 
+@pytest.mark.parametrize("step", [0, 9])
+def test_the_object_poses_learning_rate_decays_with_the_positions(pick, step):
+    """A twist's first Adam step is its learning rate: 5e-4 at the start of training, 100 times
+    less by its end, on the positions' schedule (at a constant rate a shared rest twist wandered
+    once the Gaussians had settled)."""
+    rec, _ = _reconstruction(pick, iters=10, device="cpu", densify=False, shadows=False)
+    rec.step = step
+    decay = rec._decay()
+    assert decay == pytest.approx(0.01 ** (step / 10))
+    assert rec._means_lr() == pytest.approx(1.6e-4 * rec.scene_scale * decay)
+    rec._iteration(rec._train_states())  # one iteration at ``step``
+    moved = rec.trajectories["box"].xi.detach().abs().max().item()
+    assert 0.5 * 5e-4 * decay < moved <= 1.001 * 5e-4 * decay
+
+
 def test_a_checkpoint_resumes_only_at_the_object_position_rate_it_was_trained_at(pick):
     """Checkpoints from before the option trained the objects at the scene's rate."""
     rec, _ = _reconstruction(pick, iters=2, device="cpu", object_position_rate=0.3)

@@ -44,6 +44,15 @@ def test_only_the_twists_of_the_rendered_frame_step():
     assert opt.steps["box"] == [0, 2, 5, 0]
 
 
+def test_a_twist_steps_at_the_given_fraction_of_its_learning_rate():
+    traj = ObjectTrajectory(np.repeat(np.eye(4)[None], 2, axis=0), ["tracked"] * 2)
+    opt = TwistAdam({"box": traj}, lr=1e-3)
+    (traj.pose(0)[0, 3] - 0.01).square().backward()
+    opt.step(0, scale=0.1)
+    assert traj.xi[0, 0].item() == pytest.approx(1e-4)  # Adam's first step: the scaled rate
+    assert opt.lr == 1e-3  # the base rate kept (a schedule passes its factor each step)
+
+
 def test_the_twist_optimizer_continues_from_its_state():
     def run(split: bool) -> torch.Tensor:
         traj = ObjectTrajectory(np.repeat(np.eye(4)[None], 3, axis=0), ["tracked"] * 3)
