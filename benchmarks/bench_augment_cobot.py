@@ -22,7 +22,7 @@ source with ``gen_bimanual.py --seed S`` (the sample's task) instead of reading 
 
 ``MANISPLAT_SIMENV=SIMENV/bin/python python -m benchmarks augment_cobot [--sample cobot_dual_small] [--n 100]
 [--planned 0] [--source-seed S] [--iters 1000] [--lambda-mask L] [--lambda-pose L] [--lambda-smooth L]
-[--render-check 10] [--work DIR] [--out FILE]``
+[--pose-rate-final F] [--render-check 10] [--work DIR] [--out FILE]``
 """
 
 from __future__ import annotations
@@ -43,7 +43,8 @@ import numpy as np
 
 from benchmarks._harness import BENCH_DIR, shared_dir, simulator_python
 from benchmarks._simulator import SimJob, run_sim_jobs, sim_tools
-from benchmarks.bench_reconstruct_cobot import CAMERAS, add_ground_truth, add_weight_flags, reconstruct, weight_options
+from benchmarks.bench_reconstruct_cobot import (CAMERAS, add_ground_truth, add_training_flags, reconstruct,
+                                                training_options)
 
 if TYPE_CHECKING:  # the planner and the twin load torch and the robot model: not for --help
     from manisplat.augment.bimanual import BimanualTrajectory
@@ -59,7 +60,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--planned", type=int, default=0, help="more demonstrations planned only, executed in physics (default 0)")
     p.add_argument("--source-seed", type=int, help="make the source with gen_bimanual.py --seed S instead")
     p.add_argument("--iters", type=int, default=1000, help="reconstruction iterations (default 1000)")
-    add_weight_flags(p)
+    add_training_flags(p)
     p.add_argument("--render-check", type=int, default=10, help="demonstrations the simulator also renders (default 10)")
     p.add_argument("--work", type=Path, help="stage outputs, reused when present (default a temporary folder)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_augment" / "augment_cobot.json")
@@ -83,14 +84,15 @@ def main(argv: list[str] | None = None) -> int:
                          "--out", str(episode)]) != 0:
             raise RuntimeError(f"{args.sample}: import failed")
     prompts = add_ground_truth(episode, source) if not (episode / "gt.npz").exists() else _prompts(episode, source)
-    asked = {"lambda_mask": args.lambda_mask, "lambda_pose": args.lambda_pose, "lambda_smooth": args.lambda_smooth}
-    options = weight_options(args)
+    asked = {"lambda_mask": args.lambda_mask, "lambda_pose": args.lambda_pose, "lambda_smooth": args.lambda_smooth,
+             "pose_rate_final": args.pose_rate_final}
+    options = training_options(args)
     if not (twin_dir / "twin.json").exists():
         t0 = time.perf_counter()
         recon = reconstruct(episode, twin_dir, CAMERAS, prompts, args.iters, options)
         stages["reconstruct_s"] = round(time.perf_counter() - t0, 1)
         print(json.dumps({k: recon[k] for k in ("wall_s", "ms_per_iter", "pose_anchored")}, default=float), flush=True)
-    weights = loss_weights(twin_dir, asked)
+    settings = training_settings(twin_dir, asked)
     if not (aug / "augment_report.json").exists():
         t0 = time.perf_counter()
         augment_main([str(twin_dir), "--n", str(args.n), "--out", str(aug), "--workers", "2", "--seed", "0", "-q",
@@ -118,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
 
     result = {
         "benchmark": "augment_cobot", "sample": args.sample, "source_seed": args.source_seed,
-        **weights,
+        **settings,
         "command": "python -m benchmarks augment_cobot " + " ".join(argv if argv is not None else sys.argv[1:]),
         "augment": {k: report.get(k) for k in ("requested", "drawn", "valid", "validity_rate", "reasons",
                                                 "min_arm_clearance_m", "timing_s", "plan_s_per_sample")},
@@ -136,20 +138,22 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def loss_weights(twin_dir: Path, asked: dict[str, float | None]) -> dict[str, float]:
-    """The loss weights (``lambda_mask``, ``lambda_pose``, ``lambda_smooth``) the twin in
-    ``twin_dir`` was reconstructed with; a twin of ``--work`` made with other weights than
-    ``asked`` (None: the command's default for three cameras, two of them on the arms) is refused.
-    Twins from before ``metrics.json`` recorded a weight were made with the defaults of then:
-    mask 1, pose 1, no smoothness loss."""
+def training_settings(twin_dir: Path, asked: dict[str, float | None]) -> dict[str, float]:
+    """The training settings (``lambda_mask``, ``lambda_pose``, ``lambda_smooth``,
+    ``pose_rate_final``) the twin in ``twin_dir`` was reconstructed with; a twin of ``--work`` made
+    with other settings than ``asked`` (None: the command's default for three cameras, two of them
+    on the arms) is refused. Twins from before ``metrics.json`` recorded a setting were made with
+    the defaults of then: mask 1, pose 1, no smoothness loss, a constant pose rate."""
     from manisplat.reconstruct.config import TrainConfig, resolve_lambda_mask, resolve_lambda_smooth
 
     metrics = json.loads((twin_dir / "metrics.json").read_text())
     made = {"lambda_mask": metrics.get("lambda_mask", 1.0), "lambda_pose": metrics.get("lambda_pose", 1.0),
-            "lambda_smooth": metrics.get("lambda_smooth", 0.0)}
+            "lambda_smooth": metrics.get("lambda_smooth", 0.0), "pose_rate_final": metrics.get("pose_rate_final", 1.0)}
     wanted = {"lambda_mask": resolve_lambda_mask(asked["lambda_mask"], masks_drawn=True),
               "lambda_pose": TrainConfig.lambda_pose if asked["lambda_pose"] is None else asked["lambda_pose"],
-              "lambda_smooth": resolve_lambda_smooth(asked["lambda_smooth"], riding=True)}
+              "lambda_smooth": resolve_lambda_smooth(asked["lambda_smooth"], riding=True),
+              "pose_rate_final": (TrainConfig.pose_rate_final if asked["pose_rate_final"] is None
+                                  else asked["pose_rate_final"])}
     differ = [f"--{k.replace('_', '-')} {made[k]}, not {wanted[k]}" for k in made if made[k] != wanted[k]]
     if differ:
         raise RuntimeError(f"{twin_dir} was reconstructed with {'; '.join(differ)}: use another --work")

@@ -12,7 +12,7 @@ errors in the world frame (fitted and start-anchored), wall time and time per it
 
 ``python -m benchmarks reconstruct_cobot [--samples cobot_dual_small,...] [--settings all,head] [--iters 3000]
 [--shadow-casters meshes|gaussians] [--rasterize-mode auto|classic|antialiased] [--lambda-mask L]
-[--lambda-pose L] [--lambda-smooth L] [--seed S] [--out FILE]``: ``--settings all --iters 9000`` gives the head camera about as many iterations as
+[--lambda-pose L] [--lambda-smooth L] [--pose-rate-final F] [--seed S] [--out FILE]``: ``--settings all --iters 9000`` gives the head camera about as many iterations as
 ``--settings head --iters 3000`` (one camera's image an iteration).
 """
 
@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from benchmarks._harness import BENCH_DIR, shared_dir
-from manisplat.cli_args import non_negative
+from manisplat.cli_args import bounded, non_negative
 from manisplat.episode.cli import main as episode_main
 from manisplat.episode.groundtruth import write_gt
 from manisplat.reconstruct.cli import main as reconstruct_main
@@ -52,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="manisplat-reconstruct --shadow-casters (default gaussians)")
     p.add_argument("--rasterize-mode", choices=RASTERIZE_CHOICES, default="auto",
                    help="manisplat-reconstruct --rasterize-mode (default auto, as the command's)")
-    add_weight_flags(p)
+    add_training_flags(p)
     p.add_argument("--seed", type=int, default=0, help="manisplat-reconstruct --seed (default 0, the command's)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_reconstruct" / "reconstruct_cobot.json")
     args = p.parse_args(argv)
@@ -69,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
                 out = Path(tmp) / f"{sample}_{len(cameras)}"
                 options = ("--shadow-casters", args.shadow_casters, "--rasterize-mode", args.rasterize_mode,
                            "--seed", str(args.seed))
-                options += weight_options(args)
+                options += training_options(args)
                 row = reconstruct(episode, out, cameras, prompts, args.iters, options)
                 rows.append(row | {"sample": sample, "setting": setting})
                 print(json.dumps(rows[-1], default=float), flush=True)
@@ -92,20 +92,21 @@ def imported_sample(shared: Path, sample: str, folder: Path) -> tuple[Path, dict
     return episode, add_ground_truth(episode, source)
 
 
-#: the loss-weight flags passed on to manisplat-reconstruct when given
-WEIGHT_FLAGS = ("--lambda-mask", "--lambda-pose", "--lambda-smooth")
+#: manisplat-reconstruct's training settings passed on when given, each validated as the command does
+TRAINING_FLAGS = {"--lambda-mask": non_negative(), "--lambda-pose": non_negative(), "--lambda-smooth": non_negative(),
+                  "--pose-rate-final": bounded(1e-6, 1.0)}
 
 
-def add_weight_flags(parser: argparse.ArgumentParser) -> None:
-    """Add :data:`WEIGHT_FLAGS` to ``parser`` (unset: the command's default), validated as the command does."""
-    for flag in WEIGHT_FLAGS:
-        parser.add_argument(flag, type=non_negative(), help=f"manisplat-reconstruct {flag} (default: the command's)")
+def add_training_flags(parser: argparse.ArgumentParser) -> None:
+    """Add :data:`TRAINING_FLAGS` to ``parser`` (unset: the command's default)."""
+    for flag, kind in TRAINING_FLAGS.items():
+        parser.add_argument(flag, type=kind, help=f"manisplat-reconstruct {flag} (default: the command's)")
 
 
-def weight_options(args: argparse.Namespace) -> tuple[str, ...]:
-    """manisplat-reconstruct's options for the weights of :data:`WEIGHT_FLAGS` given in ``args``."""
-    return tuple(part for flag in WEIGHT_FLAGS if (weight := getattr(args, flag[2:].replace("-", "_"))) is not None
-                 for part in (flag, str(weight)))
+def training_options(args: argparse.Namespace) -> tuple[str, ...]:
+    """manisplat-reconstruct's options for the settings of :data:`TRAINING_FLAGS` given in ``args``."""
+    return tuple(part for flag in TRAINING_FLAGS if (value := getattr(args, flag[2:].replace("-", "_"))) is not None
+                 for part in (flag, str(value)))
 
 
 def reconstruct(episode: Path, out: Path, cameras: tuple[str, ...], prompts: dict[str, tuple[float, float]],
@@ -126,7 +127,7 @@ def reconstruct(episode: Path, out: Path, cameras: tuple[str, ...], prompts: dic
     return {"cameras": list(cameras), "iters": iters, "wall_s": round(wall, 1), "ms_per_iter": metrics.get("ms_per_iter"),
             "options": list(options), "light": metrics.get("light"), "rasterize_mode": metrics.get("rasterize_mode"),
             "lambda_mask": metrics.get("lambda_mask"), "lambda_pose": metrics.get("lambda_pose"),
-            "lambda_smooth": metrics.get("lambda_smooth"),
+            "lambda_smooth": metrics.get("lambda_smooth"), "pose_rate_final": metrics.get("pose_rate_final"),
             "prompts": {k: [round(u), round(v)] for k, (u, v) in prompts.items()},
             "per_camera": {name: {"psnr": m["psnr"], "ssim": m["ssim"]}
                            for name, m in metrics.get("cameras", {HEAD: metrics}).items()},

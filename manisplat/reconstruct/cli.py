@@ -20,7 +20,7 @@ from functools import partial
 from pathlib import Path
 
 from manisplat.align.phases import DEFAULT_TAU
-from manisplat.cli_args import add_version, finite, non_negative, numbers, positive
+from manisplat.cli_args import add_version, bounded, finite, non_negative, numbers, positive
 from manisplat.exit_codes import ExitCode, exit_status_help
 from manisplat.output_folder import check_output_folder
 from manisplat.reconstruct.config import (COMPILE_CHOICES, COMPILE_MIN_ITERS, GPU_ITERS, RASTERIZE_CHOICES,
@@ -115,6 +115,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the objects' Gaussians' position learning rate as a fraction of the scene's (default "
                         f"{TrainConfig.object_position_rate:g}; 0.3 keeps a few-centimetre object's Gaussians nearer "
                         "its faces: docs/benchmarks.md, policies trained on the output)")
+    p.add_argument("--pose-rate-final", type=bounded(1e-6, 1.0), default=TrainConfig.pose_rate_final, metavar="F",
+                   help="the object poses' learning rate at the end of training as a fraction of its start (default "
+                        f"{TrainConfig.pose_rate_final:g}: decays with the Gaussians' positions; 1: constant, which "
+                        "let a resting object's pose wander a millimetre)")
     p.add_argument("--no-densify", action="store_true", help="keep the initial Gaussians (no clone/split/prune)")
     p.add_argument("--refine-camera", action="store_true", help="also optimise a correction of the camera extrinsic")
     p.add_argument("--keep-extrinsic", action="store_true",
@@ -339,8 +343,9 @@ def _config(args: argparse.Namespace, device: str, iters: int, compiled: str | N
     return TrainConfig(
         iters=iters, backend=args.backend, shadows=not args.no_shadows, shadow_receivers=args.shadow_receivers,
         shadow_casters=args.shadow_casters, rasterize_mode=rasterize_mode,
-        object_position_rate=args.object_position_rate, densify=not args.no_densify,
-        refine_camera=args.refine_camera, exposure=not args.no_exposure, lambda_app=args.lambda_app,
+        object_position_rate=args.object_position_rate, pose_rate_final=args.pose_rate_final,
+        densify=not args.no_densify, refine_camera=args.refine_camera, exposure=not args.no_exposure,
+        lambda_app=args.lambda_app,
         lambda_mask=lambda_mask, lambda_pose=args.lambda_pose, lambda_smooth=lambda_smooth,
         seed=args.seed, device=device, compile=args.compile,
     )

@@ -342,7 +342,7 @@ class Reconstruction:
                 g.params["shN"].grad = None
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
-        self.pose_optimizer.step(frame, scale=self._decay())
+        self.pose_optimizer.step(frame, scale=self._pose_rate())
         if self.config.densify and any(self.step < s.refine_stop_iter for s in self.strategies.values()):
             # the image-space statistics of the whole union at once, each node given its slice
             norms, visible = gradient_statistics(meta["means2d"].grad, meta["radii"], meta["width"], meta["height"])
@@ -368,16 +368,19 @@ class Reconstruction:
                 group["lr"] = lr * group["lr_scale"]
 
     def _means_lr(self) -> float:
-        """The positions' learning rate at the current step: 1.6e-4 x scene scale, times :meth:`_decay`."""
-        return 1.6e-4 * self.scene_scale * self._decay()
+        """The positions' learning rate at the current step: 1.6e-4 x scene scale, decaying
+        exponentially from 1x at the start to 0.01x at the end of training."""
+        return 1.6e-4 * self.scene_scale * self._decay(0.01)
 
-    def _decay(self) -> float:
-        """The positions' and the object poses' learning-rate factor at the current step: 1 at the
-        start, 0.01 at the end of training (exponential). The poses decay with the Gaussians they
-        place: at a constant rate a twist stepped often (an object at rest, one twist for all its
-        frames) wandered a millimetre from where every camera's images put it once the Gaussians
-        had stopped moving."""
-        return 0.01 ** min(self.step / max(self.config.iters, 1), 1.0)
+    def _pose_rate(self) -> float:
+        """The object poses' learning-rate factor at the current step: 1 at the start,
+        ``config.pose_rate_final`` at the end (exponential; 0.01 by default: the poses decay with
+        the Gaussians they place)."""
+        return self._decay(self.config.pose_rate_final)
+
+    def _decay(self, final: float) -> float:
+        """An exponential schedule's factor at the current step: 1 at the start, ``final`` at the end."""
+        return final ** min(self.step / max(self.config.iters, 1), 1.0)
 
     @torch.no_grad()
     def refit_exposure(self) -> None:
@@ -515,6 +518,11 @@ class Reconstruction:
         if rate != self.config.object_position_rate:
             raise ValueError(f"the checkpoint was trained with --object-position-rate {rate:g}, this run asks for "
                              f"{self.config.object_position_rate:g}; resume with the same rate, or start a new run "
+                             "(--overwrite)")
+        final = state["config"].get("pose_rate_final", 1.0)  # checkpoints before the schedule: constant
+        if final != self.config.pose_rate_final:
+            raise ValueError(f"the checkpoint was trained with --pose-rate-final {final:g}, this run asks for "
+                             f"{self.config.pose_rate_final:g}; resume with the same rate, or start a new run "
                              "(--overwrite)")
         dev = self.device
 

@@ -1,6 +1,6 @@
-"""The whole-reconstruction benchmarks refuse a loss weight the command would refuse, before they
-import, generate or train anything, and a twin reused from ``--work`` is refused when it was made
-with other weights than asked."""
+"""The whole-reconstruction benchmarks refuse a training setting the command would refuse, before
+they import, generate or train anything, and a twin reused from ``--work`` is refused when it was
+made with other settings than asked."""
 
 from __future__ import annotations
 
@@ -15,6 +15,8 @@ WEIGHT_FLAGS = [(bench_reconstruct_cobot, "--lambda-pose"), (bench_reconstruct_v
                 (bench_reconstruct_cobot, "--lambda-mask"), (bench_augment_cobot, "--lambda-mask"),
                 (bench_reconstruct_cobot, "--lambda-smooth"), (bench_augment_cobot, "--lambda-pose"),
                 (bench_augment_cobot, "--lambda-smooth")]
+#: (benchmark, flag) for the pose rate's final fraction, a number in (0, 1]
+RATE_FLAGS = [(bench_reconstruct_cobot, "--pose-rate-final"), (bench_augment_cobot, "--pose-rate-final")]
 
 
 @pytest.mark.parametrize(("bench", "flag"), WEIGHT_FLAGS, ids=lambda x: x if isinstance(x, str) else x.__name__)
@@ -27,7 +29,17 @@ def test_a_negative_or_unreadable_loss_weight_is_refused_at_the_command_line(ben
     assert not (tmp_path / "result.json").exists()
 
 
-DEFAULTS = {"lambda_mask": None, "lambda_pose": None, "lambda_smooth": None}
+@pytest.mark.parametrize(("bench", "flag"), RATE_FLAGS, ids=lambda x: x if isinstance(x, str) else x.__name__)
+@pytest.mark.parametrize("value", ["0", "1.5", "nan", "x"])
+def test_a_pose_rate_fraction_outside_0_to_1_is_refused_at_the_command_line(bench, flag, value, tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        bench.main([flag, value, "--out", str(tmp_path / "result.json")])
+    assert exit_.value.code == 2
+    assert flag in capsys.readouterr().err
+    assert not (tmp_path / "result.json").exists()
+
+
+DEFAULTS = {"lambda_mask": None, "lambda_pose": None, "lambda_smooth": None, "pose_rate_final": None}
 
 
 def _twin(tmp_path, **recorded):
@@ -35,20 +47,26 @@ def _twin(tmp_path, **recorded):
     return tmp_path
 
 
-def test_a_reused_twin_made_with_the_asked_weights_is_taken_with_them(tmp_path):
-    twin = _twin(tmp_path, lambda_mask=0.0, lambda_pose=0.01, lambda_smooth=1.0)
-    assert bench_augment_cobot.loss_weights(twin, DEFAULTS) == {"lambda_mask": 0.0, "lambda_pose": 0.01,
-                                                                 "lambda_smooth": 1.0}
-    asked = {"lambda_mask": None, "lambda_pose": 1.0, "lambda_smooth": 0.0}
-    assert bench_augment_cobot.loss_weights(_twin(tmp_path, lambda_mask=0.0, lambda_pose=1.0, lambda_smooth=0.0),
-                                            asked)["lambda_pose"] == 1.0
+def test_a_reused_twin_made_with_the_asked_settings_is_taken_with_them(tmp_path):
+    twin = _twin(tmp_path, lambda_mask=0.0, lambda_pose=0.01, lambda_smooth=1.0, pose_rate_final=0.01)
+    assert bench_augment_cobot.training_settings(twin, DEFAULTS) == {"lambda_mask": 0.0, "lambda_pose": 0.01,
+                                                                      "lambda_smooth": 1.0, "pose_rate_final": 0.01}
+    asked = {"lambda_mask": None, "lambda_pose": 1.0, "lambda_smooth": 0.0, "pose_rate_final": 1.0}
+    made = bench_augment_cobot.training_settings(_twin(tmp_path, lambda_mask=0.0, lambda_pose=1.0, lambda_smooth=0.0),
+                                                 asked)  # before the schedule was recorded: constant
+    assert (made["lambda_pose"], made["pose_rate_final"]) == (1.0, 1.0)
 
 
 @pytest.mark.parametrize(("recorded", "named"), [
-    ({"lambda_mask": 0.0, "lambda_pose": 1.0, "lambda_smooth": 1.0}, "--lambda-pose 1.0, not 0.01"),
-    ({"lambda_mask": 0.0, "lambda_pose": 0.01, "lambda_smooth": 0.0}, "--lambda-smooth 0.0, not 1.0"),
+    ({"lambda_mask": 0.0, "lambda_pose": 1.0, "lambda_smooth": 1.0, "pose_rate_final": 0.01},
+     "--lambda-pose 1.0, not 0.01"),
+    ({"lambda_mask": 0.0, "lambda_pose": 0.01, "lambda_smooth": 0.0, "pose_rate_final": 0.01},
+     "--lambda-smooth 0.0, not 1.0"),
+    ({"lambda_mask": 0.0, "lambda_pose": 0.01, "lambda_smooth": 1.0, "pose_rate_final": 0.1},
+     "--pose-rate-final 0.1, not 0.01"),
+    ({"lambda_mask": 0.0, "lambda_pose": 0.01, "lambda_smooth": 1.0}, "--pose-rate-final 1.0, not 0.01"),  # constant then
     ({"lambda_mask": 0.0}, "--lambda-pose 1.0, not 0.01"),  # made before metrics.json recorded the weight
 ])
-def test_a_reused_twin_made_with_other_weights_is_refused_by_name(tmp_path, recorded, named):
+def test_a_reused_twin_made_with_other_settings_is_refused_by_name(tmp_path, recorded, named):
     with pytest.raises(RuntimeError, match=named):
-        bench_augment_cobot.loss_weights(_twin(tmp_path, **recorded), DEFAULTS)
+        bench_augment_cobot.training_settings(_twin(tmp_path, **recorded), DEFAULTS)
