@@ -3,7 +3,8 @@ at new poses, where the simulator says what the new demonstrations look like (is
 
     MANISPLAT_SIMENV=SIMENV/bin/python python -m benchmarks reconstruct_fusion [--counts 1,5,20]
         [--iters 3000] [--demos 5] [--shadow-receivers all|background] [--shadow-casters meshes|gaussians]
-        [--rasterize-mode classic|antialiased] [--work DIR] [--out JSON]
+        [--rasterize-mode classic|antialiased] [--object-position-rate R] [--lambda-pose W]
+        [--pose-rate-final F] [--work DIR] [--out JSON]
 
 1. **Data** (generated, not committed): ``shared/tools/sim/gen_demos.py --source
    shared/data/sim_pick_place_small --n 20 --seed-start 1 --place-range 0.02 0.02 0.4``: the
@@ -60,7 +61,7 @@ import numpy as np
 
 from benchmarks._harness import BENCH_DIR, MissingBenchmarkData, machine_info, shared_dir, simulator_python
 from benchmarks._simulator import SimJob, run_sim_jobs, sim_env, sim_tools
-from manisplat.cli_args import non_negative, positive
+from manisplat.cli_args import bounded, non_negative, positive
 from manisplat.reconstruct.config import RASTERIZE_MODES, SHADOW_CASTERS, SHADOW_RECEIVERS, TrainConfig
 
 OWN_OPTIONS = True
@@ -85,6 +86,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="manisplat-reconstruct --object-position-rate of every twin (default the product's)")
     p.add_argument("--lambda-pose", type=non_negative(), default=TrainConfig.lambda_pose, metavar="W",
                    help="manisplat-reconstruct --lambda-pose of every twin (default the product's)")
+    p.add_argument("--pose-rate-final", type=bounded(1e-6, 1.0), default=TrainConfig.pose_rate_final, metavar="F",
+                   help="manisplat-reconstruct --pose-rate-final of every twin (default the product's)")
     p.add_argument("--work", type=Path, help="outputs (default a temporary folder; kept)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_reconstruct" / "reconstruct_fusion.json")
     args = p.parse_args(argv)
@@ -99,7 +102,8 @@ def main(argv: list[str] | None = None) -> int:
                              {"shadow_receivers": args.shadow_receivers, "shadow_casters": args.shadow_casters,
                               "rasterize_mode": args.rasterize_mode,
                               "object_position_rate": f"{args.object_position_rate:g}",
-                              "lambda_pose": f"{args.lambda_pose:g}"})
+                              "lambda_pose": f"{args.lambda_pose:g}",
+                              "pose_rate_final": f"{args.pose_rate_final:g}"})
         print(f"{count} episodes: {json.dumps({k: twins[count][k] for k in ('wall_s', 'peak_rss_mb', 'psnr')})}",
               flush=True)
     for count in counts:
@@ -123,7 +127,8 @@ def main(argv: list[str] | None = None) -> int:
               "machine": machine_info(), "work": str(work), "iters": args.iters,
               "shadow_receivers": args.shadow_receivers, "shadow_casters": args.shadow_casters,
               "rasterize_mode": args.rasterize_mode, "object_position_rate": args.object_position_rate,
-              "lambda_pose": args.lambda_pose, "episodes": [e.name for e in episodes],
+              "lambda_pose": args.lambda_pose, "pose_rate_final": args.pose_rate_final,
+              "episodes": [e.name for e in episodes],
               "twins": {str(k): v for k, v in twins.items()},
               "new_poses_common_samples": common, "renderer_check": renderer_check, "registration": registration,
               "sheet": sheet.name, "wall_s": round(time.perf_counter() - started, 1)}
@@ -149,8 +154,8 @@ def _demonstrations(simenv: Path, out: Path, n: int) -> list[Path]:
 def _twin(episodes: list[Path], out: Path, iters: int, options: dict[str, str]) -> dict:
     """Reconstruct ``episodes`` into ``out`` in a process of its own, with manisplat-reconstruct's
     ``options`` (``shadow_receivers``, ``shadow_casters``, ``rasterize_mode``,
-    ``object_position_rate``, ``lambda_pose``); its time, peak
-    memory, figures."""
+    ``object_position_rate``, ``lambda_pose``, ``pose_rate_final``; a twin made before a setting was
+    recorded: the default of then); its time, peak memory, figures."""
     if (out / "metrics.json").exists():
         metrics = json.loads((out / "metrics.json").read_text())
         light = metrics.get("light") or {}
@@ -158,7 +163,8 @@ def _twin(episodes: list[Path], out: Path, iters: int, options: dict[str, str]) 
                 "shadow_casters": light.get("casters", "gaussians"),
                 "rasterize_mode": metrics.get("rasterize_mode", "classic"),
                 "object_position_rate": f"{metrics.get('object_position_rate', 1.0):g}",
-                "lambda_pose": f"{metrics.get('lambda_pose', 1.0):g}"}
+                "lambda_pose": f"{metrics.get('lambda_pose', 1.0):g}",
+                "pose_rate_final": f"{metrics.get('pose_rate_final', 1.0):g}"}
         if made != options:
             raise MissingBenchmarkData(f"{out} was made with {made}, not {options}: use another --work")
     else:
