@@ -169,15 +169,16 @@ def test_cli_reconstructs_without_masks_or_depth(pick, tmp_path, flags):
 
 
 def test_an_explicit_mask_loss_weight_overrides_the_masks_source(pick, tmp_path):
-    """... and metrics.json keeps both explicit weights (a cached twin is not taken for another's)."""
+    """... and metrics.json keeps the explicit weights and pose rate (a cached twin is not taken for another's)."""
     _, _, box = true_regions(pick)
     rows, cols = np.nonzero(box[0])
     out = tmp_path / "o"
     assert main([str(pick), "--out", str(out), "--iters", "5", "-q", "--no-masks",
                  "--object-point", f"{cols.mean():.1f},{rows.mean():.1f}", "--lambda-mask", "0.5",
-                 "--lambda-pose", "0.25", "--lambda-smooth", "0.5"]) == 0
+                 "--lambda-pose", "0.25", "--lambda-smooth", "0.5", "--pose-rate-final", "0.2"]) == 0
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["lambda_mask"] == 0.5 and metrics["lambda_pose"] == 0.25 and metrics["lambda_smooth"] == 0.5
+    assert metrics["pose_rate_final"] == 0.2
 
 
 def test_cli_prompt_errors(pick, tmp_path, capsys):
