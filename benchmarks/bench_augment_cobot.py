@@ -100,6 +100,9 @@ def main(argv: list[str] | None = None) -> int:
         stages["augment_s"] = round(time.perf_counter() - t0, 1)
     report = json.loads((aug / "augment_report.json").read_text())
     episodes = sorted(aug.glob("episode_*"))
+    if not episodes:
+        raise RuntimeError(f"no demonstration written: {report['valid']} valid of {report['drawn']} drawn "
+                           f"({report['reasons']}; {aug / 'augment_report.json'})")
     if not (act / "augmentation.json").exists():
         if episode_main(["export", *map(str, episodes), "--format", "act-hdf5", "--compress", "--out", str(act),
                          "--overwrite"]) != 0:

@@ -623,6 +623,7 @@ class Augmenter:
         validation["collision_resolution_rad"] = RESOLUTION
         validation["min_clearance_motions_m"] = None if math.isinf(clear) else round(float(clear), 5)
         validation["table_z_m"] = round(float(self.scene.table_z), 5)
+        validation["table_z_estimates_m"] = {k: round(v, 5) for k, v in self.scene.table_estimates.items()}
         validation["background_points"] = int(len(self.scene.background_points))
         timings["validation_s"] += time.perf_counter() - t0
 
