@@ -117,8 +117,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "its faces: docs/benchmarks.md, policies trained on the output)")
     p.add_argument("--pose-rate-final", type=bounded(1e-6, 1.0), default=TrainConfig.pose_rate_final, metavar="F",
                    help="the object poses' learning rate at the end of training as a fraction of its start (default "
-                        f"{TrainConfig.pose_rate_final:g}: decays with the Gaussians' positions; 1: constant, which "
-                        "let a resting object's pose wander a millimetre)")
+                        f"{TrainConfig.pose_rate_final:g}: tenfold over training; 1: constant, which let a resting "
+                        "object's pose wander a millimetre; 0.01, the Gaussians' positions' decay, corrected less of "
+                        "the pseudo ground truth)")
     p.add_argument("--no-densify", action="store_true", help="keep the initial Gaussians (no clone/split/prune)")
     p.add_argument("--refine-camera", action="store_true", help="also optimise a correction of the camera extrinsic")
     p.add_argument("--keep-extrinsic", action="store_true",

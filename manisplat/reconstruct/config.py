@@ -53,10 +53,12 @@ class TrainConfig:
             starts, yet policies trained on that twin's demonstrations did worse (docs/benchmarks.md,
             policies trained on the output), so 1 stays the default.
         pose_rate_final: the object poses' learning rate at the end of training as a fraction of
-            its start (exponential in between, as the positions' 0.01). At 1 (constant, the rate
-            until 2026-12-04) a twist stepped often (an object at rest, one twist for all its
-            frames) wandered a millimetre from where the images put it once the Gaussians had
-            stopped moving.
+            its start (exponential in between). At 1 (constant, the rate until 2026-12-04) a twist
+            stepped often (an object at rest, one twist for all its frames) wandered a millimetre
+            from where the images put it once the Gaussians had stopped moving; at 0.01 (the
+            positions' decay, the default until 2026-12-05) the images corrected less of the pseudo
+            ground truth late in training: on the Cobot Magic handover the box came out further off
+            and the wrist cameras' object regions 1.1-1.7 dB worse than at 0.1 (docs/benchmarks.md).
         sh_degree, sh_every: view-dependent colour bands (evaluated in each node's frame), one
             more band switched on every ``sh_every`` iterations.
         refine_camera: also optimise a correction of the camera extrinsic.
@@ -97,7 +99,7 @@ class TrainConfig:
     shadow_casters: str = "gaussians"
     rasterize_mode: str = "classic"
     object_position_rate: float = 1.0
-    pose_rate_final: float = 0.01
+    pose_rate_final: float = 0.1
     sh_degree: int = 2
     sh_every: int = 500
     refine_camera: bool = False

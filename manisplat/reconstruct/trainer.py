@@ -374,8 +374,7 @@ class Reconstruction:
 
     def _pose_rate(self) -> float:
         """The object poses' learning-rate factor at the current step: 1 at the start,
-        ``config.pose_rate_final`` at the end (exponential; 0.01 by default: the poses decay with
-        the Gaussians they place)."""
+        ``config.pose_rate_final`` at the end (exponential; 0.1 by default)."""
         return self._decay(self.config.pose_rate_final)
 
     def _decay(self, final: float) -> float:

@@ -48,9 +48,9 @@ def _twin(tmp_path, **recorded):
 
 
 def test_a_reused_twin_made_with_the_asked_settings_is_taken_with_them(tmp_path):
-    twin = _twin(tmp_path, lambda_mask=0.0, lambda_pose=0.01, lambda_smooth=1.0, pose_rate_final=0.01)
+    twin = _twin(tmp_path, lambda_mask=0.0, lambda_pose=0.01, lambda_smooth=1.0, pose_rate_final=0.1)
     assert bench_augment_cobot.training_settings(twin, DEFAULTS) == {"lambda_mask": 0.0, "lambda_pose": 0.01,
-                                                                      "lambda_smooth": 1.0, "pose_rate_final": 0.01}
+                                                                      "lambda_smooth": 1.0, "pose_rate_final": 0.1}
     asked = {"lambda_mask": None, "lambda_pose": 1.0, "lambda_smooth": 0.0, "pose_rate_final": 1.0}
     made = bench_augment_cobot.training_settings(_twin(tmp_path, lambda_mask=0.0, lambda_pose=1.0, lambda_smooth=0.0),
                                                  asked)  # before the schedule was recorded: constant
@@ -58,13 +58,13 @@ def test_a_reused_twin_made_with_the_asked_settings_is_taken_with_them(tmp_path)
 
 
 @pytest.mark.parametrize(("recorded", "named"), [
-    ({"lambda_mask": 0.0, "lambda_pose": 1.0, "lambda_smooth": 1.0, "pose_rate_final": 0.01},
+    ({"lambda_mask": 0.0, "lambda_pose": 1.0, "lambda_smooth": 1.0, "pose_rate_final": 0.1},
      "--lambda-pose 1.0, not 0.01"),
-    ({"lambda_mask": 0.0, "lambda_pose": 0.01, "lambda_smooth": 0.0, "pose_rate_final": 0.01},
+    ({"lambda_mask": 0.0, "lambda_pose": 0.01, "lambda_smooth": 0.0, "pose_rate_final": 0.1},
      "--lambda-smooth 0.0, not 1.0"),
-    ({"lambda_mask": 0.0, "lambda_pose": 0.01, "lambda_smooth": 1.0, "pose_rate_final": 0.1},
-     "--pose-rate-final 0.1, not 0.01"),
-    ({"lambda_mask": 0.0, "lambda_pose": 0.01, "lambda_smooth": 1.0}, "--pose-rate-final 1.0, not 0.01"),  # constant then
+    ({"lambda_mask": 0.0, "lambda_pose": 0.01, "lambda_smooth": 1.0, "pose_rate_final": 0.01},
+     "--pose-rate-final 0.01, not 0.1"),
+    ({"lambda_mask": 0.0, "lambda_pose": 0.01, "lambda_smooth": 1.0}, "--pose-rate-final 1.0, not 0.1"),  # constant then
     ({"lambda_mask": 0.0}, "--lambda-pose 1.0, not 0.01"),  # made before metrics.json recorded the weight
 ])
 def test_a_reused_twin_made_with_other_settings_is_refused_by_name(tmp_path, recorded, named):

@@ -171,11 +171,11 @@ def test_the_objects_positions_learn_at_their_own_fraction_of_the_scenes_rate(pi
     assert rates == pytest.approx(sorted({1.0, rate}))  # the schedule's rate, the objects' apart
 
 
-@pytest.mark.parametrize("step, final", [(0, 0.01), (9, 0.01), (9, 0.1), (9, 1.0)])
+@pytest.mark.parametrize("step, final", [(0, 0.1), (9, 0.01), (9, 0.1), (9, 1.0)])
 def test_the_object_poses_learning_rate_decays_to_its_final_fraction(pick, step, final):
     """A twist's first Adam step is its learning rate: 5e-4 at the start of training, ``final``
-    of it by its end (by default 0.01, the positions' schedule: at a constant rate a shared rest
-    twist wandered once the Gaussians had settled); the positions keep their own 0.01."""
+    of it by its end (by default 0.1: at a constant rate a shared rest twist wandered once the
+    Gaussians had settled); the positions keep their own 0.01."""
     rec, _ = _reconstruction(pick, iters=10, device="cpu", densify=False, shadows=False, pose_rate_final=final)
     rec.step = step
     rate = rec._pose_rate()
@@ -191,11 +191,11 @@ def test_a_checkpoint_resumes_only_at_the_pose_rate_schedule_it_was_trained_at(p
     rec, _ = _reconstruction(pick, iters=2, device="cpu", densify=False, shadows=False)
     rec.train(progress=False)
     state = rec.state_dict()
-    other, _ = _reconstruction(pick, iters=4, device="cpu", densify=False, shadows=False, pose_rate_final=0.1)
-    with pytest.raises(ValueError, match="trained with --pose-rate-final 0.01, this run asks for 0.1"):
+    other, _ = _reconstruction(pick, iters=4, device="cpu", densify=False, shadows=False, pose_rate_final=0.01)
+    with pytest.raises(ValueError, match="trained with --pose-rate-final 0.1, this run asks for 0.01"):
         other.load_state_dict(state)
     del state["config"]["pose_rate_final"]
-    with pytest.raises(ValueError, match="trained with --pose-rate-final 1, this run asks for 0.01"):
+    with pytest.raises(ValueError, match="trained with --pose-rate-final 1, this run asks for 0.1"):
         rec.load_state_dict(state)
 
 
