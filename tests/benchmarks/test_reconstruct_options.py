@@ -17,21 +17,15 @@ WEIGHT_FLAGS = [(bench_reconstruct_cobot, "--lambda-pose"), (bench_reconstruct_v
                 (bench_augment_cobot, "--lambda-smooth")]
 #: (benchmark, flag) for the pose rate's final fraction, a number in (0, 1]
 RATE_FLAGS = [(bench_reconstruct_cobot, "--pose-rate-final"), (bench_augment_cobot, "--pose-rate-final")]
+#: (benchmark, flag, value) refused: a loss weight below 0 or unreadable, a pose rate fraction outside (0, 1]
+REFUSED = ([(bench, flag, value) for bench, flag in WEIGHT_FLAGS for value in ("-0.01", "nan", "inf", "x")]
+           + [(bench, flag, value) for bench, flag in RATE_FLAGS for value in ("0", "1.5", "nan", "x")])
 
 
-@pytest.mark.parametrize(("bench", "flag"), WEIGHT_FLAGS, ids=lambda x: x if isinstance(x, str) else x.__name__)
-@pytest.mark.parametrize("weight", ["-0.01", "nan", "inf", "x"])
-def test_a_negative_or_unreadable_loss_weight_is_refused_at_the_command_line(bench, flag, weight, tmp_path, capsys):
-    with pytest.raises(SystemExit) as exit_:
-        bench.main([flag, weight, "--out", str(tmp_path / "result.json")])
-    assert exit_.value.code == 2
-    assert flag in capsys.readouterr().err
-    assert not (tmp_path / "result.json").exists()
-
-
-@pytest.mark.parametrize(("bench", "flag"), RATE_FLAGS, ids=lambda x: x if isinstance(x, str) else x.__name__)
-@pytest.mark.parametrize("value", ["0", "1.5", "nan", "x"])
-def test_a_pose_rate_fraction_outside_0_to_1_is_refused_at_the_command_line(bench, flag, value, tmp_path, capsys):
+@pytest.mark.parametrize(("bench", "flag", "value"), REFUSED,
+                         ids=lambda x: x if isinstance(x, str) else x.__name__)
+def test_an_out_of_range_or_unreadable_training_setting_is_refused_at_the_command_line(bench, flag, value, tmp_path,
+                                                                                       capsys):
     with pytest.raises(SystemExit) as exit_:
         bench.main([flag, value, "--out", str(tmp_path / "result.json")])
     assert exit_.value.code == 2
