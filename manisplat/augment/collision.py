@@ -147,7 +147,7 @@ class SceneCollision:
         densest height. An object's rest is where it starts or where it is left, the lower: one of
         them may be in another gripper (a handover) or on a raised surface."""
         est = {}
-        support = getattr(twin, "support", None)
+        support = twin.support
         surfaces, lows = [], []
         for name, obj in self.src.objects.items():
             if not obj.manipulated or name not in twin.graph.objects:
