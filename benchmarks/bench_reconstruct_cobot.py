@@ -12,7 +12,7 @@ errors in the world frame (fitted and start-anchored), wall time and time per it
 
 ``python -m benchmarks reconstruct_cobot [--samples cobot_dual_small,...] [--settings all,head] [--iters 3000]
 [--shadow-casters meshes|gaussians] [--rasterize-mode auto|classic|antialiased] [--lambda-mask L]
-[--lambda-pose L] [--lambda-smooth L] [--pose-rate-final F] [--seed S] [--out FILE]``: ``--settings all --iters 9000`` gives the head camera about as many iterations as
+[--lambda-pose L] [--lambda-smooth L] [--pose-rate-final F] [--seed S] [--data DIR] [--out FILE]``: ``--settings all --iters 9000`` gives the head camera about as many iterations as
 ``--settings head --iters 3000`` (one camera's image an iteration).
 """
 
@@ -54,17 +54,19 @@ def main(argv: list[str] | None = None) -> int:
                    help="manisplat-reconstruct --rasterize-mode (default auto, as the command's)")
     add_training_flags(p)
     p.add_argument("--seed", type=int, default=0, help="manisplat-reconstruct --seed (default 0, the command's)")
+    p.add_argument("--data", type=Path, help="the folder holding the samples (default shared/data; "
+                                             "sim_headlight draws copies elsewhere)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_reconstruct" / "reconstruct_cobot.json")
     args = p.parse_args(argv)
     settings = args.settings.split(",")
     if unknown := sorted(set(settings) - set(SETTINGS)):
         p.error(f"--settings: unknown {', '.join(unknown)} (choose from {', '.join(SETTINGS)})")
-    shared = shared_dir()
+    data = args.data or shared_dir() / "data"
     rows = []
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         for sample in args.samples.split(","):
-            episode, prompts = imported_sample(shared, sample, Path(tmp))
+            episode, prompts = imported_sample(data, sample, Path(tmp))
             for setting, cameras in (SETTINGS[key] for key in settings):
                 out = Path(tmp) / f"{sample}_{len(cameras)}"
                 options = ("--shadow-casters", args.shadow_casters, "--rasterize-mode", args.rasterize_mode,
@@ -75,17 +77,18 @@ def main(argv: list[str] | None = None) -> int:
                 print(json.dumps(rows[-1], default=float), flush=True)
     result = {"benchmark": "reconstruct_cobot",
               "command": "python -m benchmarks reconstruct_cobot " + " ".join(argv if argv is not None else sys.argv[1:]),
-              "threads": "torch's default (the machine's cores)", "rows": rows,
+              "data": str(data), "threads": "torch's default (the machine's cores)", "rows": rows,
               "wall_s": round(time.perf_counter() - t0, 1)}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1, default=float) + "\n")
     return 0
 
 
-def imported_sample(shared: Path, sample: str, folder: Path) -> tuple[Path, dict[str, tuple[float, float]]]:
-    """The shared Cobot Magic ``sample`` imported into ``folder`` as the user does, with its truth
-    where evaluation reads it (:func:`add_ground_truth`), and each manipulated object's prompt."""
-    source, episode = shared / "data" / sample, folder / sample
+def imported_sample(data: Path, sample: str, folder: Path) -> tuple[Path, dict[str, tuple[float, float]]]:
+    """The Cobot Magic ``sample`` of ``data`` (shared/data or a copy) imported into ``folder`` as the
+    user does, with its truth where evaluation reads it (:func:`add_ground_truth`), and each
+    manipulated object's prompt."""
+    source, episode = data / sample, folder / sample
     if episode_main(["import-act", str(source / "episode_0.hdf5"), "--calib", str(source / "episode_0.calib.json"),
                      "--out", str(episode)]) != 0:
         raise RuntimeError(f"{sample}: import failed")

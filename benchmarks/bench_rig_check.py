@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.disable(logging.WARNING)
     with tempfile.TemporaryDirectory() as tmp:
         for sample in args.samples.split(","):
-            episode, prompts = imported_sample(shared, sample, Path(tmp))
+            episode, prompts = imported_sample(shared / "data", sample, Path(tmp))
             for seed in args.seeds:
                 rows.append({"sample": sample, "seed": seed, **check_once(episode, prompts, seed)})
                 print(json.dumps({k: v for k, v in rows[-1].items() if k != "items"}
