@@ -37,6 +37,7 @@ SCENE = "bimanual_scene.xml"
 HEADLIGHT = re.compile(r"<headlight\b[^>]*>")
 DIFFUSE = re.compile(r'\bdiffuse="[^"]*"')
 STATES = ("q", "gripper")  # with every T_world_* of the ground truth: what the copy must repeat
+SAME_STATE = 1e-6  # m, rad: the largest difference of a state drawn again (another machine's physics: ~1e-12)
 
 
 def without_headlight(scene: str) -> str:
@@ -83,7 +84,7 @@ def generator_args(info: dict) -> list[str]:
 
 def drawn_again(simenv: Path, sim: Path, sample: Path, out: Path) -> Path:
     """``sample`` drawn by the simulator copy ``sim`` into ``out`` (once) with the arguments that
-    drew it; RuntimeError unless the copy's states equal the sample's."""
+    drew it; RuntimeError unless the copy's states are the sample's (within :data:`SAME_STATE`)."""
     truth = np.load(sample / "episode_0.gt.npz")
     if not (out / "episode_0.hdf5").exists():
         args = generator_args(json.loads(str(truth["info"])))
@@ -93,7 +94,8 @@ def drawn_again(simenv: Path, sim: Path, sample: Path, out: Path) -> Path:
             raise RuntimeError(f"gen_bimanual.py {' '.join(args)} exited {done.returncode}")
     copy = np.load(out / "episode_0.gt.npz")
     keys = [*STATES, *(k for k in truth.files if k.startswith("T_world_"))]
-    if differ := [k for k in keys if k not in copy.files or not np.array_equal(truth[k], copy[k])]:
+    if differ := [k for k in keys if k not in copy.files or truth[k].shape != copy[k].shape
+                  or not np.allclose(truth[k], copy[k], rtol=0.0, atol=SAME_STATE)]:
         raise RuntimeError(f"{out}: the states drawn again differ from {sample}'s ({', '.join(differ)})")
     return out
 

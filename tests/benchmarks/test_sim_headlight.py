@@ -10,7 +10,7 @@ import h5py
 import numpy as np
 import pytest
 
-from benchmarks.bench_sim_headlight import generator_args, headlight_share, without_headlight
+from benchmarks.bench_sim_headlight import drawn_again, generator_args, headlight_share, without_headlight
 
 SCENE = """<mujoco>
   <visual>
@@ -70,3 +70,22 @@ def test_the_headlights_share_is_measured_on_each_regions_own_pixels(tmp_path):
     assert share["object"]["median"] == pytest.approx(0.25)  # 1 - 150 / 200 on the box
     assert share["static"]["median"] == pytest.approx(0.0)  # the background the same in both
     assert share["full"]["median"] == pytest.approx(1 - (150 + 100) / (200 + 100), abs=1e-3)
+
+
+def _drawn(folder, box_x: float):
+    """A sample folder already drawn (its HDF5 present): one frame's joints and the box's pose."""
+    folder.mkdir()
+    (folder / "episode_0.hdf5").write_bytes(b"")
+    box = np.eye(4)[None].copy()
+    box[0, 0, 3] = box_x
+    np.savez(folder / "episode_0.gt.npz", q=np.zeros((1, 14)), gripper=np.zeros((1, 2)), T_world_box=box,
+             info=json.dumps({"args": {}}))
+
+
+def test_a_copy_is_the_sample_drawn_again_only_when_its_states_agree(tmp_path):
+    _drawn(tmp_path / "sample", 0.3)
+    _drawn(tmp_path / "same", 0.3 + 1e-12)  # another machine's physics: the same states
+    _drawn(tmp_path / "moved", 0.301)  # a box a millimetre elsewhere: another episode
+    assert drawn_again(tmp_path / "python", tmp_path, tmp_path / "sample", tmp_path / "same") == tmp_path / "same"
+    with pytest.raises(RuntimeError, match="T_world_box"):
+        drawn_again(tmp_path / "python", tmp_path, tmp_path / "sample", tmp_path / "moved")
