@@ -30,6 +30,7 @@ import numpy as np
 
 from benchmarks._harness import BENCH_DIR, shared_dir, simulator_python
 from benchmarks._simulator import sim_env
+from benchmarks.bench_sim_shadow_map import CAMERAS, recorded, region_of
 from manisplat.cli_args import positive
 
 OWN_OPTIONS = True
@@ -37,6 +38,7 @@ SCENE = "bimanual_scene.xml"
 HEADLIGHT = re.compile(r"<headlight\b[^>]*>")
 DIFFUSE = re.compile(r'\bdiffuse="[^"]*"')
 STATES = ("q", "gripper")  # with every T_world_* of the ground truth: what the copy must repeat
+MIN_PIXELS = 50  # a region's pixels in a frame below which its share is not taken
 SAME_STATE = 1e-6  # m, rad: the largest difference of a state drawn again (another machine's physics: ~1e-12)
 
 
@@ -103,8 +105,6 @@ def drawn_again(simenv: Path, sim: Path, sample: Path, out: Path) -> Path:
 def headlight_share(lit: Path, unlit: Path, frames: list[int]) -> dict[str, dict[str, dict[str, float]]]:
     """Camera -> region -> the headlight's share of the recorded light (1 - unlit / lit summed over
     the region's pixels of a frame): median, lowest and highest over ``frames``."""
-    from benchmarks.bench_sim_shadow_map import CAMERAS, recorded, region_of
-
     truth = np.load(lit / "episode_0.gt.npz")
     spec = json.loads((lit / "episode_0.objects.json").read_text())
     regions = region_of(truth["label_names"], [k for k, o in spec["objects"].items() if o["role"] == "manipulated"])
@@ -115,9 +115,10 @@ def headlight_share(lit: Path, unlit: Path, frames: list[int]) -> dict[str, dict
         for region, ids in {"full": None, **regions}.items():
             shares = []
             for k, f in enumerate(frames):
-                inside = np.ones(truth[f"masks_{camera}"][f].shape, bool) if ids is None else np.isin(truth[f"masks_{camera}"][f], ids)
+                labels = truth[f"masks_{camera}"][f]
+                inside = np.ones(labels.shape, bool) if ids is None else np.isin(labels, ids)
                 lit_sum = float(with_light[camera][k][inside].astype(np.float64).sum())
-                if inside.sum() >= 50 and lit_sum > 0:
+                if inside.sum() >= MIN_PIXELS and lit_sum > 0:
                     shares.append(1.0 - float(without[camera][k][inside].astype(np.float64).sum()) / lit_sum)
             if shares:
                 out[camera][region] = {"median": round(float(np.median(shares)), 3), "min": round(min(shares), 3),
