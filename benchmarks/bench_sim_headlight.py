@@ -112,10 +112,10 @@ def headlight_share(lit: Path, unlit: Path, frames: list[int]) -> dict[str, dict
     out: dict[str, dict[str, dict[str, float]]] = {}
     for camera in CAMERAS:
         out[camera] = {}
+        masks = truth[f"masks_{camera}"][frames]  # read once: each key of an npz decompresses the whole array
         for region, ids in {"full": None, **regions}.items():
             shares = []
-            for k, f in enumerate(frames):
-                labels = truth[f"masks_{camera}"][f]
+            for k, labels in enumerate(masks):
                 inside = np.ones(labels.shape, bool) if ids is None else np.isin(labels, ids)
                 lit_sum = float(with_light[camera][k][inside].astype(np.float64).sum())
                 if inside.sum() >= MIN_PIXELS and lit_sum > 0:
