@@ -62,6 +62,8 @@ def main(argv: list[str] | None = None) -> int:
     if unknown := sorted(set(settings) - set(SETTINGS)):
         p.error(f"--settings: unknown {', '.join(unknown)} (choose from {', '.join(SETTINGS)})")
     data = args.data or shared_dir() / "data"
+    if missing := [name for name in args.samples.split(",") if not (data / name / "episode_0.hdf5").is_file()]:
+        p.error(f"--samples: no episode_0.hdf5 for {', '.join(missing)} in {data}")
     rows = []
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
