@@ -7,7 +7,10 @@ region: the first shows the re-render reproduces the recording; the second, what
 exact in everything but the shadow map's texels (the stair-stepped edges of the key light's
 shadows, which a wrist camera a few centimetres above the table sees several pixels wide)
 would score. Neither trains anything: it says how much of a held-out PSNR goal the samples'
-shadow-map texels take before any twin is scored.
+shadow-map texels take before any twin is scored. The scene's re-render is also scored as
+drawn (no JPEG) and with only its colour subsampled as the recording's JPEG kept it
+(:mod:`manisplat.reconstruct.chroma`, what a twin's render goes through before it is scored):
+what a renderer right in every pixel scores against the recording without, and with, that model.
 
 ``MANISPLAT_SIMENV=SIMENV/bin/python python -m benchmarks sim_shadow_map [--samples S,...]
 [--map-px 8192] [--out FILE]``
@@ -25,10 +28,13 @@ from pathlib import Path
 import cv2
 import h5py
 import numpy as np
+import torch
 
 from benchmarks._harness import BENCH_DIR, shared_dir, simulator_python
 from benchmarks._simulator import SimJob, run_sim_jobs
 from manisplat.cli_args import positive
+from manisplat.episode.images import StoredChroma, jpeg_chroma_subsampling
+from manisplat.reconstruct.chroma import subsample_chroma
 
 OWN_OPTIONS = True
 SAMPLES = ("cobot_dual_small", "cobot_handover_small")
@@ -43,6 +49,21 @@ def recorder_jpeg(rgb: np.ndarray, quality: int) -> np.ndarray:
     if not ok:
         raise RuntimeError("cv2.imencode failed")
     return cv2.imdecode(buf, cv2.IMREAD_COLOR)
+
+
+def chroma_as_recorded(images: np.ndarray, stored: StoredChroma) -> np.ndarray:
+    """``images`` [N, H, W, 3] uint8 with their colour subsampled as ``stored`` says the recording
+    kept it (the reconstruction's model of the JPEG, without its quantisation), rounded to uint8."""
+    modelled = np.stack([subsample_chroma(torch.from_numpy(image).double(), stored).numpy() for image in images])
+    return np.clip(np.rint(modelled), 0, 255).astype(np.uint8)
+
+
+def recorded_chroma(sample: Path, camera: str) -> StoredChroma:
+    """How the recording kept ``camera``'s colour: its first JPEG frame's subsampling, on the RGB
+    arrays the recorder hands ``cv2.imencode`` (red taken for blue)."""
+    with h5py.File(sample / "episode_0.hdf5", "r") as f:
+        scheme = jpeg_chroma_subsampling(np.asarray(f[f"observations/images/{camera}"][0]).tobytes())
+    return StoredChroma(scheme or "4:4:4", red_blue_swapped=True)
 
 
 def region_of(label_names: list[str], manipulated: list[str]) -> dict[str, np.ndarray]:
@@ -132,6 +153,11 @@ def main(argv: list[str] | None = None) -> int:
                         np.stack([recorder_jpeg(x, quality) for x in images["fine"]]), recording[camera], labels, regions),
                     f"{map_px['fine']} against {map_px['scene']} px map, no jpeg": region_psnr(
                         images["fine"], images["scene"], labels, regions),
+                    f"re-rendered, {map_px['scene']} px map, no jpeg": region_psnr(
+                        images["scene"], recording[camera], labels, regions),
+                    f"re-rendered, {map_px['scene']} px map, chroma subsampled as modelled": region_psnr(
+                        chroma_as_recorded(images["scene"], recorded_chroma(sample, camera)), recording[camera],
+                        labels, regions),
                 }
                 print(name, camera, json.dumps(per_camera[camera]), flush=True)
             results[name] = {"frames": frames, "jpeg_quality": quality, "shadow_map_px": map_px, "cameras": per_camera}

@@ -1,5 +1,6 @@
 """Per-frame image files (``rgb/``, ``depth/``, ``masks/``): naming, full decoding with checks,
-encoding, and depth unit conversion. Arrays in memory are RGB; files hold BGR (OpenCV)."""
+encoding, depth unit conversion, and the chroma subsampling a JPEG stream was stored with.
+Arrays in memory are RGB; files hold BGR (OpenCV)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import contextlib
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
+from typing import Iterator, NamedTuple
 
 import cv2
 import numpy as np
@@ -16,6 +17,30 @@ from manisplat.episode.format import DEPTH_DIR, MASKS_DIR, RGB_DIR, EpisodeForma
 
 _IMAGE_RE = re.compile(r"^(\d{6})(\.png|\.jpg)$")
 _DEPTH_MAX = np.iinfo(np.uint16).max
+
+#: chroma subsampling schemes (J:a:b) -> the pixel block one chroma sample covers (horizontal, vertical)
+CHROMA_SUBSAMPLING = {"4:4:4": (1, 1), "4:2:2": (2, 1), "4:2:0": (2, 2), "4:4:0": (1, 2), "4:1:1": (4, 1)}
+
+
+class StoredChroma(NamedTuple):
+    """How a camera's images kept their colour when they were encoded.
+
+    Attributes:
+        scheme: a key of :data:`CHROMA_SUBSAMPLING` (``"4:2:0"``: one colour sample per 2 x 2 pixels).
+        red_blue_swapped: the encoder took the images' red for blue (``cv2.imencode`` of an RGB
+            array, as ACT and Cobot Magic recorders store their frames), so its brightness, kept
+            at every pixel, weighed the channels the other way round.
+    """
+
+    scheme: str
+    red_blue_swapped: bool = False
+
+    @property
+    def block(self) -> tuple[int, int]:
+        """The pixels (horizontal, vertical) one colour sample covers."""
+        return CHROMA_SUBSAMPLING[self.scheme]
+#: JPEG start-of-frame markers (every coding process: baseline, progressive, lossless, arithmetic)
+_SOF_MARKERS = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
 
 
 @dataclass(frozen=True)
@@ -134,6 +159,56 @@ def encode_image(suffix: str, image: np.ndarray, *, rgb: bool) -> bytes:
     if not ok:
         raise OSError(f"OpenCV could not encode a {image.shape} {image.dtype} image as {suffix}")
     return data.tobytes()
+
+
+def jpeg_chroma_subsampling(data: bytes) -> str | None:
+    """The chroma subsampling (a key of :data:`CHROMA_SUBSAMPLING`) a JPEG stream ``data`` was
+    encoded with, read from its frame header; None for a one-channel (grey) image.
+
+    Raises:
+        ValueError: ``data`` is not a JPEG stream, has no frame header before its scan, or
+            subsamples its chroma in a way :data:`CHROMA_SUBSAMPLING` does not name.
+    """
+    data = bytes(data)
+    if data[:2] != b"\xff\xd8":
+        raise ValueError("not a JPEG stream (no start-of-image marker)")
+    at = 2
+    while at + 4 <= len(data):
+        if data[at] != 0xFF:
+            raise ValueError(f"corrupt JPEG header: no marker at byte {at}")
+        marker = data[at + 1]
+        if marker == 0xFF:  # fill byte
+            at += 1
+            continue
+        if marker == 0x01 or 0xD0 <= marker <= 0xD7:  # markers without a length
+            at += 2
+            continue
+        length = int.from_bytes(data[at + 2:at + 4], "big")
+        if marker in _SOF_MARKERS:
+            return _subsampling_of(data[at + 4:at + 2 + length])
+        if marker == 0xDA:
+            break
+        at += 2 + length
+    raise ValueError("no JPEG frame header before the image data")
+
+
+def _subsampling_of(header: bytes) -> str | None:
+    """The scheme of a JPEG frame header's body (precision, height, width, then per component
+    its id, sampling factors H << 4 | V and quantisation table)."""
+    n = header[5] if len(header) > 5 else 0
+    if n == 1:
+        return None
+    if n != 3 or len(header) < 6 + 3 * n:
+        raise ValueError(f"a JPEG with {n} components; expected 3 (YCbCr) or 1 (grey)")
+    factors = [(header[7 + 3 * k] >> 4, header[7 + 3 * k] & 0x0F) for k in range(3)]
+    (hy, vy), chroma = factors[0], factors[1:]
+    if chroma[0] != chroma[1] or 0 in (hy, vy, *chroma[0]) or hy % chroma[0][0] or vy % chroma[0][1]:
+        raise ValueError(f"JPEG sampling factors {factors} (Y, Cb, Cr) are not a chroma subsampling this reads")
+    block = (hy // chroma[0][0], vy // chroma[0][1])
+    for scheme, b in CHROMA_SUBSAMPLING.items():
+        if b == block:
+            return scheme
+    raise ValueError(f"JPEG chroma blocks of {block[0]}x{block[1]} pixels are not one of {', '.join(CHROMA_SUBSAMPLING)}")
 
 
 def depth_to_raw(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:

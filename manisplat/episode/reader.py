@@ -12,7 +12,8 @@ import numpy as np
 from manisplat.episode.format import (ACTION_COLUMNS, FRAMES_FILE, GT_FILE, JOINT_COLUMNS, META_FILE,
                                       EpisodeFormatError)
 from manisplat.episode.groundtruth import read_gt
-from manisplat.episode.images import DEPTH, MASK, RGB, ImageKind, find_image, has_images, load_image, raw_to_depth
+from manisplat.episode.images import (CHROMA_SUBSAMPLING, DEPTH, MASK, RGB, ImageKind, StoredChroma, find_image,
+                                     has_images, jpeg_chroma_subsampling, load_image, raw_to_depth)
 from manisplat.episode.layout import CameraFiles, Layout
 from manisplat.episode.meta import ArmInfo, CameraInfo, EpisodeMeta, load_meta
 from manisplat.episode.tables import CsvScan, scan_csv
@@ -273,6 +274,34 @@ class Episode:
     def rgb(self, i: int, camera: str | None = None) -> np.ndarray:
         """(H, W, 3) uint8 RGB image of frame ``i`` from ``camera`` (default: the one camera)."""
         return self._image(RGB, i, camera)
+
+    def chroma_subsampling(self, camera: str | None = None) -> StoredChroma | None:
+        """How ``camera``'s (default: the one camera's) images kept their colour when encoded: the
+        camera's ``chroma_subsampling`` (and ``chroma_red_blue_swapped``) in episode.json, else
+        the header of its first image where that is a JPEG file; None where neither says (PNG
+        images of unknown origin).
+
+        Raises:
+            EpisodeFormatError: the recorded values are not a known scheme and a bool, or the JPEG
+                file is not one.
+        """
+        files = self._camera_files(camera)
+        extra = self.cameras[files.name].extra
+        recorded, swapped = extra.get("chroma_subsampling"), extra.get("chroma_red_blue_swapped", False)
+        if recorded is not None or "chroma_red_blue_swapped" in extra:
+            if recorded not in CHROMA_SUBSAMPLING or not isinstance(swapped, bool):
+                raise EpisodeFormatError(f"{self.path / META_FILE}: camera {files.name}: chroma_subsampling "
+                                         f"{recorded!r} is not one of {', '.join(CHROMA_SUBSAMPLING)}, or "
+                                         f"chroma_red_blue_swapped {swapped!r} is not true or false")
+            return StoredChroma(recorded, swapped)
+        first = find_image(self.path / files.folder(RGB.folder), 0) if len(self) else None
+        if first is None or first.suffix != ".jpg":
+            return None
+        try:
+            scheme = jpeg_chroma_subsampling(first.read_bytes())
+        except ValueError as exc:
+            raise EpisodeFormatError(f"{first}: {exc}") from None
+        return None if scheme is None else StoredChroma(scheme)  # image files hold BGR: the colours as encoded
 
     def depth(self, i: int, camera: str | None = None) -> np.ndarray | None:
         """(H, W) float32 depth of frame ``i`` in metres (0 = invalid) from ``camera`` (default:

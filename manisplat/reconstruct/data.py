@@ -14,7 +14,9 @@ from tqdm import tqdm
 
 from manisplat.episode import CameraInfo, Episode
 from manisplat.episode.format import V1_ARM, WORLD_MOUNT
+from manisplat.episode.images import StoredChroma
 from manisplat.geometry import matrix_to_quat
+from manisplat.reconstruct.chroma import describe
 from manisplat.reconstruct.lens import undistortion_for
 from manisplat.robot import RobotModel, load_robot
 from manisplat.robot.arms import ArmSet
@@ -124,6 +126,10 @@ class EpisodeData:
             ``gripper`` and the poses are read there (:func:`retime`).
         commands: how ``frames.csv``'s commands relate to its joints (:func:`recorded_commands`,
             before any retiming), or None where the episode records no commands.
+        chroma_subsampling: how the recording kept the images' colour
+            (:meth:`~manisplat.episode.reader.Episode.chroma_subsampling`), or None where unknown:
+            renders are compared with the images after the same (:mod:`manisplat.reconstruct.chroma`;
+            after undistortion, an approximation of it).
         riding_cameras: the episode's cameras that ride on a link, whether trained or not: name ->
             (the link as the robot names it, ``T_link_cam`` [4, 4] float64); their bodies are
             looked for in this camera's depth (:mod:`manisplat.reconstruct.camera_bodies`).
@@ -162,6 +168,7 @@ class EpisodeData:
     mount: str = "base"
     T_mount_cam: torch.Tensor | None = None
     commands: CommandRelation | None = None
+    chroma_subsampling: StoredChroma | None = None
     riding_cameras: dict[str, tuple[str, torch.Tensor]] = field(default_factory=dict)
 
     @property
@@ -315,8 +322,10 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, camera: str
     eval_masks = None
     if masks is not None and not use_masks:
         eval_masks, masks, labels = masks, None, Labels()
-    log.info("loaded %s: %d frames of camera %s %dx%d, depth %s, masks %s, robot %s", episode.path, n, cam.name,
-             cam.width, cam.height, depth is not None, masks is not None, model.name)
+    chroma = episode.chroma_subsampling(view)
+    log.info("loaded %s: %d frames of camera %s %dx%d (chroma %s), depth %s, masks %s, robot %s", episode.path, n,
+             cam.name, cam.width, cam.height, describe(chroma), depth is not None,
+             masks is not None, model.name)
     clock = episode.meta.extra.get("clock")
     recorded_latency = float(clock.get("camera_latency_s") or 0.0) if isinstance(clock, dict) else 0.0
     data = EpisodeData(
@@ -333,6 +342,7 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, camera: str
         dist=tuple(float(d) for d in cam.dist) if lens is not None else (),
         joints=stream, recorded_latency_s=recorded_latency, frame="world" if several else "base",
         mount=cam.mount, T_mount_cam=None if fixed else T_mount_cam, commands=recorded_commands(episode),
+        chroma_subsampling=chroma,
         riding_cameras={c.name: (c.mount, torch.as_tensor(c.T_mount_cam, dtype=torch.float64))
                         for c in episode.cameras.values() if c.mount not in ("base", WORLD_MOUNT)
                         and c.T_mount_cam is not None and c.mount in model.link_names} if several else {},

@@ -37,6 +37,7 @@ from scipy.spatial import cKDTree
 from manisplat.align.phases import GripperEvents, Segment
 from manisplat.align.pseudo_gt import PseudoPoses
 from manisplat.geometry import make_transform, orthonormalize
+from manisplat.reconstruct.chroma import describe
 from manisplat.reconstruct.data import EpisodeData, ReconstructionInputError, retime
 from manisplat.reconstruct.extrinsic import ExtrinsicCorrection, pose_difference, refine_extrinsic
 from manisplat.reconstruct.plan import Plan
@@ -112,6 +113,8 @@ def _difference(a: EpisodeData, b: EpisodeData) -> str | None:
         return f"another camera ({b.camera_name} {b.size[0]}x{b.size[1]} against {a.camera_name} {a.size[0]}x{a.size[1]})"
     if not torch.allclose(a.K_opencv.double(), b.K_opencv.double(), rtol=1e-4, atol=1e-3):
         return "other camera intrinsics"
+    if a.chroma_subsampling != b.chroma_subsampling:
+        return f"images stored otherwise (colour {describe(b.chroma_subsampling)} against {describe(a.chroma_subsampling)})"
     rotation, translation = pose_difference(np.linalg.inv(a.viewmat.double().numpy()),
                                             np.linalg.inv(b.viewmat.double().numpy()))
     if rotation > BUMP_DEG or translation > BUMP_MM:

@@ -5,9 +5,9 @@ s D-SSIM on the frame; L_app the same over the dynamic pixels (robot and objects
 mask); L_mask the L1 between the dynamic nodes' rendered alpha and that mask; L_pose the object
 corrections' squared SE(3) distance to the pseudo ground truth. With per-frame exposure the render
 is first scaled by the frame's gains, fitted in closed form on its static pixels
-(:mod:`manisplat.reconstruct.exposure`); then it is compared as the sensor records it, a render
-brighter than a clipped recorded channel counting as that channel
-(:mod:`manisplat.reconstruct.sensor`). :func:`frame_loss` is :func:`~manisplat.compilation.compilable`:
+(:mod:`manisplat.reconstruct.exposure`); then it is compared as the camera records it: its colour
+subsampled as the recording's was (:mod:`manisplat.reconstruct.chroma`), and a render brighter
+than a clipped recorded channel counting as that channel (:mod:`manisplat.reconstruct.sensor`). :func:`frame_loss` is :func:`~manisplat.compilation.compilable`:
 compiled, the whole of it (and its backward) is a few fused kernels.
 """
 
@@ -17,6 +17,8 @@ import kornia
 import torch
 
 from manisplat.compilation import compilable
+from manisplat.episode.images import StoredChroma
+from manisplat.reconstruct.chroma import subsample_chroma
 from manisplat.reconstruct.exposure import fit_gains, relative_gains
 from manisplat.reconstruct.poses import pose_penalty
 from manisplat.reconstruct.sensor import as_recorded, clipped
@@ -26,7 +28,8 @@ from manisplat.reconstruct.sensor import as_recorded, clipped
 def frame_loss(image: torch.Tensor, dynamic_alpha: torch.Tensor, target: torch.Tensor,
                dynamic_mask: torch.Tensor | None, valid: torch.Tensor | None,
                exposure: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None, twists: list[torch.Tensor],
-               weights: tuple[float, float, float, float]) -> tuple[torch.Tensor, torch.Tensor | None]:
+               weights: tuple[float, float, float, float],
+               chroma: StoredChroma | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
     """The loss of one frame and its fitted exposure gains.
 
     Args:
@@ -40,6 +43,7 @@ def frame_loss(image: torch.Tensor, dynamic_alpha: torch.Tensor, target: torch.T
             the training frames' mean [T]) or None (no exposure compensation).
         twists: [6] float64 pose corrections of the objects at this frame.
         weights: (ssim_weight, lambda_app, lambda_mask, lambda_pose).
+        chroma: how the recording subsampled the colour (None: it did not, or it is not known).
     Returns (loss [] float32, this frame's gains [3] as fitted, to be kept; None without exposure).
     """
     ssim_weight, lambda_app, lambda_mask, lambda_pose = weights
@@ -53,6 +57,8 @@ def frame_loss(image: torch.Tensor, dynamic_alpha: torch.Tensor, target: torch.T
             static = valid if static is None else static * valid
         gains = fit_gains(image.detach(), target, static, clip)
         image = image * relative_gains(gains, *exposure)
+    if chroma is not None:
+        image = subsample_chroma(image, chroma)
     l1, ssim = error_maps(as_recorded(image, target, clip), target)  # computed once for the render and appearance terms
     loss = photometric(l1, ssim, valid, ssim_weight)
     if dynamic is not None:

@@ -6,11 +6,13 @@
   ``object_<name>.ply`` in the canonical object frame), 3DGS layout.
 * ``object_poses.csv`` per object: ``frame, t, source, T_base_obj`` (16 numbers, row-major).
 * ``phases.csv``: ``frame, t, phase`` per object.
-* ``renders/test/NNNNNN.png``: the rendered RGB of every held-out frame, named by frame index;
+* ``renders/test/NNNNNN.png``: the rendered RGB of every held-out frame, named by frame index, as
+  the camera records it (its colour subsampled as the recording's: :mod:`manisplat.reconstruct.chroma`);
   ``renders/sheets/NNNNNN.png``: ground truth | render | error x4, labelled, with the frame and time.
 * ``pose_plot.png``: rotation and translation per frame (ours, the phase-free baseline, ground truth).
 * ``metrics.json``: ``psnr`` / ``ssim`` ({"full", "robot", "object"}; the same with the held-out
-  frame's colour fitted on its static pixels: ``psnr_colour_fitted``, ``ssim_colour_fitted``), ``pose`` and
+  frame's colour fitted on its static pixels: ``psnr_colour_fitted``, ``ssim_colour_fitted``; for a
+  camera whose recording subsampled its colour, ``psnr_full_colour``: the render as drawn), ``pose`` and
   ``pose_baseline`` ({object: {"et_cm", "er_deg"}}) when ground truth exists, ``wall_s``,
   ``iters``, ``plan``, ``camera`` (the extrinsic correction, when checked), ``rig`` (several arms
   or riding cameras: each other arm's base and each riding camera's ``T_mount_cam`` as checked,
@@ -40,6 +42,7 @@ import numpy as np
 import torch
 
 from manisplat.align.phases import phase_of_frames
+from manisplat.reconstruct.chroma import subsampled
 from manisplat.reconstruct.data import EpisodeData, load_ground_truth
 from manisplat.reconstruct.fusion import EpisodeSpan
 from manisplat.reconstruct.metrics import fit_constant_offset, pose_errors, psnr, ssim, start_anchored_errors
@@ -310,17 +313,20 @@ def _image_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], out: 
     interpolated from its training neighbours, and ``psnr_colour_fitted`` / ``ssim_colour_fitted``
     with an affine colour transform fitted on the frame's own static pixels
     (:func:`colour_fitted`): what the twin gets right apart from a camera's exposure, which no
-    training frame can tell for a held-out one. ``frames``: those held-out frames (default all)."""
+    training frame can tell for a held-out one. Renders are scored (and written) as the camera
+    recorded them, their colour subsampled as its images' was; for such a camera
+    ``psnr_full_colour`` scores the render as drawn. ``frames``: those held-out frames (default all)."""
     view = rec.view(camera)
     folder = out / "renders" if camera is None else out / "renders" / camera
     renders, sheets = folder / "test", folder / "sheets"
     renders.mkdir(parents=True, exist_ok=True)
     sheets.mkdir(parents=True, exist_ok=True)
-    keys = ("psnr", "ssim", "psnr_colour_fitted", "ssim_colour_fitted")
+    keys = ("psnr", "ssim", "psnr_colour_fitted", "ssim_colour_fitted", "psnr_full_colour")
     scores = {k: {"full": [], "robot": [], "object": []} for k in keys}
     shadow = {"psnr": [], "psnr_without_shadows": [], "pixels": []}
     for f in rec.plan.test_frames if frames is None else frames:
-        image = rec.render(f, evaluation, camera)[0].clamp(0, 1)
+        drawn = rec.render(f, evaluation, camera, recorded=False)[0]
+        image = rec.as_recorded(drawn, camera).clamp(0, 1)
         target = view.image(f)
         rgb8 = (image.cpu().numpy() * 255 + 0.5).astype(np.uint8)
         cv2.imwrite(str(renders / f"{f:06d}.png"), cv2.cvtColor(rgb8, cv2.COLOR_RGB2BGR))
@@ -339,6 +345,8 @@ def _image_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], out: 
                 static &= ~masks[k]
         fitted = colour_fitted(image, target, static)
         for key, region in masks.items():
+            if subsampled(view.chroma_subsampling) is not None:
+                scores["psnr_full_colour"][key].append(psnr(drawn.clamp(0, 1), target, region))
             scores["psnr"][key].append(psnr(image, target, region))
             scores["ssim"][key].append(ssim(image, target, region))
             scores["psnr_colour_fitted"][key].append(psnr(fitted, target, region))
@@ -349,9 +357,8 @@ def _image_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], out: 
             shadow["pixels"].append(float(shadowed.float().mean()))
             shadow["psnr"].append(psnr(image, target, shadowed))
             shadow["psnr_without_shadows"].append(psnr(unshaded, target, shadowed))
-    summary = {}
-    for metric, by_region in scores.items():
-        summary[metric] = {k: _nanmean(v) for k, v in by_region.items() if v}
+    summary = {metric: {k: _nanmean(v) for k, v in by_region.items() if v}
+               for metric, by_region in scores.items() if any(by_region.values())}
     if shadow["pixels"]:
         summary["shadow"] = {k: _nanmean(v) for k, v in shadow.items()}
     return summary

@@ -20,6 +20,7 @@ import torch
 from tqdm import tqdm
 
 from manisplat.compilation import compilation
+from manisplat.reconstruct.chroma import subsample_chroma, subsampled
 from manisplat.reconstruct.config import RASTERIZE_MODES, SHADOW_CASTERS, TrainConfig, resolve_compile, resolve_device
 from manisplat.reconstruct.data import EpisodeData
 from manisplat.reconstruct.exposure import FrameExposure
@@ -109,6 +110,8 @@ class Reconstruction:
         # per camera, [T, H, W] bool: the dynamic pixels of every frame, computed once (no label look-ups per iteration)
         self._dynamic_masks = {name: _dynamic_pixels(v) for name, v in self.views.items()}
         self._valid = {name: v.valid.float() if v.valid is not None else None for name, v in self.views.items()}
+        #: per camera, how its recording subsampled the colour (None: not known to)
+        self._chroma = {name: subsampled(v.chroma_subsampling) for name, v in self.views.items()}
         self._rng = random.Random(config.seed)
         torch.manual_seed(config.seed)
         self._loss_average: torch.Tensor | None = None  # running mean of the loss, on the device
@@ -186,14 +189,23 @@ class Reconstruction:
             return V
         return (se3_exp(self.camera_delta) @ V.double()).float()
 
-    def render(self, frame: int, evaluation: dict[str, np.ndarray] | None = None, camera: str | None = None):
+    def render(self, frame: int, evaluation: dict[str, np.ndarray] | None = None, camera: str | None = None, *,
+               recorded: bool = True):
         """(image [H, W, 3], alpha [H, W], dynamic alpha [H, W], meta, composed) at ``frame`` seen by
         ``camera`` (None: the reference camera), the image in the frame's exposure and white
-        balance (with ``exposure``)."""
+        balance (with ``exposure``) and, ``recorded``, with its colour subsampled as the
+        camera's recording was (:mod:`manisplat.reconstruct.chroma`)."""
         image, *rest = self._render_scene(frame, evaluation, camera)
+        name = self.view(camera).camera_name
         if self.exposures is not None:
-            image = image * self.exposures[self.view(camera).camera_name].gains_of(frame)
-        return (image, *rest)
+            image = image * self.exposures[name].gains_of(frame)
+        return (self.as_recorded(image, camera) if recorded else image, *rest)
+
+    def as_recorded(self, image: torch.Tensor, camera: str | None = None) -> torch.Tensor:
+        """A render [H, W, 3] of ``camera`` (None: the reference camera) with its colour subsampled
+        as the camera's recording was; unchanged where the recording's is not known to be."""
+        stored = self._chroma[self.view(camera).camera_name]
+        return image if stored is None else subsample_chroma(image, stored)
 
     def _render_scene(self, frame: int, evaluation: dict[str, np.ndarray] | None = None, camera: str | None = None):
         """:meth:`render_state` at ``frame``'s recorded state (as ``camera`` saw it, at its own
@@ -242,7 +254,7 @@ class Reconstruction:
         exposure = self.exposures[name].fit_inputs(frame) if self.exposures is not None else None
         twists = [t.twist(frame) for t in self.trajectories.values()]
         loss, gains = frame_loss(image, dynamic_alpha, view.rgb[frame], dynamic, self._valid[name], exposure, twists,
-                                 (c.ssim_weight, c.lambda_app, c.lambda_mask, c.lambda_pose))
+                                 (c.ssim_weight, c.lambda_app, c.lambda_mask, c.lambda_pose), self._chroma[name])
         smoothness = [t.smoothness_loss(frame, self._neighbours[k][frame]) for k, t in self.trajectories.items()
                       if c.lambda_smooth and frame in self._neighbours[k]]
         if smoothness:

@@ -64,3 +64,14 @@ def test_a_reused_twin_made_with_the_asked_settings_is_taken_with_them(tmp_path)
 def test_a_reused_twin_made_with_other_settings_is_refused_by_name(tmp_path, recorded, named):
     with pytest.raises(RuntimeError, match=named):
         bench_augment_cobot.training_settings(_twin(tmp_path, **recorded), DEFAULTS)
+
+
+def test_reconstruct_cobot_keeps_its_twins_only_in_an_empty_work_folder(tmp_path, capsys):
+    work = tmp_path / "work"
+    work.mkdir()
+    (work / "earlier_twin").mkdir()
+    with pytest.raises(SystemExit) as exit_:
+        bench_reconstruct_cobot.main(["--work", str(work), "--out", str(tmp_path / "result.json")])
+    assert exit_.value.code == 2
+    assert f"--work: {work} is not empty" in capsys.readouterr().err
+    assert [p.name for p in work.iterdir()] == ["earlier_twin"] and not (tmp_path / "result.json").exists()

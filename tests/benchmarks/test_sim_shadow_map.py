@@ -7,7 +7,8 @@ import math
 import cv2
 import numpy as np
 
-from benchmarks.bench_sim_shadow_map import recorder_jpeg, region_of, region_psnr
+from benchmarks.bench_sim_shadow_map import chroma_as_recorded, recorder_jpeg, region_of, region_psnr
+from manisplat.episode.images import StoredChroma
 
 LABELS = ["background", "left/link1", "right/link6", "left/wrist_camera", "object/box", "object/can", "mat_left"]
 
@@ -21,6 +22,20 @@ def test_the_recorders_jpeg_keeps_the_channel_order_and_subsamples_the_swapped_c
     ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 90])
     true_order = cv2.cvtColor(cv2.imdecode(buf, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
     assert np.abs(back.astype(int) - true_order).max() > 10  # not what a BGR-correct recorder would store
+
+
+def test_the_modelled_chroma_is_what_the_recorders_jpeg_kept_of_the_colour():
+    rgb = np.zeros((32, 40, 3), np.uint8)
+    rgb[:, :, 1] = np.linspace(40, 200, 40, dtype=np.uint8)
+    rgb[5:20:2, 6:30, 0] = 230  # one-pixel red stripes: their colour is what 4:2:0 loses
+    rgb[22:30, 9:17] = (20, 40, 220)
+    stored = recorder_jpeg(rgb, 100)
+    modelled = chroma_as_recorded(rgb[None], StoredChroma("4:2:0", red_blue_swapped=True))[0]
+    unswapped = chroma_as_recorded(rgb[None], StoredChroma("4:2:0", red_blue_swapped=False))[0]
+
+    def err(image):
+        return float(((image.astype(float) - stored) ** 2).mean())
+    assert modelled.dtype == np.uint8 and err(modelled) < 0.2 * err(rgb) and err(modelled) < 0.5 * err(unswapped)
 
 
 def test_regions_split_robot_manipulated_objects_and_the_static_rest():

@@ -9,6 +9,7 @@ from episode_factory import ACT_FRAMES as T
 from episode_factory import H, W, write_act
 
 from manisplat.episode import EpisodeFormatError, import_act_hdf5, validate
+from manisplat.episode.images import StoredChroma
 
 K = np.array([[30.0, 0.0, 16.0], [0.0, 30.0, 12.0], [0.0, 0.0, 1.0]])
 
@@ -23,6 +24,7 @@ def test_dual_arm(tmp_path, compress, arm):
     qpos, action = data["qpos"][:, cols], data["action"][:, cols]
     assert len(ep) == T and ep.meta.source == "import:act_hdf5" and ep.meta.extra["task"] == "pick"
     assert ep.meta.extra["import"]["compress"] is compress and ep.camera.name == "cam_high"
+    assert ep.chroma_subsampling() == (StoredChroma("4:2:0", True) if compress else None)  # RGB arrays encoded
     assert np.array_equal(ep.frames.t, np.arange(T) / 25.0)
     assert np.array_equal(ep.frames.q, qpos[:, :6]) and np.array_equal(ep.frames.gripper, qpos[:, 6] * 0.5)
     assert np.array_equal(ep.frames.actions[:, :6], action[:, :6])
@@ -42,6 +44,12 @@ def test_single_arm_no_depth_bgr(tmp_path):
     assert np.array_equal(ep.rgb(0), data["images"]["top"][0][..., ::-1])
     with pytest.raises(EpisodeFormatError, match=r"expected \(T, 14\).*arm='left'/'right'"):
         import_act_hdf5(tmp_path / "a.hdf5", tmp_path / "ep2", K=K, arm="left", camera="top")
+
+
+def test_jpeg_rows_of_bgr_arrays_kept_their_colours_in_order(tmp_path):
+    write_act(tmp_path / "a.hdf5", arms=1, compress=True, depth=False, cameras=("top",))
+    ep = import_act_hdf5(tmp_path / "a.hdf5", tmp_path / "ep", K=K, arm="single", camera="top", bgr=True)
+    assert ep.chroma_subsampling() == StoredChroma("4:2:0", False)
 
 
 def test_errors_name_what_the_file_has(tmp_path):

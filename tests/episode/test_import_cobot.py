@@ -11,6 +11,7 @@ import pytest
 
 from manisplat.episode import Episode, EpisodeFormatError, validate
 from manisplat.episode.cli import main
+from manisplat.episode.images import StoredChroma
 from manisplat.episode.importers.cobot_magic import import_cobot_magic
 
 from episode_factory import jpeg_rows
@@ -102,6 +103,8 @@ def test_import_every_arm_and_camera(tmp_path, capsys, compress, dtype):
     assert ep.depth(3, "cam_left_wrist") is None
     assert np.array_equal(ep.cameras["cam_left_wrist"].T_mount_cam, T_WRIST)
     assert ep.cameras["cam_left_wrist"].width == W and ep.meta.extra["import"]["compress"] is compress
+    # JPEG rows: how the recorder's encoder kept the colour (cv2.imencode of RGB arrays: red taken for blue)
+    assert all(ep.chroma_subsampling(c) == (StoredChroma("4:2:0", True) if compress else None) for c in CAMERAS)
     with pytest.raises(EpisodeFormatError, match="has arms left, right: this tool reads one-arm episodes"):
         ep.frames
 

@@ -188,3 +188,19 @@ def test_a_moved_table_is_another_scene(scene):
     moved.depth[0][static] += 0.03
     with pytest.raises(SceneMismatch, match=r"the static surfaces moved: 100 % of the static pixels"):
         check_same_scene([a, moved])
+
+
+def test_episodes_whose_colour_was_stored_otherwise_are_another_scene(scene):
+    """A twin's renders are compared with each episode's images as they were stored: one
+    subsampling for all of them, or the episode is refused by what differs."""
+    from dataclasses import replace
+
+    from manisplat.episode.images import StoredChroma
+    from manisplat.reconstruct.data import load_episode_data
+    from manisplat.reconstruct.fusion import SceneMismatch, check_same_scene
+
+    a = load_episode_data(scene["a"])
+    jpeg = replace(a, chroma_subsampling=StoredChroma("4:2:0", True))
+    with pytest.raises(SceneMismatch, match=r"images stored otherwise \(colour 4:2:0 \(red and blue swapped\) "
+                                            r"against not known\)"):
+        check_same_scene([a, jpeg])

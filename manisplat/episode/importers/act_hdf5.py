@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -23,6 +24,7 @@ import h5py
 import numpy as np
 
 from manisplat.episode.format import ACTION_COLUMNS, EpisodeFormatError
+from manisplat.episode.images import jpeg_chroma_subsampling
 from manisplat.episode.meta import CameraInfo, RobotInfo
 from manisplat.episode.reader import Episode
 from manisplat.episode.writer import EpisodeWriter
@@ -70,6 +72,19 @@ def _images(ds: h5py.Dataset, compressed: bool, bgr: bool, where: Path) -> Itera
             if image is None:
                 raise EpisodeFormatError(f"{where}: {ds.name} frame {i}: cannot decode the JPEG bytes")
         yield cv2.cvtColor(image, cv2.COLOR_BGR2RGB) if bgr else image
+
+
+def _chroma_subsampling(ds: h5py.Dataset, compressed: bool, bgr: bool, where: Path) -> dict[str, Any]:
+    """The episode.json keys saying how a camera's JPEG frames kept their colour (read from its
+    first frame's header; the encoder took the stored arrays for BGR, which RGB arrays are not),
+    or ``{}`` for raw frames."""
+    if not compressed:
+        return {}
+    try:
+        scheme = jpeg_chroma_subsampling(ds[0].tobytes())
+    except ValueError as exc:
+        raise EpisodeFormatError(f"{where}: {ds.name} frame 0: {exc}") from None
+    return {} if scheme is None else {"chroma_subsampling": scheme, "chroma_red_blue_swapped": not bgr}
 
 
 def _camera_dataset(f: h5py.File, camera: str, length: int, where: Path) -> tuple[h5py.Dataset, bool]:
@@ -154,6 +169,7 @@ def import_act_hdf5(h5_path: str | Path, out_dir: str | Path, *, K: Any = None, 
                                      f"({length}, {height}, {width}) uint16 millimetres")
         cam = K if isinstance(K, CameraInfo) else CameraInfo(name=camera, width=width, height=height, K=K,
                                                               dist=dist, mount=mount)
+        cam = replace(cam, extra={**cam.extra, **_chroma_subsampling(color, compressed, bgr, h5_path)})
         if (cam.width, cam.height) != (width, height):
             raise EpisodeFormatError(f"{h5_path}: images are {width}x{height} but the camera is "
                                      f"{cam.width}x{cam.height}")

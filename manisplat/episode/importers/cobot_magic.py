@@ -25,7 +25,8 @@ import h5py
 import numpy as np
 
 from manisplat.episode.format import EpisodeFormatError
-from manisplat.episode.importers.act_hdf5 import SOURCE, _camera_dataset, _contents, _dataset, _images
+from manisplat.episode.importers.act_hdf5 import (SOURCE, _camera_dataset, _chroma_subsampling, _contents, _dataset,
+                                                 _images)
 from manisplat.episode.infos import ArmInfo, CameraInfo, arm_problems, camera_v2_problems
 from manisplat.episode.reader import Episode
 from manisplat.episode.writer_v2 import EpisodeWriterV2
@@ -246,7 +247,7 @@ def import_cobot_magic(h5_path: str | Path, out_dir: str | Path, calib: str | Pa
                 raise EpisodeFormatError(f"{h5_path}: {ds.name} images are {w}x{height} but {cal.path} says "
                                          f"{cal.sizes[name][0]}x{cal.sizes[name][1]}")
             streams[name] = (first, frames, compressed)
-            entry = {**cal.cameras[name], "width": w, "height": height}
+            entry = {**cal.cameras[name], "width": w, "height": height, **_chroma_subsampling(ds, compressed, bgr, h5_path)}
             cameras.append(CameraInfo.from_v2_dict(name, entry, list(cal.arms)))
             depth = f.get(f"observations/images_depth/{name}")
             if depth is not None:
