@@ -39,6 +39,8 @@ class StoredChroma(NamedTuple):
     def block(self) -> tuple[int, int]:
         """The pixels (horizontal, vertical) one colour sample covers."""
         return CHROMA_SUBSAMPLING[self.scheme]
+
+
 #: JPEG start-of-frame markers (every coding process: baseline, progressive, lossless, arithmetic)
 _SOF_MARKERS = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
 

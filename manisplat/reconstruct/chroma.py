@@ -1,16 +1,16 @@
 """The recording's chroma subsampling: a render compared with an image as the image was stored.
 
-JPEG and the video codecs keep an image's brightness at every pixel but its colour (Cb, Cr) once
-per block of pixels: 2 x 2 in the usual 4:2:0, which ``cv2.imencode`` and ACT / Cobot Magic
-HDF5 files use, as do LeRobot's videos. Decoding interpolates the colour back, so a colour edge
-in a recording is blurred over about two pixels. A small object seen from a metre away is a
-few blocks wide: on the simulated Cobot Magic recordings the simulator's own renders of the
-recorded states, before the recorder's JPEG, score 25.4 / 26.0 dB on the head camera's box and
-can against the recording (31.1 / 30.7 with their chroma subsampled as here, 43-45 with the
-JPEG itself). A twin that draws the colours sharply, as a wrist camera a few centimetres away
-shows them, is scored and trained against that blur unless its render is subsampled the same
-way before the comparison; this module does that. The twin keeps its full colour: new images
-are encoded by whatever writes them.
+JPEG and most video keep an image's brightness at every pixel but its colour (Cb, Cr) once per
+block of pixels: 2 x 2 in the usual 4:2:0, which ``cv2.imencode`` and so ACT / Cobot Magic HDF5
+files use. Decoding interpolates the colour back, so a colour edge in a recording is blurred over
+about two pixels, and a small object seen from a metre away is a few blocks wide. On the
+simulated Cobot Magic recordings the simulator's own renders of the recorded states, before the
+recorder's JPEG, score 25.7 / 23.8 dB in the head camera's object region against the recording,
+33.3 / 32.9 with their colour subsampled as here (``python -m benchmarks sim_shadow_map``). A
+twin that draws the colours sharply, as a wrist camera a few centimetres away shows them, is
+trained and scored against that blur unless its render is subsampled the same way before the
+comparison; this module does that. The twin keeps its full colour: new images are encoded by
+whatever writes them.
 """
 
 from __future__ import annotations

@@ -7,8 +7,9 @@ corrections' squared SE(3) distance to the pseudo ground truth. With per-frame e
 is first scaled by the frame's gains, fitted in closed form on its static pixels
 (:mod:`manisplat.reconstruct.exposure`); then it is compared as the camera records it: its colour
 subsampled as the recording's was (:mod:`manisplat.reconstruct.chroma`), and a render brighter
-than a clipped recorded channel counting as that channel (:mod:`manisplat.reconstruct.sensor`). :func:`frame_loss` is :func:`~manisplat.compilation.compilable`:
-compiled, the whole of it (and its backward) is a few fused kernels.
+than a clipped recorded channel counting as that channel (:mod:`manisplat.reconstruct.sensor`).
+:func:`frame_loss` is :func:`~manisplat.compilation.compilable`: compiled, the whole of it (and
+its backward) is a few fused kernels.
 """
 
 from __future__ import annotations
