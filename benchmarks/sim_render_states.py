@@ -1,6 +1,7 @@
 """The simulator's images of given states, without physics: run by the simulator's venv.
 
     MUJOCO_GL=osmesa SIMENV/bin/python sim_render_states.py EPISODE --parent PARENT --render DIR --json REPORT
+        [--supersample N]
 
 EPISODE holds the states: ``frames.csv`` (``q1..q6`` rad in the AgileX URDF convention, ``gripper``
 the pads' gap in m) and ``object_poses.npz`` (the parent's object name -> [T, 4, 4] ``T_base_obj``
@@ -10,8 +11,11 @@ rebuilds it. Every frame is posed exactly (arm, fingers, object; the rest of the
 scene puts it) and drawn: ``DIR/rgb/NNNNNN.png`` and ``DIR/masks/NNNNNN.png`` with the parent's
 labels. ``execute_episode.py --render`` draws what contact physics made of a demonstration's
 commands (the arm lags its targets, the object slips); this draws the states the demonstration's
-own images show, so the two images differ only in how they are drawn. Run with the working
-directory ``shared/tools/sim`` (``benchmarks._simulator.run_sim_jobs`` does)."""
+own images show, so the two images differ only in how they are drawn. ``--supersample N`` draws
+each colour image N times wider and higher and averages each N x N block, as a camera's pixel
+integrates its area (the simulator's own images filter their textures by mipmap level, which
+changes with the surface's distance and slant); the masks stay drawn at the image's size. Run
+with the working directory ``shared/tools/sim`` (``benchmarks._simulator.run_sim_jobs`` does)."""
 
 import argparse
 import csv
@@ -52,6 +56,8 @@ def main(argv=None) -> int:
     ap.add_argument("--parent", required=True, help="the gen_pick_place.py episode whose scene is rebuilt")
     ap.add_argument("--render", required=True, help="write rgb/ and masks/ here")
     ap.add_argument("--json", required=True, help="write the report here")
+    ap.add_argument("--supersample", type=int, default=1, metavar="N",
+                    help="draw the colour images N times finer and average N x N blocks (default 1)")
     a = ap.parse_args(argv)
     t_wall = time.time()
 
@@ -70,7 +76,13 @@ def main(argv=None) -> int:
         gp.set_camera_pose(m, cam_id, pcam["T_base_cam"], pcam["fovy_deg"])
     with open(os.path.join(a.episode, "episode.json")) as fh:
         cam = json.load(fh)["camera"]
-    renderer = mujoco.Renderer(m, int(cam["height"]), int(cam["width"]))
+    if a.supersample < 1:
+        raise SystemExit(f"--supersample must be at least 1, not {a.supersample}")
+    H, W, N = int(cam["height"]), int(cam["width"]), a.supersample
+    m.vis.global_.offwidth = max(m.vis.global_.offwidth, N * W)  # the offscreen buffer holds the finer images
+    m.vis.global_.offheight = max(m.vis.global_.offheight, N * H)
+    renderer = mujoco.Renderer(m, H, W)
+    fine = mujoco.Renderer(m, N * H, N * W) if N > 1 else renderer
     labels = gp.geom_labels(m, obj)
     for sub in ("rgb", "masks"):
         os.makedirs(os.path.join(a.render, sub), exist_ok=True)
@@ -84,8 +96,11 @@ def main(argv=None) -> int:
         d.qpos[qa:qa + 3] = T_obj[k, :3, 3]
         d.qpos[qa + 3:qa + 7] = gp.mat2quat(T_obj[k, :3, :3])
         mujoco.mj_forward(m, d)
+        fine.update_scene(d, camera=cam_id)
+        rgb = fine.render()
+        if N > 1:  # each pixel the mean of its N x N block (same centre: the fovy fixes the intrinsics' scale)
+            rgb = np.round(rgb.reshape(H, N, W, N, 3).astype(np.float64).mean((1, 3))).astype(np.uint8)
         renderer.update_scene(d, camera=cam_id)
-        rgb = renderer.render()
         renderer.enable_segmentation_rendering()
         seg = renderer.render()
         renderer.disable_segmentation_rendering()
@@ -94,7 +109,10 @@ def main(argv=None) -> int:
         Image.fromarray(rgb).save(os.path.join(a.render, "rgb", f"{k:06d}.png"))
         Image.fromarray(mask).save(os.path.join(a.render, "masks", f"{k:06d}.png"))
     renderer.close()
+    if N > 1:
+        fine.close()
     report = {"episode": os.path.basename(os.path.normpath(a.episode)), "object": obj, "frames": len(q_men),
+              "supersample": N,
               "wall_s": round(time.time() - t_wall, 2)}
     with open(a.json, "w") as fh:
         fh.write(json.dumps(report) + "\n")

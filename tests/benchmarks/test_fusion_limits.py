@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from benchmarks.bench_fusion_limits import SHIFTS, outline_split, psnr_of, shift_errors, shift_price, shifted
+from benchmarks.bench_fusion_limits import (SHIFTS, face_kinds, outline_split, phases_of, psnr_of, shift_errors,
+                                         shift_price, shifted)
 
 
 def _textured_square(offset: float = 0.0, size: int = 40) -> tuple[np.ndarray, np.ndarray]:
@@ -43,3 +44,47 @@ def test_the_price_of_a_shift_grows_with_the_shift_and_is_nothing_without_one():
     assert shift_price(target, region, 0.0) == pytest.approx(0.0, abs=1e-12)
     assert 0 < shift_price(target, region, 0.25) < shift_price(target, region, 0.5)
     np.testing.assert_allclose(shifted(target, 0.0, 0.0), target)
+
+
+def _camera_looking(from_: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """T_base_cam [4, 4] (OpenCV axes: z forward, y down) of a camera at ``from_`` looking at ``at``."""
+    z = (at - from_) / np.linalg.norm(at - from_)
+    x = np.cross(z, [0.0, 0.0, 1.0]) if abs(z[2]) < 0.99 else np.array([1.0, 0.0, 0.0])
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, np.cross(z, x), z], 1)
+    T[:3, 3] = from_
+    return T
+
+
+def test_each_pixel_is_given_the_face_its_ray_hits_by_where_that_face_points():
+    K = np.array([[100.0, 0, 32], [0, 100.0, 32], [0, 0, 1]])
+    half = np.array([0.02, 0.02, 0.025])
+    region = np.zeros((64, 64), bool)
+    region[30:35, 30:35] = True  # the image's centre, on the box from every camera below
+    standing = np.eye(4)
+    above = _camera_looking(np.array([0.0, 0.0, 0.5]), np.zeros(3))
+    beside = _camera_looking(np.array([0.5, 0.0, 0.0]), np.zeros(3))
+    below = _camera_looking(np.array([0.0, 0.0, -0.5]), np.zeros(3))
+    assert (face_kinds(K, above, standing, half, region) == 0).all()
+    assert (face_kinds(K, beside, standing, half, region) == 1).all()
+    assert (face_kinds(K, below, standing, half, region) == 2).all()
+    lying = np.eye(4)
+    lying[:3, :3] = [[1, 0, 0], [0, 0, -1], [0, 1, 0]]  # turned 90 deg about x: its +y face points up
+    assert (face_kinds(K, above, lying, half, region) == 0).all()
+    assert (face_kinds(K, beside, lying, half, region) == 1).all()
+    away = np.eye(4)
+    away[:3, 3] = [0.3, 0.3, 0.0]  # nowhere near the rays
+    assert (face_kinds(K, above, away, half, region) == -1).all()
+    looking_up = _camera_looking(np.array([0.0, 0.0, 0.5]), np.array([0.0, 0.0, 1.0]))
+    assert (face_kinds(K, looking_up, standing, half, region) == -1).all()  # the box behind the camera
+    corner = np.zeros((64, 64), bool)
+    corner[0, 0] = True  # 0.32 rad off the axis: misses a box 4 cm wide at 0.5 m
+    assert face_kinds(K, above, standing, half, corner).tolist() == [-1]
+
+
+def test_the_phases_follow_where_the_drawn_object_is():
+    poses = np.repeat(np.eye(4)[None], 7, axis=0)
+    poses[3:, 0, 3] = [0.05, 0.10, 0.15, 0.15]  # lifted away, carried, placed
+    poses[3, 2, 3] = 0.03
+    assert phases_of(poses) == ["start"] * 3 + ["carried"] * 2 + ["placed"] * 2
