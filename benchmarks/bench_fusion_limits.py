@@ -72,6 +72,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.supersample == 1 or args.supersample < 0:
         p.error(f"--supersample takes 2 or more (0: not drawn), not {args.supersample}")
     simenv = simulator_python() if args.supersample else None
+    if any(args.work.glob("demos_x*")):
+        raise MissingBenchmarkData(f"{args.work} was made with reconstruct_fusion --supersample: its twins learnt from "
+                                   "supersampled recordings, and this reads the simulator's own")
     started = time.perf_counter()
     twins = {}
     for count in (int(c) for c in args.counts.split(",")):

@@ -4,7 +4,7 @@ at new poses, where the simulator says what the new demonstrations look like (is
     MANISPLAT_SIMENV=SIMENV/bin/python python -m benchmarks reconstruct_fusion [--counts 1,5,20]
         [--iters 3000] [--demos 5] [--shadow-receivers all|background] [--shadow-casters meshes|gaussians]
         [--rasterize-mode classic|antialiased] [--object-position-rate R] [--lambda-pose W]
-        [--pose-rate-final F] [--work DIR] [--out JSON]
+        [--pose-rate-final F] [--supersample N] [--work DIR] [--out JSON]
 
 1. **Data** (generated, not committed): ``shared/tools/sim/gen_demos.py --source
    shared/data/sim_pick_place_small --n 20 --seed-start 1 --place-range 0.02 0.02 0.4``: the
@@ -38,6 +38,14 @@ at new poses, where the simulator says what the new demonstrations look like (is
 5. **The state renderer's check**: the first episode's own states drawn by
    ``sim_render_states.py`` against its recorded images (``renderer_check``): what the scoring
    above gives a perfect twin.
+
+With ``--supersample N`` the demonstrations are recorded as a camera would record them: their own
+states (from the ground truth, as the renderer's check takes them) drawn ``N`` x ``N`` times finer
+and averaged (``sim_render_states.py --supersample``: each pixel the mean over its area, where the
+simulator filters its textures by mipmap level) in place of their colour images, depth and masks
+kept (``DIR/demos_xN``); the twins learn from those, and the new demonstrations' states and the
+renderer's check are drawn the same way. The executed states (``execute_episode.py --render``)
+stay drawn by the simulator.
 
 Ground truth is read only by the scoring (metrics.json's pose errors, the simulator's renders,
 the renderer's check).
@@ -88,14 +96,21 @@ def main(argv: list[str] | None = None) -> int:
                    help="manisplat-reconstruct --lambda-pose of every twin (default the product's)")
     p.add_argument("--pose-rate-final", type=bounded(1e-6, 1.0), default=TrainConfig.pose_rate_final, metavar="F",
                    help="manisplat-reconstruct --pose-rate-final of every twin (default the product's)")
+    p.add_argument("--supersample", type=int, default=1, metavar="N",
+                   help="record the demonstrations and draw the states N x N finer, averaged (default 1: as the "
+                        "simulator draws them)")
     p.add_argument("--work", type=Path, help="outputs (default a temporary folder; kept)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_reconstruct" / "reconstruct_fusion.json")
     args = p.parse_args(argv)
+    if args.supersample < 1:
+        p.error(f"--supersample takes 1 or more, not {args.supersample}")
     simenv = simulator_python()
     counts = [int(c) for c in args.counts.split(",")]
     work = (args.work or Path(tempfile.mkdtemp(prefix="reconstruct_fusion_"))).resolve()
     started = time.perf_counter()
     episodes = _demonstrations(simenv, work / "demos", max(counts))
+    if args.supersample > 1:
+        episodes = _supersampled(simenv, episodes, work / f"demos_x{args.supersample}", args.supersample)
     twins = {}
     for count in counts:
         twins[count] = _twin(episodes[:count], work / f"twin_{count}", args.iters,
@@ -108,12 +123,12 @@ def main(argv: list[str] | None = None) -> int:
               flush=True)
     for count in counts:
         twins[count]["new_poses"] = _new_poses(simenv, work / f"twin_{count}", work / f"aug_{count}", episodes[0],
-                                               args.demos)
+                                               args.demos, args.supersample)
         print(f"{count} episodes, new poses: executed {json.dumps(twins[count]['new_poses']['mean'])}, "
               f"same states {json.dumps(twins[count]['new_poses']['mean_same_states'])}", flush=True)
     common = _common_samples({count: work / f"aug_{count}" for count in counts}, twins)
     print(f"the {len(common['samples'])} samples every twin made: {json.dumps(common['mean_same_states'])}", flush=True)
-    renderer_check = _renderer_check(simenv, episodes[0], work / "renderer_check")
+    renderer_check = _renderer_check(simenv, episodes[0], work / "renderer_check", args.supersample)
     print(f"the state renderer on {episodes[0].name}'s own states: {json.dumps(renderer_check)}", flush=True)
     registration = _registration(episodes) if len(episodes) > 1 else None  # one episode: nothing to register
     if registration is not None:
@@ -128,7 +143,7 @@ def main(argv: list[str] | None = None) -> int:
               "shadow_receivers": args.shadow_receivers, "shadow_casters": args.shadow_casters,
               "rasterize_mode": args.rasterize_mode, "object_position_rate": args.object_position_rate,
               "lambda_pose": args.lambda_pose, "pose_rate_final": args.pose_rate_final,
-              "episodes": [e.name for e in episodes],
+              "supersample": args.supersample, "episodes": [e.name for e in episodes],
               "twins": {str(k): v for k, v in twins.items()},
               "new_poses_common_samples": common, "renderer_check": renderer_check, "registration": registration,
               "sheet": sheet.name, "wall_s": round(time.perf_counter() - started, 1)}
@@ -149,6 +164,49 @@ def _demonstrations(simenv: Path, out: Path, n: int) -> list[Path]:
     if len(found) < n:
         raise MissingBenchmarkData(f"gen_demos.py made {len(found)} demonstrations in {out}, {n} needed")
     return found[:n]
+
+
+def _supersampled(simenv: Path, episodes: list[Path], out: Path, n: int) -> list[Path]:
+    """Copies of ``episodes`` in ``out`` whose colour images are their own states drawn ``n`` x
+    ``n`` finer and averaged (depth, masks and the rest kept; made once, kept)."""
+    jobs = []
+    for episode in episodes:
+        if not (out / episode.name / "episode.json").exists():
+            _ground_truth_states(episode, out / "states" / episode.name)
+            jobs.append(SimJob(str(STATE_RENDERER), (str(out / "states" / episode.name), "--parent", str(episode),
+                                                     "--render", str(out / "drawn" / episode.name), "--supersample",
+                                                     str(n)), out / "drawn" / episode.name / "render.json"))
+    run_sim_jobs(simenv, jobs)
+    for job in jobs:
+        episode = Path(job.args[2])
+        part = out / (episode.name + ".part")
+        shutil.rmtree(part, ignore_errors=True)
+        shutil.copytree(episode, part)
+        recorded = sorted((part / "rgb").iterdir())
+        drawn = sorted((out / "drawn" / episode.name / "rgb").iterdir())
+        if [p.name for p in recorded] != [p.name for p in drawn]:
+            raise MissingBenchmarkData(f"{episode}: its rgb/ and the supersampled drawing's differ in their files")
+        for image in drawn:
+            shutil.copy(image, part / "rgb" / image.name)
+        part.rename(out / episode.name)
+    return [out / episode.name for episode in episodes]
+
+
+def _ground_truth_states(episode: Path, out: Path) -> None:
+    """``episode``'s own states from its ground truth (joints, gap, object poses) as
+    ``sim_render_states.py`` reads them, in ``out``."""
+    from manisplat.augment.writer import OBJECT_POSES_FILE
+    from manisplat.episode import Episode
+
+    recorded = Episode.open(episode)
+    gt = recorded.gt()
+    out.mkdir(parents=True, exist_ok=True)
+    shutil.copy(episode / "episode.json", out / "episode.json")
+    with open(out / "frames.csv", "w", newline="") as f:
+        rows = csv.writer(f)
+        rows.writerow(["index", "t", *(f"q{j}" for j in range(1, 7)), "gripper"])
+        rows.writerows([k, t, *q, gap] for k, (t, q, gap) in enumerate(zip(gt["t"], gt["q"], gt["gripper"])))
+    np.savez(out / OBJECT_POSES_FILE, **{name: gt[f"T_base_{name}"] for name in recorded.meta.objects})
 
 
 def _twin(episodes: list[Path], out: Path, iters: int, options: dict[str, str]) -> dict:
@@ -194,11 +252,11 @@ def _anchored(anchored: dict | None) -> dict | None:
                                           for k, v in anchored.items()}
 
 
-def _new_poses(simenv: Path, twin: Path, out: Path, parent: Path, demos: int) -> dict:
+def _new_poses(simenv: Path, twin: Path, out: Path, parent: Path, demos: int, supersample: int = 1) -> dict:
     """``demos`` new demonstrations from ``twin`` (source episode_0001, seed 0), executed by the
     simulator with contact physics and drawn by it twice: the states physics made of their commands
-    (``sim_render``) and their own states, posed without physics (``sim_states``); our renders
-    scored against both."""
+    (``sim_render``) and their own states, posed without physics (``sim_states``, ``supersample``
+    x ``supersample`` finer and averaged); our renders scored against both."""
     from benchmarks.bench_augment_shared import in_simulator_frame, render_scores
     from manisplat.augment.cli import main as augment
     from manisplat.augment.views import UNSEEN_WARN_DEG
@@ -215,7 +273,7 @@ def _new_poses(simenv: Path, twin: Path, out: Path, parent: Path, demos: int) ->
                                               str(out / "sim_render" / path.name)),
                        out / "sim_render" / path.name / "physics.json") for path, copy in zip(episodes, inputs)]
     posed = [SimJob(str(STATE_RENDERER), (str(copy), "--parent", str(parent), "--render",
-                                          str(out / "sim_states" / path.name)),
+                                          str(out / "sim_states" / path.name), "--supersample", str(supersample)),
                     out / "sim_states" / path.name / "render.json") for path, copy in zip(episodes, inputs)]
     run_sim_jobs(simenv, executed + posed)
     view_change = {s["episode"]: s.get("view_change_deg", {}).get("box")
@@ -258,27 +316,18 @@ def _means(rows: list[dict], keys: list[str]) -> dict[str, float]:
     return {k: round(float(np.mean([r[k] for r in rows])), 3) for k in keys}
 
 
-def _renderer_check(simenv: Path, episode: Path, work: Path) -> dict[str, float]:
+def _renderer_check(simenv: Path, episode: Path, work: Path, supersample: int = 1) -> dict[str, float]:
     """What the new poses' scoring gives a perfect twin: ``episode``'s own states (its ground
-    truth's joints, gap and object poses) drawn by ``sim_render_states.py``, scored against its
-    recorded images as the new demonstrations are scored against the simulator's."""
+    truth's joints, gap and object poses) drawn by ``sim_render_states.py`` (``supersample`` x
+    ``supersample`` finer and averaged), scored against its recorded images as the new
+    demonstrations are scored against the simulator's."""
     from benchmarks.bench_augment_shared import render_scores
-    from manisplat.augment.writer import OBJECT_POSES_FILE
-    from manisplat.episode import Episode
 
-    recorded = Episode.open(episode)
-    gt = recorded.gt()
     states = work / "states"
-    states.mkdir(parents=True, exist_ok=True)
-    shutil.copy(episode / "episode.json", states / "episode.json")
-    with open(states / "frames.csv", "w", newline="") as f:
-        rows = csv.writer(f)
-        rows.writerow(["index", "t", *(f"q{j}" for j in range(1, 7)), "gripper"])
-        rows.writerows([k, t, *q, gap] for k, (t, q, gap) in enumerate(zip(gt["t"], gt["q"], gt["gripper"])))
-    np.savez(states / OBJECT_POSES_FILE, **{name: gt[f"T_base_{name}"] for name in recorded.meta.objects})
+    _ground_truth_states(episode, states)
     render = work / "render"
-    run_sim_jobs(simenv, [SimJob(str(STATE_RENDERER), (str(states), "--parent", str(episode), "--render", str(render)),
-                                 render / "render.json")])
+    run_sim_jobs(simenv, [SimJob(str(STATE_RENDERER), (str(states), "--parent", str(episode), "--render", str(render),
+                                                       "--supersample", str(supersample)), render / "render.json")])
     return {k: round(v, 2) for k, v in render_scores(episode, render).items() if k.startswith("psnr_")}
 
 
