@@ -46,6 +46,7 @@ import numpy as np
 
 from benchmarks._harness import BENCH_DIR, MissingBenchmarkData, machine_info, simulator_python
 from benchmarks._simulator import SimJob, run_sim_jobs, sim_tools
+from benchmarks.bench_reconstruct_fusion import SOURCE, STATE_RENDERER
 from manisplat.episode.images import MASK, RGB, ImageKind, load_image
 
 OWN_OPTIONS = True
@@ -57,8 +58,6 @@ PRICES = (0.25, 0.5)  # px, the shifts whose price the simulator's own renders t
 PHASES = ("start", "carried", "placed")
 FACES = ("top", "side", "bottom")  # face_kinds' codes 0, 1, 2
 AT_REST_M = 1e-4  # a drawn pose within this of the first (last) one's position: where it starts (is placed)
-STATE_RENDERER = BENCH_DIR / "sim_render_states.py"
-PARENT = "episode_0001"  # reconstruct_fusion's first demonstration: the scene its new ones are drawn in
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -84,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
                                        "(run python -m benchmarks reconstruct_fusion --work there first)")
         fine = None
         if simenv is not None:
-            fine = _supersampled(simenv, aug, args.work / "demos" / PARENT, args.supersample)
+            fine = _supersampled(simenv, aug, args.work / "demos" / SOURCE, args.supersample)
         twins[str(count)] = {"new_poses": _new_poses(aug, fine), "held_out": _held_out(twin, args.work / "demos")}
         print(f"{count} episodes: {json.dumps(twins[str(count)])}", flush=True)
     result = {"benchmark": "fusion_limits", "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),

@@ -169,16 +169,14 @@ def _demonstrations(simenv: Path, out: Path, n: int) -> list[Path]:
 def _supersampled(simenv: Path, episodes: list[Path], out: Path, n: int) -> list[Path]:
     """Copies of ``episodes`` in ``out`` whose colour images are their own states drawn ``n`` x
     ``n`` finer and averaged (depth, masks and the rest kept; made once, kept)."""
-    jobs = []
-    for episode in episodes:
-        if not (out / episode.name / "episode.json").exists():
-            _ground_truth_states(episode, out / "states" / episode.name)
-            jobs.append(SimJob(str(STATE_RENDERER), (str(out / "states" / episode.name), "--parent", str(episode),
-                                                     "--render", str(out / "drawn" / episode.name), "--supersample",
-                                                     str(n)), out / "drawn" / episode.name / "render.json"))
-    run_sim_jobs(simenv, jobs)
-    for job in jobs:
-        episode = Path(job.args[2])
+    todo = [episode for episode in episodes if not (out / episode.name / "episode.json").exists()]
+    for episode in todo:
+        _ground_truth_states(episode, out / "states" / episode.name)
+    run_sim_jobs(simenv, [SimJob(str(STATE_RENDERER), (str(out / "states" / episode.name), "--parent", str(episode),
+                                                       "--render", str(out / "drawn" / episode.name),
+                                                       "--supersample", str(n)),
+                                 out / "drawn" / episode.name / "render.json") for episode in todo])
+    for episode in todo:
         part = out / (episode.name + ".part")
         shutil.rmtree(part, ignore_errors=True)
         shutil.copytree(episode, part)

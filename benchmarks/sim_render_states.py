@@ -59,6 +59,8 @@ def main(argv=None) -> int:
     ap.add_argument("--supersample", type=int, default=1, metavar="N",
                     help="draw the colour images N times finer and average N x N blocks (default 1)")
     a = ap.parse_args(argv)
+    if a.supersample < 1:
+        ap.error(f"--supersample must be at least 1, not {a.supersample}")
     t_wall = time.time()
 
     pargs = json.loads(str(np.load(os.path.join(a.parent, "gt.npz"), allow_pickle=True)["info"]))["args"]
@@ -76,8 +78,6 @@ def main(argv=None) -> int:
         gp.set_camera_pose(m, cam_id, pcam["T_base_cam"], pcam["fovy_deg"])
     with open(os.path.join(a.episode, "episode.json")) as fh:
         cam = json.load(fh)["camera"]
-    if a.supersample < 1:
-        raise SystemExit(f"--supersample must be at least 1, not {a.supersample}")
     H, W, N = int(cam["height"]), int(cam["width"]), a.supersample
     m.vis.global_.offwidth = max(m.vis.global_.offwidth, N * W)  # the offscreen buffer holds the finer images
     m.vis.global_.offheight = max(m.vis.global_.offheight, N * H)
