@@ -51,7 +51,7 @@ def row(twin: Path, T_true: np.ndarray, T_recorded: np.ndarray, true_gain: list[
     metrics = json.loads((twin / "metrics.json").read_text())
     camera = json.loads((twin / "camera_refined.json").read_text())
     out = {"wall_s": metrics["wall_s"]}
-    for key in ("psnr", "psnr_colour_fitted", "ssim"):
+    for key in ("psnr", "psnr_full_colour", "psnr_colour_fitted", "ssim"):
         for region, value in (metrics.get(key) or {}).items():
             out[f"{key}_{region}"] = value
     for name, err in metrics.get("pose", {}).items():
