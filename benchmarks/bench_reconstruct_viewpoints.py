@@ -53,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
     options = sys.argv[1:] if argv is None else argv  # as run, for the result's command
     from benchmarks._degraded import reconstruct, robot_of, row  # after the arguments: --help stays quick
     from manisplat.episode import Episode
-    from manisplat.reconstruct.chroma import describe
+    from manisplat.episode.images import describe_chroma
 
     viewpoints = args.viewpoints
     ctx = BenchContext(threads=2, quick=False, shared=shared_dir(), out_dir=args.out.parent)
@@ -69,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
                 T_recorded = Episode.open(episode).camera.T_mount_cam
                 twin = reconstruct(episode, Path(tmp) / episode.name, args.iters, robot_of(episode), *extra)
                 r = {"viewpoint": v.name, "distance_m": round(v.distance_m, 3), "size": f"{v.size[0]}x{v.size[1]}",
-                     "degrade_seed": seed, "colour": describe(Episode.open(episode).chroma_subsampling()),
+                     "degrade_seed": seed, "colour": describe_chroma(Episode.open(episode).chroma_subsampling()),
                      **row(twin, T_true, T_recorded),
                      "lambda_pose": json.loads((twin / "metrics.json").read_text())["lambda_pose"]}
                 rows.append(r)

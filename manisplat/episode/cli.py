@@ -1,4 +1,5 @@
-"""``manisplat-episode``: inspect, validate, recover, import, export, synthesize, copy episodes and set their robot.
+"""``manisplat-episode``: inspect, validate, recover, import, export, synthesize, copy episodes and set their
+robot or how their images kept their colour.
 
 Only argparse and the shared argument checks are imported up front: each command imports what it
 needs (OpenCV, h5py, torch) after the arguments parsed, so ``--help`` and usage errors are quick.
@@ -19,6 +20,8 @@ from manisplat.exit_codes import ExitCode, exit_status_help
 
 ACT_ARMS = ("left", "right", "single")
 """``--arm`` choices of ``import-act`` (the keys of the importer's ``ARM_COLUMNS``)."""
+CHROMA_SCHEMES = ("4:2:0", "4:2:2", "4:4:0", "4:1:1", "4:4:4")
+"""``set-chroma`` choices (the keys of :data:`manisplat.episode.images.CHROMA_SUBSAMPLING`)."""
 EXPORT_FORMATS = ("lerobot", "act-hdf5")
 """``--format`` choices of ``export``."""
 SAMPLE_MIN_FRAMES = 8
@@ -270,6 +273,21 @@ def _cmd_set_robot(args: argparse.Namespace) -> int:
     return ExitCode.OK
 
 
+def _cmd_set_chroma(args: argparse.Namespace) -> int:
+    from manisplat.episode.chroma import set_chroma_subsampling
+    from manisplat.episode.images import describe_chroma
+
+    try:
+        old, new = set_chroma_subsampling(args.episode, args.scheme, camera=args.camera,
+                                          red_blue_swapped=args.red_blue_swapped)
+    except ValueError as exc:  # EpisodeFormatError included: no such camera, none named among several
+        print(f"error: {exc}", file=sys.stderr)
+        return ExitCode.BAD_INPUT
+    where = f"camera {args.camera}: " if args.camera else ""
+    print(f"{args.episode}: {where}colour stored {describe_chroma(old)} -> {describe_chroma(new)}")
+    return ExitCode.OK
+
+
 def _cmd_copy(args: argparse.Namespace) -> int:
     from manisplat.episode.relocate import copy_episode
 
@@ -314,8 +332,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("info", help="print a summary of an episode",
                        description="Print a summary of an episode: its format version, frames, duration, "
                                    "declared and measured fps, every arm (robot, base, joint ranges in degrees, "
-                                   "gripper range in mm), every camera (size, intrinsics, mount, files) and "
-                                   "whether it is complete.")
+                                   "gripper range in mm), every camera (size, intrinsics, mount, how its images "
+                                   "kept their colour, files) and whether it is complete.")
     p.add_argument("episode", type=Path, help="episode folder")
     p.set_defaults(func=_cmd_info)
 
@@ -522,6 +540,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing EPISODE/robot/ when embedding (default: off, refused)")
     p.set_defaults(func=_cmd_set_robot)
+
+    p = sub.add_parser("set-chroma", help="say how a camera's images kept their colour when they were encoded",
+                       description="Record in episode.json how a camera's images kept their colour when the camera "
+                                   "or recorder encoded them (chroma subsampling: 4:2:0 is JPEG's and most video's "
+                                   "usual, one colour sample per 2 x 2 pixels). JPEG files say it in their header; "
+                                   "PNG files that were JPEG or video frames first (re-saved, or decoded by an "
+                                   "importer) do not. manisplat-reconstruct compares its renders with the images "
+                                   "after the same subsampling. Refused where the images are JPEG files whose "
+                                   "header says otherwise.")
+    p.add_argument("episode", type=Path, metavar="EPISODE", help="episode folder")
+    p.add_argument("scheme", choices=CHROMA_SCHEMES, metavar="SCHEME",
+                   help=f"one of {', '.join(CHROMA_SCHEMES)} (4:4:4: every pixel's colour kept)")
+    p.add_argument("--camera", metavar="NAME",
+                   help="the camera (default: the one camera; required when the episode has several)")
+    p.add_argument("--red-blue-swapped", action="store_true",
+                   help="the encoder took red for blue (cv2.imencode of an RGB array, as ACT and Cobot Magic "
+                        "recorders store frames; default: off)")
+    p.set_defaults(func=_cmd_set_chroma)
 
     p = sub.add_parser("copy", help="copy an episode so that its robot description still resolves",
                        description="Copy every file of an episode (.recovered/ included). A relative "

@@ -41,6 +41,13 @@ class StoredChroma(NamedTuple):
         return CHROMA_SUBSAMPLING[self.scheme]
 
 
+def describe_chroma(stored: StoredChroma | None) -> str:
+    """``stored`` in words for logs: ``"4:2:0"``, ``"4:2:0 (red and blue swapped)"``, ``"not known"``."""
+    if stored is None:
+        return "not known"
+    return stored.scheme + (" (red and blue swapped)" if stored.red_blue_swapped else "")
+
+
 #: JPEG start-of-frame markers (every coding process: baseline, progressive, lossless, arithmetic)
 _SOF_MARKERS = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
 

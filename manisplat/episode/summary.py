@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from manisplat.episode.format import GT_FILE, JOINTS_FILE
-from manisplat.episode.images import DEPTH, KINDS, list_images
+from manisplat.episode.images import DEPTH, KINDS, StoredChroma, describe_chroma, list_images
 from manisplat.episode.layout import CameraFiles
 from manisplat.episode.meta import CameraInfo
 from manisplat.episode.reader import Episode, FrameTable
@@ -32,10 +32,11 @@ def _joint_lines(frames: FrameTable, indent: str = "") -> list[str]:
             f"{indent}gripper   [{1e3 * frames.gripper.min():.1f}, {1e3 * frames.gripper.max():.1f}] mm"]
 
 
-def _camera_text(cam: CameraInfo) -> str:
+def _camera_text(cam: CameraInfo, colour: StoredChroma | None) -> str:
     return (f"{cam.width}x{cam.height}, fx={cam.K[0, 0]:.2f} fy={cam.K[1, 1]:.2f} "
             f"cx={cam.K[0, 2]:.2f} cy={cam.K[1, 2]:.2f}, dist {cam.dist.tolist() or 'none'}, mount {cam.mount}, "
-            f"T_mount_cam {'set' if cam.T_mount_cam is not None else 'null (uncalibrated)'}")
+            f"T_mount_cam {'set' if cam.T_mount_cam is not None else 'null (uncalibrated)'}, "
+            f"colour stored {describe_chroma(colour)}")
 
 
 def _image_files(episode: Episode, files: CameraFiles) -> list[str]:
@@ -54,7 +55,7 @@ def _image_files(episode: Episode, files: CameraFiles) -> list[str]:
 def describe(episode: Episode) -> str:
     """Several lines: format version, frames, duration, declared vs measured fps, and per arm its
     robot, base, joint ranges (degrees), gripper range (mm), per camera its size, intrinsics,
-    mount and files, then the other files present and the ``complete`` flag."""
+    mount, how its images kept their colour and files, then the other files present and the ``complete`` flag."""
     if episode.meta.version != 1:
         return _describe_v2(episode)
     meta, frames, cam = episode.meta, episode.frames, episode.camera
@@ -67,7 +68,7 @@ def describe(episode: Episode) -> str:
         f"source    {meta.source}, created {meta.created}",
         f"frames    {n} (frame_count {meta.frame_count}), duration {duration:.3f} s",
         f"fps       declared {meta.fps:g}, measured {_rate(frames.t)}",
-        f"camera    {cam.name} {_camera_text(cam)}",
+        f"camera    {cam.name} {_camera_text(cam, episode.chroma_subsampling())}",
         f"robot     {meta.robot.model}, angles per {meta.robot.description}",
     ]
     lines += _joint_lines(frames)
@@ -120,8 +121,8 @@ def _describe_v2(episode: Episode) -> str:
     for files in layout.cameras:
         cam = meta.cameras[files.name]
         own_t = files.time_column in episode.columns
-        lines.append(f"camera {files.name}: {_camera_text(cam)}" + (f", own times ({files.time_column})" if own_t
-                                                                    else ""))
+        lines.append(f"camera {files.name}: {_camera_text(cam, episode.chroma_subsampling(files.name))}"
+                     + (f", own times ({files.time_column})" if own_t else ""))
         lines.append(f"  files     {'; '.join(_image_files(episode, files)) or 'none'}")
     owned = {c for a in layout.arms for c in episode.columns if a.owns(c)}
     shared = [c for c in episode.columns if c not in layout.frame_columns and c not in owned]

@@ -33,13 +33,6 @@ def subsampled(stored: StoredChroma | None) -> StoredChroma | None:
     return None if stored is None or stored.block == (1, 1) else stored
 
 
-def describe(stored: StoredChroma | None) -> str:
-    """``stored`` in words for logs: ``"4:2:0"``, ``"4:2:0 (red and blue swapped)"``, ``"not known"``."""
-    if stored is None:
-        return "not known"
-    return stored.scheme + (" (red and blue swapped)" if stored.red_blue_swapped else "")
-
-
 def subsample_chroma(image: torch.Tensor, stored: StoredChroma) -> torch.Tensor:
     """``image`` [H, W, 3] (RGB, any scale) with its colour kept as ``stored`` kept it: the
     chroma averaged over each block of pixels and interpolated back, as a JPEG decoder does
@@ -59,4 +52,4 @@ def subsample_chroma(image: torch.Tensor, stored: StoredChroma) -> torch.Tensor:
     return rgb.flip(-1) if stored.red_blue_swapped else rgb
 
 
-__all__ = ["describe", "subsample_chroma", "subsampled"]
+__all__ = ["subsample_chroma", "subsampled"]

@@ -14,9 +14,8 @@ from tqdm import tqdm
 
 from manisplat.episode import CameraInfo, Episode
 from manisplat.episode.format import V1_ARM, WORLD_MOUNT
-from manisplat.episode.images import StoredChroma
+from manisplat.episode.images import StoredChroma, describe_chroma
 from manisplat.geometry import matrix_to_quat
-from manisplat.reconstruct.chroma import describe
 from manisplat.reconstruct.lens import undistortion_for
 from manisplat.robot import RobotModel, load_robot
 from manisplat.robot.arms import ArmSet
@@ -324,7 +323,7 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, camera: str
         eval_masks, masks, labels = masks, None, Labels()
     chroma = episode.chroma_subsampling(view)
     log.info("loaded %s: %d frames of camera %s %dx%d (chroma %s), depth %s, masks %s, robot %s", episode.path, n,
-             cam.name, cam.width, cam.height, describe(chroma), depth is not None,
+             cam.name, cam.width, cam.height, describe_chroma(chroma), depth is not None,
              masks is not None, model.name)
     clock = episode.meta.extra.get("clock")
     recorded_latency = float(clock.get("camera_latency_s") or 0.0) if isinstance(clock, dict) else 0.0

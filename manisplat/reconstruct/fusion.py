@@ -36,8 +36,8 @@ from scipy.spatial import cKDTree
 
 from manisplat.align.phases import GripperEvents, Segment
 from manisplat.align.pseudo_gt import PseudoPoses
+from manisplat.episode.images import describe_chroma
 from manisplat.geometry import make_transform, orthonormalize
-from manisplat.reconstruct.chroma import describe
 from manisplat.reconstruct.data import EpisodeData, ReconstructionInputError, retime
 from manisplat.reconstruct.extrinsic import ExtrinsicCorrection, pose_difference, refine_extrinsic
 from manisplat.reconstruct.plan import Plan
@@ -114,7 +114,7 @@ def _difference(a: EpisodeData, b: EpisodeData) -> str | None:
     if not torch.allclose(a.K_opencv.double(), b.K_opencv.double(), rtol=1e-4, atol=1e-3):
         return "other camera intrinsics"
     if a.chroma_subsampling != b.chroma_subsampling:
-        return f"images stored otherwise (colour {describe(b.chroma_subsampling)} against {describe(a.chroma_subsampling)})"
+        return f"images stored otherwise (colour {describe_chroma(b.chroma_subsampling)} against {describe_chroma(a.chroma_subsampling)})"
     rotation, translation = pose_difference(np.linalg.inv(a.viewmat.double().numpy()),
                                             np.linalg.inv(b.viewmat.double().numpy()))
     if rotation > BUMP_DEG or translation > BUMP_MM:
