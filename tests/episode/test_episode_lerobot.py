@@ -21,7 +21,8 @@ from manisplat.episode import EpisodeFormatError
 from manisplat.episode.cli import main
 from manisplat.episode.exporters.lerobot import ExportDestinationError, export_lerobot
 from manisplat.episode.exporters.lerobot_stats import QUANTILES, stats_sample_indices, vector_stats
-from manisplat.episode.importers.lerobot import import_lerobot
+from manisplat.episode.images import StoredChroma
+from manisplat.episode.importers.lerobot import import_lerobot, video_chroma_keys
 from manisplat.episode.reader import Episode
 from manisplat.episode.synthetic import write_sample_episode
 
@@ -193,12 +194,40 @@ def test_float64_round_trip_is_bit_exact_and_images_within_codec_loss(samples, t
         assert np.array_equal(back.frames.t, np.arange(16) / 16)
         assert back.meta.source == "import:lerobot" and back.meta.extra["task"] == TASK
         assert back.meta.extra["import"]["episode_index"] == n
+        assert back.chroma_subsampling() == StoredChroma("4:2:0", False)  # the video's yuv420p, kept as PNG
         psnrs = [_psnr(back.rgb(i), ep.rgb(i)) for i in range(16)]
         # yuv420p alone gives 36.4-37.5 dB on these 64x48 renders; AV1 at CRF 20 measured 30.3-36.5
         assert min(psnrs) > 29.0 and np.mean(psnrs) > 34.0, psnrs
         for i in range(16):
             expected = np.round(np.nan_to_num(ep.depth(i)) * 1000) / 1000
             assert np.allclose(back.depth(i), expected, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("pixel_format, keys", [
+    ("yuv420p", {"chroma_subsampling": "4:2:0", "chroma_red_blue_swapped": False}),
+    ("yuv422p", {"chroma_subsampling": "4:2:2", "chroma_red_blue_swapped": False}),
+    ("yuv411p", {"chroma_subsampling": "4:1:1", "chroma_red_blue_swapped": False}),
+    ("yuv444p", {"chroma_subsampling": "4:4:4", "chroma_red_blue_swapped": False}),
+    ("bgr0", {"chroma_subsampling": "4:4:4", "chroma_red_blue_swapped": False}),
+    ("gray", {}),
+])
+def test_a_videos_pixel_format_says_how_its_colour_was_kept(tmp_path, pixel_format, keys):
+    path = tmp_path / "v.mkv"
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("ffv1", rate=10)
+        stream.width, stream.height, stream.pix_fmt = 32, 24, pixel_format
+        frame = av.VideoFrame.from_ndarray(np.zeros((24, 32, 3), np.uint8), format="rgb24").reformat(format=pixel_format)
+        for packet in [*stream.encode(frame), *stream.encode()]:
+            container.mux(packet)
+    assert video_chroma_keys(path, "png") == keys
+    assert video_chroma_keys(path, "jpg") == {}  # JPEG files say it in their header
+
+
+def test_frames_stored_as_jpeg_are_read_by_their_header(samples, tmp_path):
+    export_lerobot(samples[:1], tmp_path / "ds", task=TASK, codec="h264")
+    back = import_lerobot(tmp_path / "ds", tmp_path / "back", episode=0, camera="ego",
+                          K=Episode.open(samples[0]).camera, image_format="jpg")
+    assert "chroma_subsampling" not in back.camera.extra and back.chroma_subsampling() == StoredChroma("4:2:0")
 
 
 def test_float32_default_round_trips_to_float32(tmp_path):

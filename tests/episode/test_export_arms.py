@@ -18,6 +18,7 @@ from test_import_cobot import CAMERAS, T, write_calib, write_cobot
 from manisplat.episode import Episode, EpisodeFormatError, validate
 from manisplat.episode.cli import main
 from manisplat.episode.exporters.act_hdf5 import export_act_hdf5
+from manisplat.episode.images import StoredChroma
 
 NAMES = [f"{arm}.{c}" for arm in ("left", "right") for c in ("q1", "q2", "q3", "q4", "q5", "q6", "gripper")]
 
@@ -166,6 +167,7 @@ def test_import_lerobot_reads_every_arm_and_camera_back(tmp_path, capsys):
     assert "arms left, right, cameras cam_high, cam_left_wrist, cam_right_wrist" in capsys.readouterr().out
     first, again = Episode.open(ep_path), Episode.open(back)
     assert again.meta.version == 2 and list(again.cameras) == list(CAMERAS)
+    assert all(again.chroma_subsampling(c) == StoredChroma("4:2:0", False) for c in CAMERAS)  # the videos'
     report = validate(back)
     assert report.ok and not report.warnings, str(report)
     assert np.array_equal(_joints(again), _joints(first))  # float32 stored, widened exactly both ways

@@ -5,13 +5,16 @@ What is read (``shared/reference/augmentation.md`` section 5.1): the episode's r
 ``data/chunk-*/file-*.parquet`` (``observation.state``, ``action`` when present, ``depth.<camera>``
 when present, ``frame_index``), and its frames of the camera's video, decoded with PyAV and matched to
 rows by timestamp (``from_timestamp + frame_index / fps``, within LeRobot's 1e-4 s tolerance). Rows
-and frames stream one at a time into the episode writer.
+and frames stream one at a time into the episode writer. The video's pixel format says how its
+colour was kept (``yuv420p``: one colour sample per 2 x 2 pixels); PNG frames keep no trace of it,
+so the camera's ``chroma_subsampling`` in ``episode.json`` records it.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -22,6 +25,7 @@ import pyarrow.parquet as pq
 
 from manisplat.episode.exporters.lerobot import depth_key, image_key
 from manisplat.episode.format import ACTION_COLUMNS, EpisodeFormatError
+from manisplat.episode.images import CHROMA_SUBSAMPLING
 from manisplat.episode.importers.act_hdf5 import ARM_COLUMNS
 from manisplat.episode.importers.units import Units, unit_problems
 from manisplat.episode.meta import CameraInfo, RobotInfo
@@ -114,6 +118,31 @@ def _video_frames(path: Path, start_s: float, count: int, fps: int) -> Iterator[
     raise EpisodeFormatError(f"{path}: the video ends after {expected} of the episode's {count} frames")
 
 
+def video_chroma_keys(path: Path, image_format: str) -> dict[str, Any]:
+    """The camera's ``chroma_subsampling`` keys for frames decoded from the video ``path`` and stored
+    as ``image_format`` files: the scheme of the video's pixel format (``yuv420p``: ``4:2:0``; RGB
+    formats: ``4:4:4``). None (an empty dict) for JPEG files, whose header then says how they were
+    kept, for a grey video, and for a pixel format the reconstruction does not model (logged)."""
+    if image_format == "jpg":
+        return {}
+    with av.open(str(path)) as container:
+        pixel_format = container.streams.video[0].codec_context.format
+    if pixel_format is None:
+        log.warning("%s: no pixel format in the stream's header; its colour's subsampling is not known", path)
+        return {}
+    probe = av.VideoFormat(pixel_format.name, 64, 48)
+    colour = [c for c in probe.components if not c.is_luma and not c.is_alpha]
+    if probe.is_rgb or not colour:
+        return {"chroma_subsampling": "4:4:4", "chroma_red_blue_swapped": False} if probe.is_rgb else {}
+    block = (64 // colour[0].width, 48 // colour[0].height)
+    scheme = next((name for name, b in CHROMA_SUBSAMPLING.items() if b == block), None)
+    if scheme is None:
+        log.warning("%s: pixel format %s keeps one colour sample per %dx%d pixels, not a scheme the reconstruction "
+                    "models; its colour is taken as not known", path, pixel_format.name, *block)
+        return {}
+    return {"chroma_subsampling": scheme, "chroma_red_blue_swapped": False}
+
+
 def _depth_frames(path: Path, key: str, episode: int, count: int) -> Iterator[np.ndarray]:
     """(H, W) uint16 depth of the episode's rows in ``path``, in order, read a row group at a time."""
     served = 0
@@ -204,6 +233,7 @@ def import_lerobot(dataset_dir: str | Path, out_dir: str | Path, *, episode: int
     height, width = info["features"][key]["shape"][:2]
     cam = K if isinstance(K, CameraInfo) else CameraInfo(name=camera_name, width=width, height=height, K=K,
                                                          dist=dist, mount=mount)
+    cam = replace(cam, extra={**cam.extra, **video_chroma_keys(video_path, image_format)})
     if (cam.width, cam.height) != (width, height):
         raise EpisodeFormatError(f"{root}: {key} is {width}x{height} but the camera is {cam.width}x{cam.height}")
     tasks = row.get("tasks") or []

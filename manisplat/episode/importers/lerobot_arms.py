@@ -26,7 +26,7 @@ from manisplat.episode.exporters.lerobot import depth_key, image_key
 from manisplat.episode.format import EpisodeFormatError
 from manisplat.episode.importers.cobot_magic import CobotCalibration, check_cameras, load_calibration
 from manisplat.episode.importers.lerobot import (DEPTH_SCALE_MM, SOURCE, _depth_frames, _episode_row, _load_info,
-                                                 _video_frames)
+                                                 _video_frames, video_chroma_keys)
 from manisplat.episode.importers.units import Units, describe_ranges, require_units, unit_problems
 from manisplat.episode.infos import CameraInfo
 from manisplat.episode.reader import Episode
@@ -114,13 +114,6 @@ def import_lerobot_arms(dataset_dir: str | Path, out_dir: str | Path, calib: str
                                  + "; ".join(problems))
     scale = units.scale() * np.array([1.0] * 6 + [gripper_scale])
     infos = []
-    for name in cameras:
-        height, width = info["features"][image_key(name)]["shape"][:2]
-        infos.append(CameraInfo.from_v2_dict(name, {**cal.cameras[name], "width": width, "height": height},
-                                             list(cal.arms)))
-        if cal.sizes.get(name, (width, height)) != (width, height):
-            raise EpisodeFormatError(f"{root}: {image_key(name)} is {width}x{height} but {cal.path} says "
-                                     f"{cal.sizes[name][0]}x{cal.sizes[name][1]}")
     videos: dict[str, Iterator[np.ndarray]] = {}
     for name in cameras:
         key = image_key(name)
@@ -128,6 +121,12 @@ def import_lerobot_arms(dataset_dir: str | Path, out_dir: str | Path, calib: str
                                                 file_index=row[f"videos/{key}/file_index"])
         if not path.is_file():
             raise EpisodeFormatError(f"{root}: episode {episode} points at {path.relative_to(root)}, which is missing")
+        height, width = info["features"][key]["shape"][:2]
+        if cal.sizes.get(name, (width, height)) != (width, height):
+            raise EpisodeFormatError(f"{root}: {key} is {width}x{height} but {cal.path} says "
+                                     f"{cal.sizes[name][0]}x{cal.sizes[name][1]}")
+        infos.append(CameraInfo.from_v2_dict(name, {**cal.cameras[name], "width": width, "height": height,
+                                                    **video_chroma_keys(path, image_format)}, list(cal.arms)))
         videos[name] = _video_frames(path, float(row[f"videos/{key}/from_timestamp"]), length, fps)
     depths = {name: _depth_frames(data_path, depth_key(name), episode, length) for name in cameras
               if depth_key(name) in info["features"]}
