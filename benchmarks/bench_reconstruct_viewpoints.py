@@ -30,7 +30,7 @@ import numpy as np
 from benchmarks._harness import BENCH_DIR, BenchContext, shared_dir
 from benchmarks._viewpoints import clean_episodes, select
 from benchmarks.bench_camera_check import degraded_copy
-from manisplat.cli_args import non_negative
+from manisplat.cli_args import non_negative, positive
 
 OWN_OPTIONS = True
 #: the 320x240 viewpoints (a 640x480 run takes about four times as long on 2 cores)
@@ -44,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--iters", type=int, default=3000, help="training iterations (default 3000, the CPU default)")
     p.add_argument("--colour", choices=("declared", "unknown"), default="declared",
                    help="the copies say their colour was stored 4:2:0 (default), or say nothing")
-    p.add_argument("--threads", type=int, help="manisplat-reconstruct --threads (default: the command's)")
+    p.add_argument("--threads", type=positive(int), help="manisplat-reconstruct --threads (default: the command's)")
     p.add_argument("--lambda-pose", type=non_negative(), help="manisplat-reconstruct --lambda-pose (default: the command's)")
     p.add_argument("--out", type=Path, default=BENCH_DIR / "results_reconstruct" / "reconstruct_viewpoints.json")
     args = p.parse_args(argv)

@@ -19,7 +19,8 @@ WEIGHT_FLAGS = [(bench_reconstruct_cobot, "--lambda-pose"), (bench_reconstruct_v
 RATE_FLAGS = [(bench_reconstruct_cobot, "--pose-rate-final"), (bench_augment_cobot, "--pose-rate-final")]
 #: (benchmark, flag, value) refused: a loss weight below 0 or unreadable, a pose rate fraction outside (0, 1]
 REFUSED = ([(bench, flag, value) for bench, flag in WEIGHT_FLAGS for value in ("-0.01", "nan", "inf", "x")]
-           + [(bench, flag, value) for bench, flag in RATE_FLAGS for value in ("0", "1.5", "nan", "x")])
+           + [(bench, flag, value) for bench, flag in RATE_FLAGS for value in ("0", "1.5", "nan", "x")]
+           + [(bench_reconstruct_viewpoints, "--threads", value) for value in ("0", "1.5")])
 
 
 @pytest.mark.parametrize(("bench", "flag", "value"), REFUSED,
@@ -75,3 +76,16 @@ def test_reconstruct_cobot_keeps_its_twins_only_in_an_empty_work_folder(tmp_path
     assert exit_.value.code == 2
     assert f"--work: {work} is not empty" in capsys.readouterr().err
     assert [p.name for p in work.iterdir()] == ["earlier_twin"] and not (tmp_path / "result.json").exists()
+
+
+def test_reconstruct_viewpoints_declares_the_copies_colour_on_a_copy(tmp_path):
+    from manisplat.episode import Episode
+    from manisplat.episode.images import StoredChroma
+    from tests.episode.episode_factory import write_episode
+
+    degraded = write_episode(tmp_path / "right_oak1", 2)
+    before = (degraded / "episode.json").read_text()
+    declared = bench_reconstruct_viewpoints.declared_copy(degraded, tmp_path / "declared")
+    assert declared == tmp_path / "declared" / "right_oak1"
+    assert Episode.open(declared).chroma_subsampling() == StoredChroma("4:2:0", False)
+    assert (degraded / "episode.json").read_text() == before  # the cached copy is left as the degrade tool wrote it
