@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from dataclasses import replace
 from fractions import Fraction
 from pathlib import Path
 
@@ -225,8 +226,9 @@ def test_a_videos_pixel_format_says_how_its_colour_was_kept(tmp_path, pixel_form
 
 def test_frames_stored_as_jpeg_are_read_by_their_header(samples, tmp_path):
     export_lerobot(samples[:1], tmp_path / "ds", task=TASK, codec="h264")
-    back = import_lerobot(tmp_path / "ds", tmp_path / "back", episode=0, camera="ego",
-                          K=Episode.open(samples[0]).camera, image_format="jpg")
+    camera = Episode.open(samples[0]).camera
+    camera = replace(camera, extra={**camera.extra, "chroma_subsampling": "4:2:2", "chroma_red_blue_swapped": True})
+    back = import_lerobot(tmp_path / "ds", tmp_path / "back", episode=0, camera="ego", K=camera, image_format="jpg")
     assert "chroma_subsampling" not in back.camera.extra and back.chroma_subsampling() == StoredChroma("4:2:0")
 
 

@@ -70,3 +70,10 @@ def test_the_command(tmp_path, capsys):
     assert main(["set-chroma", str(jpeg), "4:2:2"]) == 2
     assert "header says 4:2:0" in capsys.readouterr().err
     assert main(["set-chroma", str(path), "4:2:1"]) == 2  # not a scheme: a usage error
+
+
+def test_the_commands_choices_are_the_known_schemes():
+    from manisplat.episode.cli import CHROMA_SCHEMES
+    from manisplat.episode.images import CHROMA_SUBSAMPLING
+
+    assert sorted(CHROMA_SCHEMES) == sorted(CHROMA_SUBSAMPLING)

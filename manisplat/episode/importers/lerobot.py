@@ -39,6 +39,8 @@ TOLERANCE_S = 1e-4
 """LeRobot's default ``tolerance_s`` between a query timestamp and a decoded frame."""
 DEPTH_SCALE_MM = 0.001
 SUPPORTED_VERSION = "v3.0"
+CHROMA_KEYS = ("chroma_subsampling", "chroma_red_blue_swapped")
+"""The camera keys (``episode.json``) saying how its images kept their colour."""
 
 
 def _load_info(root: Path) -> dict[str, Any]:
@@ -132,15 +134,17 @@ def video_chroma_keys(path: Path, image_format: str) -> dict[str, Any]:
         return {}
     probe = av.VideoFormat(pixel_format.name, 64, 48)
     colour = [c for c in probe.components if not c.is_luma and not c.is_alpha]
-    if probe.is_rgb or not colour:
-        return {"chroma_subsampling": "4:4:4", "chroma_red_blue_swapped": False} if probe.is_rgb else {}
+    if probe.is_rgb:
+        return dict(zip(CHROMA_KEYS, ("4:4:4", False)))
+    if not colour:  # grey
+        return {}
     block = (64 // colour[0].width, 48 // colour[0].height)
     scheme = next((name for name, b in CHROMA_SUBSAMPLING.items() if b == block), None)
     if scheme is None:
         log.warning("%s: pixel format %s keeps one colour sample per %dx%d pixels, not a scheme the reconstruction "
                     "models; its colour is taken as not known", path, pixel_format.name, *block)
         return {}
-    return {"chroma_subsampling": scheme, "chroma_red_blue_swapped": False}
+    return dict(zip(CHROMA_KEYS, (scheme, False)))
 
 
 def _depth_frames(path: Path, key: str, episode: int, count: int) -> Iterator[np.ndarray]:
@@ -233,7 +237,8 @@ def import_lerobot(dataset_dir: str | Path, out_dir: str | Path, *, episode: int
     height, width = info["features"][key]["shape"][:2]
     cam = K if isinstance(K, CameraInfo) else CameraInfo(name=camera_name, width=width, height=height, K=K,
                                                          dist=dist, mount=mount)
-    cam = replace(cam, extra={**cam.extra, **video_chroma_keys(video_path, image_format)})
+    kept = {k: v for k, v in cam.extra.items() if k not in CHROMA_KEYS}  # a given camera's say of other images
+    cam = replace(cam, extra={**kept, **video_chroma_keys(video_path, image_format)})
     if (cam.width, cam.height) != (width, height):
         raise EpisodeFormatError(f"{root}: {key} is {width}x{height} but the camera is {cam.width}x{cam.height}")
     tasks = row.get("tasks") or []
