@@ -11,9 +11,12 @@ the clock a recorder can always compare across devices.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from manisplat.episode.images import StoredChroma
 
 
 class DriverError(RuntimeError):
@@ -106,12 +109,15 @@ class CameraFrame:
 @runtime_checkable
 class Camera(Protocol):
     """What a recorder needs from a camera. ``K`` is the (3, 3) float64 pinhole matrix at the
-    output size ``width`` x ``height``; ``dist`` the OpenCV distortion coefficients."""
+    output size ``width`` x ``height``; ``dist`` the OpenCV distortion coefficients;
+    ``chroma_subsampling`` how the source kept the frames' colour before they reached the host
+    (a video's 4:2:0, an episode's; None where it is not known), which PNG files would lose."""
 
     width: int
     height: int
     K: np.ndarray
     dist: np.ndarray
+    chroma_subsampling: StoredChroma | None
 
     def read(self, timeout: float | None = 1.0) -> CameraFrame | None:
         """The next frame; None at the end of a finite source; :class:`TimeoutError` when no

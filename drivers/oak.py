@@ -39,6 +39,8 @@ import depthai as dai
 import numpy as np
 
 from manisplat.drivers.base import CameraFrame, DriverError, SequenceTracker
+from manisplat.episode.chroma import video_chroma
+from manisplat.episode.images import StoredChroma
 
 log = logging.getLogger(__name__)
 
@@ -166,6 +168,9 @@ class OakCamera:
         socket = getattr(dai.CameraBoardSocket, cfg.socket)
         self.width, self.height = cfg.width, cfg.height
         self.K, self.dist = intrinsics_at(self._device.readCalibration(), cfg.socket, cfg.width, cfg.height, cfg.resize)
+        # the ISP's frames are YUV 4:2:0 before they are resized to the output and converted; how
+        # that colour grid maps onto the output's pixels is not known here
+        self.chroma_subsampling: StoredChroma | None = None
         self.tracker = SequenceTracker()
         self._pipeline = dai.Pipeline(self._device)
         cam = self._pipeline.create(dai.node.Camera).build(socket)
@@ -300,6 +305,7 @@ class DepthaiReplayCamera:
             self.close()
             raise DriverError(f"{self.video}: the recording holds no frames")
         self.width, self.height = self._first.getWidth(), self._first.getHeight()
+        self.chroma_subsampling = video_chroma(self.video)
         if K is not None:
             self.K = np.asarray(K, dtype=np.float64)
             if self.K.shape != (3, 3):

@@ -222,6 +222,7 @@ class EpisodeCamera:
                                      f"{', '.join(self.episode.cameras)}")
         self.camera = camera
         self.width, self.height, self.K, self.dist = cam.width, cam.height, cam.K.copy(), cam.dist.copy()
+        self.chroma_subsampling = self.episode.chroma_subsampling(camera)
         self.realtime = realtime
         self.tracker = SequenceTracker()
         self._index = 0

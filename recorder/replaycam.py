@@ -90,6 +90,7 @@ class ReplayCamera:
         self.width, self.height = self._source.width, self._source.height
         self.K = np.asarray(self._source.K, dtype=np.float64)
         self.dist = np.asarray(self._source.dist, dtype=np.float64)
+        self.chroma_subsampling = self._source.chroma_subsampling
         self._frames: list[CameraFrame] | None = None
         self._first: CameraFrame | None = None  # read ahead to tell whether the stream has depth
         if preload:

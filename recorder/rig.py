@@ -31,13 +31,14 @@ from __future__ import annotations
 import logging
 import math
 import threading
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
 from manisplat.drivers.base import Camera, DriverError
 from manisplat.drivers.piper import PiperArm
 from manisplat.episode import RobotInfo
+from manisplat.episode.chroma import chroma_keys
 from manisplat.episode.infos import CameraInfo
 from manisplat.recorder.armfeed import JOINT_TAIL_S, ArmFeed
 from manisplat.recorder.camfeed import CameraFeed
@@ -77,6 +78,15 @@ class RigCamera:
     depth: bool = False
 
 
+def _with_stored_colour(cam: RigCamera, image_format: str) -> RigCamera:
+    """``cam`` whose ``episode.json`` entry says how its source kept the frames' colour, where the
+    recorder stores them as PNG, which would lose it (JPEG files say it in their header)."""
+    stored = cam.camera.chroma_subsampling
+    if image_format != "png" or stored is None:
+        return cam
+    return replace(cam, info=replace(cam.info, extra={**cam.info.extra, **chroma_keys(stored)}))
+
+
 class RigRecorder:
     """Records episodes from named ``arms`` and ``cameras``; see the module docstring.
 
@@ -102,7 +112,7 @@ class RigRecorder:
         self.clock = clock
         self.clock_map = ClockMap(clock)
         self.arms = list(arms)
-        self.cameras = list(cameras)
+        self.cameras = [_with_stored_colour(cam, self.config.image_format) for cam in cameras]
         self.source_info = dict(source_info or {})
         self.nominal_fps = nominal_fps
         c = self.config

@@ -5,17 +5,57 @@ A JPEG file says it in its header, and the reader takes it from there. PNG files
 that a camera or recorder delivered as JPEG or video (4:2:0 colour) and that were stored again as
 PNG look like a renderer's, with every pixel's colour. Reconstruction compares its renders with
 such images after the same subsampling only when the episode says so
-(:mod:`manisplat.reconstruct.chroma`).
+(:mod:`manisplat.reconstruct.chroma`). A video file says it in its pixel format (:func:`video_chroma`).
 """
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
+from typing import Any
+
+import av
 
 from manisplat.episode.format import META_FILE, EpisodeFormatError
 from manisplat.episode.images import CHROMA_SUBSAMPLING, RGB, StoredChroma, find_image, jpeg_chroma_subsampling
 from manisplat.episode.meta import load_meta, save_meta
 from manisplat.episode.reader import Episode
+
+log = logging.getLogger(__name__)
+
+CHROMA_KEYS = ("chroma_subsampling", "chroma_red_blue_swapped")
+"""A camera's keys in ``episode.json`` saying how its images kept their colour."""
+
+
+def chroma_keys(stored: StoredChroma | None) -> dict[str, Any]:
+    """``stored`` as a camera's ``episode.json`` keys (none where it is not known)."""
+    return {} if stored is None else dict(zip(CHROMA_KEYS, (stored.scheme, stored.red_blue_swapped)))
+
+
+def video_chroma(path: str | Path) -> StoredChroma | None:
+    """How the video ``path`` kept its colour: the scheme of its first video stream's pixel format
+    (``yuv420p``: 4:2:0; RGB formats: 4:4:4; the decoder converts to RGB, so red and blue are not
+    swapped). None for a grey video, and (logged) for a stream whose header names no pixel format
+    or one whose colour planes are not a scheme of
+    :data:`~manisplat.episode.images.CHROMA_SUBSAMPLING`."""
+    with av.open(str(path)) as container:
+        pixel_format = container.streams.video[0].codec_context.format
+    if pixel_format is None:
+        log.warning("%s: no pixel format in the stream's header; how it kept its colour is not known", path)
+        return None
+    probe = av.VideoFormat(pixel_format.name, 64, 48)
+    if probe.is_rgb:
+        return StoredChroma("4:4:4")
+    colour = [c for c in probe.components if not c.is_luma and not c.is_alpha]
+    if not colour:  # grey
+        return None
+    block = (64 // colour[0].width, 48 // colour[0].height)
+    scheme = next((name for name, b in CHROMA_SUBSAMPLING.items() if b == block), None)
+    if scheme is None:
+        log.warning("%s: pixel format %s keeps one colour sample per %dx%d pixels, not a scheme the reconstruction "
+                    "models; how it kept its colour is taken as not known", path, pixel_format.name, *block)
+        return None
+    return StoredChroma(scheme)
 
 
 def set_chroma_subsampling(episode: str | Path, scheme: str, *, camera: str | None = None,
@@ -50,11 +90,10 @@ def set_chroma_subsampling(episode: str | Path, scheme: str, *, camera: str | No
             raise ValueError(f"{path}: camera {camera}'s images are JPEG files whose header says "
                              f"{header or 'grey'}, not {scheme}")
     before = Episode.open(path).chroma_subsampling(camera)
-    extra = meta.cameras[camera].extra
-    extra["chroma_subsampling"] = scheme
-    extra["chroma_red_blue_swapped"] = bool(red_blue_swapped)
+    after = StoredChroma(scheme, bool(red_blue_swapped))
+    meta.cameras[camera].extra.update(chroma_keys(after))
     save_meta(path / META_FILE, meta)
-    return before, StoredChroma(scheme, bool(red_blue_swapped))
+    return before, after
 
 
-__all__ = ["set_chroma_subsampling"]
+__all__ = ["CHROMA_KEYS", "chroma_keys", "set_chroma_subsampling", "video_chroma"]

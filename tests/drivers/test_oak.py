@@ -14,6 +14,7 @@ from manisplat.drivers.base import Arm, Camera, DriverError, SequenceTracker
 from manisplat.drivers.oak import DepthaiReplayCamera, OakCamera, OakConfig, intrinsics_at
 from manisplat.drivers.replay import EpisodeArm, EpisodeCamera
 from manisplat.episode import CameraInfo, EpisodeWriter, RobotInfo
+from manisplat.episode.images import StoredChroma
 
 from .depthai_recording import write_recording
 
@@ -49,6 +50,7 @@ def test_depthai_replay_gives_back_what_was_recorded(recording, tmp_path):
     _, calib_json = calibration(tmp_path)
     with DepthaiReplayCamera(video, depth=depth_file, calibration=calib_json) as cam:
         assert isinstance(cam, Camera) and (cam.width, cam.height) == (W, H)
+        assert cam.chroma_subsampling == StoredChroma("4:4:4")  # RecordVideo kept the BGR frames losslessly (ffv1)
         frames = list(iter(lambda: cam.read(timeout=5.0), None))
         assert cam.read() is None
     # RecordVideo loses the last frame when its pipeline stops (depthai behaviour)
@@ -132,7 +134,7 @@ def write_episode(path, n: int = 6):
 def test_episode_camera_and_arm(tmp_path):
     path = write_episode(tmp_path / "ep")
     cam = EpisodeCamera(path)
-    assert isinstance(cam, Camera)
+    assert isinstance(cam, Camera) and cam.chroma_subsampling is None  # PNG files of unknown origin
     frames = list(iter(cam.read, None))
     assert [f.seq for f in frames] == [100, 101, 102, 104, 105, 106] and cam.tracker.dropped == 1
     assert [f.t for f in frames] == pytest.approx([0.1 * i for i in range(6)])

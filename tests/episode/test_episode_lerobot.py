@@ -23,7 +23,7 @@ from manisplat.episode.cli import main
 from manisplat.episode.exporters.lerobot import ExportDestinationError, export_lerobot
 from manisplat.episode.exporters.lerobot_stats import QUANTILES, stats_sample_indices, vector_stats
 from manisplat.episode.images import StoredChroma
-from manisplat.episode.importers.lerobot import import_lerobot, video_chroma_keys
+from manisplat.episode.importers.lerobot import import_lerobot, stored_colour_keys
 from manisplat.episode.reader import Episode
 from manisplat.episode.synthetic import write_sample_episode
 
@@ -220,8 +220,8 @@ def test_a_videos_pixel_format_says_how_its_colour_was_kept(tmp_path, pixel_form
         frame = av.VideoFrame.from_ndarray(np.zeros((24, 32, 3), np.uint8), format="rgb24").reformat(format=pixel_format)
         for packet in [*stream.encode(frame), *stream.encode()]:
             container.mux(packet)
-    assert video_chroma_keys(path, "png") == keys
-    assert video_chroma_keys(path, "jpg") == {}  # JPEG files say it in their header
+    assert stored_colour_keys(path, "png") == keys
+    assert stored_colour_keys(path, "jpg") == {}  # JPEG files say it in their header
 
 
 def test_frames_stored_as_jpeg_are_read_by_their_header(samples, tmp_path):

@@ -194,3 +194,23 @@ def test_can_stamps_off_the_wall_clock_fall_back_to_host_arrival_times(tmp_path:
     joints = ep.joints()
     assert len(ep) >= 10 and len(joints) >= 30
     assert 0.0 <= joints.t[0] < joints.t[-1] < 2.0
+
+
+@pytest.mark.parametrize("image_format", ["png", "jpg"])
+def test_how_the_source_kept_its_colour_outlives_png_files(tmp_path: Path, image_format: str) -> None:
+    from manisplat.episode.chroma import set_chroma_subsampling
+    from manisplat.episode.images import StoredChroma
+
+    source = write_source(tmp_path / "source", frames=10)
+    set_chroma_subsampling(source, "4:2:2")  # e.g. frames of a 4:2:2 video, stored as PNG
+    rig = lockstep_rig(source, loop=False, image_format=image_format)
+    try:
+        result = rig.recorder.record_episode(tmp_path / "ep", duration=120.0)
+    finally:
+        rig.close()
+    assert result.valid
+    ep = Episode.open(tmp_path / "ep")
+    if image_format == "png":
+        assert ep.chroma_subsampling() == StoredChroma("4:2:2") == rig.camera.chroma_subsampling
+    else:  # the recorder's own JPEG files, 4:2:0, say it in their header
+        assert "chroma_subsampling" not in ep.camera.extra and ep.chroma_subsampling() == StoredChroma("4:2:0")

@@ -25,7 +25,7 @@ import pyarrow.parquet as pq
 
 from manisplat.episode.exporters.lerobot import depth_key, image_key
 from manisplat.episode.format import ACTION_COLUMNS, EpisodeFormatError
-from manisplat.episode.images import CHROMA_SUBSAMPLING
+from manisplat.episode.chroma import CHROMA_KEYS, chroma_keys, video_chroma
 from manisplat.episode.importers.act_hdf5 import ARM_COLUMNS
 from manisplat.episode.importers.units import Units, unit_problems
 from manisplat.episode.meta import CameraInfo, RobotInfo
@@ -39,8 +39,6 @@ TOLERANCE_S = 1e-4
 """LeRobot's default ``tolerance_s`` between a query timestamp and a decoded frame."""
 DEPTH_SCALE_MM = 0.001
 SUPPORTED_VERSION = "v3.0"
-CHROMA_KEYS = ("chroma_subsampling", "chroma_red_blue_swapped")
-"""The camera keys (``episode.json``) saying how its images kept their colour."""
 
 
 def _load_info(root: Path) -> dict[str, Any]:
@@ -120,31 +118,11 @@ def _video_frames(path: Path, start_s: float, count: int, fps: int) -> Iterator[
     raise EpisodeFormatError(f"{path}: the video ends after {expected} of the episode's {count} frames")
 
 
-def video_chroma_keys(path: Path, image_format: str) -> dict[str, Any]:
-    """The camera's ``chroma_subsampling`` keys for frames decoded from the video ``path`` and stored
-    as ``image_format`` files: the scheme of the video's pixel format (``yuv420p``: ``4:2:0``; RGB
-    formats: ``4:4:4``). None (an empty dict) for JPEG files, whose header then says how they were
-    kept, for a grey video, and for a pixel format the reconstruction does not model (logged)."""
-    if image_format == "jpg":
-        return {}
-    with av.open(str(path)) as container:
-        pixel_format = container.streams.video[0].codec_context.format
-    if pixel_format is None:
-        log.warning("%s: no pixel format in the stream's header; its colour's subsampling is not known", path)
-        return {}
-    probe = av.VideoFormat(pixel_format.name, 64, 48)
-    colour = [c for c in probe.components if not c.is_luma and not c.is_alpha]
-    if probe.is_rgb:
-        return dict(zip(CHROMA_KEYS, ("4:4:4", False)))
-    if not colour:  # grey
-        return {}
-    block = (64 // colour[0].width, 48 // colour[0].height)
-    scheme = next((name for name, b in CHROMA_SUBSAMPLING.items() if b == block), None)
-    if scheme is None:
-        log.warning("%s: pixel format %s keeps one colour sample per %dx%d pixels, not a scheme the reconstruction "
-                    "models; its colour is taken as not known", path, pixel_format.name, *block)
-        return {}
-    return dict(zip(CHROMA_KEYS, (scheme, False)))
+def stored_colour_keys(video: Path, image_format: str) -> dict[str, Any]:
+    """The camera's ``chroma_subsampling`` keys for frames decoded from ``video`` and stored as
+    ``image_format`` files: the video's (:func:`~manisplat.episode.chroma.video_chroma`) for PNG,
+    none for JPEG files, whose header says how they were kept."""
+    return {} if image_format == "jpg" else chroma_keys(video_chroma(video))
 
 
 def _depth_frames(path: Path, key: str, episode: int, count: int) -> Iterator[np.ndarray]:
@@ -238,7 +216,7 @@ def import_lerobot(dataset_dir: str | Path, out_dir: str | Path, *, episode: int
     cam = K if isinstance(K, CameraInfo) else CameraInfo(name=camera_name, width=width, height=height, K=K,
                                                          dist=dist, mount=mount)
     kept = {k: v for k, v in cam.extra.items() if k not in CHROMA_KEYS}  # a given camera's say of other images
-    cam = replace(cam, extra={**kept, **video_chroma_keys(video_path, image_format)})
+    cam = replace(cam, extra={**kept, **stored_colour_keys(video_path, image_format)})
     if (cam.width, cam.height) != (width, height):
         raise EpisodeFormatError(f"{root}: {key} is {width}x{height} but the camera is {cam.width}x{cam.height}")
     tasks = row.get("tasks") or []

@@ -26,7 +26,7 @@ from manisplat.episode.exporters.lerobot import depth_key, image_key
 from manisplat.episode.format import EpisodeFormatError
 from manisplat.episode.importers.cobot_magic import CobotCalibration, check_cameras, load_calibration
 from manisplat.episode.importers.lerobot import (DEPTH_SCALE_MM, SOURCE, _depth_frames, _episode_row, _load_info,
-                                                 _video_frames, video_chroma_keys)
+                                                 _video_frames, stored_colour_keys)
 from manisplat.episode.importers.units import Units, describe_ranges, require_units, unit_problems
 from manisplat.episode.infos import CameraInfo
 from manisplat.episode.reader import Episode
@@ -126,7 +126,7 @@ def import_lerobot_arms(dataset_dir: str | Path, out_dir: str | Path, calib: str
             raise EpisodeFormatError(f"{root}: {key} is {width}x{height} but {cal.path} says "
                                      f"{cal.sizes[name][0]}x{cal.sizes[name][1]}")
         infos.append(CameraInfo.from_v2_dict(name, {**cal.cameras[name], "width": width, "height": height,
-                                                    **video_chroma_keys(path, image_format)}, list(cal.arms)))
+                                                    **stored_colour_keys(path, image_format)}, list(cal.arms)))
         videos[name] = _video_frames(path, float(row[f"videos/{key}/from_timestamp"]), length, fps)
     depths = {name: _depth_frames(data_path, depth_key(name), episode, length) for name in cameras
               if depth_key(name) in info["features"]}
