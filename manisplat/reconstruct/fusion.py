@@ -114,7 +114,9 @@ def _difference(a: EpisodeData, b: EpisodeData) -> str | None:
     if not torch.allclose(a.K_opencv.double(), b.K_opencv.double(), rtol=1e-4, atol=1e-3):
         return "other camera intrinsics"
     if a.chroma_subsampling != b.chroma_subsampling:
-        return f"images stored otherwise (colour {describe_chroma(b.chroma_subsampling)} against {describe_chroma(a.chroma_subsampling)})"
+        return (f"images stored otherwise (colour {describe_chroma(b.chroma_subsampling)} against "
+                f"{describe_chroma(a.chroma_subsampling)}; where that is not so, say how with `manisplat-episode "
+                "set-chroma`)")
     rotation, translation = pose_difference(np.linalg.inv(a.viewmat.double().numpy()),
                                             np.linalg.inv(b.viewmat.double().numpy()))
     if rotation > BUMP_DEG or translation > BUMP_MM:

@@ -202,5 +202,5 @@ def test_episodes_whose_colour_was_stored_otherwise_are_another_scene(scene):
     a = load_episode_data(scene["a"])
     jpeg = replace(a, chroma_subsampling=StoredChroma("4:2:0", True))
     with pytest.raises(SceneMismatch, match=r"images stored otherwise \(colour 4:2:0 \(red and blue swapped\) "
-                                            r"against not known\)"):
+                                            r"against not known; .* say how with `manisplat-episode set-chroma`\)"):
         check_same_scene([a, jpeg])
