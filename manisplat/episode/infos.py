@@ -17,6 +17,7 @@ from typing import Any, Collection
 import numpy as np
 
 from manisplat.episode.format import DIST_LENGTHS, NAME_PATTERN, WORLD_MOUNT, EpisodeFormatError
+from manisplat.episode.images import CHROMA_SUBSAMPLING
 
 RIGID_TOL = 1e-6
 """Tolerance of the rigid-transform checks: max |R^T R - I|, |det R - 1| and the last row."""
@@ -107,6 +108,21 @@ def _dist_problems(dist: Any, prefix: str) -> list[str]:
     return [f"{prefix}.dist must be a list of {DIST_LENGTHS} finite numbers (OpenCV order); got {dist!r}"]
 
 
+def _chroma_problems(raw: dict[str, Any], prefix: str) -> list[str]:
+    """Violations of a camera's ``chroma_subsampling`` and ``chroma_red_blue_swapped`` (both optional)."""
+    problems = []
+    scheme = raw.get("chroma_subsampling")
+    if "chroma_subsampling" in raw and scheme not in CHROMA_SUBSAMPLING:
+        problems.append(f"{prefix}.chroma_subsampling must be one of {', '.join(CHROMA_SUBSAMPLING)}; got {scheme!r}")
+    if "chroma_red_blue_swapped" in raw:
+        if not isinstance(raw["chroma_red_blue_swapped"], bool):
+            problems.append(f"{prefix}.chroma_red_blue_swapped must be true or false; got "
+                            f"{raw['chroma_red_blue_swapped']!r}")
+        if "chroma_subsampling" not in raw:
+            problems.append(f"{prefix}.chroma_red_blue_swapped is given without chroma_subsampling")
+    return problems
+
+
 def _image_size_problems(raw: dict[str, Any], prefix: str) -> list[str]:
     return [f"{prefix}.{k} must be a positive integer; got {raw[k]!r}" for k in ("width", "height")
             if k in raw and not (_is_int(raw[k]) and raw[k] > 0)]
@@ -128,7 +144,7 @@ def camera_problems(raw: Any) -> list[str]:
         problems.append(f"camera.mount must be 'base' or a link name; got {mount!r}")
     if raw.get("T_mount_cam") is not None:
         problems += rigid_problems(raw["T_mount_cam"], "camera.T_mount_cam")
-    return problems
+    return problems + _chroma_problems(raw, "camera")
 
 
 def mount_problem(mount: Any, arms: Collection[str], prefix: str) -> str | None:
@@ -167,7 +183,7 @@ def camera_v2_problems(name: Any, raw: Any, arms: Collection[str]) -> list[str]:
     latency = raw.get("latency_s")
     if latency is not None and not (_is_number(latency) and math.isfinite(latency)):
         problems.append(f"{prefix}.latency_s must be a finite number (s); got {latency!r}")
-    return problems
+    return problems + _chroma_problems(raw, prefix)
 
 
 def robot_problems(raw: Any, prefix: str = "robot") -> list[str]:

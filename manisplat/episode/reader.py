@@ -12,7 +12,7 @@ import numpy as np
 from manisplat.episode.format import (ACTION_COLUMNS, FRAMES_FILE, GT_FILE, JOINT_COLUMNS, META_FILE,
                                       EpisodeFormatError)
 from manisplat.episode.groundtruth import read_gt
-from manisplat.episode.images import (CHROMA_SUBSAMPLING, DEPTH, MASK, RGB, ImageKind, StoredChroma, find_image,
+from manisplat.episode.images import (DEPTH, MASK, RGB, ImageKind, StoredChroma, find_image,
                                      has_images, jpeg_chroma_subsampling, load_image, raw_to_depth)
 from manisplat.episode.layout import CameraFiles, Layout
 from manisplat.episode.meta import ArmInfo, CameraInfo, EpisodeMeta, load_meta
@@ -277,23 +277,17 @@ class Episode:
 
     def chroma_subsampling(self, camera: str | None = None) -> StoredChroma | None:
         """How ``camera``'s (default: the one camera's) images kept their colour when encoded: the
-        camera's ``chroma_subsampling`` (and ``chroma_red_blue_swapped``) in episode.json, else
-        the header of its first image where that is a JPEG file; None where neither says (PNG
-        images of unknown origin).
+        camera's ``chroma_subsampling`` (and ``chroma_red_blue_swapped``) in episode.json (checked
+        with the rest of it), else the header of its first image where that is a JPEG file; None
+        where neither says (PNG images of unknown origin).
 
         Raises:
-            EpisodeFormatError: the recorded values are not a known scheme and a bool, or the JPEG
-                file is not one.
+            EpisodeFormatError: the first image is a ``.jpg`` file but not a JPEG stream.
         """
         files = self._camera_files(camera)
         extra = self.cameras[files.name].extra
-        recorded, swapped = extra.get("chroma_subsampling"), extra.get("chroma_red_blue_swapped", False)
-        if recorded is not None or "chroma_red_blue_swapped" in extra:
-            if recorded not in CHROMA_SUBSAMPLING or not isinstance(swapped, bool):
-                raise EpisodeFormatError(f"{self.path / META_FILE}: camera {files.name}: chroma_subsampling "
-                                         f"{recorded!r} is not one of {', '.join(CHROMA_SUBSAMPLING)}, or "
-                                         f"chroma_red_blue_swapped {swapped!r} is not true or false")
-            return StoredChroma(recorded, swapped)
+        if "chroma_subsampling" in extra:
+            return StoredChroma(extra["chroma_subsampling"], extra.get("chroma_red_blue_swapped", False))
         first = find_image(self.path / files.folder(RGB.folder), 0) if len(self) else None
         if first is None or first.suffix != ".jpg":
             return None

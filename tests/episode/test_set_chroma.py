@@ -77,3 +77,16 @@ def test_the_commands_choices_are_the_known_schemes():
     from manisplat.episode.images import CHROMA_SUBSAMPLING
 
     assert sorted(CHROMA_SCHEMES) == sorted(CHROMA_SUBSAMPLING)
+
+
+def test_a_wrong_value_is_named_in_a_version_2_episode(tmp_path):
+    from manisplat.episode import validate
+
+    path = write_v2(tmp_path / "ep", 2)
+    meta = json.loads((path / "episode.json").read_text())
+    meta["cameras"]["cam_left_wrist"]["chroma_subsampling"] = "yuv420p"
+    (path / "episode.json").write_text(json.dumps(meta))
+    report = validate(path)
+    assert not report.ok
+    assert "cameras.cam_left_wrist.chroma_subsampling must be one of 4:4:4, 4:2:2, 4:2:0, 4:4:0, 4:1:1; got 'yuv420p'" \
+        in str(report)

@@ -2,6 +2,7 @@
 before they are compared with the images, in training and in the held-out scores."""
 
 import json
+import re
 import shutil
 
 import cv2
@@ -12,6 +13,7 @@ import torch
 from manisplat.episode.format import EpisodeFormatError
 from manisplat.episode.images import StoredChroma, jpeg_chroma_subsampling
 from manisplat.episode.reader import Episode
+from manisplat.episode.validation import validate
 from manisplat.episode.synthetic import write_sample_episode
 from manisplat.reconstruct.chroma import subsample_chroma, subsampled
 from manisplat.reconstruct.cli import main
@@ -126,10 +128,18 @@ def test_an_episode_says_how_its_colour_was_stored(tmp_path):
     meta["camera"]["chroma_red_blue_swapped"] = True
     meta_path.write_text(json.dumps(meta))
     assert Episode.open(tmp_path / "png").chroma_subsampling() == StoredChroma("4:2:2", True)
-    for key, value in (("chroma_subsampling", "420"), ("chroma_red_blue_swapped", "yes")):
+    wrong = {"chroma_subsampling": ("420", r"camera.chroma_subsampling must be one of 4:4:4, .*; got '420'"),
+             "chroma_red_blue_swapped": ("yes", r"camera.chroma_red_blue_swapped must be true or false; got 'yes'")}
+    for key, (value, message) in wrong.items():
         meta_path.write_text(json.dumps({**meta, "camera": {**meta["camera"], key: value}}))
-        with pytest.raises(EpisodeFormatError, match="is not one of 4:4:4, .* or chroma_red_blue_swapped .* is not true"):
-            Episode.open(tmp_path / "png").chroma_subsampling()
+        with pytest.raises(EpisodeFormatError, match=message):
+            Episode.open(tmp_path / "png")
+        report = validate(tmp_path / "png")  # named by validate too, as any field of episode.json
+        assert not report.ok and re.search(message, str(report))
+    without_scheme = {k: v for k, v in meta["camera"].items() if k != "chroma_subsampling"}
+    meta_path.write_text(json.dumps({**meta, "camera": without_scheme}))
+    with pytest.raises(EpisodeFormatError, match="chroma_red_blue_swapped is given without chroma_subsampling"):
+        Episode.open(tmp_path / "png")
 
 
 @pytest.fixture(scope="module")
