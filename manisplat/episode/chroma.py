@@ -16,8 +16,8 @@ from typing import Any
 
 import av
 
-from manisplat.episode.format import META_FILE, EpisodeFormatError
-from manisplat.episode.images import CHROMA_SUBSAMPLING, RGB, StoredChroma, find_image, jpeg_chroma_subsampling
+from manisplat.episode.format import CHROMA_SUBSAMPLING, META_FILE, EpisodeFormatError
+from manisplat.episode.images import RGB, StoredChroma, find_image, jpeg_chroma_subsampling
 from manisplat.episode.meta import load_meta, save_meta
 from manisplat.episode.reader import Episode
 
@@ -37,7 +37,7 @@ def video_chroma(path: str | Path) -> StoredChroma | None:
     (``yuv420p``: 4:2:0; RGB formats: 4:4:4; the decoder converts to RGB, so red and blue are not
     swapped). None for a grey video, and (logged) for a stream whose header names no pixel format
     or one whose colour planes are not a scheme of
-    :data:`~manisplat.episode.images.CHROMA_SUBSAMPLING`."""
+    :data:`~manisplat.episode.format.CHROMA_SUBSAMPLING`."""
     with av.open(str(path)) as container:
         pixel_format = container.streams.video[0].codec_context.format
     if pixel_format is None:
@@ -61,7 +61,7 @@ def video_chroma(path: str | Path) -> StoredChroma | None:
 def set_chroma_subsampling(episode: str | Path, scheme: str, *, camera: str | None = None,
                            red_blue_swapped: bool = False) -> tuple[StoredChroma | None, StoredChroma]:
     """Record in ``episode``'s ``episode.json`` that ``camera``'s images (default: the one camera)
-    kept their colour as ``scheme`` (a key of :data:`~manisplat.episode.images.CHROMA_SUBSAMPLING`)
+    kept their colour as ``scheme`` (a key of :data:`~manisplat.episode.format.CHROMA_SUBSAMPLING`)
     when they were encoded, the encoder having taken red for blue when ``red_blue_swapped``.
     ``episode.json`` is rewritten atomically; nothing else changes.
 

@@ -15,13 +15,11 @@ from typing import Any
 
 from manisplat.cli_args import (add_version, bounded, finite_numbers, non_negative, pinhole_intrinsics,
                                 positive)
-from manisplat.episode.format import DIST_LENGTHS, EpisodeFormatError
+from manisplat.episode.format import CHROMA_SUBSAMPLING, DIST_LENGTHS, EpisodeFormatError
 from manisplat.exit_codes import ExitCode, exit_status_help
 
 ACT_ARMS = ("left", "right", "single")
 """``--arm`` choices of ``import-act`` (the keys of the importer's ``ARM_COLUMNS``)."""
-CHROMA_SCHEMES = ("4:2:0", "4:2:2", "4:4:0", "4:1:1", "4:4:4")
-"""``set-chroma`` choices (the keys of :data:`manisplat.episode.images.CHROMA_SUBSAMPLING`)."""
 EXPORT_FORMATS = ("lerobot", "act-hdf5")
 """``--format`` choices of ``export``."""
 SAMPLE_MIN_FRAMES = 8
@@ -545,13 +543,13 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Record in episode.json how a camera's images kept their colour when the camera "
                                    "or recorder encoded them (chroma subsampling: 4:2:0 is JPEG's and most video's "
                                    "usual, one colour sample per 2 x 2 pixels). JPEG files say it in their header; "
-                                   "PNG files that were JPEG or video frames first (re-saved, or decoded by an "
-                                   "importer) do not. manisplat-reconstruct compares its renders with the images "
+                                   "PNG files that were JPEG or video frames first (re-saved, or decoded by a tool "
+                                   "that does not record it) do not. manisplat-reconstruct compares its renders with the images "
                                    "after the same subsampling. Refused where the images are JPEG files whose "
                                    "header says otherwise.")
     p.add_argument("episode", type=Path, metavar="EPISODE", help="episode folder")
-    p.add_argument("scheme", choices=CHROMA_SCHEMES, metavar="SCHEME",
-                   help=f"one of {', '.join(CHROMA_SCHEMES)} (4:4:4: every pixel's colour kept)")
+    p.add_argument("scheme", choices=list(CHROMA_SUBSAMPLING), metavar="SCHEME",
+                   help=f"one of {', '.join(CHROMA_SUBSAMPLING)} (4:4:4: every pixel's colour kept)")
     p.add_argument("--camera", metavar="NAME",
                    help="the camera (default: the one camera; required when the episode has several)")
     p.add_argument("--red-blue-swapped", action="store_true",

@@ -42,6 +42,9 @@ INDEX_DIGITS = 6
 
 DIST_LENGTHS = (0, 4, 5, 8, 12, 14)
 """Numbers of distortion coefficients OpenCV accepts (an empty list means none)."""
+CHROMA_SUBSAMPLING = {"4:4:4": (1, 1), "4:2:2": (2, 1), "4:2:0": (2, 2), "4:4:0": (1, 2), "4:1:1": (4, 1)}
+"""A camera's ``chroma_subsampling`` schemes (J:a:b) -> the pixels (horizontal, vertical) one colour
+sample covers."""
 
 GRIPPER_RANGE_M = (0.0, 0.1)
 """Plausible finger-pad gap in metres; values outside get a warning from ``validate``."""

@@ -13,13 +13,10 @@ from typing import Iterator, NamedTuple
 import cv2
 import numpy as np
 
-from manisplat.episode.format import DEPTH_DIR, MASKS_DIR, RGB_DIR, EpisodeFormatError, image_name
+from manisplat.episode.format import CHROMA_SUBSAMPLING, DEPTH_DIR, MASKS_DIR, RGB_DIR, EpisodeFormatError, image_name
 
 _IMAGE_RE = re.compile(r"^(\d{6})(\.png|\.jpg)$")
 _DEPTH_MAX = np.iinfo(np.uint16).max
-
-#: chroma subsampling schemes (J:a:b) -> the pixel block one chroma sample covers (horizontal, vertical)
-CHROMA_SUBSAMPLING = {"4:4:4": (1, 1), "4:2:2": (2, 1), "4:2:0": (2, 2), "4:4:0": (1, 2), "4:1:1": (4, 1)}
 
 
 class StoredChroma(NamedTuple):

@@ -16,8 +16,7 @@ from typing import Any, Collection
 
 import numpy as np
 
-from manisplat.episode.format import DIST_LENGTHS, NAME_PATTERN, WORLD_MOUNT, EpisodeFormatError
-from manisplat.episode.images import CHROMA_SUBSAMPLING
+from manisplat.episode.format import CHROMA_SUBSAMPLING, DIST_LENGTHS, NAME_PATTERN, WORLD_MOUNT, EpisodeFormatError
 
 RIGID_TOL = 1e-6
 """Tolerance of the rigid-transform checks: max |R^T R - I|, |det R - 1| and the last row."""

@@ -72,13 +72,6 @@ def test_the_command(tmp_path, capsys):
     assert main(["set-chroma", str(path), "4:2:1"]) == 2  # not a scheme: a usage error
 
 
-def test_the_commands_choices_are_the_known_schemes():
-    from manisplat.episode.cli import CHROMA_SCHEMES
-    from manisplat.episode.images import CHROMA_SUBSAMPLING
-
-    assert sorted(CHROMA_SCHEMES) == sorted(CHROMA_SUBSAMPLING)
-
-
 def test_a_wrong_value_is_named_in_a_version_2_episode(tmp_path):
     from manisplat.episode import validate
 
