@@ -64,7 +64,8 @@ def main(argv: list[str] | None = None) -> int:
                 if stored is not None:
                     as_stored = subsample_chroma(torch.from_numpy(image).double(), stored).clamp(0, 255).numpy()
                     modelled.append(_psnr(np.round(as_stored), imported))
-            row = {"codec": codec, "frames": len(original), "colour_recorded": describe_chroma(back.chroma_subsampling()),
+            row = {"codec": codec, "frames": len(original),
+                   "colour_recorded": describe_chroma(back.chroma_subsampling()),
                    "psnr_as_drawn_db": float(np.mean(drawn)),
                    "psnr_colour_modelled_db": float(np.mean(modelled)) if modelled else None}
             rows.append(row)

@@ -80,7 +80,8 @@ def main(argv: list[str] | None = None) -> int:
                for k in keys if any(r.get(k) is not None for r in rows)}
     result = {"benchmark": "reconstruct_viewpoints",
               "command": " ".join(["python -m benchmarks reconstruct_viewpoints", *options]),
-              "threads": args.threads or "manisplat-reconstruct's default (the cores free)", "summary": summary, "rows": rows,
+              "threads": args.threads or "manisplat-reconstruct's default (the cores free)",
+              "summary": summary, "rows": rows,
               "wall_s": round(time.perf_counter() - t0, 1)}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1, default=float) + "\n")

@@ -544,9 +544,9 @@ def build_parser() -> argparse.ArgumentParser:
                                    "or recorder encoded them (chroma subsampling: 4:2:0 is JPEG's and most video's "
                                    "usual, one colour sample per 2 x 2 pixels). JPEG files say it in their header; "
                                    "PNG files that were JPEG or video frames first (re-saved, or decoded by a tool "
-                                   "that does not record it) do not. manisplat-reconstruct compares its renders with the images "
-                                   "after the same subsampling. Refused where the images are JPEG files whose "
-                                   "header says otherwise.")
+                                   "that does not record it) do not. manisplat-reconstruct compares its renders "
+                                   "with the images after the same subsampling. Refused where the images are JPEG "
+                                   "files whose header says otherwise.")
     p.add_argument("episode", type=Path, metavar="EPISODE", help="episode folder")
     p.add_argument("scheme", choices=list(CHROMA_SUBSAMPLING), metavar="SCHEME",
                    help=f"one of {', '.join(CHROMA_SUBSAMPLING)} (4:4:4: every pixel's colour kept)")
