@@ -25,10 +25,6 @@ from benchmarks._harness import BENCH_DIR, shared_dir
 OWN_OPTIONS = True
 
 
-def _psnr(a: np.ndarray, b: np.ndarray) -> float:
-    return float(10 * np.log10(255.0 ** 2 / np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)))
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks lerobot_colour", description=__doc__.splitlines()[0])
     p.add_argument("--codecs", default="libsvtav1,h264", help="export codecs (default: libsvtav1,h264)")
@@ -43,6 +39,7 @@ def main(argv: list[str] | None = None) -> int:
     from manisplat.episode.images import describe_chroma
     from manisplat.episode.importers.lerobot import import_lerobot
     from manisplat.reconstruct.chroma import subsample_chroma, subsampled
+    from manisplat.reconstruct.metrics import psnr
 
     source = shared_dir() / "data" / "sim_pick_place_small"
     if not source.is_dir():
@@ -56,16 +53,16 @@ def main(argv: list[str] | None = None) -> int:
             export_lerobot([source], dataset, task="pick", codec=codec, depth=False)
             back = import_lerobot(dataset, Path(tmp) / f"{codec}_back", episode=0, camera=original.camera.name,
                                   K=original.camera)
-            stored = subsampled(back.chroma_subsampling())
+            recorded = back.chroma_subsampling()
+            stored = subsampled(recorded)
             drawn, modelled = [], []
             for i in range(len(original)):
-                image, imported = original.rgb(i), back.rgb(i)
-                drawn.append(_psnr(image, imported))
+                image, imported = (torch.from_numpy(x).double() for x in (original.rgb(i), back.rgb(i)))
+                drawn.append(psnr(image / 255, imported / 255))
                 if stored is not None:
-                    as_stored = subsample_chroma(torch.from_numpy(image).double(), stored).clamp(0, 255).numpy()
-                    modelled.append(_psnr(np.round(as_stored), imported))
-            row = {"codec": codec, "frames": len(original),
-                   "colour_recorded": describe_chroma(back.chroma_subsampling()),
+                    as_stored = subsample_chroma(image, stored).clamp(0, 255).round()  # 8-bit, as stored
+                    modelled.append(psnr(as_stored / 255, imported / 255))
+            row = {"codec": codec, "frames": len(original), "colour_recorded": describe_chroma(recorded),
                    "psnr_as_drawn_db": float(np.mean(drawn)),
                    "psnr_colour_modelled_db": float(np.mean(modelled)) if modelled else None}
             rows.append(row)

@@ -66,11 +66,11 @@ def main(argv: list[str] | None = None) -> int:
                 episode, T_true = degraded_copy(ctx, clean, "oak", seed)
                 if args.colour == "declared":
                     episode = declared_copy(episode, Path(tmp) / "episodes")
-                T_recorded = Episode.open(episode).camera.T_mount_cam
+                recorded = Episode.open(episode)
                 twin = reconstruct(episode, Path(tmp) / episode.name, args.iters, robot_of(episode), *extra)
                 r = {"viewpoint": v.name, "distance_m": round(v.distance_m, 3), "size": f"{v.size[0]}x{v.size[1]}",
-                     "degrade_seed": seed, "colour": describe_chroma(Episode.open(episode).chroma_subsampling()),
-                     **row(twin, T_true, T_recorded),
+                     "degrade_seed": seed, "colour": describe_chroma(recorded.chroma_subsampling()),
+                     **row(twin, T_true, recorded.camera.T_mount_cam),
                      "lambda_pose": json.loads((twin / "metrics.json").read_text())["lambda_pose"]}
                 rows.append(r)
                 print(json.dumps(r, default=float), flush=True)

@@ -18,7 +18,7 @@ import av
 
 from manisplat.episode.format import CHROMA_SUBSAMPLING, META_FILE, EpisodeFormatError
 from manisplat.episode.images import RGB, StoredChroma, find_image, jpeg_chroma_subsampling
-from manisplat.episode.meta import load_meta, save_meta
+from manisplat.episode.meta import save_meta
 from manisplat.episode.reader import Episode
 
 log = logging.getLogger(__name__)
@@ -76,7 +76,8 @@ def set_chroma_subsampling(episode: str | Path, scheme: str, *, camera: str | No
     if scheme not in CHROMA_SUBSAMPLING:
         raise ValueError(f"chroma subsampling {scheme!r} is not one of {', '.join(CHROMA_SUBSAMPLING)}")
     path = Path(episode)
-    meta = load_meta(path / META_FILE)
+    opened = Episode.open(path)
+    meta = opened.meta
     if camera is None:
         if len(meta.cameras) != 1:
             raise EpisodeFormatError(f"{path} has cameras {', '.join(meta.cameras)}: name one (--camera NAME)")
@@ -89,7 +90,7 @@ def set_chroma_subsampling(episode: str | Path, scheme: str, *, camera: str | No
         if header != scheme:
             raise ValueError(f"{path}: camera {camera}'s images are JPEG files whose header says "
                              f"{header or 'grey'}, not {scheme}")
-    before = Episode.open(path).chroma_subsampling(camera)
+    before = opened.chroma_subsampling(camera)
     after = StoredChroma(scheme, bool(red_blue_swapped))
     meta.cameras[camera].extra.update(chroma_keys(after))
     save_meta(path / META_FILE, meta)
