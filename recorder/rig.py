@@ -38,7 +38,7 @@ from typing import Any, Callable, Sequence
 from manisplat.drivers.base import Camera, DriverError
 from manisplat.drivers.piper import PiperArm
 from manisplat.episode import RobotInfo
-from manisplat.episode.chroma import chroma_keys
+from manisplat.episode.images import chroma_keys
 from manisplat.episode.infos import CameraInfo
 from manisplat.recorder.armfeed import JOINT_TAIL_S, ArmFeed
 from manisplat.recorder.camfeed import CameraFeed

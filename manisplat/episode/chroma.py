@@ -12,25 +12,15 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any
 
 import av
 
 from manisplat.episode.format import CHROMA_SUBSAMPLING, META_FILE, EpisodeFormatError
-from manisplat.episode.images import RGB, StoredChroma, find_image, jpeg_chroma_subsampling
+from manisplat.episode.images import RGB, StoredChroma, chroma_keys, find_image, jpeg_chroma_subsampling
 from manisplat.episode.meta import save_meta
 from manisplat.episode.reader import Episode
 
 log = logging.getLogger(__name__)
-
-CHROMA_KEYS = ("chroma_subsampling", "chroma_red_blue_swapped")
-"""A camera's keys in ``episode.json`` saying how its images kept their colour."""
-
-
-def chroma_keys(stored: StoredChroma | None) -> dict[str, Any]:
-    """``stored`` as a camera's ``episode.json`` keys (none where it is not known)."""
-    return {} if stored is None else dict(zip(CHROMA_KEYS, (stored.scheme, stored.red_blue_swapped)))
-
 
 def video_chroma(path: str | Path) -> StoredChroma | None:
     """How the video ``path`` kept its colour: the scheme of its first video stream's pixel format
@@ -97,4 +87,4 @@ def set_chroma_subsampling(episode: str | Path, scheme: str, *, camera: str | No
     return before, after
 
 
-__all__ = ["CHROMA_KEYS", "chroma_keys", "set_chroma_subsampling", "video_chroma"]
+__all__ = ["set_chroma_subsampling", "video_chroma"]

@@ -8,7 +8,7 @@ import contextlib
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, NamedTuple
+from typing import Any, Iterator, NamedTuple
 
 import cv2
 import numpy as np
@@ -43,6 +43,15 @@ def describe_chroma(stored: StoredChroma | None) -> str:
     if stored is None:
         return "not known"
     return stored.scheme + (" (red and blue swapped)" if stored.red_blue_swapped else "")
+
+
+CHROMA_KEYS = ("chroma_subsampling", "chroma_red_blue_swapped")
+"""A camera's keys in ``episode.json`` saying how its images kept their colour."""
+
+
+def chroma_keys(stored: StoredChroma | None) -> dict[str, Any]:
+    """``stored`` as a camera's ``episode.json`` keys (none where it is not known)."""
+    return {} if stored is None else dict(zip(CHROMA_KEYS, (stored.scheme, stored.red_blue_swapped)))
 
 
 #: JPEG start-of-frame markers (every coding process: baseline, progressive, lossless, arithmetic)

@@ -24,7 +24,7 @@ import h5py
 import numpy as np
 
 from manisplat.episode.format import ACTION_COLUMNS, EpisodeFormatError
-from manisplat.episode.images import jpeg_chroma_subsampling
+from manisplat.episode.images import StoredChroma, chroma_keys, jpeg_chroma_subsampling
 from manisplat.episode.meta import CameraInfo, RobotInfo
 from manisplat.episode.reader import Episode
 from manisplat.episode.writer import EpisodeWriter
@@ -84,7 +84,7 @@ def _chroma_subsampling(ds: h5py.Dataset, compressed: bool, bgr: bool, where: Pa
         scheme = jpeg_chroma_subsampling(ds[0].tobytes())
     except ValueError as exc:
         raise EpisodeFormatError(f"{where}: {ds.name} frame 0: {exc}") from None
-    return {} if scheme is None else {"chroma_subsampling": scheme, "chroma_red_blue_swapped": not bgr}
+    return {} if scheme is None else chroma_keys(StoredChroma(scheme, red_blue_swapped=not bgr))
 
 
 def _camera_dataset(f: h5py.File, camera: str, length: int, where: Path) -> tuple[h5py.Dataset, bool]:

@@ -25,7 +25,8 @@ import pyarrow.parquet as pq
 
 from manisplat.episode.exporters.lerobot import depth_key, image_key
 from manisplat.episode.format import ACTION_COLUMNS, EpisodeFormatError
-from manisplat.episode.chroma import CHROMA_KEYS, chroma_keys, video_chroma
+from manisplat.episode.chroma import video_chroma
+from manisplat.episode.images import CHROMA_KEYS, chroma_keys
 from manisplat.episode.importers.act_hdf5 import ARM_COLUMNS
 from manisplat.episode.importers.units import Units, unit_problems
 from manisplat.episode.meta import CameraInfo, RobotInfo
