@@ -35,12 +35,14 @@ def main(argv: list[str] | None = None) -> int:
 
     from benchmarks._harness import MissingBenchmarkData
     from manisplat.episode import Episode
-    from manisplat.episode.exporters.lerobot import export_lerobot
+    from manisplat.episode.exporters.lerobot import VIDEO_CODECS, export_lerobot
     from manisplat.episode.images import describe_chroma
     from manisplat.episode.importers.lerobot import import_lerobot
     from manisplat.reconstruct.chroma import subsample_chroma, subsampled
     from manisplat.reconstruct.metrics import psnr
 
+    if unknown := [c for c in args.codecs.split(",") if c not in VIDEO_CODECS]:
+        p.error(f"--codecs: {', '.join(unknown)} not among {', '.join(VIDEO_CODECS)}")
     source = shared_dir() / "data" / "sim_pick_place_small"
     if not source.is_dir():
         raise MissingBenchmarkData(f"{source} not found (set MANISPLAT_SHARED to the shared folder)")
