@@ -13,8 +13,17 @@ errors in the world frame (fitted and start-anchored), wall time and time per it
 
 ``python -m benchmarks reconstruct_cobot [--samples cobot_dual_small,...] [--settings all,head] [--iters 3000]
 [--shadow-casters meshes|gaussians] [--rasterize-mode auto|classic|antialiased] [--lambda-mask L]
-[--lambda-pose L] [--lambda-smooth L] [--pose-rate-final F] [--seed S] [--data DIR] [--work DIR] [--out FILE]``: ``--settings all --iters 9000`` gives the head camera about as many iterations as
+[--lambda-pose L] [--lambda-smooth L] [--pose-rate-final F] [--seed S] [--supersample N] [--data DIR] [--work DIR]
+[--out FILE]``: ``--settings all --iters 9000`` gives the head camera about as many iterations as
 ``--settings head --iters 3000`` (one camera's image an iteration).
+
+With ``--supersample N`` (N odd, the simulator's python in ``MANISPLAT_SIMENV``) the samples are
+recorded as a camera would record them: their own states (the ground truth) drawn N x N times
+finer by ``sim_render_bimanual_states.py --supersample`` and averaged, each pixel the mean over
+its area, then stored through the recorder's JPEG as the sample's images were; the depth, joints,
+calibration and truth are the sample's (:func:`camera_like`). The simulator's own images filter
+the objects' prints by mipmap level, blurrier in the head camera a metre away than in the wrist
+cameras a few centimetres away; a twin of every camera cannot draw both.
 """
 
 from __future__ import annotations
@@ -23,15 +32,19 @@ import argparse
 import contextlib
 import json
 import logging
+import shutil
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import cv2
+import h5py
 import numpy as np
 
-from benchmarks._harness import BENCH_DIR, shared_dir
+from benchmarks._harness import BENCH_DIR, shared_dir, simulator_python
+from benchmarks._simulator import SimJob, run_sim_jobs
+from benchmarks.bench_sim_shadow_map import recorder_jpeg_bytes
 from manisplat.cli_args import bounded, non_negative
 from manisplat.episode.cli import main as episode_main
 from manisplat.episode.groundtruth import write_gt
@@ -56,6 +69,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="manisplat-reconstruct --rasterize-mode (default auto, as the command's)")
     add_training_flags(p)
     p.add_argument("--seed", type=int, default=0, help="manisplat-reconstruct --seed (default 0, the command's)")
+    p.add_argument("--supersample", type=int, default=1, metavar="N",
+                   help="record the samples as a camera would: their states drawn N x N times finer and averaged "
+                        "(N odd; default 1, the samples' own images)")
     p.add_argument("--data", type=Path, help="the folder holding the samples (default shared/data; "
                                              "sim_headlight draws copies elsewhere)")
     p.add_argument("--work", type=Path, help="keep the imported samples and the twins here (default: a temporary folder)")
@@ -64,18 +80,23 @@ def main(argv: list[str] | None = None) -> int:
     settings = args.settings.split(",")
     if unknown := sorted(set(settings) - set(SETTINGS)):
         p.error(f"--settings: unknown {', '.join(unknown)} (choose from {', '.join(SETTINGS)})")
+    if args.supersample < 1 or args.supersample % 2 == 0:
+        p.error(f"--supersample takes an odd number of at least 1, not {args.supersample}")
     if args.work is not None and args.work.exists() and any(args.work.iterdir()):
         p.error(f"--work: {args.work} is not empty; give a new or empty folder")
     data = args.data or shared_dir() / "data"
     if missing := [name for name in args.samples.split(",") if not (data / name / "episode_0.hdf5").is_file()]:
         p.error(f"--samples: no episode_0.hdf5 for {', '.join(missing)} in {data}")
+    simenv = simulator_python() if args.supersample > 1 else None
     rows = []
     t0 = time.perf_counter()
     if args.work is not None:
         args.work.mkdir(parents=True, exist_ok=True)
     with contextlib.nullcontext(args.work) if args.work is not None else tempfile.TemporaryDirectory() as tmp:
         for sample in args.samples.split(","):
-            episode, prompts = imported_sample(data, sample, Path(tmp))
+            source = data if simenv is None else camera_like(simenv, data, sample, Path(tmp) / f"camera_like_x{args.supersample}",
+                                                             args.supersample)
+            episode, prompts = imported_sample(source, sample, Path(tmp))
             for setting, cameras in (SETTINGS[key] for key in settings):
                 out = Path(tmp) / f"{sample}_{len(cameras)}"
                 options = ("--shadow-casters", args.shadow_casters, "--rasterize-mode", args.rasterize_mode,
@@ -86,7 +107,10 @@ def main(argv: list[str] | None = None) -> int:
                 print(json.dumps(rows[-1], default=float), flush=True)
     result = {"benchmark": "reconstruct_cobot",
               "command": "python -m benchmarks reconstruct_cobot " + " ".join(argv if argv is not None else sys.argv[1:]),
-              "data": str(data), "threads": "torch's default (the machine's cores)", "rows": rows,
+              "data": str(data), "supersample": args.supersample,
+              "images": "the samples' own" if simenv is None else
+              f"the samples' states drawn {args.supersample} x {args.supersample} times finer and averaged, through "
+              "the recorder's JPEG", "threads": "torch's default (the machine's cores)", "rows": rows,
               "wall_s": round(time.perf_counter() - t0, 1)}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1, default=float) + "\n")
@@ -102,6 +126,52 @@ def imported_sample(data: Path, sample: str, folder: Path) -> tuple[Path, dict[s
                      "--out", str(episode)]) != 0:
         raise RuntimeError(f"{sample}: import failed")
     return episode, add_ground_truth(episode, source)
+
+
+def camera_like(simenv: Path, data: Path, sample: str, folder: Path, n: int) -> Path:
+    """A copy of ``data/sample`` in ``folder/data/sample`` whose images are its own states (its
+    ground truth's joints, gaps and object poses) drawn ``n`` x ``n`` times finer and averaged,
+    each through the recorder's JPEG at the sample's quality (the fingers drawn symmetric about
+    their gap, as a twin draws them, where physics pushed one pad further while gripping); the
+    depth, joints, calibration and truth are the sample's (``folder/robots`` links shared/robots,
+    where the calibration's relative URDF path leads). Made once and kept; returns
+    ``folder/data``, the copy's data folder."""
+    source, copy = data / sample, folder / "data" / sample
+    if (copy / "episode_0.hdf5").is_file():
+        return copy.parent
+    gt = np.load(source / "episode_0.gt.npz")
+    spec = json.loads((source / "episode_0.objects.json").read_text())
+    copy.parent.mkdir(parents=True, exist_ok=True)
+    if not (folder / "robots").is_symlink():
+        (folder / "robots").symlink_to(shared_dir() / "robots")
+    states, drawn = folder / f"{sample}_states.npz", folder / f"{sample}_drawn"
+    np.savez(states, q=gt["q"], **{f"T_world_{name}": gt[f"T_world_{name}"] for name in spec["objects"]})
+    run_sim_jobs(simenv, [SimJob(str(BENCH_DIR / "sim_render_bimanual_states.py"),
+                                 (str(states), "--calib", str(source / "episode_0.calib.json"), "--task", spec["task"],
+                                  "--render", str(drawn), "--supersample", str(n), "--workers", "2"),
+                                 drawn / "render.json")], workers=1)
+    quality = int(json.loads(str(gt["info"]))["args"]["jpeg_quality"])
+    part = copy.parent / f"{sample}.part"
+    shutil.rmtree(part, ignore_errors=True)
+    shutil.copytree(source, part)
+    with h5py.File(part / "episode_0.hdf5", "r+") as f:
+        lengths = np.asarray(f["compress_len"], dtype=np.float32)
+        if lengths.shape != (len(CAMERAS), len(gt["q"])):
+            raise RuntimeError(f"{source}: compress_len is {lengths.shape}, not one row of {len(gt['q'])} frames "
+                               f"per camera of {', '.join(CAMERAS)}")
+        for row, camera in enumerate(CAMERAS):
+            frames = [recorder_jpeg_bytes(cv2.cvtColor(cv2.imread(str(drawn / camera / "rgb" / f"{k:06d}.png")),
+                                                       cv2.COLOR_BGR2RGB), quality) for k in range(len(gt["q"]))]
+            padded = np.zeros((len(frames), max(map(len, frames))), np.uint8)
+            for k, encoded in enumerate(frames):
+                padded[k, :len(encoded)] = np.frombuffer(encoded, np.uint8)
+                lengths[row, k] = len(encoded)
+            del f[f"observations/images/{camera}"]
+            f["observations/images"].create_dataset(camera, data=padded, chunks=(1, padded.shape[1]),
+                                                    compression="gzip", compression_opts=4)
+        f["compress_len"][...] = lengths
+    part.rename(copy)
+    return copy.parent
 
 
 #: manisplat-reconstruct's training settings passed on when given, each validated as the command does

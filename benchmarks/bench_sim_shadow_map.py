@@ -41,14 +41,19 @@ SAMPLES = ("cobot_dual_small", "cobot_handover_small")
 CAMERAS = ("cam_high", "cam_left_wrist", "cam_right_wrist")
 
 
-def recorder_jpeg(rgb: np.ndarray, quality: int) -> np.ndarray:
-    """``rgb`` [H, W, 3] uint8 as the Cobot Magic recorder stores it and a reader gets it back:
-    ``cv2.imencode`` of the RGB array (taken for BGR, so the chroma is subsampled on swapped
-    channels) at ``quality``, then ``cv2.imdecode``."""
+def recorder_jpeg_bytes(rgb: np.ndarray, quality: int) -> bytes:
+    """``rgb`` [H, W, 3] uint8 as the Cobot Magic recorder stores it: ``cv2.imencode`` of the RGB
+    array (taken for BGR, so the chroma is subsampled on swapped channels) at ``quality``."""
     ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(rgb), [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
     if not ok:
         raise RuntimeError("cv2.imencode failed")
-    return cv2.imdecode(buf, cv2.IMREAD_COLOR)
+    return buf.tobytes()
+
+
+def recorder_jpeg(rgb: np.ndarray, quality: int) -> np.ndarray:
+    """``rgb`` [H, W, 3] uint8 as a reader gets it back from the recorder's JPEG
+    (:func:`recorder_jpeg_bytes`, then ``cv2.imdecode``)."""
+    return cv2.imdecode(np.frombuffer(recorder_jpeg_bytes(rgb, quality), np.uint8), cv2.IMREAD_COLOR)
 
 
 def chroma_as_recorded(images: np.ndarray, stored: StoredChroma) -> np.ndarray:

@@ -1,7 +1,7 @@
 """The Cobot Magic simulator's images of given states, without physics: run by the simulator's venv.
 
     MUJOCO_GL=osmesa SIMENV/bin/python sim_render_bimanual_states.py STATES.npz --calib CALIB.json \\
-        --task handover|dual_pick_place --render DIR --json REPORT [--shadow-map-px N]
+        --task handover|dual_pick_place --render DIR --json REPORT [--shadow-map-px N] [--supersample N]
 
 STATES.npz holds ``q`` [T, 14] in ``/observations/qpos``'s layout ([left q1..q6, left gap, right
 q1..q6, right gap]; rad in the AgileX URDF convention, gaps in m) and ``T_world_<object>`` [T, 4, 4]
@@ -14,7 +14,12 @@ of a demonstration's commands (the arms lag their targets: a wrist camera's whol
 with its link); this draws the states the demonstration's own images show. Run with the working
 directory ``shared/tools/sim`` (``benchmarks._simulator.run_sim_jobs`` does). ``--shadow-map-px``
 draws the key light's shadows from a map of that many pixels a side instead of the scene's
-(MuJoCo's ``visual/quality/shadowsize``, 2048 in the samples)."""
+(MuJoCo's ``visual/quality/shadowsize``, 2048 in the samples). ``--supersample N`` draws every
+image N times wider and higher and averages each N x N block, as a camera's pixel integrates its
+area (the simulator filters its textures by mipmap level, which changes with a surface's distance
+and slant, so the head camera a metre away draws the objects' prints blurrier than a camera
+integrating its pixels would); the masks are the fine drawing's sample at each pixel's centre (N
+odd), where the image-sized drawing samples them."""
 
 import argparse
 import json
@@ -65,8 +70,12 @@ def main(argv=None) -> int:
     ap.add_argument("--render", required=True, help="write <camera>/rgb/ and <camera>/masks/ here")
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--shadow-map-px", type=int, help="the shadow map's size (default: the scene's)")
+    ap.add_argument("--supersample", type=int, default=1, metavar="N",
+                    help="draw N times finer and average N x N blocks (N odd; default 1)")
     ap.add_argument("--json", required=True, help="write the report here")
     a = ap.parse_args(argv)
+    if a.supersample < 1 or a.supersample % 2 == 0:
+        ap.error(f"--supersample must be an odd number of at least 1, not {a.supersample}")
     t_wall = time.time()
 
     with open(a.calib) as fh:
@@ -78,6 +87,9 @@ def main(argv=None) -> int:
         if a.shadow_map_px < 1:
             raise SystemExit(f"--shadow-map-px must be positive, got {a.shadow_map_px}")
         m.vis.quality.shadowsize = a.shadow_map_px
+    W, H, N = int(head["width"]), int(head["height"]), a.supersample
+    m.vis.global_.offwidth = max(m.vis.global_.offwidth, N * W)  # the offscreen buffer holds the finer images
+    m.vis.global_.offheight = max(m.vis.global_.offheight, N * H)
     qpos = posed_states(m, dict(np.load(a.states)), a.task)
     for camera in gb.CAMERAS:
         for sub in ("rgb", "masks"):
@@ -85,14 +97,15 @@ def main(argv=None) -> int:
 
     def save(result):
         for i, camera in enumerate(gb.CAMERAS):
-            Image.fromarray(result["rgb"][i]).save(os.path.join(a.render, camera, "rgb", "%06d.png" % result["k"]))
-            Image.fromarray(result["mask"][i]).save(os.path.join(a.render, camera, "masks", "%06d.png" % result["k"]))
+            rgb = result["rgb"][i].reshape(H, N, W, N, 3).mean(axis=(1, 3))
+            mask = result["mask"][i][N // 2::N, N // 2::N]
+            Image.fromarray(np.rint(rgb).astype(np.uint8)).save(os.path.join(a.render, camera, "rgb", "%06d.png" % result["k"]))
+            Image.fromarray(mask).save(os.path.join(a.render, camera, "masks", "%06d.png" % result["k"]))
 
-    gb.render_all(m, qpos, int(head["width"]), int(head["height"]), shadows=True, jpeg_quality=0, checks=False,
-                  workers=a.workers, consume=save)
+    gb.render_all(m, qpos, N * W, N * H, shadows=True, jpeg_quality=0, checks=False, workers=a.workers, consume=save)
     with open(a.json, "w") as fh:
         fh.write(json.dumps({"states": os.path.basename(a.states), "frames": len(qpos),
-                             "shadow_map_px": int(m.vis.quality.shadowsize),
+                             "shadow_map_px": int(m.vis.quality.shadowsize), "supersample": N,
                              "wall_s": round(time.time() - t_wall, 2)}) + "\n")
     return 0
 
