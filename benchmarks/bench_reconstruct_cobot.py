@@ -23,7 +23,7 @@ finer by ``sim_render_bimanual_states.py --supersample`` and averaged, each pixe
 its area, then stored through the recorder's JPEG as the sample's images were; the depth, joints,
 calibration and truth are the sample's (:func:`camera_like`). The simulator's own images filter
 the objects' prints by mipmap level, blurrier in the head camera a metre away than in the wrist
-cameras a few centimetres away; a twin of every camera cannot draw both.
+cameras a few centimetres away, which a sensor integrating its pixels does not.
 """
 
 from __future__ import annotations
