@@ -44,7 +44,6 @@ import numpy as np
 
 from benchmarks._harness import BENCH_DIR, shared_dir, simulator_python
 from benchmarks._simulator import SimJob, run_sim_jobs
-from benchmarks.bench_sim_shadow_map import recorder_jpeg_bytes
 from manisplat.cli_args import bounded, non_negative
 from manisplat.episode.cli import main as episode_main
 from manisplat.episode.groundtruth import write_gt
@@ -136,6 +135,8 @@ def camera_like(simenv: Path, data: Path, sample: str, folder: Path, n: int) -> 
     depth, joints, calibration and truth are the sample's (``folder/robots`` links shared/robots,
     where the calibration's relative URDF path leads). Made once and kept; returns
     ``folder/data``, the copy's data folder."""
+    from benchmarks.bench_sim_shadow_map import recorder_jpeg_bytes  # here: torch stays out of --help
+
     source, copy = data / sample, folder / "data" / sample
     if (copy / "episode_0.hdf5").is_file():
         return copy.parent
