@@ -43,7 +43,7 @@ import h5py
 import numpy as np
 
 from benchmarks._harness import BENCH_DIR, shared_dir, simulator_python
-from benchmarks._simulator import SimJob, run_sim_jobs
+from benchmarks._simulator import run_sim_jobs
 from manisplat.cli_args import bounded, non_negative
 from manisplat.episode.cli import main as episode_main
 from manisplat.episode.groundtruth import write_gt
@@ -135,22 +135,18 @@ def camera_like(simenv: Path, data: Path, sample: str, folder: Path, n: int) -> 
     depth, joints, calibration and truth are the sample's (``folder/robots`` links shared/robots,
     where the calibration's relative URDF path leads). Made once and kept; returns
     ``folder/data``, the copy's data folder."""
-    from benchmarks.bench_sim_shadow_map import recorder_jpeg_bytes  # here: torch stays out of --help
+    from benchmarks.bench_sim_shadow_map import recorder_jpeg_bytes, redraw_job  # here: torch stays out of --help
 
     source, copy = data / sample, folder / "data" / sample
     if (copy / "episode_0.hdf5").is_file():
         return copy.parent
     gt = np.load(source / "episode_0.gt.npz")
-    spec = json.loads((source / "episode_0.objects.json").read_text())
     copy.parent.mkdir(parents=True, exist_ok=True)
     if not (folder / "robots").is_symlink():
         (folder / "robots").symlink_to(shared_dir() / "robots")
-    states, drawn = folder / f"{sample}_states.npz", folder / f"{sample}_drawn"
-    np.savez(states, q=gt["q"], **{f"T_world_{name}": gt[f"T_world_{name}"] for name in spec["objects"]})
-    run_sim_jobs(simenv, [SimJob(str(BENCH_DIR / "sim_render_bimanual_states.py"),
-                                 (str(states), "--calib", str(source / "episode_0.calib.json"), "--task", spec["task"],
-                                  "--render", str(drawn), "--supersample", str(n), "--workers", "2"),
-                                 drawn / "render.json")], workers=1)
+    drawn = folder / f"{sample}_drawn"
+    run_sim_jobs(simenv, [redraw_job(source, slice(None), folder / f"{sample}_states.npz", drawn, drawn / "render.json",
+                                     "--supersample", str(n), "--workers", "2")], workers=1)
     quality = int(json.loads(str(gt["info"]))["args"]["jpeg_quality"])
     part = copy.parent / f"{sample}.part"
     shutil.rmtree(part, ignore_errors=True)
@@ -209,7 +205,7 @@ def reconstruct(episode: Path, out: Path, cameras: tuple[str, ...], prompts: dic
     metrics = json.loads((out / "metrics.json").read_text())
     return {"cameras": list(cameras), "iters": iters, "wall_s": round(wall, 1), "ms_per_iter": metrics.get("ms_per_iter"),
             "options": list(options), "light": metrics.get("light"), "rasterize_mode": metrics.get("rasterize_mode"),
-            "lambda_mask": metrics.get("lambda_mask"), "lambda_pose": metrics.get("lambda_pose"),
+            "eps2d": metrics.get("eps2d"), "lambda_mask": metrics.get("lambda_mask"), "lambda_pose": metrics.get("lambda_pose"),
             "lambda_smooth": metrics.get("lambda_smooth"), "pose_rate_final": metrics.get("pose_rate_final"),
             "prompts": {k: [round(u), round(v)] for k, (u, v) in prompts.items()},
             "per_camera": {name: {"psnr": m["psnr"], "ssim": m["ssim"], "psnr_full_colour": m.get("psnr_full_colour")}

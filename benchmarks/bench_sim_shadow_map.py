@@ -28,13 +28,11 @@ from pathlib import Path
 import cv2
 import h5py
 import numpy as np
-import torch
 
 from benchmarks._harness import BENCH_DIR, shared_dir, simulator_python
 from benchmarks._simulator import SimJob, run_sim_jobs
 from manisplat.cli_args import positive
 from manisplat.episode.images import StoredChroma, jpeg_chroma_subsampling
-from manisplat.reconstruct.chroma import subsample_chroma
 
 OWN_OPTIONS = True
 SAMPLES = ("cobot_dual_small", "cobot_handover_small")
@@ -59,6 +57,10 @@ def recorder_jpeg(rgb: np.ndarray, quality: int) -> np.ndarray:
 def chroma_as_recorded(images: np.ndarray, stored: StoredChroma) -> np.ndarray:
     """``images`` [N, H, W, 3] uint8 with their colour subsampled as ``stored`` says the recording
     kept it (the reconstruction's model of the JPEG, without its quantisation), rounded to uint8."""
+    import torch  # here: --help, and the benchmarks importing this module's helpers, stay quick
+
+    from manisplat.reconstruct.chroma import subsample_chroma
+
     modelled = np.stack([subsample_chroma(torch.from_numpy(image).double(), stored).numpy() for image in images])
     return np.clip(np.rint(modelled), 0, 255).astype(np.uint8)
 
@@ -109,6 +111,19 @@ def recorded(sample: Path, frames: list[int]) -> dict[str, np.ndarray]:
     return out
 
 
+def redraw_job(sample: Path, frames: list[int] | slice, states: Path, render: Path, report: Path,
+               *options: str) -> SimJob:
+    """The job that draws ``sample``'s exact states at ``frames`` (its ground truth's joints, gaps
+    and object poses, written to ``states``) again with ``sim_render_bimanual_states.py`` (and its
+    further ``options``) into ``render``, reporting to ``report``."""
+    gt = np.load(sample / "episode_0.gt.npz")
+    spec = json.loads((sample / "episode_0.objects.json").read_text())
+    np.savez(states, q=gt["q"][frames], **{f"T_world_{k}": gt[f"T_world_{k}"][frames] for k in spec["objects"]})
+    return SimJob(str(BENCH_DIR / "sim_render_bimanual_states.py"),
+                  (str(states), "--calib", str(sample / "episode_0.calib.json"), "--task", spec["task"],
+                   "--render", str(render), *options), report)
+
+
 def rendered(folder: Path, camera: str, count: int) -> np.ndarray:
     """[count, H, W, 3] RGB renders of ``sim_render_bimanual_states.py`` for ``camera``."""
     return np.stack([cv2.cvtColor(cv2.imread(str(folder / camera / "rgb" / f"{k:06d}.png")), cv2.COLOR_BGR2RGB)
@@ -134,15 +149,10 @@ def main(argv: list[str] | None = None) -> int:
             info = json.loads(str(gt["info"]))
             frames = list(range(HOLDOUT_OFFSET, len(gt["q"]), HOLDOUT_EVERY))  # the reconstruction's held-out frames
             spec = json.loads((sample / "episode_0.objects.json").read_text())
-            task = spec["task"]
-            states = Path(tmp) / f"{name}_states.npz"
-            np.savez(states, q=gt["q"][frames], **{f"T_world_{k}": gt[f"T_world_{k}"][frames] for k in spec["objects"]})
             manipulated = [k for k, o in spec["objects"].items() if o["role"] == "manipulated"]
             maps = {"scene": (), "fine": ("--shadow-map-px", str(args.map_px))}
-            jobs = [SimJob(str(BENCH_DIR / "sim_render_bimanual_states.py"),
-                           (str(states), "--calib", str(sample / "episode_0.calib.json"), "--task", task,
-                            "--render", str(Path(tmp) / f"{name}_{key}"), *extra), Path(tmp) / f"{name}_{key}.json")
-                    for key, extra in maps.items()]
+            jobs = [redraw_job(sample, frames, Path(tmp) / f"{name}_states.npz", Path(tmp) / f"{name}_{key}",
+                               Path(tmp) / f"{name}_{key}.json", *extra) for key, extra in maps.items()]
             run_sim_jobs(simenv, jobs)
             map_px = {key: json.loads(job.report.read_text())["shadow_map_px"] for key, job in zip(maps, jobs)}
             quality = int(info["args"]["jpeg_quality"])

@@ -43,9 +43,10 @@ class TrainConfig:
             set); a finer one costs time and adds nothing the camera resolves.
         rasterize_mode: "classic" (gsplat's default: the 0.3 px^2 dilation that keeps splats at
             least a pixel wide adds area at full opacity) or "antialiased" (Mip-Splatting's 2D
-            filter, gsplat's mode of that name: the opacity scaled so that a splat keeps its
-            integral; Gaussians fitted to a wrist camera's close-ups, seen from the head camera
-            a metre away, are then drawn as faint as they are small). The twin keeps it.
+            filter, gsplat's mode of that name: a 0.1 px^2 dilation, about a pixel's own area,
+            and the opacity scaled so that a splat keeps its integral; Gaussians fitted to a
+            wrist camera's close-ups, seen from the head camera a metre away, are then drawn as
+            faint and as sharp as they are small). The twin keeps it and its dilation.
         object_position_rate: the objects' Gaussians' position learning rate as a fraction of
             the scene's (1.6e-4 x the scene's scale, about 1.2 m, decaying 100x). At 1 a 4 cm box
             takes a room's steps and half its Gaussians sink 2-5 mm inside its faces; at 0.3 they

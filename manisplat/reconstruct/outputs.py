@@ -217,7 +217,7 @@ def write_evaluation(rec: Reconstruction, alignments: dict, out: Path, *, wall_s
     and ``camera`` (each episode's check and the camera agreed on)."""
     evaluation = rec.evaluation_poses()
     metrics = {"psnr": {}, "ssim": {}, "iters": rec.step, "wall_s": round(wall_s, 1), "plan": rec.plan.to_dict(),
-               "rasterize_mode": rec.graph.rasterize_mode, "lambda_mask": rec.config.lambda_mask,
+               "rasterize_mode": rec.graph.rasterize_mode, "eps2d": rec.graph.eps2d, "lambda_mask": rec.config.lambda_mask,
                "lambda_pose": rec.config.lambda_pose, "lambda_smooth": rec.config.lambda_smooth,
                "object_position_rate": rec.config.object_position_rate,
                "pose_rate_final": rec.config.pose_rate_final}

@@ -37,7 +37,7 @@ from manisplat.scene import ROBOT, GaussianSet, Node, SceneGraph
 from manisplat.scene.render import render_graph
 from manisplat.scene.shadows import DirectionalShadows, matched_resolution, search_direction, surface_casters
 from manisplat.geometry import se3_exp
-from manisplat.splat import DefaultStrategy, value_checks
+from manisplat.splat import DEFAULT_EPS2D, DefaultStrategy, value_checks
 from manisplat.splat.strategy import gradient_statistics
 from manisplat.splat.backends import resolve_backend
 
@@ -77,6 +77,7 @@ class Reconstruction:
         if config.rasterize_mode not in RASTERIZE_MODES:
             raise ValueError(f"rasterize_mode must be one of {RASTERIZE_MODES}, not {config.rasterize_mode!r}")
         self.graph.rasterize_mode = config.rasterize_mode
+        self.graph.eps2d = DEFAULT_EPS2D[config.rasterize_mode]
         self.graph.to(self.device)
         for t in trajectories.values():
             t.to(self.device)
@@ -499,7 +500,7 @@ class Reconstruction:
             g = node.gaussians
             nodes[node.name] = {"params": {k: v.detach() for k, v in g.params.items()}, "strategy_state": g.strategy_state}
         return {
-            "step": self.step, "config": asdict(self.config), "nodes": nodes,
+            "step": self.step, "config": asdict(self.config), "eps2d": self.graph.eps2d, "nodes": nodes,
             "optimizer": self.optimizer.state_dict(), "pose_optimizer": self.pose_optimizer.state_dict(),
             "trajectories": {k: t.state_dict() for k, t in self.trajectories.items()},
             "camera_delta": self.camera_delta.detach(), "background": self.background_logit.detach(),
@@ -525,6 +526,10 @@ class Reconstruction:
         if trained != self.config.rasterize_mode:
             raise ValueError(f"the checkpoint was trained with --rasterize-mode {trained}, this run asks for "
                              f"{self.config.rasterize_mode}; resume with the same mode, or start a new run (--overwrite)")
+        dilation = state.get("eps2d", 0.3)  # checkpoints before the modes' own dilations: 0.3 in both
+        if dilation != self.graph.eps2d:
+            raise ValueError(f"the checkpoint's splats were fitted with a {dilation:g} px^2 2D dilation, this version "
+                             f"draws {trained} splats with {self.graph.eps2d:g}; start a new run (--overwrite)")
         rate = state["config"].get("object_position_rate", 1.0)  # checkpoints before the option: the scene's rate
         if rate != self.config.object_position_rate:
             raise ValueError(f"the checkpoint was trained with --object-position-rate {rate:g}, this run asks for "

@@ -66,6 +66,9 @@ class SceneGraph:
         #: how the Gaussians are drawn, as they were fitted: "classic" or "antialiased"
         #: (:func:`manisplat.splat.rasterization`'s ``rasterize_mode``)
         self.rasterize_mode = "classic"
+        #: the 2D dilation (px^2) they were fitted with (``rasterization``'s ``eps2d``; the mode's
+        #: :data:`manisplat.splat.DEFAULT_EPS2D` when trained, 0.3 in twins made before 2026-12-06)
+        self.eps2d = 0.3
         self._index_cache: tuple | None = None  # see _node_index
         self._normals: dict[str, torch.Tensor] = {}  # see object_normals
 

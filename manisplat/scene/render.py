@@ -42,7 +42,7 @@ def render_graph(graph: SceneGraph, link_poses: torch.Tensor, object_poses: dict
 
     ``groups_per_node``: one alpha group per node in :meth:`SceneGraph.nodes` order (for label
     images) instead of the graph's background / robot / object groups. Drawn in the graph's
-    ``rasterize_mode``.
+    ``rasterize_mode``, with its ``eps2d``.
     """
     V = viewmat.float()
     camera_center = -(V[:3, :3].transpose(0, 1) @ V[:3, 3])
@@ -59,6 +59,7 @@ def render_graph(graph: SceneGraph, link_poses: torch.Tensor, object_poses: dict
         composed.means, composed.quats, composed.scales, composed.opacities, composed.colors,
         V[None], K.float()[None], width, height, group_ids=groups, num_groups=num_groups, backend=backend,
         backgrounds=background[None], render_mode="RGB+ED" if depth else "RGB", rasterize_mode=graph.rasterize_mode,
+        eps2d=graph.eps2d,
     )
     alpha = alphas[0, ..., 0]
     z = torch.where(alpha > 0.5, colors[0, ..., 3], torch.zeros_like(alpha)) if depth else None

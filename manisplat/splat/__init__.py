@@ -7,13 +7,15 @@ backward, the default on CPU) and "gsplat" (CUDA, optional). All follow gsplat's
 from manisplat.splat.backends import BACKENDS, BackendUnavailable, available_backends
 from manisplat.splat.ply import PlyFormatError, load_ply, save_ply
 from manisplat.splat.projection import Projection, opencv_to_splat_K, project_gaussians
-from manisplat.splat.rasterization import RASTERIZE_MODES, RENDER_MODES, RasterizationError, rasterization, value_checks
+from manisplat.splat.rasterization import (DEFAULT_EPS2D, RASTERIZE_MODES, RENDER_MODES, RasterizationError, rasterization,
+                                           value_checks)
 from manisplat.splat.sh import num_sh_bases, spherical_harmonics
 from manisplat.splat.strategy import DefaultStrategy
 
 __all__ = [
     "BACKENDS",
     "BackendUnavailable",
+    "DEFAULT_EPS2D",
     "DefaultStrategy",
     "PlyFormatError",
     "Projection",

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import math
 from collections.abc import Iterator
 
 import torch
@@ -19,6 +20,12 @@ from manisplat.splat.sh import num_sh_bases, spherical_harmonics
 
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 RASTERIZE_MODES = ("classic", "antialiased")
+#: each rasterize mode's 2D dilation ``eps2d`` (px^2, added to every splat's screen covariance):
+#: classic keeps gsplat's 0.3, which holds a splat at least about a pixel wide at full opacity;
+#: antialiased uses Mip-Splatting's 2D filter, 0.1 (a one-pixel box filter's Gaussian stand-in).
+#: At 0.3 the antialiased twin of the camera-like Cobot Magic dual sample, trained on all three
+#: cameras, drew the head camera's objects 27.3 dB, at 0.1 28.1 (docs/benchmarks.md).
+DEFAULT_EPS2D = {"classic": 0.3, "antialiased": 0.1}
 
 
 class RasterizationError(ValueError):
@@ -86,7 +93,7 @@ def rasterization(
     *,
     near_plane: float = 0.01,
     far_plane: float = 1e10,
-    eps2d: float = 0.3,
+    eps2d: float | None = None,
     sh_degree: int | None = None,
     backgrounds: torch.Tensor | None = None,
     render_mode: str = "RGB",
@@ -106,7 +113,8 @@ def rasterization(
         viewmats: [C, 4, 4] world-to-camera (OpenCV axes). Ks: [C, 3, 3]; pixel (i, j) is sampled
             at (j + 0.5, i + 0.5); convert an episode's OpenCV K with ``opencv_to_splat_K``.
         width, height: image size in pixels.
-        near_plane, far_plane: depth range kept (m); eps2d: 2D dilation (px^2).
+        near_plane, far_plane: depth range kept (m).
+        eps2d: 2D dilation (px^2); None: the rasterize mode's :data:`DEFAULT_EPS2D`.
         backgrounds: [C, D] colour behind the splats (default black).
         render_mode: "RGB", "D" (accumulated depth), "ED" (expected depth = D / alpha),
             "RGB+D" or "RGB+ED"; depth is the last channel.
@@ -127,6 +135,10 @@ def rasterization(
         raise RasterizationError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
     if rasterize_mode not in RASTERIZE_MODES:
         raise RasterizationError(f"rasterize_mode must be one of {RASTERIZE_MODES}, got {rasterize_mode!r}")
+    if eps2d is None:
+        eps2d = DEFAULT_EPS2D[rasterize_mode]
+    elif not (math.isfinite(eps2d) and eps2d >= 0.0):
+        raise RasterizationError(f"eps2d must be a finite dilation >= 0 px^2, got {eps2d!r}")
     _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree)
     impl = resolve_backend(backend, means.device)
     C, N = viewmats.shape[0], means.shape[0]

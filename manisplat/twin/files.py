@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import io
 import json
+import math
 from pathlib import Path
 
 import torch
@@ -71,6 +72,7 @@ def save_twin(twin: Twin, folder: Path) -> None:
         "cameras": [cam.to_dict() for cam in twin.cameras.values()],
         "labels": {str(k): v for k, v in sorted(twin.labels.items())},
         "nodes": nodes, "shadows": light, "support": support, "rasterize_mode": twin.graph.rasterize_mode,
+        "eps2d": twin.graph.eps2d,
     }
     if len(demos) > 1:
         meta["demonstrations"] = [_demonstration_meta(d, twin.graph.objects) for d in demos[1:]]
@@ -144,6 +146,9 @@ def load_twin(folder: Path, *, backend: str = "auto", device: torch.device | str
     graph.rasterize_mode = meta.get("rasterize_mode", "classic")  # twins before the option: classic
     if graph.rasterize_mode not in RASTERIZE_MODES:
         raise TwinFormatError(f"{folder / TWIN_JSON}: rasterize_mode {graph.rasterize_mode!r} is not one of {RASTERIZE_MODES}")
+    graph.eps2d = meta.get("eps2d", 0.3)  # twins before the modes' own dilations: 0.3 in both
+    if not (isinstance(graph.eps2d, (int, float)) and math.isfinite(graph.eps2d) and graph.eps2d >= 0):
+        raise TwinFormatError(f"{folder / TWIN_JSON}: eps2d {graph.eps2d!r} is not a finite dilation >= 0 px^2")
     if meta["shadows"] is not None:
         light = meta["shadows"]
         casters = None

@@ -111,6 +111,7 @@ def test_one_camera_is_drawn_classic_by_default(finished):
     """--rasterize-mode auto: classic with one camera (several: antialiased, test_two_arms)."""
     out, _ = finished
     assert json.loads((out / "metrics.json").read_text())["rasterize_mode"] == "classic"
+    assert json.loads((out / "metrics.json").read_text())["eps2d"] == 0.3
     assert json.loads((out / "twin.json").read_text())["rasterize_mode"] == "classic"
 
 

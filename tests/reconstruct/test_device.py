@@ -279,15 +279,19 @@ def test_a_checkpoint_from_before_shadow_receivers_resumes_with_shadows_on_the_b
 def test_a_checkpoint_resumes_only_in_the_rasterize_mode_it_was_trained_in(pick):
     """Gaussians fitted antialiased are drawn too bright and wide in classic mode (and the other
     way round): a resume that changes the mode is refused; checkpoints from before the option
-    are classic."""
+    are classic, and those from before the modes' own dilations drew antialiased splats at 0.3 px^2."""
     rec, _ = _reconstruction(pick, iters=2, device="cpu", rasterize_mode="antialiased")
-    assert rec.graph.rasterize_mode == "antialiased"
+    assert (rec.graph.rasterize_mode, rec.graph.eps2d) == ("antialiased", 0.1)
     rec.train(progress=False)
     state = rec.state_dict()
     classic, _ = _reconstruction(pick, iters=4, device="cpu")
     with pytest.raises(ValueError, match="trained with --rasterize-mode antialiased, this run asks for classic"):
         classic.load_state_dict(state)
+    older, _ = _reconstruction(pick, iters=4, device="cpu", rasterize_mode="antialiased")
+    with pytest.raises(ValueError, match="fitted with a 0.3 px\\^2 2D dilation, this version draws antialiased splats with 0.1"):
+        older.load_state_dict({k: v for k, v in state.items() if k != "eps2d"})
     del state["config"]["rasterize_mode"]
+    state["eps2d"] = 0.3
     classic.load_state_dict(state)
     assert classic.step == 2 and classic.graph.rasterize_mode == "classic"
 

@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from manisplat.splat import rasterization
+from manisplat.splat import DEFAULT_EPS2D, RasterizationError, rasterization
 from manisplat.splat.projection import opacity_compensation
 from tests.splat.scenes import camera
 
@@ -66,3 +66,27 @@ def test_a_splat_many_pixels_wide_is_drawn_as_in_classic_mode():
     classic, antialiased = (_alpha_integral(3.0, mode, scale=0.6, opacity=0.5) for mode in ("classic", "antialiased"))
     assert antialiased == pytest.approx(classic, rel=0.005)
     assert antialiased < classic
+
+
+@pytest.mark.parametrize("mode", ["classic", "antialiased"])
+def test_each_mode_dilates_by_its_own_default(mode):
+    """Unset, eps2d is the mode's: gsplat's 0.3 px^2 classic, Mip-Splatting's 0.1 antialiased."""
+    assert DEFAULT_EPS2D == {"classic": 0.3, "antialiased": 0.1}
+    V, K = camera(distance=6.0, width=41, height=31)
+    params = [torch.zeros(1, 3, dtype=torch.float64), torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64),
+              torch.full((1, 3), 0.024, dtype=torch.float64), torch.tensor([1.0], dtype=torch.float64),
+              torch.ones(1, 3, dtype=torch.float64)]
+    drawn = {eps: rasterization(*params, V, K, 41, 31, eps2d=eps, rasterize_mode=mode, backend="cpu")[1]
+             for eps in (None, 0.1, 0.3)}
+    other = 0.3 if DEFAULT_EPS2D[mode] == 0.1 else 0.1
+    assert torch.equal(drawn[None], drawn[DEFAULT_EPS2D[mode]])
+    assert not torch.allclose(drawn[None], drawn[other], atol=1e-3)
+
+
+@pytest.mark.parametrize("eps2d", [-0.1, float("nan"), float("inf")])
+def test_a_dilation_that_is_not_a_finite_non_negative_area_is_refused(eps2d):
+    V, K = camera(width=41, height=31)
+    params = [torch.zeros(1, 3), torch.tensor([[1.0, 0, 0, 0]]), torch.full((1, 3), 0.02), torch.tensor([0.5]),
+              torch.ones(1, 3)]
+    with pytest.raises(RasterizationError, match="eps2d must be a finite dilation"):
+        rasterization(*params, V.float(), K.float(), 41, 31, eps2d=eps2d, backend="cpu")

@@ -181,19 +181,30 @@ def test_a_twin_written_before_shadow_receivers_keeps_its_shadows_on_the_backgro
 
 
 def test_the_twin_draws_its_gaussians_in_the_mode_they_were_fitted_in(trained, tmp_path):
-    """Trained antialiased, loaded antialiased (drawn classic, the same Gaussians render
-    otherwise); twins from before the option are classic; an unknown mode is named."""
+    """Trained antialiased, loaded antialiased with the mode's 0.1 px^2 dilation (drawn classic,
+    the same Gaussians render otherwise); twins from before the option are classic, twins from
+    before the modes' own dilations keep 0.3; an unknown mode or dilation is named."""
     twin = Twin.load(trained[1])
-    assert twin.graph.rasterize_mode == "antialiased"
+    assert twin.graph.rasterize_mode == "antialiased" and twin.graph.eps2d == 0.1
     antialiased = twin.render_frame(5).rgb
     twin.graph.rasterize_mode = "classic"
     assert np.abs(twin.render_frame(5).rgb.astype(int) - antialiased).max() > 8
     old = tmp_path / "old"
     shutil.copytree(trained[1], old)
     meta = json.loads((old / "twin.json").read_text())
+    del meta["eps2d"]
+    (old / "twin.json").write_text(json.dumps(meta))
+    older = Twin.load(old)
+    assert (older.graph.rasterize_mode, older.graph.eps2d) == ("antialiased", 0.3)
+    assert np.abs(older.render_frame(5).rgb.astype(int) - antialiased).max() > 2, "drawn with the twin's own dilation"
     del meta["rasterize_mode"]
     (old / "twin.json").write_text(json.dumps(meta))
-    assert Twin.load(old).graph.rasterize_mode == "classic"
+    assert (Twin.load(old).graph.rasterize_mode, Twin.load(old).graph.eps2d) == ("classic", 0.3)
+    meta["eps2d"] = -1
+    (old / "twin.json").write_text(json.dumps(meta))
+    with pytest.raises(TwinFormatError, match="eps2d -1 is not a finite dilation"):
+        Twin.load(old)
+    del meta["eps2d"]
     meta["rasterize_mode"] = "mip"
     (old / "twin.json").write_text(json.dumps(meta))
     with pytest.raises(TwinFormatError, match="rasterize_mode 'mip' is not one of"):
