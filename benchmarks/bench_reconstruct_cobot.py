@@ -135,17 +135,19 @@ def camera_like(simenv: Path, data: Path, sample: str, folder: Path, n: int) -> 
     depth, joints, calibration and truth are the sample's (``folder/robots`` links shared/robots,
     where the calibration's relative URDF path leads). Made once and kept; returns
     ``folder/data``, the copy's data folder."""
-    from benchmarks.bench_sim_shadow_map import recorder_jpeg_bytes, redraw_job  # here: torch stays out of --help
+    from benchmarks.bench_sim_shadow_map import recorder_jpeg_bytes, redraw_job, write_states  # keeps --help quick
 
     source, copy = data / sample, folder / "data" / sample
     if (copy / "episode_0.hdf5").is_file():
         return copy.parent
     gt = np.load(source / "episode_0.gt.npz")
+    spec = json.loads((source / "episode_0.objects.json").read_text())
     copy.parent.mkdir(parents=True, exist_ok=True)
     if not (folder / "robots").is_symlink():
         (folder / "robots").symlink_to(shared_dir() / "robots")
     drawn = folder / f"{sample}_drawn"
-    run_sim_jobs(simenv, [redraw_job(source, slice(None), folder / f"{sample}_states.npz", drawn, drawn / "render.json",
+    states = write_states(folder / f"{sample}_states.npz", gt, list(spec["objects"]), slice(None))
+    run_sim_jobs(simenv, [redraw_job(source, spec["task"], states, drawn, drawn / "render.json",
                                      "--supersample", str(n), "--workers", "2")], workers=1)
     quality = int(json.loads(str(gt["info"]))["args"]["jpeg_quality"])
     part = copy.parent / f"{sample}.part"

@@ -23,6 +23,7 @@ import json
 import sys
 import tempfile
 import time
+from collections.abc import Mapping
 from pathlib import Path
 
 import cv2
@@ -111,16 +112,19 @@ def recorded(sample: Path, frames: list[int]) -> dict[str, np.ndarray]:
     return out
 
 
-def redraw_job(sample: Path, frames: list[int] | slice, states: Path, render: Path, report: Path,
-               *options: str) -> SimJob:
-    """The job that draws ``sample``'s exact states at ``frames`` (its ground truth's joints, gaps
-    and object poses, written to ``states``) again with ``sim_render_bimanual_states.py`` (and its
-    further ``options``) into ``render``, reporting to ``report``."""
-    gt = np.load(sample / "episode_0.gt.npz")
-    spec = json.loads((sample / "episode_0.objects.json").read_text())
-    np.savez(states, q=gt["q"][frames], **{f"T_world_{k}": gt[f"T_world_{k}"][frames] for k in spec["objects"]})
+def write_states(path: Path, gt: Mapping[str, np.ndarray], objects: list[str], frames: list[int] | slice) -> Path:
+    """The ground truth ``gt``'s exact states at ``frames`` (joints with gaps, each of ``objects``'
+    poses) in ``path``, as ``sim_render_bimanual_states.py`` reads them; returns ``path``."""
+    np.savez(path, q=gt["q"][frames], **{f"T_world_{k}": gt[f"T_world_{k}"][frames] for k in objects})
+    return path
+
+
+def redraw_job(sample: Path, task: str, states: Path, render: Path, report: Path, *options: str) -> SimJob:
+    """The job that draws the ``states`` (:func:`write_states`) of ``sample``, a recording of
+    ``task``, again with ``sim_render_bimanual_states.py`` (and its further ``options``) into
+    ``render``, reporting to ``report``."""
     return SimJob(str(BENCH_DIR / "sim_render_bimanual_states.py"),
-                  (str(states), "--calib", str(sample / "episode_0.calib.json"), "--task", spec["task"],
+                  (str(states), "--calib", str(sample / "episode_0.calib.json"), "--task", task,
                    "--render", str(render), *options), report)
 
 
@@ -151,8 +155,9 @@ def main(argv: list[str] | None = None) -> int:
             spec = json.loads((sample / "episode_0.objects.json").read_text())
             manipulated = [k for k, o in spec["objects"].items() if o["role"] == "manipulated"]
             maps = {"scene": (), "fine": ("--shadow-map-px", str(args.map_px))}
-            jobs = [redraw_job(sample, frames, Path(tmp) / f"{name}_states.npz", Path(tmp) / f"{name}_{key}",
-                               Path(tmp) / f"{name}_{key}.json", *extra) for key, extra in maps.items()]
+            states = write_states(Path(tmp) / f"{name}_states.npz", gt, list(spec["objects"]), frames)
+            jobs = [redraw_job(sample, spec["task"], states, Path(tmp) / f"{name}_{key}", Path(tmp) / f"{name}_{key}.json",
+                               *extra) for key, extra in maps.items()]
             run_sim_jobs(simenv, jobs)
             map_px = {key: json.loads(job.report.read_text())["shadow_map_px"] for key, job in zip(maps, jobs)}
             quality = int(info["args"]["jpeg_quality"])

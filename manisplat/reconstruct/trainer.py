@@ -37,7 +37,7 @@ from manisplat.scene import ROBOT, GaussianSet, Node, SceneGraph
 from manisplat.scene.render import render_graph
 from manisplat.scene.shadows import DirectionalShadows, matched_resolution, search_direction, surface_casters
 from manisplat.geometry import se3_exp
-from manisplat.splat import DEFAULT_EPS2D, DefaultStrategy, value_checks
+from manisplat.splat import DEFAULT_EPS2D, GSPLAT_EPS2D, DefaultStrategy, value_checks
 from manisplat.splat.strategy import gradient_statistics
 from manisplat.splat.backends import resolve_backend
 
@@ -526,7 +526,7 @@ class Reconstruction:
         if trained != self.config.rasterize_mode:
             raise ValueError(f"the checkpoint was trained with --rasterize-mode {trained}, this run asks for "
                              f"{self.config.rasterize_mode}; resume with the same mode, or start a new run (--overwrite)")
-        dilation = state.get("eps2d", 0.3)  # checkpoints before the modes' own dilations: 0.3 in both
+        dilation = state.get("eps2d", GSPLAT_EPS2D)  # checkpoints before the modes' own dilations: gsplat's in both
         if dilation != self.graph.eps2d:
             raise ValueError(f"the checkpoint's splats were fitted with a {dilation:g} px^2 2D dilation, this version "
                              f"draws {trained} splats with {self.graph.eps2d:g}; start a new run (--overwrite)")

@@ -17,6 +17,7 @@ from manisplat.scene.gaussians import GaussianSet
 from manisplat.scene.placement import Activated, join, place_scene
 from manisplat.scene.shadows import DirectionalShadows, darken
 from manisplat.scene.transforms import transform_gaussians
+from manisplat.splat import GSPLAT_EPS2D
 
 BACKGROUND, ROBOT = 0, 1
 NORMAL_NEIGHBOURS = 12  # an object Gaussian's normal: the plane of its nearest centres (shaded receivers)
@@ -67,8 +68,8 @@ class SceneGraph:
         #: (:func:`manisplat.splat.rasterization`'s ``rasterize_mode``)
         self.rasterize_mode = "classic"
         #: the 2D dilation (px^2) they were fitted with (``rasterization``'s ``eps2d``; the mode's
-        #: :data:`manisplat.splat.DEFAULT_EPS2D` when trained, 0.3 in twins made before 2026-12-06)
-        self.eps2d = 0.3
+        #: :data:`manisplat.splat.DEFAULT_EPS2D` when trained, gsplat's in twins made before 2026-12-06)
+        self.eps2d = GSPLAT_EPS2D
         self._index_cache: tuple | None = None  # see _node_index
         self._normals: dict[str, torch.Tensor] = {}  # see object_normals
 

@@ -7,8 +7,8 @@ backward, the default on CPU) and "gsplat" (CUDA, optional). All follow gsplat's
 from manisplat.splat.backends import BACKENDS, BackendUnavailable, available_backends
 from manisplat.splat.ply import PlyFormatError, load_ply, save_ply
 from manisplat.splat.projection import Projection, opencv_to_splat_K, project_gaussians
-from manisplat.splat.rasterization import (DEFAULT_EPS2D, RASTERIZE_MODES, RENDER_MODES, RasterizationError, rasterization,
-                                           value_checks)
+from manisplat.splat.rasterization import (DEFAULT_EPS2D, GSPLAT_EPS2D, RASTERIZE_MODES, RENDER_MODES, RasterizationError,
+                                           rasterization, value_checks)
 from manisplat.splat.sh import num_sh_bases, spherical_harmonics
 from manisplat.splat.strategy import DefaultStrategy
 
@@ -17,6 +17,7 @@ __all__ = [
     "BackendUnavailable",
     "DEFAULT_EPS2D",
     "DefaultStrategy",
+    "GSPLAT_EPS2D",
     "PlyFormatError",
     "Projection",
     "RASTERIZE_MODES",

@@ -3,8 +3,8 @@ backends, so gradients to means, quaternions, scales and opacities come from aut
 
 Conventions follow gsplat: ``viewmats`` map world to camera (OpenCV axes), ``Ks`` are pinhole
 intrinsics whose pixel (i, j) is sampled at (j + 0.5, i + 0.5); a dilation ``eps2d`` (0.3 px^2
-unless given) is added to every 2D covariance; x/z and y/z are clamped (principal-point aware, 0.3 tan(fov/2) beyond the
-image) when building the Jacobian only; splats outside [near, far], with a non-positive 2D
+unless given) is added to every 2D covariance; x/z and y/z are clamped (principal-point aware,
+0.3 tan(fov/2) beyond the image) when building the Jacobian only; splats outside [near, far], with a non-positive 2D
 determinant, an opacity below 1/255 or a box that misses the image are culled (radius 0).
 The per-axis box is the opacity-aware 3.33-sigma extent: it holds every pixel where
 ``opacity * exp(-sigma) >= 1/255``.

@@ -20,12 +20,14 @@ from manisplat.splat.sh import num_sh_bases, spherical_harmonics
 
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 RASTERIZE_MODES = ("classic", "antialiased")
+#: gsplat's 2D dilation (px^2) in both of its modes, and so every mode's here before 2026-12-06
+GSPLAT_EPS2D = 0.3
 #: each rasterize mode's 2D dilation ``eps2d`` (px^2, added to every splat's screen covariance):
 #: classic keeps gsplat's 0.3, which holds a splat at least about a pixel wide at full opacity;
 #: antialiased uses Mip-Splatting's 2D filter, 0.1 (a one-pixel box filter's Gaussian stand-in).
 #: At 0.3 the antialiased twin of the camera-like Cobot Magic dual sample, trained on all three
 #: cameras, drew the head camera's objects 27.3 dB, at 0.1 28.1 (docs/benchmarks.md).
-DEFAULT_EPS2D = {"classic": 0.3, "antialiased": 0.1}
+DEFAULT_EPS2D = {"classic": GSPLAT_EPS2D, "antialiased": 0.1}
 
 
 class RasterizationError(ValueError):

@@ -31,7 +31,7 @@ from manisplat.robot import RobotModel, load_robot
 from manisplat.robot.arms import ArmSet
 from manisplat.scene import GaussianSet, SceneGraph
 from manisplat.scene.shadows import DirectionalShadows
-from manisplat.splat import RASTERIZE_MODES
+from manisplat.splat import GSPLAT_EPS2D, RASTERIZE_MODES
 from manisplat.twin.commands import CommandRelation
 from manisplat.twin.rig import BASE_FRAME, TwinArm, TwinCamera, one_arm
 from manisplat.twin.support import SupportMap
@@ -146,7 +146,7 @@ def load_twin(folder: Path, *, backend: str = "auto", device: torch.device | str
     graph.rasterize_mode = meta.get("rasterize_mode", "classic")  # twins before the option: classic
     if graph.rasterize_mode not in RASTERIZE_MODES:
         raise TwinFormatError(f"{folder / TWIN_JSON}: rasterize_mode {graph.rasterize_mode!r} is not one of {RASTERIZE_MODES}")
-    graph.eps2d = meta.get("eps2d", 0.3)  # twins before the modes' own dilations: 0.3 in both
+    graph.eps2d = meta.get("eps2d", GSPLAT_EPS2D)  # twins before the modes' own dilations: gsplat's in both
     if not (isinstance(graph.eps2d, (int, float)) and math.isfinite(graph.eps2d) and graph.eps2d >= 0):
         raise TwinFormatError(f"{folder / TWIN_JSON}: eps2d {graph.eps2d!r} is not a finite dilation >= 0 px^2")
     if meta["shadows"] is not None:
