@@ -61,7 +61,9 @@ class _Claim:
         if self.partial.is_dir():
             shutil.rmtree(self.partial)
         self.partial.unlink(missing_ok=True)
-        self.pid_file.write_text(str(os.getpid()))
+        written = self.pid_file.with_name(self.pid_file.name + ".tmp")
+        written.write_text(str(os.getpid()))
+        os.replace(written, self.pid_file)  # whoever sees the pid file reads a whole pid
         return self.partial
 
     def __exit__(self, exc_type: Any, *_: Any) -> None:
