@@ -33,6 +33,7 @@ from benchmarks._testset import test_set
 from manisplat.align.tracking import TrackerSettings
 from manisplat.reconstruct.data import load_episode_data, load_ground_truth
 from manisplat.reconstruct.init import object_gaussians
+from manisplat.reconstruct.masks import object_carrier
 from manisplat.reconstruct.metrics import pose_errors, start_anchored_errors
 from manisplat.reconstruct.pipeline import align_object
 from manisplat.reconstruct.plan import make_plan
@@ -78,7 +79,7 @@ def run(ctx: BenchContext) -> list[dict[str, Any]]:
         points = gaussians.params["means"].detach().double().numpy()
         gt = load_ground_truth(episode)[f"T_base_{obj.name}"]
         for variant, parts in VARIANTS.items():
-            alignment = align_object(data, obj.label, T_start.numpy(), data.tcp.double().numpy(), data.gripper.numpy(),
+            alignment = align_object(data, obj.label, T_start.numpy(), object_carrier(data, T_start[:3, 3].numpy()),
                                      moves=True, model_points=points if parts.model_points else None,
                                      settings=parts.tracker, rest_from_depth=parts.rest, slip_from_depth=parts.slip,
                                      support_from_depth=parts.support)

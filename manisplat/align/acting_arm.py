@@ -99,15 +99,22 @@ def carrier_track(tcp: dict[str, np.ndarray], gripper: dict[str, np.ndarray], ho
     Args:
         tcp: arm -> TCP poses [T, 4, 4]; gripper: arm -> opening [T] (m).
     """
-    first = holds[0].arm
-    track, width = np.array(tcp[first], np.float64), np.array(gripper[first], np.float64)
+    track = np.array(tcp[holds[0].arm], np.float64)
     for hold in holds[1:]:
         s = hold.start
         own = np.asarray(tcp[hold.arm], np.float64)
         carry = np.linalg.inv(own[s]) @ track[s]  # the track in the taker's TCP frame at s
         track[s:] = own[s:] @ carry
-        width[s:] = np.asarray(gripper[hold.arm], np.float64)[s:]
-    return track, width
+    return track, holders_values(gripper, holds)
 
 
-__all__ = ["HANDOVER_REACH", "Hold", "acting_arm", "carrier_track", "holds"]
+def holders_values(values: dict[str, np.ndarray], holds: list[Hold]) -> np.ndarray:
+    """[T] each frame's value of the arm holding the object then (``values``: arm -> [T], e.g. its
+    gripper's opening or effort): the first holder's until the next takes over, and so on."""
+    out = np.array(values[holds[0].arm], np.float64)
+    for hold in holds[1:]:
+        out[hold.start:] = np.asarray(values[hold.arm], np.float64)[hold.start:]
+    return out
+
+
+__all__ = ["HANDOVER_REACH", "Hold", "acting_arm", "carrier_track", "holders_values", "holds"]

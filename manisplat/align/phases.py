@@ -43,11 +43,21 @@ class GripperEvents:
     release: int | None
 
 
-def gripper_events(width: np.ndarray, *, min_change: float = 0.005) -> list[GripperEvents]:
+SQUEEZE_END = 0.25
+"""A grip has ended where the gripper's effort falls below this share of its hold (the median
+effort between the grasp and the opening's release)."""
+
+
+def gripper_events(width: np.ndarray, *, min_change: float = 0.005,
+                   effort: np.ndarray | None = None) -> list[GripperEvents]:
     """Grasps and releases in a gripper-width track [T] (m).
 
     A grasp is the first frame after the gripper starts closing by more than ``min_change`` from
-    its recent maximum; the release is the first frame after it opens by that much again.
+    its recent maximum; the release is the first frame after it opens by that much again. With
+    the gripper's ``effort`` [T] (as recorded: its sign and units do not matter, only its size
+    against the hold's) the release is the first frame the pads no longer squeeze
+    (:func:`squeeze_end`): the object is let go as the motor stops pressing, a frame or two
+    before the pads have opened by ``min_change``.
     """
     events, i, n = [], 0, len(width)
     while i < n:
@@ -63,9 +73,31 @@ def gripper_events(width: np.ndarray, *, min_change: float = 0.005) -> list[Grip
         while k < n and width[k] < low + min_change:
             low = min(low, width[k])
             k += 1
-        events.append(GripperEvents(grasp=j, release=k if k < n else None))
+        release = k if k < n else None
+        if effort is not None and release is not None:
+            release = squeeze_end(effort, j, release)
+        events.append(GripperEvents(grasp=j, release=release))
         i = k
     return events
+
+
+def squeeze_end(effort: np.ndarray, grasp: int, release: int) -> int:
+    """The frame the pads stopped squeezing an object held from ``grasp`` and let go, by the
+    opening, at ``release``: the frame after the last one whose effort [T] (absolute) was at
+    least :data:`SQUEEZE_END` of the hold's (its median over the grasp). ``release`` where the
+    effort does not show the squeeze (not finite there, or no hold above zero)."""
+    held = np.abs(np.asarray(effort[grasp:release], np.float64))
+    if not len(held) or not np.isfinite(held).all() or (hold := float(np.median(held))) <= 0.0:
+        log.info("grasp at frame %d: the gripper's effort shows no squeeze; released where the pads opened (frame %d)",
+                 grasp, release)
+        return release
+    pressing = np.flatnonzero(held >= SQUEEZE_END * hold)
+    end = grasp + int(pressing[-1]) + 1
+    if end < release:
+        log.info("grasp at frame %d: the pads stopped squeezing at frame %d (effort under %.0f %% of the hold's "
+                 "%.3g), %d frame(s) before the opening showed the release", grasp, end, 100 * SQUEEZE_END,
+                 hold, release - end)
+    return end
 
 
 def interval_around(d: np.ndarray, frame: int, tau: float, leave: float) -> tuple[int, int] | None:
@@ -91,13 +123,15 @@ def segment_phases(
     tau: float = DEFAULT_TAU,
     hysteresis: float = HYSTERESIS,
     min_duration: int = 3,
+    effort: np.ndarray | None = None,
 ) -> list[Segment]:
     """Phases of an episode from TCP positions [T, 3], gripper widths [T] and the object's
-    resting position [3] at the start (all in the base frame, m)."""
+    resting position [3] at the start (all in the base frame, m); the gripper's ``effort`` [T]
+    where recorded (:func:`gripper_events`)."""
     T = len(tcp)
     leave = tau * hysteresis
     skills: list[tuple[int, int, str]] = []
-    events = gripper_events(gripper)
+    events = gripper_events(gripper, effort=effort)
     if events:
         for event in events:
             # the object is held between grasp and release: it sits at the TCP plus the grasp offset

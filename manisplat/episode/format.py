@@ -26,6 +26,9 @@ JOINT_COLUMNS = ("t", *Q_COLUMNS, "gripper")
 """Required leading columns of ``joints.csv``; optional extra columns may follow."""
 ACTION_COLUMNS = ("a1", "a2", "a3", "a4", "a5", "a6", "a_gripper")
 """Optional ``frames.csv`` columns holding the commanded (leader-arm) action at ``t``."""
+GRIPPER_EFFORT_COLUMN = "gripper_effort"
+"""Optional ``frames.csv`` column (``<arm>.gripper_effort`` in version 2): the gripper motor's effort
+at ``t`` as the arm reports it (PiPER: N*m; only its size against the grip's hold is read)."""
 
 V1_ARM = "arm"
 """The name the reader gives the one arm of a version 1 episode (``ep.arms``, ``ep.arm_frames``)."""

@@ -13,7 +13,7 @@ import torch
 from tqdm import tqdm
 
 from manisplat.episode import CameraInfo, Episode
-from manisplat.episode.format import V1_ARM, WORLD_MOUNT
+from manisplat.episode.format import GRIPPER_EFFORT_COLUMN, V1_ARM, WORLD_MOUNT
 from manisplat.episode.images import StoredChroma, describe_chroma
 from manisplat.geometry import matrix_to_quat
 from manisplat.reconstruct.lens import undistortion_for
@@ -129,6 +129,9 @@ class EpisodeData:
             (:meth:`~manisplat.episode.reader.Episode.chroma_subsampling`), or None where unknown:
             renders are compared with the images after the same (:mod:`manisplat.reconstruct.chroma`;
             after undistortion, an approximation of it).
+        gripper_effort: arm -> its gripper's effort [T] at the frames' joint times as recorded
+            (``frames.csv``'s ``gripper_effort`` column, before any retiming), for the arms that
+            record one; read through :meth:`arm_gripper_effort`.
         riding_cameras: the episode's cameras that ride on a link, whether trained or not: name ->
             (the link as the robot names it, ``T_link_cam`` [4, 4] float64); their bodies are
             looked for in this camera's depth (:mod:`manisplat.reconstruct.camera_bodies`).
@@ -169,6 +172,7 @@ class EpisodeData:
     commands: CommandRelation | None = None
     chroma_subsampling: StoredChroma | None = None
     riding_cameras: dict[str, tuple[str, torch.Tensor]] = field(default_factory=dict)
+    gripper_effort: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def n_frames(self) -> int:
@@ -208,6 +212,15 @@ class EpisodeData:
     def arm_gripper(self, arm: str) -> torch.Tensor:
         """[T] the gripper opening of ``arm`` (m)."""
         return self.gripper[:, self.arm_names.index(arm)] if isinstance(self.robot, ArmSet) else self.gripper
+
+    def arm_gripper_effort(self, arm: str) -> np.ndarray | None:
+        """[T] float64 the gripper effort of ``arm`` at each frame's joint time (``t + time_offset_s``,
+        as ``gripper``), or None where the episode records none."""
+        effort = self.gripper_effort.get(arm)
+        if effort is None or self.time_offset_s == 0.0:
+            return effort
+        t = self.t.cpu().numpy()
+        return np.interp(t + self.time_offset_s, t, effort)
 
     def tcp_poses(self) -> torch.Tensor:
         """[T, A, 4, 4] every arm's TCP (one arm: A = 1)."""
@@ -296,7 +309,7 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, camera: str
         if masks is not None:
             masks[i] = torch.from_numpy(label_image)
     if several:
-        model, t, q, gripper, stream = _arms_of(episode, robot, load_meshes, episode.camera_times(view))
+        model, t, q, gripper, stream, effort = _arms_of(episode, robot, load_meshes, episode.camera_times(view))
         arms = tuple(TwinArm(name, resolve_description(robot or arm.description, episode.path), arm.model,
                              tuple(arm.joint_names), arm.T_world_base) for name, arm in episode.arms.items())
     else:
@@ -304,6 +317,7 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, camera: str
         model = load_robot(description, base_dir=episode.path, load_meshes=load_meshes)
         frames = episode.frames
         t, q, gripper = frames.t, frames.q, frames.gripper
+        effort = {V1_ARM: frames.extra[GRIPPER_EFFORT_COLUMN]} if GRIPPER_EFFORT_COLUMN in frames.extra else {}
         joints = episode.joints()
         stream = None if joints is None else JointStream(joints.t, joints.q, joints.gripper)
         arms = (one_arm(resolve_description(description, episode.path), episode.meta.robot.model,
@@ -345,6 +359,7 @@ def load_episode_data(path: str | Path, *, robot: str | None = None, camera: str
         riding_cameras={c.name: (c.mount, torch.as_tensor(c.T_mount_cam, dtype=torch.float64))
                         for c in episode.cameras.values() if c.mount not in ("base", WORLD_MOUNT)
                         and c.T_mount_cam is not None and c.mount in model.link_names} if several else {},
+        gripper_effort=effort,
     )
     if not fixed:
         _place_riding_camera(data, q, gripper)
@@ -372,10 +387,11 @@ def _camera_of(episode: Episode, name: str | None) -> CameraInfo:
 
 
 def _arms_of(episode: Episode, robot: str | None, load_meshes: bool, camera_times: np.ndarray):
-    """(ArmSet, t [T], q [T, sum of dof], gripper [T, A], joint streams or None) of
-    an episode with several arms or cameras, seen by a camera whose frames were exposed at
-    ``camera_times`` [T] s: where they are not the frames' times (a camera of a rig, stamped on its
-    own), the joints are read at them, from the joint streams or between the frames."""
+    """(ArmSet, t [T], q [T, sum of dof], gripper [T, A], joint streams or None, arm -> gripper
+    effort [T] where recorded) of an episode with several arms or cameras, seen by a camera whose
+    frames were exposed at ``camera_times`` [T] s: where they are not the frames' times (a camera
+    of a rig, stamped on its own), the joints are read at them, from the joint streams or between
+    the frames (the efforts between the frames)."""
     models, bases = {}, {}
     for name, arm in episode.arms.items():
         if arm.T_world_base is None:
@@ -387,6 +403,8 @@ def _arms_of(episode: Episode, robot: str | None, load_meshes: bool, camera_time
     t = next(iter(tables.values())).t
     q = np.concatenate([table.q for table in tables.values()], 1)
     gripper = np.stack([table.gripper for table in tables.values()], 1)
+    effort = {name: table.extra[GRIPPER_EFFORT_COLUMN] for name, table in tables.items()
+              if GRIPPER_EFFORT_COLUMN in table.extra}
     joints = {name: episode.joints(name) for name in episode.arms}
     stream = None if any(j is None for j in joints.values()) else \
         ArmStreams({name: JointStream(j.t, j.q, j.gripper) for name, j in joints.items()})
@@ -396,8 +414,9 @@ def _arms_of(episode: Episode, robot: str | None, load_meshes: bool, camera_time
         else:
             q = np.stack([np.interp(camera_times, t, q[:, j]) for j in range(q.shape[1])], 1)
             gripper = np.stack([np.interp(camera_times, t, gripper[:, a]) for a in range(gripper.shape[1])], 1)
+        effort = {name: np.interp(camera_times, t, values) for name, values in effort.items()}
         t = camera_times
-    return ArmSet(models, bases), t, q, gripper, stream
+    return ArmSet(models, bases), t, q, gripper, stream, effort
 
 
 def _place_riding_camera(data: EpisodeData, q: torch.Tensor, gripper: torch.Tensor) -> None:

@@ -21,8 +21,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from manisplat.align.acting_arm import Hold, carrier_track, holds
-from manisplat.align.phases import gripper_events
+from manisplat.align.acting_arm import Hold, carrier_track, holders_values, holds
+from manisplat.align.phases import GripperEvents, gripper_events
 from manisplat.align.pseudo_gt import kinematic_prior
 from manisplat.reconstruct.data import EpisodeData, Labels, ReconstructionInputError
 from manisplat.reconstruct.init import link_gaussians
@@ -274,8 +274,8 @@ def follow_object_masks(data: EpisodeData, robot_masks: torch.Tensor, first: np.
     grow = grow or max(3, W // 40)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow + 1, 2 * grow + 1))
     model = backproject_pixels(data.depth[0].numpy(), first, data)
-    track, width, _ = object_carrier(data, model.mean(0))
-    prior, _ = kinematic_prior(np.eye(4), track, gripper_events(width))
+    carrier = object_carrier(data, model.mean(0))
+    prior, _ = kinematic_prior(np.eye(4), carrier.track, carrier.events())
     out = np.zeros((data.n_frames, H, W), dtype=bool)
     out[0] = first
     for f in range(1, data.n_frames):
@@ -294,18 +294,39 @@ def follow_object_masks(data: EpisodeData, robot_masks: torch.Tensor, first: np.
     return out
 
 
-def object_carrier(data: EpisodeData, start: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[Hold]]:
-    """The tool track that moves an object starting at ``start`` [3] (m, base/world frame):
-    (TCP poses [T, 4, 4], gripper opening [T] m, who holds it when). One arm: its own TCP and
-    gripper. Several: the arm that handles it, carried on by each arm that takes it over
-    (:func:`~manisplat.align.acting_arm.carrier_track`)."""
+@dataclass(frozen=True)
+class Carrier:
+    """The tool track that moves an object: ``track`` [T, 4, 4] TCP poses, the ``width`` [T] (m)
+    and, where every arm that holds it records one, the ``effort`` [T] of the gripper holding it,
+    and who ``holds`` it when."""
+
+    track: np.ndarray
+    width: np.ndarray
+    effort: np.ndarray | None
+    holds: list[Hold]
+
+    def events(self) -> list[GripperEvents]:
+        """The grasps and releases of the gripper that holds it (:func:`~manisplat.align.phases.gripper_events`)."""
+        return gripper_events(self.width, effort=self.effort)
+
+
+def object_carrier(data: EpisodeData, start: np.ndarray) -> Carrier:
+    """The :class:`Carrier` of an object starting at ``start`` [3] (m, base/world frame). One arm:
+    its own TCP and gripper. Several: the arm that handles it, carried on by each arm that takes
+    it over (:func:`~manisplat.align.acting_arm.carrier_track`)."""
+    efforts = {a: data.arm_gripper_effort(a) for a in data.arm_names}
     if len(data.arm_names) == 1:
         arm = data.arm_names[0]
-        return data.arm_tcp(arm).double().cpu().numpy(), data.arm_gripper(arm).double().cpu().numpy(), [Hold(arm, 0)]
+        return Carrier(data.arm_tcp(arm).double().cpu().numpy(), data.arm_gripper(arm).double().cpu().numpy(),
+                       efforts[arm], [Hold(arm, 0)])
     tcp = {a: data.arm_tcp(a).double().cpu().numpy() for a in data.arm_names}
     width = {a: data.arm_gripper(a).double().cpu().numpy() for a in data.arm_names}
     order = holds({a: T[:, :3, 3] for a, T in tcp.items()}, width, start)
-    return (*carrier_track(tcp, width, order), order)
+    track, carried_width = carrier_track(tcp, width, order)
+    effort = None
+    if all(efforts[h.arm] is not None for h in order):
+        effort = holders_values({h.arm: efforts[h.arm] for h in order}, order)
+    return Carrier(track, carried_width, effort, order)
 
 
 def _splat_points(points: np.ndarray, data: EpisodeData) -> np.ndarray:

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import torch
 
-from manisplat.align.phases import DEFAULT_TAU, GripperEvents, Segment, gripper_events, segment_phases
+from manisplat.align.phases import DEFAULT_TAU, GripperEvents, Segment, segment_phases
 from manisplat.align.pseudo_gt import (ATTACHED, STATIC, PseudoPoses, hybrid_pseudo_poses, make_tracker,
                                       tracked_baseline)
 from manisplat.align.surface_fit import ModelViews
@@ -23,7 +23,7 @@ from manisplat.reconstruct.fusion import (CameraConsensus, EpisodeSpan, JoinedAl
                                           spans_of)
 from manisplat.reconstruct.init import (background_gaussians, canonical_object_points, link_gaussians,
                                         object_close_up_points, object_model, object_points)
-from manisplat.reconstruct.masks import (draw_view_object_masks, draw_view_robot_masks, object_carrier,
+from manisplat.reconstruct.masks import (Carrier, draw_view_object_masks, draw_view_robot_masks, object_carrier,
                                          redraw_robot_masks)
 from manisplat.reconstruct.plan import Plan
 from manisplat.reconstruct.poses import ObjectTrajectory
@@ -103,11 +103,11 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
         *seen[obj.name], T_start = canonical_object_points(data, obj.label, 0, table_z=table_z)
         gaussians = objects[obj.name] = object_model(*seen[obj.name], sh_degree=config.sh_degree)
         model = object_view(gaussians, data) if data.depth is None or masks_from_model else None
-        track, width, held_by = object_carrier(data, T_start[:3, 3].double().numpy())
+        carrier = object_carrier(data, T_start[:3, 3].double().numpy())
         if len(data.arm_names) > 1:
             log.info("object %s: handled by arm %s", obj.name,
-                     ", then ".join(f"{h.arm} (from frame {h.start})" if h.start else h.arm for h in held_by))
-        alignment = align_object(data, obj.label, T_start.numpy(), track, width, moves=obj.moves, tau=tau, model=model,
+                     ", then ".join(f"{h.arm} (from frame {h.start})" if h.start else h.arm for h in carrier.holds))
+        alignment = align_object(data, obj.label, T_start.numpy(), carrier, moves=obj.moves, tau=tau, model=model,
                                  masks_from_model=masks_from_model,
                                  model_points=gaussians.params["means"].detach().double().cpu().numpy(),
                                  observe=frozenset(plan.test_frames))
@@ -203,9 +203,8 @@ def build_fused(datas: list[EpisodeData], plans: list[Plan], config: TrainConfig
         parts = []
         for d, p, span, T_start in zip(datas, plans, spans, starts):
             log.info("%s: aligning %s", span.name, obj.name)
-            track, width, _ = object_carrier(d, T_start[:3, 3])
-            parts.append(align_object(d, obj.label, T_start, track, width, moves=obj.moves, tau=tau,
-                                      model_points=model_points, views=views,
+            parts.append(align_object(d, obj.label, T_start, object_carrier(d, T_start[:3, 3]), moves=obj.moves,
+                                      tau=tau, model_points=model_points, views=views,
                                       observe=frozenset(p.test_frames)))
         alignments[obj.name] = join_alignments(parts, spans)
         trajectories[obj.name] = ObjectTrajectory(alignments[obj.name].pseudo.poses, alignments[obj.name].pseudo.source,
@@ -268,8 +267,7 @@ def default_robot_gaussians(data: EpisodeData) -> int:
     return int(min(max(W * H // 4, 2_000), 20_000))
 
 
-def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.ndarray, width: np.ndarray, *,
-                 moves: bool,
+def align_object(data: EpisodeData, label: int, T_start: np.ndarray, carrier: Carrier, *, moves: bool,
                  tau: float = DEFAULT_TAU, model: ObjectView | None = None,
                  masks_from_model: bool = False, model_points: np.ndarray | None = None,
                  settings: TrackerSettings = TrackerSettings(),
@@ -277,8 +275,9 @@ def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.nda
                  slip_from_depth: bool = True, support_from_depth: bool = True,
                  views: ModelViews | None = None) -> ObjectAlignment:
     """Phases, hybrid pseudo poses and (for moving objects) the tracking-only baseline, with the
-    tool track that handles the object: ``tcp`` [T, 4, 4] T_base_tcp and the gripper ``width`` [T] m
-    (one arm's, or :func:`~manisplat.reconstruct.masks.object_carrier`'s through handovers).
+    tool track that handles the object (:func:`~manisplat.reconstruct.masks.object_carrier`: one
+    arm's TCP and gripper, or the holders' through handovers; its grasps and releases from the
+    gripper's opening and, where recorded, its effort: :func:`~manisplat.align.phases.gripper_events`).
 
     ``model`` stands in for the depth (monocular) and, with ``masks_from_model``, for the masks
     of frames after the first. ``model_points`` [M, 3] (object frame) enable the grasp's
@@ -294,8 +293,9 @@ def align_object(data: EpisodeData, label: int, T_start: np.ndarray, tcp: np.nda
     that see it from near where ``model_points`` were seen (``views``; default: this episode's
     first frame, ``T_start``).
     """
-    events = gripper_events(width)
-    segments = segment_phases(tcp[:, :3, 3], width, T_start[:3, 3], tau=tau)
+    tcp, width = carrier.track, carrier.width
+    events = carrier.events()
+    segments = segment_phases(tcp[:, :3, 3], width, T_start[:3, 3], tau=tau, effort=carrier.effort)
     if not moves:
         poses = np.repeat(T_start[None], data.n_frames, axis=0)
         pseudo = PseudoPoses(poses, ["static"] * data.n_frames, np.zeros(data.n_frames, dtype=bool))

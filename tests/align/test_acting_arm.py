@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from manisplat.align.acting_arm import Hold, acting_arm, carrier_track, holds
+from manisplat.align.acting_arm import Hold, acting_arm, carrier_track, holders_values, holds
 
 T = 60
 OPEN, CLOSED = 0.07, 0.03
@@ -100,3 +100,10 @@ def test_the_carrier_track_moves_a_handed_over_object_as_one_grasp() -> None:
     np.testing.assert_allclose(relative, np.broadcast_to(relative[0], relative.shape), atol=1e-12)
     np.testing.assert_array_equal(width[33:], gripper["right"][33:])
     np.testing.assert_array_equal(width[:33], gripper["left"][:33])
+
+
+def test_each_frame_takes_the_value_of_the_arm_holding_the_object_then() -> None:
+    effort = {"left": np.full(T, -1.0), "right": np.full(T, -2.0)}
+    spliced = holders_values(effort, [Hold("left", 0), Hold("right", 33)])
+    np.testing.assert_array_equal(spliced, np.r_[np.full(33, -1.0), np.full(T - 33, -2.0)])
+    np.testing.assert_array_equal(holders_values(effort, [Hold("right", 0)]), effort["right"])

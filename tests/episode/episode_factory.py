@@ -95,9 +95,10 @@ def jpeg_rows(images: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], dic
 def write_act(path: Path, *, arms: int = 2, compress: bool = False, depth: bool = True,
               cameras: tuple[str, ...] = ("cam_high", "cam_left_wrist")) -> dict[str, Any]:
     """An ACT / Cobot Magic HDF5 file of ``ACT_FRAMES`` 32x24 frames; returns what it holds
-    (``qpos``, ``action``, ``depth`` and ``images[cam]``, the arrays a reader gets back)."""
+    (``qpos``, ``action``, ``effort``, ``depth`` and ``images[cam]``, the arrays a reader gets back)."""
     T, rng, cols = ACT_FRAMES, np.random.default_rng(0), 7 * arms
     data = {"qpos": rng.uniform(-1, 1, (T, cols)), "action": rng.uniform(-1, 1, (T, cols)),
+            "effort": rng.uniform(-1, 1, (T, cols)),
             "images": {c: rng.integers(0, 256, (T, H, W, 3), dtype=np.uint8) for c in cameras},
             "depth": rng.integers(1, 3000, (T, H, W), dtype=np.uint16)}
     with h5py.File(path, "w") as f:
@@ -106,7 +107,7 @@ def write_act(path: Path, *, arms: int = 2, compress: bool = False, depth: bool 
         obs = f.create_group("observations")
         obs["qpos"] = data["qpos"]
         obs["qvel"] = np.zeros((T, cols))
-        obs["effort"] = np.zeros((T, cols))
+        obs["effort"] = data["effort"]
         f["action"] = data["action"]
         images = obs.create_group("images")
         if compress:  # ALOHA style: JPEG bytes padded to the longest, plus compress_len

@@ -29,6 +29,7 @@ def test_dual_arm(tmp_path, compress, arm):
     assert np.array_equal(ep.frames.q, qpos[:, :6]) and np.array_equal(ep.frames.gripper, qpos[:, 6] * 0.5)
     assert np.array_equal(ep.frames.actions[:, :6], action[:, :6])
     assert np.array_equal(ep.frames.actions[:, 6], action[:, 6] * 0.5)
+    assert np.array_equal(ep.frames.extra["gripper_effort"], data["effort"][:, cols][:, 6])  # the gripper's, as stored
     for i in range(T):
         assert np.array_equal(ep.rgb(i), data["images"]["cam_high"][i])  # stored arrays are RGB
     assert ep.meta.depth_scale == 0.001

@@ -42,11 +42,12 @@ CALIB = {
 
 
 def write_cobot(path, *, compress: bool, dtype: str = "float64") -> dict:
-    """A Cobot Magic HDF5 file of T frames: (T, 14) qpos and action, three 32x24 cameras (JPEG rows
+    """A Cobot Magic HDF5 file of T frames: (T, 14) qpos, effort and action, three 32x24 cameras (JPEG rows
     padded with zeros plus compress_len when ``compress``), depth for cam_high only. Returns the
     arrays a reader must get back (decoded images for compressed files)."""
     rng = np.random.default_rng(7)
     data = {"qpos": rng.uniform(-2, 2, (T, 14)).astype(dtype), "action": rng.uniform(-2, 2, (T, 14)).astype(dtype),
+            "effort": rng.uniform(-1, 1, (T, 14)).astype(dtype),
             "images": {c: rng.integers(0, 256, (T, H, W, 3), dtype=np.uint8) for c in CAMERAS},
             "depth": rng.integers(1, 3000, (T, H, W), dtype=np.uint16)}
     data["qpos"][:, [6, 13]] = rng.uniform(0, 0.07, (T, 2)).astype(dtype)
@@ -54,6 +55,7 @@ def write_cobot(path, *, compress: bool, dtype: str = "float64") -> dict:
         f.attrs["sim"], f.attrs["compress"] = True, compress
         f["observations/qpos"] = data["qpos"]
         f["observations/qvel"] = np.zeros((T, 14))
+        f["observations/effort"] = data["effort"]
         f["action"] = data["action"]
         if compress:
             rows, data["images"], lengths = jpeg_rows(data["images"])
@@ -94,6 +96,7 @@ def test_import_every_arm_and_camera(tmp_path, capsys, compress, dtype):
         table = ep.arm_frames(arm)
         assert np.array_equal(table.q, qpos[:, cols][:, :6]) and np.array_equal(table.gripper, qpos[:, cols][:, 6])
         assert np.array_equal(table.actions, action[:, cols])
+        assert np.array_equal(table.extra["gripper_effort"], data["effort"][:, cols][:, 6].astype(np.float64))
     header = (out / "frames.csv").read_text().split("\n")[0].split(",")
     rows = np.array([[float(v) for v in line.split(",")] for line in (out / "frames.csv").read_text().split("\n")[1:-1]])
     assert np.array_equal(rows[:, header.index("right.q4")], qpos[:, 10])  # the text itself reads back exactly

@@ -32,6 +32,42 @@ def test_gripper_events():
     assert gripper_events(np.full(50, 0.07)) == []
 
 
+def squeeze(T=120, hold=-0.9):
+    """The effort of pick_and_place's gripper: squeezing from frame 40, easing off as its command
+    opens from frame 88 (under a quarter of the hold from 91), the pads parting from 92."""
+    effort = np.zeros(T)
+    effort[40:46] = np.linspace(0.0, hold, 6)
+    effort[46:88] = hold
+    effort[88:92] = hold * np.array([0.8, 0.5, 0.3, 0.1])
+    effort[92:95] = [0.05, -0.01, 0.0]
+    return effort
+
+
+def test_the_release_is_where_the_pads_stop_squeezing(caplog):
+    _, grip, _ = pick_and_place()
+    (by_opening,) = gripper_events(grip)
+    with caplog.at_level(logging.INFO):
+        (by_effort,) = gripper_events(grip, effort=squeeze())
+    assert by_effort.grasp == by_opening.grasp and by_opening.release == 93
+    assert by_effort.release == 91, "the first frame whose effort is under a quarter of the hold's"
+    assert "stopped squeezing at frame 91" in caplog.text
+    (by_size,) = gripper_events(grip, effort=-2 * squeeze())  # the sign and the units do not matter
+    assert by_size.release == 91
+
+
+def test_an_effort_that_shows_no_squeeze_leaves_the_opening_s_release(caplog):
+    _, grip, _ = pick_and_place()
+    with caplog.at_level(logging.INFO):
+        assert gripper_events(grip, effort=np.zeros(120))[0].release == 93
+        assert "shows no squeeze" in caplog.text
+        gaps = squeeze()
+        gaps[60] = np.nan
+        assert gripper_events(grip, effort=gaps)[0].release == 93
+    late = squeeze()
+    late[88:95] = -0.9  # still squeezing while the pads part: the opening's release stands
+    assert gripper_events(grip, effort=late)[0].release == 93
+
+
 def test_pick_and_place_gives_the_five_phases_in_order():
     tcp, grip, obj0 = pick_and_place()
     segments = segment_phases(tcp, grip, obj0, tau=0.08)

@@ -4,7 +4,8 @@ Layout (``shared/reference/augmentation.md`` section 5.3)::
 
     attrs: sim (bool), compress (bool)
     /observations/qpos          (T, 14) [left 6 joints, left gripper, right 6, right gripper]; (T, 7) single arm
-    /observations/qvel, effort  (T, 14)  (not imported)
+    /observations/qvel          (T, 14)  (not imported)
+    /observations/effort        (T, 14) or (T, 7): the grippers' columns imported (``gripper_effort``)
     /observations/images/<cam>  (T, H, W, 3) uint8, or with compress: (T, L) uint8 JPEG bytes padded
                                 with zeros (+ /compress_len (n_cams, T))
     /observations/images_depth/<cam>  (T, H, W) uint16 millimetres (optional)
@@ -23,7 +24,7 @@ import cv2
 import h5py
 import numpy as np
 
-from manisplat.episode.format import ACTION_COLUMNS, EpisodeFormatError
+from manisplat.episode.format import ACTION_COLUMNS, GRIPPER_EFFORT_COLUMN, EpisodeFormatError
 from manisplat.episode.images import StoredChroma, chroma_keys, jpeg_chroma_subsampling
 from manisplat.episode.meta import CameraInfo, RobotInfo
 from manisplat.episode.reader import Episode
@@ -114,7 +115,8 @@ def import_act_hdf5(h5_path: str | Path, out_dir: str | Path, *, K: Any = None, 
 
     Frame ``i`` gets ``t = i / fps``, ``q1..q6`` and ``gripper`` from ``qpos`` (the chosen arm),
     the image of ``camera``, its depth (``images_depth/<camera>``, millimetres, so
-    ``depth_scale`` 0.001) when present, and ``a1..a6, a_gripper`` from ``/action`` when present.
+    ``depth_scale`` 0.001) when present, ``a1..a6, a_gripper`` from ``/action`` and the gripper's
+    effort (``gripper_effort``) from ``/observations/effort`` when present.
 
     Colour order: Cobot Magic stores the arrays it got from ROS ``cv_bridge`` with
     ``passthrough`` encoding from ``rgb8`` cameras, i.e. RGB; compressed files hold those arrays
@@ -157,6 +159,9 @@ def import_act_hdf5(h5_path: str | Path, out_dir: str | Path, *, K: Any = None, 
         scale = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 1.0, gripper_scale])  # gripper value -> metres
         qpos = _arm(qpos_ds, arm, length, h5_path) * scale
         action = _arm(_dataset(f, "action", h5_path), arm, length, h5_path) * scale if "action" in f else None
+        effort = (_arm(_dataset(f, "observations/effort", h5_path), arm, length, h5_path)[:, 6]
+                  if "observations/effort" in f else None)
+        columns = ((*ACTION_COLUMNS,) if action is not None else ()) + ((GRIPPER_EFFORT_COLUMN,) if effort is not None else ())
         color, compressed = _camera_dataset(f, camera, length, h5_path)
         depth = f.get(f"observations/images_depth/{camera}")
         frames = _images(color, compressed, bgr, h5_path)
@@ -179,13 +184,15 @@ def import_act_hdf5(h5_path: str | Path, out_dir: str | Path, *, K: Any = None, 
         extra_meta = {"import": source_info, **({"task": task} if task is not None else {})}
         with EpisodeWriter(out_dir, cam, robot, fps, source=SOURCE,
                            depth_scale=DEPTH_SCALE_MM if depth is not None else None,
-                           image_format=image_format, extra_frame_columns=ACTION_COLUMNS if action is not None else (),
+                           image_format=image_format, extra_frame_columns=columns,
                            extra_meta=extra_meta, overwrite=overwrite) as writer:
             for i, rgb in enumerate(itertools.chain([first], frames)):
-                extra = None if action is None else dict(zip(ACTION_COLUMNS, action[i].tolist()))
+                extra = {} if action is None else dict(zip(ACTION_COLUMNS, action[i].tolist()))
+                if effort is not None:
+                    extra[GRIPPER_EFFORT_COLUMN] = float(effort[i])
                 try:
                     writer.add_frame(i / fps, qpos[i, :6], qpos[i, 6], rgb,
-                                     depth=None if depth is None else depth[i], extra=extra)
+                                     depth=None if depth is None else depth[i], extra=extra or None)
                 except ValueError as exc:
                     raise EpisodeFormatError(f"{h5_path}: frame {i}: {exc}") from exc
     log.info("%s: imported %d frames into %s", h5_path, length, out_dir)

@@ -24,7 +24,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from manisplat.episode.format import EpisodeFormatError
+from manisplat.episode.format import GRIPPER_EFFORT_COLUMN, EpisodeFormatError
 from manisplat.episode.importers.act_hdf5 import (SOURCE, _camera_dataset, _chroma_subsampling, _contents, _dataset,
                                                  _images)
 from manisplat.episode.infos import ArmInfo, CameraInfo, arm_problems, camera_v2_problems
@@ -179,7 +179,8 @@ def import_cobot_magic(h5_path: str | Path, out_dir: str | Path, calib: str | Pa
     """Convert a whole Cobot Magic HDF5 episode (every arm and camera) into a version 2 episode folder.
 
     Frame ``i`` gets ``t = i / fps``; each arm's ``q1..q6`` and ``gripper`` from its columns of
-    ``/observations/qpos`` (and its actions from ``/action`` when present); every camera's image
+    ``/observations/qpos`` (its actions from ``/action`` and its gripper's effort from
+    ``/observations/effort``, column ``<arm>.gripper_effort``, when present); every camera's image
     (decoded from JPEG rows when the file is ``compress``ed; stored arrays are RGB, see
     ``bgr``) and its depth when ``images_depth/<cam>`` exists.
 
@@ -234,6 +235,14 @@ def import_cobot_magic(h5_path: str | Path, out_dir: str | Path, calib: str | Pa
                 raise EpisodeFormatError(f"{h5_path}: /action has shape {action_ds.shape}; expected {qpos_ds.shape} "
                                          "like /observations/qpos")
             action = np.asarray(action_ds[()], dtype=np.float64)
+        effort = None
+        if "observations/effort" in f:
+            effort_ds = _dataset(f, "observations/effort", h5_path)
+            if effort_ds.shape != qpos_ds.shape:
+                raise EpisodeFormatError(f"{h5_path}: /observations/effort has shape {effort_ds.shape}; expected "
+                                         f"{qpos_ds.shape} like /observations/qpos")
+            effort = np.asarray(effort_ds[()], dtype=np.float64)
+        effort_columns = [f"{a}.{GRIPPER_EFFORT_COLUMN}" for a in cal.columns] if effort is not None else []
 
         streams, depths, cameras = {}, {}, []
         for name in names:
@@ -267,15 +276,19 @@ def import_cobot_magic(h5_path: str | Path, out_dir: str | Path, calib: str | Pa
         scale = np.array([1.0] * 6 + [gripper_scale])
         with EpisodeWriterV2(out_dir, list(cal.arms.values()), cameras, rate, source=SOURCE,
                              depth_scale=units.pop() if units else None, image_format=image_format,
-                             actions=action is not None, extra_meta=extra_meta, overwrite=overwrite) as writer:
+                             actions=action is not None, extra_frame_columns=effort_columns, extra_meta=extra_meta,
+                             overwrite=overwrite) as writer:
             for i in range(length):
                 rgb = {}
                 for name, (first, frames, _) in streams.items():
                     rgb[name] = first if i == 0 else next(frames)
                 state = {a: qpos[i, [*j, g]] * scale for a, (j, g) in cal.columns.items()}
                 acts = None if action is None else {a: action[i, [*j, g]] * scale for a, (j, g) in cal.columns.items()}
+                grip = None if effort is None else {
+                    column: effort[i, g] for column, (_, g) in zip(effort_columns, cal.columns.values())}
                 try:
-                    writer.add_frame(i / rate, state, rgb, depth={n: d[i] for n, d in depths.items()}, actions=acts)
+                    writer.add_frame(i / rate, state, rgb, depth={n: d[i] for n, d in depths.items()}, actions=acts,
+                                     extra=grip)
                 except ValueError as exc:
                     raise EpisodeFormatError(f"{h5_path}: frame {i}: {exc}") from exc
     log.info("%s: imported %d frames of %d arms and %d cameras into %s", h5_path, length, len(cal.arms),
