@@ -175,10 +175,11 @@ class ArmFeed:
         joints_last, gripper_last = self.history.last_t, self.gripper.history.last_t
         return joints_last is not None and gripper_last is not None and min(joints_last, gripper_last) >= t
 
-    def sync(self, t: float, max_gap_s: float) -> tuple[np.ndarray, float, int]:
+    def sync(self, t: float, max_gap_s: float) -> tuple[np.ndarray, float, int, float]:
         """The arm's state at ``t`` (monotonic s): (7,) q1..q6 rad and the gripper m from its own
-        frames (:mod:`.gripper`), the gap interpolated across (s) and the sync flags."""
+        frames (:mod:`.gripper`), the gap interpolated across (s), the sync flags and the gripper's
+        effort (N*m, from the same frames)."""
         values, gap, flags = self.history.sync(t, max_gap_s)
         gripper, gripper_gap, gripper_flags = self.gripper.history.sync(t, max_gap_s)
         values[6] = gripper[0]
-        return values, max(gap, gripper_gap), flags | gripper_flags
+        return values, max(gap, gripper_gap), flags | gripper_flags, float(gripper[1])

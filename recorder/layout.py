@@ -18,6 +18,7 @@ import numpy as np
 
 from manisplat.drivers.base import CameraFrame
 from manisplat.episode import ACTION_COLUMNS, EpisodeWriter
+from manisplat.episode.format import GRIPPER_EFFORT_COLUMN
 from manisplat.episode.writer_v2 import EpisodeWriterV2
 from manisplat.recorder.canlog import CAN_LOG_NAME, can_log_name
 from manisplat.recorder.stats import EpisodeStats, RigStats
@@ -30,6 +31,7 @@ if TYPE_CHECKING:
 
 SYNC_COLUMNS = ("seq", "sync_gap", "sync_flags")
 FLAGS = {str(k): v for k, v in FLAG_NAMES.items()}
+GRIPPER_EFFORT_NOTE = "N*m, the gripper motor's effort (0x2A8), interpolated like the gripper's width"
 Images = dict[str, tuple[float, CameraFrame]]
 
 
@@ -37,7 +39,7 @@ class VersionOne:
     """A version 1 episode of one arm (named None) and one camera; see the module docstring."""
 
     column_notes = {"seq": "camera sequence number", "sync_gap": "s between the joint samples interpolated across",
-                    "sync_flags": FLAGS}
+                    "sync_flags": FLAGS, GRIPPER_EFFORT_COLUMN: GRIPPER_EFFORT_NOTE}
     can_note = "timestamps in the file are s since time_zero_wall = episode t 0"
     actions_source = "leader-arm commands seen on the bus (0x155-0x157 joints, 0x159 gripper)"
 
@@ -57,7 +59,7 @@ class VersionOne:
         return {"file": CAN_LOG_NAME}
 
     def open_writer(self, rec: RigRecorder, path: Path, fps: float, with_actions: bool, **common: Any) -> Writer:
-        columns = SYNC_COLUMNS + (ACTION_COLUMNS if with_actions else ())
+        columns = SYNC_COLUMNS + (GRIPPER_EFFORT_COLUMN,) + (ACTION_COLUMNS if with_actions else ())
         return EpisodeWriter(path, rec.cameras[0].info, rec.arms[0].info, fps, extra_frame_columns=columns, **common)
 
     def frame_item(self, rec: RigRecorder, t0: float, t: float, images: Images, synced: dict[Any, ArmSync],
@@ -66,7 +68,7 @@ class VersionOne:
         arm's state and action."""
         ((_, frame),) = images.values()
         (arm,) = synced.values()
-        extra = {"seq": float(frame.seq), "sync_gap": arm.gap}
+        extra = {"seq": float(frame.seq), "sync_gap": arm.gap, GRIPPER_EFFORT_COLUMN: arm.gripper_effort}
         if arm.action is not None:
             extra.update(zip(ACTION_COLUMNS, arm.action.tolist()))
         extra["sync_flags"] = float(arm.flags)
@@ -82,7 +84,7 @@ class VersionTwo:
 
     column_notes = {"<camera>.seq": "the camera's sequence number",
                     "<arm>.sync_gap": "s between the arm's joint samples interpolated across",
-                    "<arm>.sync_flags": FLAGS}
+                    "<arm>.sync_flags": FLAGS, f"<arm>.{GRIPPER_EFFORT_COLUMN}": GRIPPER_EFFORT_NOTE}
     can_note = "timestamps in the files are s since time_zero_wall = episode t 0"
     actions_source = "each arm's leader-arm commands seen on its bus (0x155-0x157 joints, 0x159 gripper)"
 
@@ -106,7 +108,7 @@ class VersionTwo:
 
     def open_writer(self, rec: RigRecorder, path: Path, fps: float, with_actions: bool, **common: Any) -> Writer:
         columns = (*(f"{cam.name}.seq" for cam in rec.cameras),
-                   *(f"{a.name}.{col}" for a in rec.arms for col in ("sync_gap", "sync_flags")))
+                   *(f"{a.name}.{col}" for a in rec.arms for col in ("sync_gap", "sync_flags", GRIPPER_EFFORT_COLUMN)))
         return EpisodeWriterV2(path, [a.info for a in rec.arms], [cam.info for cam in rec.cameras], fps,
                                actions=with_actions, camera_times=[cam.name for cam in rec.cameras[1:]],
                                extra_frame_columns=columns, **common)
@@ -119,6 +121,7 @@ class VersionTwo:
         for name, arm in synced.items():
             extra[f"{name}.sync_gap"] = arm.gap
             extra[f"{name}.sync_flags"] = float(arm.flags)
+            extra[f"{name}.{GRIPPER_EFFORT_COLUMN}"] = arm.gripper_effort
         actions: dict[str, np.ndarray] | None = ({name: arm.action for name, arm in synced.items()}
                                                  if with_actions else None)
         depth = {cam.name: images[cam.name][1].depth for cam in rec.cameras if cam.depth}

@@ -38,12 +38,13 @@ log = logging.getLogger(__name__)
 @dataclass
 class ArmSync:
     """One arm's state at a frame: (7,) q1..q6 rad and gripper m, the gap interpolated across
-    (s), the sync flags, and the action ((7,), None without actions)."""
+    (s), the sync flags, the action ((7,), None without actions) and the gripper's effort (N*m)."""
 
     values: np.ndarray
     gap: float
     flags: int
     action: np.ndarray | None
+    gripper_effort: float
 
 
 class EpisodeLoop:
@@ -143,7 +144,7 @@ class EpisodeLoop:
         """Every arm's state (and action) at ``t``, counted in its :class:`~.stats.ArmStats`."""
         synced = {}
         for name, feed in self.rec.feeds.items():
-            values, gap, flags = feed.sync(t, self.rec.config.max_gap_s)
+            values, gap, flags, gripper_effort = feed.sync(t, self.rec.config.max_gap_s)
             arm_stats = self.stats.arms[name]
             action = None
             if self.with_actions:
@@ -156,7 +157,7 @@ class EpisodeLoop:
                     if flags & bit:
                         arm_stats.flag_counts[flag] = arm_stats.flag_counts.get(flag, 0) + 1
             arm_stats.max_sync_gap_s = max(arm_stats.max_sync_gap_s, gap)
-            synced[name] = ArmSync(values, gap, flags, action)
+            synced[name] = ArmSync(values, gap, flags, action, gripper_effort)
         return synced
 
     def _write(self, t: float, images: dict[str, tuple[float, CameraFrame]]) -> None:

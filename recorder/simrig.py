@@ -52,6 +52,13 @@ def wave_state(s: np.ndarray | float) -> np.ndarray:
     return np.concatenate([q, gripper], axis=1)
 
 
+def wave_gripper_effort(s: np.ndarray | float) -> np.ndarray:
+    """The gripper effort (N, ) N*m the demo motion reports at times ``s`` (N,) s: 0.2-1.8 N*m,
+    pressing hardest where the gripper is narrowest."""
+    s = np.atleast_1d(np.asarray(s, dtype=np.float64))
+    return 1.0 - 0.8 * np.sin(2 * np.pi * s / 6.0)
+
+
 class SimRig:
     """The simulated hardware on its own virtual channel. See the module docstring.
 
@@ -154,7 +161,9 @@ class SimRig:
             state = wave_state(t - self.m0)[0]
             with self.sim._lock:
                 self.sim.model.q = state[:6].copy()
-                self.sim.model.gripper = float(state[6])
+                self.sim.model.gripper = self.sim.model.gripper_target = float(state[6])  # enabled, where it is
+                self.sim.model.gripper_enabled = True
+                self.sim.model.gripper_effort = float(wave_gripper_effort(t - self.m0)[0])
         if self._silent(t):
             with self.sim._lock:
                 self.sim.model.step(self.sim.period)

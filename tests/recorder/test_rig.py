@@ -34,7 +34,7 @@ from manisplat.recorder.loop import EpisodeLoop
 from manisplat.recorder.result import EpisodeResult
 from manisplat.recorder.rig import RigArm, RigCamera, RigRecorder
 from manisplat.recorder.session import RecorderConfig
-from manisplat.recorder.simrig import SimRig
+from manisplat.recorder.simrig import SimRig, wave_gripper_effort
 from tests.recorder.helpers import K, source_frame, write_source
 
 RECORD = [sys.executable, "-m", "manisplat.recorder.cli"]
@@ -207,6 +207,8 @@ def test_two_arms_are_synced_to_their_true_state_and_each_camera_keeps_its_own_t
         truth = sims[name].truth(frames.t + t0)  # the reference camera's true exposure times
         assert np.degrees(np.abs(frames.q - truth[:, :6])).max() < MAX_SYNC_ERROR_DEG
         assert np.abs(frames.gripper - truth[:, 6]).max() < 1e-4
+        effort = frames.extra["gripper_effort"]  # <arm>.gripper_effort, from the arm's own gripper frames
+        assert np.abs(effort - wave_gripper_effort(frames.t + t0 - sims[name].m0)).max() < 3e-3
         assert not frames.extra["sync_flags"].any()
     for name in ("cam_left_wrist", "cam_right_wrist"):  # its own time is its true exposure (latency corrected)
         exposure = dict(cams[name].exposures)

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from manisplat.episode import Episode, validate
+from manisplat.recorder.simrig import wave_gripper_effort
 from manisplat.recorder.sync import FLAG_GAP, FLAG_HELD, FLAG_NAMES
 from tests.recorder.helpers import FPS, lockstep_rig, source_frame, write_source
 
@@ -40,6 +41,9 @@ def test_synced_joints_match_the_true_state_at_the_frame_times(tmp_path: Path, s
     exposure = dict(rig.camera.exposures)
     truth = rig.rig.truth(np.array([exposure[int(s)] for s in ep.frames.extra["seq"]]))
     assert np.abs(ep.frames.gripper - truth[:, 6]).max() < 1e-4  # 0.1 mm, from the gripper's own frames
+    t_exposed = np.array([exposure[int(s)] for s in ep.frames.extra["seq"]]) - rig.rig.m0
+    effort = ep.frames.extra["gripper_effort"]  # with the width, from the same frames (0.001 N*m steps)
+    assert np.abs(effort - wave_gripper_effort(t_exposed)).max() < 3e-3 and np.ptp(effort) > 0.5
     assert not ep.frames.extra["sync_flags"].any()
     np.testing.assert_allclose(np.diff(ep.frames.t), 1 / FPS, atol=1e-6)
     exposure = dict(rig.camera.exposures)  # frames.csv t is the true exposure time: the latency was applied
