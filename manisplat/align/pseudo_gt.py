@@ -438,7 +438,7 @@ def hybrid_pseudo_poses(
         model_points: the object's surface points [M, 3] (object frame) for the centring and
             settling priors (:func:`kinematic_prior`); without them the grasp is rigid as seen.
         observe: held-out frames: no segment starts from one (the tracker, made with the same
-            set, takes their poses without learning from them).
+            set, gives them the pose the frames before imply, without reading their images).
         width: the gripper opening [T] (m): grasps close over time (:func:`kinematic_prior`).
         surface: frame -> the object's visible surface [M, 3] (base frame; None without depth):
             with ``model_points``, where a released object rests (:func:`settle_at_rest`) and,
@@ -501,8 +501,8 @@ def make_tracker(gray, mask, depth, K: np.ndarray, T_base_cam: np.ndarray,
                  settings: TrackerSettings = TrackerSettings(), model: ObjectView | None = None,
                  observe: frozenset[int] = frozenset(), model_points: np.ndarray | None = None):
     """A ``tracker(frames, T_first)`` closure over an episode's images, masks and depth (``model``
-    stands in where they are missing; ``observe``: held-out frames, tracked without learning from
-    them; ``model_points`` [M, 3]: the object's surface, for the depth check:
+    stands in where they are missing; ``observe``: held-out frames, whose images are not read;
+    ``model_points`` [M, 3]: the object's surface, for the depth check:
     :func:`manisplat.align.tracking.track_object`)."""
 
     def tracker(frames: range, T_first: np.ndarray, prior: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:

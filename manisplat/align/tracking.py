@@ -215,9 +215,10 @@ def track_object(
         K: OpenCV intrinsics [3, 3]; T_base_cam: camera-to-base [4, 4].
         prior: [n, 4, 4] poses the frames take unless tracking confidently disagrees (module doc).
         model: the object's model seen at a pose, for frames without mask or depth.
-        observe: frames (held out from training) whose pose is tracked from their own image but
-            which nothing else learns from: the tracks, the canonical points and the prior's
-            correction continue from the frame before, as if they were not there.
+        observe: frames held out from training (and scored): their images, masks and depth are
+            not read; each takes the pose the frames before it imply (the prior with the
+            correction tracking had made by then, or the last pose without a prior), and the
+            tracks continue from the frame before, as if they were not there.
         model_points: the object's surface points [M, 3] (object frame) for the depth check's
             model (:class:`DepthEvidence`; ``settings.evidence_model``).
     """
@@ -242,9 +243,12 @@ def track_object(
     last_pose = poses[0]  # the pose of the last frame that is not only observed
     for f in frames[1:]:
         k = len(poses)
-        observe_only = f in observe
-        if observe_only:  # its pose from its own image; nothing of it carries on to the next frames
-            saved = (pts, canon, correction, streak, following)
+        if f in observe:  # held out: an evaluation must not see what it scores
+            poses.append(prior[k] @ correction if prior is not None else last_pose)
+            solved.append(False)
+            used.append(False)
+            inliers.append(0)
+            continue
         predicted = prior[k] @ correction if prior is not None else last_pose
         cur, m = gray(f), view.mask(f, predicted)
         measured = depth(f)
@@ -303,9 +307,6 @@ def track_object(
         solved.append(tracked is not None)
         used.append(use_track)
         inliers.append(n_in)
-        if observe_only:
-            pts, canon, correction, streak, following = saved
-            continue
         last_pose = pose
         if len(pts) < settings.max_points // 2 and m.any():
             new = _detect(cur, m, pts, settings)

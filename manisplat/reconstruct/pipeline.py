@@ -283,8 +283,8 @@ def align_object(data: EpisodeData, label: int, T_start: np.ndarray, carrier: Ca
     of frames after the first. ``model_points`` [M, 3] (object frame) enable the grasp's
     centring and the release's settling priors (:func:`manisplat.align.pseudo_gt.kinematic_prior`)
     and complete the tracker's depth check (:class:`~manisplat.align.tracking.DepthEvidence`).
-    ``settings``: the tracker's; ``observe``: the held-out frames, whose poses are tracked without
-    anything learning from them. ``rest_from_depth``: with ``model_points`` and depth, a released
+    ``settings``: the tracker's; ``observe``: the held-out frames, whose images the alignment does
+    not read (they take the poses the frames around them imply). ``rest_from_depth``: with ``model_points`` and depth, a released
     object is placed where the depth says it rests
     (:func:`~manisplat.align.pseudo_gt.settle_at_rest`) and, with masks and ``support_from_depth``,
     stands on the support the depth shows under it (:func:`~manisplat.align.pseudo_gt.rest_on_support`);

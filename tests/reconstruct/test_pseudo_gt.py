@@ -575,3 +575,25 @@ def test_an_object_too_small_to_track_is_reported_as_not_tracked_not_as_solved_0
     text = caplog.text
     assert "not tracked: the object shows at most" in text and "the prior stands" in text
     assert "solved 0 of" not in text
+
+
+def test_held_out_frames_are_not_read_and_take_the_pose_the_frames_before_imply():
+    """A scored frame's pose must not come from its own image: the tracker never reads a held-out
+    frame, which takes the prior with the correction tracking had made by then."""
+    K, truth, grays, masks, depths = textured_plane_episode()
+    static_prior = np.repeat(truth[:1], len(truth), axis=0)
+    held_out = {len(truth) - 3, len(truth) - 1}
+    read = []
+
+    def gray(i):
+        read.append(i)
+        return grays[i]
+
+    settings = TrackerSettings(confident_inliers=10, persistence=3)
+    track = track_object(gray, lambda i: masks[i], lambda i: depths[i], K, np.eye(4), range(len(truth)), truth[0],
+                         settings, prior=static_prior, observe=frozenset(held_out))
+    assert not held_out & set(read)
+    f = len(truth) - 3
+    assert track.from_tracking[f - 1] and not track.from_tracking[f] and track.from_tracking[f + 1]
+    np.testing.assert_allclose(track.poses[f], track.poses[f - 1], atol=1e-12)  # a static prior: the last correction
+    assert np.linalg.norm(track.poses[f + 1, :3, 3] - truth[f + 1, :3, 3]) < 0.002  # tracking went on past it
