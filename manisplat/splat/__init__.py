@@ -8,7 +8,7 @@ from manisplat.splat.backends import BACKENDS, BackendUnavailable, available_bac
 from manisplat.splat.ply import PlyFormatError, load_ply, save_ply
 from manisplat.splat.projection import Projection, opencv_to_splat_K, project_gaussians
 from manisplat.splat.rasterization import (DEFAULT_EPS2D, GSPLAT_EPS2D, RASTERIZE_MODES, RENDER_MODES, RasterizationError,
-                                           rasterization, value_checks)
+                                           is_dilation, rasterization, value_checks)
 from manisplat.splat.sh import num_sh_bases, spherical_harmonics
 from manisplat.splat.strategy import DefaultStrategy
 
@@ -24,6 +24,7 @@ __all__ = [
     "RENDER_MODES",
     "RasterizationError",
     "available_backends",
+    "is_dilation",
     "load_ply",
     "num_sh_bases",
     "opencv_to_splat_K",

@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import math
+import numbers
 from collections.abc import Iterator
 
 import torch
@@ -28,6 +29,11 @@ GSPLAT_EPS2D = 0.3
 #: At 0.3 the antialiased twin of the camera-like Cobot Magic dual sample, trained on all three
 #: cameras, drew the head camera's objects 27.3 dB, at 0.1 28.1 (docs/benchmarks.md).
 DEFAULT_EPS2D = {"classic": GSPLAT_EPS2D, "antialiased": 0.1}
+
+
+def is_dilation(eps2d: object) -> bool:
+    """Whether ``eps2d`` is a usable 2D dilation: a finite real number >= 0 (px^2)."""
+    return isinstance(eps2d, numbers.Real) and not isinstance(eps2d, bool) and math.isfinite(eps2d) and eps2d >= 0.0
 
 
 class RasterizationError(ValueError):
@@ -139,7 +145,7 @@ def rasterization(
         raise RasterizationError(f"rasterize_mode must be one of {RASTERIZE_MODES}, got {rasterize_mode!r}")
     if eps2d is None:
         eps2d = DEFAULT_EPS2D[rasterize_mode]
-    elif not (math.isfinite(eps2d) and eps2d >= 0.0):
+    elif not is_dilation(eps2d):
         raise RasterizationError(f"eps2d must be a finite dilation >= 0 px^2, got {eps2d!r}")
     _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree)
     impl = resolve_backend(backend, means.device)

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import io
 import json
-import math
 from pathlib import Path
 
 import torch
@@ -31,7 +30,7 @@ from manisplat.robot import RobotModel, load_robot
 from manisplat.robot.arms import ArmSet
 from manisplat.scene import GaussianSet, SceneGraph
 from manisplat.scene.shadows import DirectionalShadows
-from manisplat.splat import GSPLAT_EPS2D, RASTERIZE_MODES
+from manisplat.splat import GSPLAT_EPS2D, RASTERIZE_MODES, is_dilation
 from manisplat.twin.commands import CommandRelation
 from manisplat.twin.rig import BASE_FRAME, TwinArm, TwinCamera, one_arm
 from manisplat.twin.support import SupportMap
@@ -147,7 +146,7 @@ def load_twin(folder: Path, *, backend: str = "auto", device: torch.device | str
     if graph.rasterize_mode not in RASTERIZE_MODES:
         raise TwinFormatError(f"{folder / TWIN_JSON}: rasterize_mode {graph.rasterize_mode!r} is not one of {RASTERIZE_MODES}")
     graph.eps2d = meta.get("eps2d", GSPLAT_EPS2D)  # twins before the modes' own dilations: gsplat's in both
-    if not (isinstance(graph.eps2d, (int, float)) and math.isfinite(graph.eps2d) and graph.eps2d >= 0):
+    if not is_dilation(graph.eps2d):
         raise TwinFormatError(f"{folder / TWIN_JSON}: eps2d {graph.eps2d!r} is not a finite dilation >= 0 px^2")
     if meta["shadows"] is not None:
         light = meta["shadows"]
