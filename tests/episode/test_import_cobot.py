@@ -112,6 +112,16 @@ def test_import_every_arm_and_camera(tmp_path, capsys, compress, dtype):
         ep.frames
 
 
+def test_an_effort_of_another_shape_is_named(tmp_path):
+    write_cobot(tmp_path / "e.hdf5", compress=False)
+    with h5py.File(tmp_path / "e.hdf5", "a") as f:
+        del f["observations/effort"]
+        f["observations/effort"] = np.zeros((T, 12))
+    with pytest.raises(EpisodeFormatError, match=r"/observations/effort has shape \(5, 12\); expected \(5, 14\)"):
+        import_cobot_magic(tmp_path / "e.hdf5", tmp_path / "ep", write_calib(tmp_path / "e.calib.json"))
+    assert not (tmp_path / "ep").exists()
+
+
 def test_without_calibration_the_error_names_what_is_missing(tmp_path, capsys):
     write_cobot(tmp_path / "e.hdf5", compress=False)
     assert main(["import-act", str(tmp_path / "e.hdf5"), "--out", str(tmp_path / "ep")]) == 2
