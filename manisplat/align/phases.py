@@ -46,6 +46,9 @@ class GripperEvents:
 SQUEEZE_END = 0.25
 """A grip has ended where the gripper's effort falls below this share of its hold (the median
 effort between the grasp and the opening's release)."""
+MAX_SQUEEZE_LEAD = 5
+"""frames: a squeeze that ended further ahead of the opening's release is not the release (a grip
+that relaxed while it still held the object): the opening dates it."""
 
 
 def gripper_events(width: np.ndarray, *, min_change: float = 0.005,
@@ -85,7 +88,8 @@ def squeeze_end(effort: np.ndarray, grasp: int, release: int) -> int:
     """The frame the pads stopped squeezing an object held from ``grasp`` and let go, by the
     opening, at ``release``: the frame after the last one whose effort [T] (absolute) was at
     least :data:`SQUEEZE_END` of the hold's (its median over the grasp). ``release`` where the
-    effort does not show the squeeze (not finite there, or no hold above zero)."""
+    effort does not show the squeeze (not finite there, or no hold above zero) or ended more than
+    :data:`MAX_SQUEEZE_LEAD` frames before it."""
     held = np.abs(np.asarray(effort[grasp:release], np.float64))
     if not len(held) or not np.isfinite(held).all() or (hold := float(np.median(held))) <= 0.0:
         log.info("grasp at frame %d: the gripper's effort shows no squeeze; released where the pads opened (frame %d)",
@@ -93,6 +97,11 @@ def squeeze_end(effort: np.ndarray, grasp: int, release: int) -> int:
         return release
     pressing = np.flatnonzero(held >= SQUEEZE_END * hold)
     end = grasp + int(pressing[-1]) + 1
+    if release - end > MAX_SQUEEZE_LEAD:
+        log.info("grasp at frame %d: the gripper's effort eased at frame %d, %d frames before the pads opened: a "
+                 "grip that relaxed while holding, not the release; released where the pads opened (frame %d)",
+                 grasp, end, release - end, release)
+        return release
     if end < release:
         log.info("grasp at frame %d: the pads stopped squeezing at frame %d (effort under %.0f %% of the hold's "
                  "%.3g), %d frame(s) before the opening showed the release", grasp, end, 100 * SQUEEZE_END,

@@ -66,6 +66,11 @@ def test_an_effort_that_shows_no_squeeze_leaves_the_opening_s_release(caplog):
     late = squeeze()
     late[88:95] = -0.9  # still squeezing while the pads part: the opening's release stands
     assert gripper_events(grip, effort=late)[0].release == 93
+    relaxed = squeeze()
+    relaxed[70:95] = -0.1  # the grip relaxed mid-carry, 23 frames before the pads opened: not the release
+    with caplog.at_level(logging.INFO):
+        assert gripper_events(grip, effort=relaxed)[0].release == 93
+    assert "a grip that relaxed while holding" in caplog.text
 
 
 def test_pick_and_place_gives_the_five_phases_in_order():
