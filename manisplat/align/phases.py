@@ -126,21 +126,19 @@ def interval_around(d: np.ndarray, frame: int, tau: float, leave: float) -> tupl
 
 def segment_phases(
     tcp: np.ndarray,
-    gripper: np.ndarray,
+    events: list[GripperEvents],
     object_start: np.ndarray,
     *,
     tau: float = DEFAULT_TAU,
     hysteresis: float = HYSTERESIS,
     min_duration: int = 3,
-    effort: np.ndarray | None = None,
 ) -> list[Segment]:
-    """Phases of an episode from TCP positions [T, 3], gripper widths [T] and the object's
-    resting position [3] at the start (all in the base frame, m); the gripper's ``effort`` [T]
-    where recorded (:func:`gripper_events`)."""
+    """Phases of an episode from TCP positions [T, 3], the gripper's grasps and releases
+    (:func:`gripper_events`) and the object's resting position [3] at the start (all in the base
+    frame, m)."""
     T = len(tcp)
     leave = tau * hysteresis
     skills: list[tuple[int, int, str]] = []
-    events = gripper_events(gripper, effort=effort)
     if events:
         for event in events:
             # the object is held between grasp and release: it sits at the TCP plus the grasp offset

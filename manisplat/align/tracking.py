@@ -240,7 +240,7 @@ def track_object(
     prev = gray(first)
     lk = dict(winSize=(settings.window, settings.window), maxLevel=settings.levels,
               criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
-    last_pose = poses[0]  # the pose of the last frame that is not only observed
+    last_pose = poses[0]  # the pose of the last frame not held out
     for f in frames[1:]:
         k = len(poses)
         if f in observe:  # held out: an evaluation must not see what it scores

@@ -283,9 +283,9 @@ def align_object(data: EpisodeData, label: int, T_start: np.ndarray, carrier: Ca
     of frames after the first. ``model_points`` [M, 3] (object frame) enable the grasp's
     centring and the release's settling priors (:func:`manisplat.align.pseudo_gt.kinematic_prior`)
     and complete the tracker's depth check (:class:`~manisplat.align.tracking.DepthEvidence`).
-    ``settings``: the tracker's; ``observe``: the held-out frames, whose images the alignment does
-    not read (they take the poses the frames around them imply). ``rest_from_depth``: with ``model_points`` and depth, a released
-    object is placed where the depth says it rests
+    ``settings``: the tracker's; ``observe``: the held-out frames, whose images the tracker does
+    not read (:func:`~manisplat.align.tracking.track_object`). ``rest_from_depth``: with
+    ``model_points`` and depth, a released object is placed where the depth says it rests
     (:func:`~manisplat.align.pseudo_gt.settle_at_rest`) and, with masks and ``support_from_depth``,
     stands on the support the depth shows under it (:func:`~manisplat.align.pseudo_gt.rest_on_support`);
     with it and ``slip_from_depth``, a held one
@@ -295,7 +295,7 @@ def align_object(data: EpisodeData, label: int, T_start: np.ndarray, carrier: Ca
     """
     tcp, width = carrier.track, carrier.width
     events = carrier.events()
-    segments = segment_phases(tcp[:, :3, 3], width, T_start[:3, 3], tau=tau, effort=carrier.effort)
+    segments = segment_phases(tcp[:, :3, 3], events, T_start[:3, 3], tau=tau)
     if not moves:
         poses = np.repeat(T_start[None], data.n_frames, axis=0)
         pseudo = PseudoPoses(poses, ["static"] * data.n_frames, np.zeros(data.n_frames, dtype=bool))

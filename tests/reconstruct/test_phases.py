@@ -75,7 +75,7 @@ def test_an_effort_that_shows_no_squeeze_leaves_the_opening_s_release(caplog):
 
 def test_pick_and_place_gives_the_five_phases_in_order():
     tcp, grip, obj0 = pick_and_place()
-    segments = segment_phases(tcp, grip, obj0, tau=0.08)
+    segments = segment_phases(tcp, gripper_events(grip), obj0, tau=0.08)
     assert [s.name for s in segments] == ["M_approach", "S_pick", "M_transfer", "S_place", "M_return"]
     assert segments[0].start == 0 and segments[-1].end == 120
     assert all(a.end == b.start for a, b in zip(segments, segments[1:]))  # contiguous
@@ -88,18 +88,18 @@ def test_pick_and_place_gives_the_five_phases_in_order():
 def test_too_large_tau_merges_the_skills_and_warns(caplog):
     tcp, grip, obj0 = pick_and_place()
     with caplog.at_level(logging.WARNING):
-        segments = segment_phases(tcp, grip, obj0, tau=0.3)
+        segments = segment_phases(tcp, gripper_events(grip), obj0, tau=0.3)
     assert "S_pick+S_place" in [s.name for s in segments]
     assert "smaller tau" in caplog.text
 
 
 def test_reach_without_grasp():
     tcp, _, obj0 = pick_and_place()
-    segments = segment_phases(tcp[:60], np.full(60, 0.07), obj0, tau=0.08)
+    segments = segment_phases(tcp[:60], gripper_events(np.full(60, 0.07)), obj0, tau=0.08)
     assert [s.name for s in segments] == ["M_approach", "S_reach", "M_return"]
 
 
 def test_short_segments_are_absorbed():
     tcp, grip, obj0 = pick_and_place()
-    segments = segment_phases(tcp, grip, obj0, tau=0.08, min_duration=200)
+    segments = segment_phases(tcp, gripper_events(grip), obj0, tau=0.08, min_duration=200)
     assert len(segments) == 1 and segments[0].start == 0 and segments[0].end == 120

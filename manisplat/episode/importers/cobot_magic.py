@@ -173,6 +173,17 @@ def _arm_names(width: int) -> str:
     return "left, right" if width == 14 else f"{width} columns"
 
 
+def _like_qpos(f: h5py.File, name: str, shape: tuple[int, ...], h5_path: Path) -> np.ndarray | None:
+    """The optional dataset ``/name`` as float64, laid out like ``/observations/qpos`` (``shape``);
+    None when the file has none."""
+    if name not in f:
+        return None
+    ds = _dataset(f, name, h5_path)
+    if ds.shape != shape:
+        raise EpisodeFormatError(f"{h5_path}: /{name} has shape {ds.shape}; expected {shape} like /observations/qpos")
+    return np.asarray(ds[()], dtype=np.float64)
+
+
 def import_cobot_magic(h5_path: str | Path, out_dir: str | Path, calib: str | Path | CobotCalibration | None, *,
                        fps: float | None = None, gripper_scale: float = 1.0, bgr: bool = False,
                        task: str | None = None, image_format: str = "png", overwrite: bool = False) -> Episode:
@@ -228,20 +239,8 @@ def import_cobot_magic(h5_path: str | Path, out_dir: str | Path, calib: str | Pa
             raise EpisodeFormatError(f"{h5_path}: /observations/qpos has {width} columns; the arms of {cal.path} "
                                      f"({', '.join(cal.arms)}) need the distinct columns {sorted(used)}")
         qpos = np.asarray(qpos_ds[()], dtype=np.float64)  # float32 widens exactly
-        action = None
-        if "action" in f:
-            action_ds = _dataset(f, "action", h5_path)
-            if action_ds.shape != qpos_ds.shape:
-                raise EpisodeFormatError(f"{h5_path}: /action has shape {action_ds.shape}; expected {qpos_ds.shape} "
-                                         "like /observations/qpos")
-            action = np.asarray(action_ds[()], dtype=np.float64)
-        effort = None
-        if "observations/effort" in f:
-            effort_ds = _dataset(f, "observations/effort", h5_path)
-            if effort_ds.shape != qpos_ds.shape:
-                raise EpisodeFormatError(f"{h5_path}: /observations/effort has shape {effort_ds.shape}; expected "
-                                         f"{qpos_ds.shape} like /observations/qpos")
-            effort = np.asarray(effort_ds[()], dtype=np.float64)
+        action = _like_qpos(f, "action", qpos_ds.shape, h5_path)
+        effort = _like_qpos(f, "observations/effort", qpos_ds.shape, h5_path)
         effort_columns = [f"{a}.{GRIPPER_EFFORT_COLUMN}" for a in cal.columns] if effort is not None else []
 
         streams, depths, cameras = {}, {}, []
