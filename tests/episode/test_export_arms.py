@@ -10,6 +10,7 @@ import av
 import cv2
 import h5py
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 from episode_factory import write_episode
@@ -184,6 +185,42 @@ def test_import_lerobot_reads_every_arm_and_camera_back(tmp_path, capsys):
         assert error < 8 and error < np.abs(gray(again, cam) - gray(first, other)).mean() / 4, error
 
 
+def add_effort(dataset, effort: np.ndarray) -> None:
+    """Give a one-episode LeRobot dataset an ``observation.effort`` feature (T, D) as ALOHA-style
+    datasets have (float32, laid out like ``observation.state``)."""
+    info_path = dataset / "meta" / "info.json"
+    info = json.loads(info_path.read_text())
+    info["features"]["observation.effort"] = {"dtype": "float32", "shape": [effort.shape[1]], "names": None}
+    info_path.write_text(json.dumps(info, indent=4))
+    path = dataset / "data" / "chunk-000" / "file-000.parquet"
+    rows = pq.read_table(path)
+    column = pa.array(effort.astype(np.float32).tolist(), type=pa.list_(pa.float32(), effort.shape[1]))
+    pq.write_table(rows.append_column("observation.effort", column), path)
+
+
+def test_import_lerobot_reads_each_grippers_effort(tmp_path, capsys):
+    """observation.effort's gripper columns become each arm's gripper_effort (what dates releases)."""
+    ep_path, calib, data = _imported(tmp_path)
+    out = tmp_path / "ds"
+    assert main(["export", str(ep_path), "--format", "lerobot", "--out", str(out), "--codec", "h264",
+                 "--task", "handover", "--no-depth"]) == 0
+    command = ["import-lerobot", str(out), "--episode", "0", "--calib", str(calib), "--units", "rad,m"]
+    assert main([*command, "--out", str(tmp_path / "without")]) == 0
+    assert "gripper_effort" not in Episode.open(tmp_path / "without").arm_frames("left").extra
+    add_effort(out, data["effort"])
+    assert main([*command, "--out", str(tmp_path / "back")]) == 0
+    back = Episode.open(tmp_path / "back")
+    stored = data["effort"].astype(np.float32).astype(np.float64)
+    for arm, gripper in (("left", 6), ("right", 13)):
+        assert np.array_equal(back.arm_frames(arm).extra["gripper_effort"], stored[:, gripper])
+    assert validate(tmp_path / "back").ok
+    add_effort(out, data["effort"][:, :12])  # a layout whose grippers cannot be told
+    capsys.readouterr()
+    assert main([*command, "--out", str(tmp_path / "bad")]) == 2
+    assert "observation.effort has shape [12]; expected observation.state's [14]" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
+
+
 def test_import_lerobot_needs_units_and_refuses_values_not_in_them(tmp_path, capsys):
     ep_path, calib, data = _imported(tmp_path, degrees=True)
     out = tmp_path / "ds"
@@ -261,3 +298,15 @@ def test_one_arm_import_lerobot_converts_declared_units(tmp_path):
     si, deg = Episode.open(tmp_path / "si").frames, Episode.open(tmp_path / "deg").frames
     assert np.array_equal(si.q, Episode.open(src).frames.q.astype(np.float32))
     assert np.array_equal(deg.q, si.q * (np.pi / 180)) and np.array_equal(deg.gripper, si.gripper * 0.001)
+
+
+@pytest.mark.parametrize("arm, gripper", [("left", 6), ("right", 13)])
+def test_one_arm_import_lerobot_reads_its_grippers_effort(tmp_path, arm, gripper):
+    ep_path, _, data = _imported(tmp_path)
+    assert main(["export", str(ep_path), "--format", "lerobot", "--out", str(tmp_path / "ds"), "--codec", "h264",
+                 "--task", "handover", "--no-depth"]) == 0
+    add_effort(tmp_path / "ds", data["effort"])
+    assert main(["import-lerobot", str(tmp_path / "ds"), "--episode", "0", "--camera", "cam_high", "--arm", arm,
+                 "--K", "30,30,15.5,11.5", "--out", str(tmp_path / "one")]) == 0
+    effort = Episode.open(tmp_path / "one").frames.extra["gripper_effort"]
+    assert np.array_equal(effort, data["effort"].astype(np.float32).astype(np.float64)[:, gripper])

@@ -2,9 +2,9 @@
 
 What is read (``shared/reference/augmentation.md`` section 5.1): the episode's row in
 ``meta/episodes/*/*.parquet`` (its data and video files, ``from_timestamp``, task), its rows of
-``data/chunk-*/file-*.parquet`` (``observation.state``, ``action`` when present, ``depth.<camera>``
-when present, ``frame_index``), and its frames of the camera's video, decoded with PyAV and matched to
-rows by timestamp (``from_timestamp + frame_index / fps``, within LeRobot's 1e-4 s tolerance). Rows
+``data/chunk-*/file-*.parquet`` (``observation.state``, ``action``, ``observation.effort`` and
+``depth.<camera>`` when present, ``frame_index``), and its frames of the camera's video, decoded with
+PyAV and matched to rows by timestamp (``from_timestamp + frame_index / fps``, within LeRobot's 1e-4 s tolerance). Rows
 and frames stream one at a time into the episode writer. The video's pixel format says how its
 colour was kept (``yuv420p``: one colour sample per 2 x 2 pixels); PNG frames keep no trace of it,
 so the camera's ``chroma_subsampling`` in ``episode.json`` records it.
@@ -24,7 +24,7 @@ import pyarrow.dataset as pads
 import pyarrow.parquet as pq
 
 from manisplat.episode.exporters.lerobot import depth_key, image_key
-from manisplat.episode.format import ACTION_COLUMNS, EpisodeFormatError
+from manisplat.episode.format import ACTION_COLUMNS, GRIPPER_EFFORT_COLUMN, EpisodeFormatError
 from manisplat.episode.chroma import video_chroma
 from manisplat.episode.images import CHROMA_KEYS, chroma_keys
 from manisplat.episode.importers.act_hdf5 import ARM_COLUMNS
@@ -40,6 +40,8 @@ TOLERANCE_S = 1e-4
 """LeRobot's default ``tolerance_s`` between a query timestamp and a decoded frame."""
 DEPTH_SCALE_MM = 0.001
 SUPPORTED_VERSION = "v3.0"
+EFFORT_KEY = "observation.effort"
+"""The motors' efforts (ALOHA / Cobot Magic datasets), laid out like ``observation.state``."""
 
 
 def _load_info(root: Path) -> dict[str, Any]:
@@ -82,6 +84,19 @@ def _camera_key(info: dict[str, Any], camera: str) -> str:
     images = [k for k, f in info["features"].items() if f.get("dtype") == "image"]
     hint = f"; image-type cameras ({', '.join(images)}) are not supported" if images else ""
     raise EpisodeFormatError(f"no video camera {camera!r} in the dataset; it has: {', '.join(videos) or 'none'}{hint}")
+
+
+def has_effort(root: Path, info: dict[str, Any]) -> bool:
+    """Whether the dataset has an ``observation.effort`` to import (its gripper columns: the episode's
+    ``gripper_effort``, which dates releases); one not laid out like ``observation.state`` is refused."""
+    feature = info["features"].get(EFFORT_KEY)
+    if feature is None:
+        return False
+    shape, state = list(feature.get("shape", [])), list(info["features"]["observation.state"]["shape"])
+    if shape != state:
+        raise EpisodeFormatError(f"{root}: {EFFORT_KEY} has shape {shape}; expected observation.state's {state} "
+                                 "(which of its columns are the grippers' cannot be told)")
+    return True
 
 
 def _arm_columns(info: dict[str, Any], key: str, arm: str) -> slice:
@@ -149,7 +164,8 @@ def import_lerobot(dataset_dir: str | Path, out_dir: str | Path, *, episode: int
     """Convert episode ``episode`` of a LeRobot v3.0 dataset into an episode folder.
 
     Frame ``i`` gets ``t = frame_index / fps``, ``q1..q6`` and ``gripper`` from ``observation.state``,
-    ``a1..a6, a_gripper`` from ``action`` (when the dataset has one of the same layout), the image
+    ``a1..a6, a_gripper`` from ``action`` (when the dataset has one of the same layout),
+    ``gripper_effort`` from the gripper's column of ``observation.effort`` (when present), the image
     decoded from the camera's video, and the depth from ``depth.<camera>`` (uint16 millimetres) when
     present. Values are read as stored (float32 -> float64 exactly), so a ManiSplat export comes back
     with the same joints bit for bit.
@@ -187,6 +203,7 @@ def import_lerobot(dataset_dir: str | Path, out_dir: str | Path, *, episode: int
     columns = _arm_columns(info, "observation.state", arm)
     has_action = "action" in info["features"] and list(info["features"]["action"]["shape"]) == \
         list(info["features"]["observation.state"]["shape"])
+    effort_read = has_effort(root, info)
     camera_name = key.removeprefix(image_key(""))
     depth_name = depth_key(camera_name)
     has_depth = depth_name in info["features"]
@@ -197,7 +214,8 @@ def import_lerobot(dataset_dir: str | Path, out_dir: str | Path, *, episode: int
     for path in (data_path, video_path):
         if not path.is_file():
             raise EpisodeFormatError(f"{root}: episode {episode} points at {path.relative_to(root)}, which is missing")
-    wanted = ["frame_index", "observation.state"] + (["action"] if has_action else [])
+    wanted = ["frame_index", "observation.state"] + (["action"] if has_action else []) + \
+        ([EFFORT_KEY] if effort_read else [])
     table = pq.read_table(data_path, columns=wanted, filters=[("episode_index", "=", episode)])
     length = int(row["length"])
     frame_index = np.asarray(table.column("frame_index"))
@@ -213,6 +231,8 @@ def import_lerobot(dataset_dir: str | Path, out_dir: str | Path, *, episode: int
     state = state * scale
     action = (np.asarray(table.column("action").to_pylist(), dtype=np.float64)[:, columns] * scale
               if has_action else None)
+    effort = (np.asarray(table.column(EFFORT_KEY).to_pylist(), dtype=np.float64)[:, columns][:, 6]
+              if effort_read else None)  # as recorded: its size dates the release, not its units
     height, width = info["features"][key]["shape"][:2]
     cam = K if isinstance(K, CameraInfo) else CameraInfo(name=camera_name, width=width, height=height, K=K,
                                                          dist=dist, mount=mount)
@@ -227,15 +247,18 @@ def import_lerobot(dataset_dir: str | Path, out_dir: str | Path, *, episode: int
     extra_meta = {"import": source_info, **({"task": tasks[0]} if tasks else {})}
     frames = _video_frames(video_path, float(row[f"videos/{key}/from_timestamp"]), length, fps)
     depths = _depth_frames(data_path, depth_name, episode, length) if has_depth else None
+    frame_columns = ((*ACTION_COLUMNS,) if action is not None else ()) + ((GRIPPER_EFFORT_COLUMN,) if effort_read
+                                                                          else ())
     with EpisodeWriter(out_dir, cam, RobotInfo(description=robot_description), float(fps), source=SOURCE,
                        depth_scale=DEPTH_SCALE_MM if has_depth else None, image_format=image_format,
-                       extra_frame_columns=ACTION_COLUMNS if action is not None else (), extra_meta=extra_meta,
-                       overwrite=overwrite) as writer:
+                       extra_frame_columns=frame_columns, extra_meta=extra_meta, overwrite=overwrite) as writer:
         for i, rgb in enumerate(frames):
-            extra = None if action is None else dict(zip(ACTION_COLUMNS, action[i].tolist()))
+            extra = {} if action is None else dict(zip(ACTION_COLUMNS, action[i].tolist()))
+            if effort is not None:
+                extra[GRIPPER_EFFORT_COLUMN] = float(effort[i])
             depth = None if depths is None else next(depths)
             try:
-                writer.add_frame(i / fps, state[i, :6], state[i, 6], rgb, depth=depth, extra=extra)
+                writer.add_frame(i / fps, state[i, :6], state[i, 6], rgb, depth=depth, extra=extra or None)
             except ValueError as exc:
                 raise EpisodeFormatError(f"{root}: episode {episode} frame {i}: {exc}") from exc
     log.info("%s: imported episode %d (%d frames) into %s", root, episode, length, out_dir)

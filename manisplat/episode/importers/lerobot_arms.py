@@ -23,10 +23,10 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from manisplat.episode.exporters.lerobot import depth_key, image_key
-from manisplat.episode.format import EpisodeFormatError
+from manisplat.episode.format import GRIPPER_EFFORT_COLUMN, EpisodeFormatError
 from manisplat.episode.importers.cobot_magic import CobotCalibration, check_cameras, load_calibration
-from manisplat.episode.importers.lerobot import (DEPTH_SCALE_MM, SOURCE, _depth_frames, _episode_row, _load_info,
-                                                 _video_frames, stored_colour_keys)
+from manisplat.episode.importers.lerobot import (DEPTH_SCALE_MM, EFFORT_KEY, SOURCE, _depth_frames, _episode_row,
+                                                 _load_info, _video_frames, has_effort, stored_colour_keys)
 from manisplat.episode.importers.units import Units, describe_ranges, require_units, unit_problems
 from manisplat.episode.infos import CameraInfo
 from manisplat.episode.reader import Episode
@@ -47,8 +47,10 @@ def _video_cameras(root: Path, info: dict, cal: CobotCalibration) -> list[str]:
     return videos
 
 
-def _vectors(root: Path, info: dict, table: pa.Table, cal: CobotCalibration) -> tuple[np.ndarray, np.ndarray | None]:
-    """(T, D) float64 ``observation.state`` and ``action`` (None when absent or of another shape) as stored."""
+def _vectors(root: Path, info: dict, table: pa.Table,
+             cal: CobotCalibration) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """(T, D) float64 ``observation.state``, ``action`` and ``observation.effort`` as stored (None where the
+    table does not hold them)."""
     shape = list(info["features"]["observation.state"]["shape"])
     used = [c for joints, gripper in cal.columns.values() for c in (*joints, gripper)]
     if len(shape) != 1 or max(used) >= shape[0]:
@@ -56,10 +58,9 @@ def _vectors(root: Path, info: dict, table: pa.Table, cal: CobotCalibration) -> 
         raise EpisodeFormatError(f"{root}: observation.state has shape {shape} (names {names}); the arms of "
                                  f"{cal.path} ({', '.join(cal.arms)}) need the columns {sorted(used)}")
     state = np.asarray(table.column("observation.state").to_pylist(), dtype=np.float64)
-    action = None
-    if "action" in table.column_names:
-        action = np.asarray(table.column("action").to_pylist(), dtype=np.float64)
-    return state, action
+    action, effort = (np.asarray(table.column(key).to_pylist(), dtype=np.float64) if key in table.column_names
+                      else None for key in ("action", EFFORT_KEY))
+    return state, action, effort
 
 
 def import_lerobot_arms(dataset_dir: str | Path, out_dir: str | Path, calib: str | Path | CobotCalibration, *,
@@ -69,7 +70,8 @@ def import_lerobot_arms(dataset_dir: str | Path, out_dir: str | Path, calib: str
 
     Frame ``i`` gets ``t = frame_index / fps``; each arm of the calibration its ``q1..q6`` (rad) and
     ``gripper`` (m) from its columns of ``observation.state`` in the declared ``units`` (and its
-    actions from ``action`` when the dataset has one of the same shape); every
+    actions from ``action`` when the dataset has one of the same shape, and its gripper's effort,
+    ``<arm>.gripper_effort``, from ``observation.effort`` when present); every
     ``observation.images.<camera>`` its frames decoded from the video (matched to rows by timestamp)
     and its depth from ``depth.<camera>`` (uint16 mm) when present.
 
@@ -99,13 +101,15 @@ def import_lerobot_arms(dataset_dir: str | Path, out_dir: str | Path, calib: str
     if not data_path.is_file():
         raise EpisodeFormatError(f"{root}: episode {episode} points at {data_path.relative_to(root)}, which is missing")
     same_shape = info["features"].get("action", {}).get("shape") == info["features"]["observation.state"]["shape"]
-    wanted = ["frame_index", "observation.state"] + (["action"] if same_shape else [])
+    wanted = ["frame_index", "observation.state"] + (["action"] if same_shape else []) + \
+        ([EFFORT_KEY] if has_effort(root, info) else [])
     table = pq.read_table(data_path, columns=wanted, filters=[("episode_index", "=", episode)])
     length = int(row["length"])
     if table.num_rows != length or not np.array_equal(np.asarray(table.column("frame_index")), np.arange(length)):
         raise EpisodeFormatError(f"{data_path}: episode {episode} has {table.num_rows} rows with frame_index "
                                  f"not 0..{length - 1} in order (meta/episodes says length {length})")
-    state, action = _vectors(root, info, table, cal)
+    state, action, effort = _vectors(root, info, table, cal)
+    effort_columns = [f"{a}.{GRIPPER_EFFORT_COLUMN}" for a in cal.columns] if effort is not None else []
     per_arm = {a: state[:, [*j, g]] for a, (j, g) in cal.columns.items()}
     units = require_units(units, [describe_ranges(v, a) for a, v in per_arm.items()], str(root))
     problems = [p for a, v in per_arm.items() for p in unit_problems(v, units, f"arm {a}")]
@@ -138,13 +142,16 @@ def import_lerobot_arms(dataset_dir: str | Path, out_dir: str | Path, calib: str
     extra_meta = {"import": source_info, **({"task": tasks[0]} if tasks else {})}
     with EpisodeWriterV2(out_dir, list(cal.arms.values()), infos, float(fps), source=SOURCE,
                          depth_scale=DEPTH_SCALE_MM if depths else None, image_format=image_format,
-                         actions=action is not None, extra_meta=extra_meta, overwrite=overwrite) as writer:
+                         actions=action is not None, extra_frame_columns=effort_columns, extra_meta=extra_meta,
+                         overwrite=overwrite) as writer:
         for i in range(length):
             arms = {a: state[i, [*j, g]] * scale for a, (j, g) in cal.columns.items()}
             acts = None if action is None else {a: action[i, [*j, g]] * scale for a, (j, g) in cal.columns.items()}
+            grip = None if effort is None else {  # as recorded: its size dates the release, not its units
+                column: effort[i, g] for column, (_, g) in zip(effort_columns, cal.columns.values())}
             try:
                 writer.add_frame(i / fps, arms, {n: next(v) for n, v in videos.items()},
-                                 depth={n: next(d) for n, d in depths.items()}, actions=acts)
+                                 depth={n: next(d) for n, d in depths.items()}, actions=acts, extra=grip)
             except ValueError as exc:
                 raise EpisodeFormatError(f"{root}: episode {episode} frame {i}: {exc}") from exc
     log.info("%s: imported episode %d (%d frames, arms %s, cameras %s) into %s", root, episode, length,
