@@ -12,7 +12,8 @@ colour subsampled as the recording's JPEG kept it, and ``psnr_full_colour`` as d
 errors in the world frame (fitted and start-anchored), wall time and time per iteration.
 
 ``python -m benchmarks reconstruct_cobot [--samples cobot_dual_small,...] [--settings all,head] [--iters 3000]
-[--shadow-casters meshes|gaussians] [--rasterize-mode auto|classic|antialiased] [--lambda-mask L]
+[--shadow-casters meshes|gaussians] [--shadow-receivers all|background|shaded]
+[--rasterize-mode auto|classic|antialiased] [--lambda-mask L]
 [--lambda-pose L] [--lambda-smooth L] [--pose-rate-final F] [--seed S] [--supersample N] [--data DIR] [--work DIR]
 [--out FILE]``: ``--settings all --iters 9000`` gives the head camera about as many iterations as
 ``--settings head --iters 3000`` (one camera's image an iteration).
@@ -48,7 +49,7 @@ from manisplat.cli_args import bounded, non_negative
 from manisplat.episode.cli import main as episode_main
 from manisplat.episode.groundtruth import write_gt
 from manisplat.reconstruct.cli import main as reconstruct_main
-from manisplat.reconstruct.config import RASTERIZE_CHOICES, SHADOW_CASTERS
+from manisplat.reconstruct.config import RASTERIZE_CHOICES, SHADOW_CASTERS, SHADOW_RECEIVERS
 
 OWN_OPTIONS = True
 HEAD = "cam_high"
@@ -64,6 +65,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--iters", type=int, default=3000, help="training iterations (default 3000, the CPU default)")
     p.add_argument("--shadow-casters", choices=SHADOW_CASTERS, default="gaussians",
                    help="manisplat-reconstruct --shadow-casters (default gaussians)")
+    p.add_argument("--shadow-receivers", choices=SHADOW_RECEIVERS, default="all",
+                   help="manisplat-reconstruct --shadow-receivers (default all, as the command's)")
     p.add_argument("--rasterize-mode", choices=RASTERIZE_CHOICES, default="auto",
                    help="manisplat-reconstruct --rasterize-mode (default auto, as the command's)")
     add_training_flags(p)
@@ -98,8 +101,8 @@ def main(argv: list[str] | None = None) -> int:
             episode, prompts = imported_sample(source, sample, Path(tmp))
             for setting, cameras in (SETTINGS[key] for key in settings):
                 out = Path(tmp) / f"{sample}_{len(cameras)}"
-                options = ("--shadow-casters", args.shadow_casters, "--rasterize-mode", args.rasterize_mode,
-                           "--seed", str(args.seed))
+                options = ("--shadow-casters", args.shadow_casters, "--shadow-receivers", args.shadow_receivers,
+                           "--rasterize-mode", args.rasterize_mode, "--seed", str(args.seed))
                 options += training_options(args)
                 row = reconstruct(episode, out, cameras, prompts, args.iters, options)
                 rows.append(row | {"sample": sample, "setting": setting})
