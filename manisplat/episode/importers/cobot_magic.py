@@ -69,6 +69,16 @@ class CobotCalibration:
     depth_units: dict[str, float] = field(default_factory=dict)
     fps: float | None = None
 
+    @property
+    def gripper_effort_columns(self) -> list[str]:
+        """Each arm's ``frames.csv`` column ``<arm>.gripper_effort``, in the order of :attr:`columns`."""
+        return [f"{arm}.{GRIPPER_EFFORT_COLUMN}" for arm in self.columns]
+
+    def gripper_efforts(self, row: np.ndarray) -> dict[str, float]:
+        """:attr:`gripper_effort_columns` -> each arm's gripper column of one row (D,) laid out like
+        ``qpos``, as stored."""
+        return {column: float(row[g]) for column, (_, g) in zip(self.gripper_effort_columns, self.columns.values())}
+
 
 def _description(path: Path, name: str, arm: dict[str, Any]) -> str:
     """The robot description of an arm of the sidecar: ``description`` as given, or ``urdf``
@@ -241,7 +251,7 @@ def import_cobot_magic(h5_path: str | Path, out_dir: str | Path, calib: str | Pa
         qpos = np.asarray(qpos_ds[()], dtype=np.float64)  # float32 widens exactly
         action = _like_qpos(f, "action", qpos_ds.shape, h5_path)
         effort = _like_qpos(f, "observations/effort", qpos_ds.shape, h5_path)
-        effort_columns = [f"{a}.{GRIPPER_EFFORT_COLUMN}" for a in cal.columns] if effort is not None else []
+        effort_columns = cal.gripper_effort_columns if effort is not None else []
 
         streams, depths, cameras = {}, {}, []
         for name in names:
@@ -283,8 +293,7 @@ def import_cobot_magic(h5_path: str | Path, out_dir: str | Path, calib: str | Pa
                     rgb[name] = first if i == 0 else next(frames)
                 state = {a: qpos[i, [*j, g]] * scale for a, (j, g) in cal.columns.items()}
                 acts = None if action is None else {a: action[i, [*j, g]] * scale for a, (j, g) in cal.columns.items()}
-                grip = None if effort is None else {
-                    column: effort[i, g] for column, (_, g) in zip(effort_columns, cal.columns.values())}
+                grip = None if effort is None else cal.gripper_efforts(effort[i])
                 try:
                     writer.add_frame(i / rate, state, rgb, depth={n: d[i] for n, d in depths.items()}, actions=acts,
                                      extra=grip)

@@ -23,7 +23,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from manisplat.episode.exporters.lerobot import depth_key, image_key
-from manisplat.episode.format import GRIPPER_EFFORT_COLUMN, EpisodeFormatError
+from manisplat.episode.format import EpisodeFormatError
 from manisplat.episode.importers.cobot_magic import CobotCalibration, check_cameras, load_calibration
 from manisplat.episode.importers.lerobot import (DEPTH_SCALE_MM, EFFORT_KEY, SOURCE, _depth_frames, _episode_row,
                                                  _load_info, _video_frames, has_effort, stored_colour_keys)
@@ -109,7 +109,7 @@ def import_lerobot_arms(dataset_dir: str | Path, out_dir: str | Path, calib: str
         raise EpisodeFormatError(f"{data_path}: episode {episode} has {table.num_rows} rows with frame_index "
                                  f"not 0..{length - 1} in order (meta/episodes says length {length})")
     state, action, effort = _vectors(root, info, table, cal)
-    effort_columns = [f"{a}.{GRIPPER_EFFORT_COLUMN}" for a in cal.columns] if effort is not None else []
+    effort_columns = cal.gripper_effort_columns if effort is not None else []
     per_arm = {a: state[:, [*j, g]] for a, (j, g) in cal.columns.items()}
     units = require_units(units, [describe_ranges(v, a) for a, v in per_arm.items()], str(root))
     problems = [p for a, v in per_arm.items() for p in unit_problems(v, units, f"arm {a}")]
@@ -147,8 +147,7 @@ def import_lerobot_arms(dataset_dir: str | Path, out_dir: str | Path, calib: str
         for i in range(length):
             arms = {a: state[i, [*j, g]] * scale for a, (j, g) in cal.columns.items()}
             acts = None if action is None else {a: action[i, [*j, g]] * scale for a, (j, g) in cal.columns.items()}
-            grip = None if effort is None else {  # as recorded: its size dates the release, not its units
-                column: effort[i, g] for column, (_, g) in zip(effort_columns, cal.columns.values())}
+            grip = None if effort is None else cal.gripper_efforts(effort[i])  # as recorded: its size dates releases
             try:
                 writer.add_frame(i / fps, arms, {n: next(v) for n, v in videos.items()},
                                  depth={n: next(d) for n, d in depths.items()}, actions=acts, extra=grip)
