@@ -14,8 +14,8 @@ errors in the world frame (fitted and start-anchored), wall time and time per it
 ``python -m benchmarks reconstruct_cobot [--samples cobot_dual_small,...] [--settings all,head] [--iters 3000]
 [--shadow-casters meshes|gaussians] [--shadow-receivers all|background|shaded]
 [--rasterize-mode auto|classic|antialiased] [--lambda-mask L]
-[--lambda-pose L] [--lambda-smooth L] [--pose-rate-final F] [--seed S] [--supersample N] [--data DIR] [--work DIR]
-[--out FILE]``: ``--settings all --iters 9000`` gives the head camera about as many iterations as
+[--lambda-pose L] [--lambda-smooth L] [--pose-rate-final F] [--seed S] [--supersample N] [--shadow-map-px N]
+[--data DIR] [--work DIR] [--out FILE]``: ``--settings all --iters 9000`` gives the head camera about as many iterations as
 ``--settings head --iters 3000`` (one camera's image an iteration).
 
 With ``--supersample N`` (N odd, the simulator's python in ``MANISPLAT_SIMENV``) the samples are
@@ -24,7 +24,10 @@ finer by ``sim_render_bimanual_states.py --supersample`` and averaged, each pixe
 its area, then stored through the recorder's JPEG as the sample's images were; the depth, joints,
 calibration and truth are the sample's (:func:`camera_like`). The simulator's own images filter
 the objects' prints by mipmap level, blurrier in the head camera a metre away than in the wrist
-cameras a few centimetres away, which a sensor integrating its pixels does not.
+cameras a few centimetres away, which a sensor integrating its pixels does not. With
+``--shadow-map-px N`` they are also drawn with a shadow map of N x N texels (the samples': 2048):
+a finer map leaves less of the stair-stepped shadow edges that no camera sees
+(``python -m benchmarks sim_shadow_map`` measures what they cost).
 """
 
 from __future__ import annotations
@@ -45,7 +48,7 @@ import numpy as np
 
 from benchmarks._harness import BENCH_DIR, shared_dir, simulator_python
 from benchmarks._simulator import run_sim_jobs
-from manisplat.cli_args import bounded, non_negative
+from manisplat.cli_args import bounded, non_negative, positive
 from manisplat.episode.cli import main as episode_main
 from manisplat.episode.groundtruth import write_gt
 from manisplat.reconstruct.cli import main as reconstruct_main
@@ -74,6 +77,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--supersample", type=int, default=1, metavar="N",
                    help="record the samples as a camera would: their states drawn N x N times finer and averaged "
                         "(N odd; default 1, the samples' own images)")
+    p.add_argument("--shadow-map-px", type=positive(int), metavar="N",
+                   help="draw the samples again (as --supersample does) with a shadow map of N x N texels "
+                        "(default: the samples' own images, or the scene's map with --supersample)")
     p.add_argument("--data", type=Path, help="the folder holding the samples (default shared/data; "
                                              "sim_headlight draws copies elsewhere)")
     p.add_argument("--work", type=Path, help="keep the imported samples and the twins here (default: a temporary folder)")
@@ -89,15 +95,16 @@ def main(argv: list[str] | None = None) -> int:
     data = args.data or shared_dir() / "data"
     if missing := [name for name in args.samples.split(",") if not (data / name / "episode_0.hdf5").is_file()]:
         p.error(f"--samples: no episode_0.hdf5 for {', '.join(missing)} in {data}")
-    simenv = simulator_python() if args.supersample > 1 else None
+    simenv = simulator_python() if args.supersample > 1 or args.shadow_map_px is not None else None
     rows = []
     t0 = time.perf_counter()
     if args.work is not None:
         args.work.mkdir(parents=True, exist_ok=True)
     with contextlib.nullcontext(args.work) if args.work is not None else tempfile.TemporaryDirectory() as tmp:
         for sample in args.samples.split(","):
-            source = data if simenv is None else camera_like(simenv, data, sample, Path(tmp) / f"camera_like_x{args.supersample}",
-                                                             args.supersample)
+            drawn = f"camera_like_x{args.supersample}" + ("" if args.shadow_map_px is None else f"_map{args.shadow_map_px}")
+            source = data if simenv is None else camera_like(simenv, data, sample, Path(tmp) / drawn, args.supersample,
+                                                             args.shadow_map_px)
             episode, prompts = imported_sample(source, sample, Path(tmp))
             for setting, cameras in (SETTINGS[key] for key in settings):
                 out = Path(tmp) / f"{sample}_{len(cameras)}"
@@ -109,10 +116,11 @@ def main(argv: list[str] | None = None) -> int:
                 print(json.dumps(rows[-1], default=float), flush=True)
     result = {"benchmark": "reconstruct_cobot",
               "command": "python -m benchmarks reconstruct_cobot " + " ".join(argv if argv is not None else sys.argv[1:]),
-              "data": str(data), "supersample": args.supersample,
+              "data": str(data), "supersample": args.supersample, "shadow_map_px": args.shadow_map_px,
               "images": "the samples' own" if simenv is None else
-              f"the samples' states drawn {args.supersample} x {args.supersample} times finer and averaged, through "
-              "the recorder's JPEG", "threads": "torch's default (the machine's cores)", "rows": rows,
+              f"the samples' states drawn {args.supersample} x {args.supersample} times finer and averaged"
+              + ("" if args.shadow_map_px is None else f" with a shadow map of {args.shadow_map_px} texels a side")
+              + ", through the recorder's JPEG", "threads": "torch's default (the machine's cores)", "rows": rows,
               "wall_s": round(time.perf_counter() - t0, 1)}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1, default=float) + "\n")
@@ -130,9 +138,10 @@ def imported_sample(data: Path, sample: str, folder: Path) -> tuple[Path, dict[s
     return episode, add_ground_truth(episode, source)
 
 
-def camera_like(simenv: Path, data: Path, sample: str, folder: Path, n: int) -> Path:
+def camera_like(simenv: Path, data: Path, sample: str, folder: Path, n: int, shadow_map_px: int | None = None) -> Path:
     """A copy of ``data/sample`` in ``folder/data/sample`` whose images are its own states (its
-    ground truth's joints, gaps and object poses) drawn ``n`` x ``n`` times finer and averaged,
+    ground truth's joints, gaps and object poses) drawn ``n`` x ``n`` times finer and averaged
+    (with a shadow map of ``shadow_map_px`` texels a side where given, else the scene's),
     each through the recorder's JPEG at the sample's quality (the fingers drawn symmetric about
     their gap, as a twin draws them, where physics pushed one pad further while gripping); the
     depth, joints, calibration and truth are the sample's (``folder/robots`` links shared/robots,
@@ -150,8 +159,9 @@ def camera_like(simenv: Path, data: Path, sample: str, folder: Path, n: int) -> 
         (folder / "robots").symlink_to(shared_dir() / "robots")
     drawn = folder / f"{sample}_drawn"
     states = write_states(folder / f"{sample}_states.npz", gt, list(spec["objects"]), slice(None))
+    finer = () if shadow_map_px is None else ("--shadow-map-px", str(shadow_map_px))
     run_sim_jobs(simenv, [redraw_job(source, spec["task"], states, drawn, drawn / "render.json",
-                                     "--supersample", str(n), "--workers", "2")], workers=1)
+                                     "--supersample", str(n), *finer, "--workers", "2")], workers=1)
     quality = int(json.loads(str(gt["info"]))["args"]["jpeg_quality"])
     part = copy.parent / f"{sample}.part"
     shutil.rmtree(part, ignore_errors=True)
