@@ -24,9 +24,10 @@ from manisplat.cli_args import add_version, bounded, finite, non_negative, numbe
 from manisplat.exit_codes import ExitCode, exit_status_help
 from manisplat.output_folder import check_output_folder
 from manisplat.reconstruct.config import (COMPILE_CHOICES, COMPILE_MIN_ITERS, GPU_ITERS, RASTERIZE_CHOICES,
-                                          SHADOW_CASTERS, SHADOW_RECEIVERS, DeviceUnavailable, TrainConfig,
-                                          default_iters, resolve_compile, resolve_device, resolve_lambda_mask,
-                                          resolve_lambda_smooth, resolve_rasterize_mode)
+                                          SH_DEGREE_CHOICES, SHADOW_CASTERS, SHADOW_RECEIVERS, DeviceUnavailable,
+                                          TrainConfig, default_iters, resolve_compile, resolve_device,
+                                          resolve_lambda_mask, resolve_lambda_smooth, resolve_rasterize_mode,
+                                          resolve_sh_degree)
 from manisplat.threads import THREADS_HELP, use_threads
 
 log = logging.getLogger("manisplat.reconstruct")
@@ -111,6 +112,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "antialiased (dilated at the opacity that keeps their integral: Gaussians fitted to a wrist "
                         "camera's close-ups, seen from the head camera) or auto (default: antialiased when several "
                         "cameras are trained, classic with one)")
+    p.add_argument("--sh-degree", default="auto", choices=SH_DEGREE_CHOICES,
+                   help="bands of view-dependent colour (spherical harmonics) each Gaussian learns: 0-3, or auto "
+                        "(default: 3 when several cameras are trained, whose views turn around each surface; 2 with "
+                        "one)")
     p.add_argument("--object-position-rate", type=positive(), default=TrainConfig.object_position_rate, metavar="R",
                    help="the objects' Gaussians' position learning rate as a fraction of the scene's (default "
                         f"{TrainConfig.object_position_rate:g}; 0.3 keeps a few-centimetre object's Gaussians nearer "
@@ -333,6 +338,8 @@ def _config(args: argparse.Namespace, device: str, iters: int, compiled: str | N
     rasterize_mode = resolve_rasterize_mode(args.rasterize_mode, cameras)
     log.info("splats drawn %s (--rasterize-mode %s, %d camera%s trained)", rasterize_mode, args.rasterize_mode,
              cameras, "s" if cameras > 1 else "")
+    sh_degree = resolve_sh_degree(args.sh_degree, cameras)
+    log.info("view-dependent colour of degree %d (--sh-degree %s)", sh_degree, args.sh_degree)
     lambda_mask = resolve_lambda_mask(args.lambda_mask, masks_drawn)
     log.info("mask loss weight %g (%s; masks %s)", lambda_mask,
              "--lambda-mask" if args.lambda_mask is not None else "by the masks' source",
@@ -343,7 +350,7 @@ def _config(args: argparse.Namespace, device: str, iters: int, compiled: str | N
              else "a camera riding on an arm is trained" if riding else "fixed cameras only")
     return TrainConfig(
         iters=iters, backend=args.backend, shadows=not args.no_shadows, shadow_receivers=args.shadow_receivers,
-        shadow_casters=args.shadow_casters, rasterize_mode=rasterize_mode,
+        shadow_casters=args.shadow_casters, rasterize_mode=rasterize_mode, sh_degree=sh_degree,
         object_position_rate=args.object_position_rate, pose_rate_final=args.pose_rate_final,
         densify=not args.no_densify, refine_camera=args.refine_camera, exposure=not args.no_exposure,
         lambda_app=args.lambda_app,

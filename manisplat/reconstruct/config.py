@@ -149,6 +149,23 @@ def resolve_rasterize_mode(name: str, cameras: int) -> str:
     if name == "auto":
         return "antialiased" if cameras > 1 else "classic"
     return name
+
+
+#: manisplat-reconstruct --sh-degree's choices (:func:`resolve_sh_degree`)
+SH_DEGREE_CHOICES = ("auto", "0", "1", "2", "3")
+
+
+def resolve_sh_degree(name: str, cameras: int) -> int:
+    """The view-dependent colour bands of a run training ``cameras`` cameras, for ``name``: "0" to
+    "3", or "auto": 3 with several cameras (wrist cameras see each surface from many directions; a
+    third band drew every full image of the Cobot Magic samples 0.02-0.46 dB better), and
+    ``TrainConfig.sh_degree`` (2) with one fixed camera, whose views of a surface barely turn
+    (docs/benchmarks.md, a third band of view-dependent colour)."""
+    if name not in SH_DEGREE_CHOICES:
+        raise ValueError(f"unknown SH degree {name!r}; choose one of {', '.join(SH_DEGREE_CHOICES)}")
+    if name == "auto":
+        return 3 if cameras > 1 else TrainConfig.sh_degree
+    return int(name)
 #: "auto" compiles a CUDA run of at least this many iterations: on an H100, over whole runs of
 #: sim_pick_place_small (densification, held-out estimates, 65 600 Gaussians), an iteration took
 #: 39.4 ms eagerly (gpu_eager/tests_long_pp_10000.json) and 19.7 ms compiled after about 240 s of

@@ -540,6 +540,10 @@ class Reconstruction:
             raise ValueError(f"the checkpoint was trained with --pose-rate-final {final:g}, this run asks for "
                              f"{self.config.pose_rate_final:g}; resume with the same rate, or start a new run "
                              "(--overwrite)")
+        degree = state["config"].get("sh_degree", 2)
+        if degree != self.config.sh_degree:
+            raise ValueError(f"the checkpoint was trained with --sh-degree {degree}, this run asks for "
+                             f"{self.config.sh_degree}; resume with the same degree, or start a new run (--overwrite)")
         dev = self.device
 
         def here(x):

@@ -115,6 +115,12 @@ def test_one_camera_is_drawn_classic_by_default(finished):
     assert json.loads((out / "twin.json").read_text())["rasterize_mode"] == "classic"
 
 
+def test_one_camera_learns_two_bands_of_view_dependent_colour_by_default(finished):
+    """--sh-degree auto: 2 with one camera (several: 3, test_two_arms)."""
+    out, _ = finished
+    assert json.loads((out / "metrics.json").read_text())["sh_degree"] == 2
+
+
 def test_the_episode_masks_keep_the_mask_loss(finished):
     """--lambda-mask unset: 1 with the episode's masks (0 with drawn ones: test_without_masks_or_depth)."""
     out, _ = finished
@@ -140,6 +146,15 @@ def test_the_rasterize_mode_resolves_by_the_number_of_cameras():
     assert resolve_rasterize_mode("classic", 3) == "classic"
     with pytest.raises(ValueError, match="unknown rasterize mode 'mip'"):
         resolve_rasterize_mode("mip", 1)
+
+
+def test_the_sh_degree_resolves_by_the_number_of_cameras():
+    from manisplat.reconstruct.config import resolve_sh_degree
+
+    assert [resolve_sh_degree("auto", n) for n in (1, 2, 3)] == [2, 3, 3]
+    assert [resolve_sh_degree(d, 3) for d in ("0", "1", "2", "3")] == [0, 1, 2, 3]
+    with pytest.raises(ValueError, match="unknown SH degree '4'; choose one of auto, 0, 1, 2, 3"):
+        resolve_sh_degree("4", 1)
 
 
 def test_sheets_are_labelled_with_columns_and_frame(finished):

@@ -296,6 +296,20 @@ def test_a_checkpoint_resumes_only_in_the_rasterize_mode_it_was_trained_in(pick)
     assert classic.step == 2 and classic.graph.rasterize_mode == "classic"
 
 
+def test_a_checkpoint_resumes_only_with_the_sh_degree_it_was_trained_with(pick):
+    """Its Gaussians hold the bands they were trained with: a resume asking for another degree is
+    refused by name (checkpoints before --sh-degree were trained with 2)."""
+    rec, _ = _reconstruction(pick, iters=2, device="cpu", sh_degree=3)
+    rec.train(progress=False)
+    state = rec.state_dict()
+    fewer, _ = _reconstruction(pick, iters=4, device="cpu")
+    with pytest.raises(ValueError, match="trained with --sh-degree 3, this run asks for 2"):
+        fewer.load_state_dict(state)
+    del state["config"]["sh_degree"]
+    with pytest.raises(ValueError, match="trained with --sh-degree 2, this run asks for 3"):
+        _reconstruction(pick, iters=4, device="cpu", sh_degree=3)[0].load_state_dict(state)
+
+
 @pytest.mark.parametrize("option, value", [("rasterize_mode", "mip"), ("shadow_casters", "points")])
 def test_an_unknown_drawing_option_is_refused_by_name(pick, option, value):
     """Not taken for one of the known values (the casters are checked when the shadows start)."""

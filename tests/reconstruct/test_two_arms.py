@@ -89,6 +89,7 @@ def test_both_arms_are_drawn_and_every_camera_is_scored(two_arms):
     assert metrics["psnr"] == cameras["cam_high"]["psnr"]  # the top-level figures are the head camera's
     assert metrics["rasterize_mode"] == "antialiased", "several cameras trained: --rasterize-mode auto antialiases"
     assert metrics["eps2d"] == 0.1, "the antialiased mode's own dilation"
+    assert metrics["sh_degree"] == 3, "several cameras trained: --sh-degree auto learns a third band"
     assert metrics["lambda_mask"] == 0.0, "every camera's masks drawn: no mask loss by default"
     assert metrics["lambda_smooth"] == 1.0, "wrist cameras trained: the corrections' smoothness on by default"
     assert sorted(p.name for p in (out / "renders" / "cam_left_wrist" / "sheets").iterdir())
