@@ -166,6 +166,8 @@ def resolve_sh_degree(name: str, cameras: int) -> int:
     if name == "auto":
         return 3 if cameras > 1 else TrainConfig.sh_degree
     return int(name)
+
+
 #: "auto" compiles a CUDA run of at least this many iterations: on an H100, over whole runs of
 #: sim_pick_place_small (densification, held-out estimates, 65 600 Gaussians), an iteration took
 #: 39.4 ms eagerly (gpu_eager/tests_long_pp_10000.json) and 19.7 ms compiled after about 240 s of
