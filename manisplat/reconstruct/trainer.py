@@ -522,28 +522,16 @@ class Reconstruction:
         if self.trajectories and "pose_optimizer" not in state:
             raise ValueError("the checkpoint was written by an older manisplat-reconstruct (object poses in the "
                              "shared Adam); start a new run (--overwrite)")
-        trained = state["config"].get("rasterize_mode", "classic")  # checkpoints before the option: classic
-        if trained != self.config.rasterize_mode:
-            raise ValueError(f"the checkpoint was trained with --rasterize-mode {trained}, this run asks for "
-                             f"{self.config.rasterize_mode}; resume with the same mode, or start a new run (--overwrite)")
+        for flag, field, before, what in RESUMED_ALIKE:
+            trained, asked = state["config"].get(field, before), getattr(self.config, field)
+            if trained != asked:
+                raise ValueError(f"the checkpoint was trained with --{flag} {_shown(trained)}, this run asks for "
+                                 f"{_shown(asked)}; resume with the same {what}, or start a new run (--overwrite)")
         dilation = state.get("eps2d", GSPLAT_EPS2D)  # checkpoints before the modes' own dilations: gsplat's in both
         if dilation != self.graph.eps2d:
             raise ValueError(f"the checkpoint's splats were fitted with a {dilation:g} px^2 2D dilation, this version "
-                             f"draws {trained} splats with {self.graph.eps2d:g}; start a new run (--overwrite)")
-        rate = state["config"].get("object_position_rate", 1.0)  # checkpoints before the option: the scene's rate
-        if rate != self.config.object_position_rate:
-            raise ValueError(f"the checkpoint was trained with --object-position-rate {rate:g}, this run asks for "
-                             f"{self.config.object_position_rate:g}; resume with the same rate, or start a new run "
+                             f"draws {self.config.rasterize_mode} splats with {self.graph.eps2d:g}; start a new run "
                              "(--overwrite)")
-        final = state["config"].get("pose_rate_final", 1.0)  # checkpoints before the schedule: constant
-        if final != self.config.pose_rate_final:
-            raise ValueError(f"the checkpoint was trained with --pose-rate-final {final:g}, this run asks for "
-                             f"{self.config.pose_rate_final:g}; resume with the same rate, or start a new run "
-                             "(--overwrite)")
-        degree = state["config"].get("sh_degree", 2)
-        if degree != self.config.sh_degree:
-            raise ValueError(f"the checkpoint was trained with --sh-degree {degree}, this run asks for "
-                             f"{self.config.sh_degree}; resume with the same degree, or start a new run (--overwrite)")
         dev = self.device
 
         def here(x):
@@ -625,6 +613,19 @@ class Reconstruction:
         tmp = path.with_name(path.name + ".tmp")
         torch.save(self.state_dict(), tmp)
         tmp.replace(path)
+
+
+#: the options a checkpoint resumes only with: (flag, ``TrainConfig`` field, the value of checkpoints
+#: from before the option, what to keep the same)
+RESUMED_ALIKE = (("rasterize-mode", "rasterize_mode", "classic", "mode"),
+                 ("object-position-rate", "object_position_rate", 1.0, "rate"),  # before: the scene's rate
+                 ("pose-rate-final", "pose_rate_final", 1.0, "rate"),  # before the schedule: constant
+                 ("sh-degree", "sh_degree", 2, "degree"))
+
+
+def _shown(value) -> str:
+    """An option's value as a message shows it (numbers as ``%g``)."""
+    return f"{value:g}" if isinstance(value, (int, float)) else str(value)
 
 
 def _progress_fields(mean_loss: float, held_out_psnr: float, gaussians: int) -> dict[str, str | int]:
