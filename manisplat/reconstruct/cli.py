@@ -26,8 +26,8 @@ from manisplat.output_folder import check_output_folder
 from manisplat.reconstruct.config import (COMPILE_CHOICES, COMPILE_MIN_ITERS, GPU_ITERS, RASTERIZE_CHOICES,
                                           SH_DEGREE_CHOICES, SHADOW_CASTERS, SHADOW_RECEIVERS, DeviceUnavailable,
                                           TrainConfig, default_iters, resolve_compile, resolve_device,
-                                          resolve_lambda_mask, resolve_lambda_smooth, resolve_rasterize_mode,
-                                          resolve_sh_degree)
+                                          resolve_fixed_camera_weight, resolve_lambda_mask, resolve_lambda_smooth,
+                                          resolve_rasterize_mode, resolve_sh_degree)
 from manisplat.threads import THREADS_HELP, use_threads
 
 log = logging.getLogger("manisplat.reconstruct")
@@ -116,6 +116,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="bands of view-dependent colour (spherical harmonics) each Gaussian learns: 0-3, or auto "
                         "(default: 3 when several cameras are trained, whose views turn around each surface; 2 with "
                         "one)")
+    p.add_argument("--fixed-camera-weight", type=positive(), default=None, metavar="W",
+                   help="the factor on the gradients a fixed camera's frames give the objects' Gaussians (default: "
+                        "30 when a camera riding on an arm is trained too, whose close-ups would otherwise decide alone "
+                        "how the objects look; 1 with fixed cameras only)")
     p.add_argument("--object-position-rate", type=positive(), default=TrainConfig.object_position_rate, metavar="R",
                    help="the objects' Gaussians' position learning rate as a fraction of the scene's (default "
                         f"{TrainConfig.object_position_rate:g}; 0.3 keeps a few-centimetre object's Gaussians nearer "
@@ -348,8 +352,12 @@ def _config(args: argparse.Namespace, device: str, iters: int, compiled: str | N
     log.info("pose corrections' smoothness weight %g (%s)", lambda_smooth,
              "--lambda-smooth" if args.lambda_smooth is not None
              else "a camera riding on an arm is trained" if riding else "fixed cameras only")
+    fixed_camera_weight = resolve_fixed_camera_weight(args.fixed_camera_weight, riding)
+    log.info("a fixed camera's gradients on the objects' Gaussians weighed %g (%s)", fixed_camera_weight,
+             "--fixed-camera-weight" if args.fixed_camera_weight is not None
+             else "a camera riding on an arm is trained" if riding else "fixed cameras only")
     return TrainConfig(
-        iters=iters, backend=args.backend, shadows=not args.no_shadows, shadow_receivers=args.shadow_receivers,
+        iters=iters, backend=args.backend, fixed_camera_weight=fixed_camera_weight, shadows=not args.no_shadows, shadow_receivers=args.shadow_receivers,
         shadow_casters=args.shadow_casters, rasterize_mode=rasterize_mode, sh_degree=sh_degree,
         object_position_rate=args.object_position_rate, pose_rate_final=args.pose_rate_final,
         densify=not args.no_densify, refine_camera=args.refine_camera, exposure=not args.no_exposure,

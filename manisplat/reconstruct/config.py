@@ -60,6 +60,15 @@ class TrainConfig:
             positions' decay, the default until 2026-12-05) the images corrected less of the pseudo
             ground truth late in training: on the Cobot Magic handover the box came out further off
             and the wrist cameras' object regions 1.1-1.7 dB worse than at 0.1 (docs/benchmarks.md).
+        fixed_camera_weight: the factor on the gradients a fixed camera's frames give the objects'
+            Gaussians (the command line's :func:`resolve_fixed_camera_weight`: above 1 only where
+            cameras riding on an arm are trained too). A wrist camera's close-up gives an object's
+            Gaussians gradients 17-30 times those of the head camera a metre away, where the
+            object covers a few hundred pixels; in one loss the close-ups decided how the object
+            looks, and the head camera's view of it was left unfitted (its object region 2.7-3.6 dB
+            below the head camera's alone on the Cobot Magic samples; docs/benchmarks.md). The
+            poses, the robot, the background and densification's statistics take the gradients
+            as they are.
         sh_degree, sh_every: view-dependent colour bands (evaluated in each node's frame), one
             more band switched on every ``sh_every`` iterations.
         refine_camera: also optimise a correction of the camera extrinsic.
@@ -101,6 +110,7 @@ class TrainConfig:
     rasterize_mode: str = "classic"
     object_position_rate: float = 1.0
     pose_rate_final: float = 0.1
+    fixed_camera_weight: float = 1.0
     sh_degree: int = 2
     sh_every: int = 500
     refine_camera: bool = False
@@ -251,6 +261,25 @@ def resolve_lambda_smooth(weight: float | None, riding: bool) -> float:
     if weight is not None:
         return weight
     return SMOOTHNESS_WEIGHTS["riding" if riding else "fixed"]
+
+
+#: manisplat-reconstruct's weight of a fixed camera's gradients on the objects' Gaussians by whether a
+#: camera riding on an arm is trained too (:func:`resolve_fixed_camera_weight`)
+FIXED_CAMERA_WEIGHTS = {"fixed": 1.0, "riding": 30.0}
+
+
+def resolve_fixed_camera_weight(weight: float | None, riding: bool) -> float:
+    """The factor on a fixed camera's gradients on the objects' Gaussians: ``weight`` when one is
+    given (``--fixed-camera-weight``), else by the cameras trained (:data:`FIXED_CAMERA_WEIGHTS`):
+    30 where a camera rides on an arm (about the ratio of a wrist camera's gradients on an object's
+    Gaussians to the head camera's: 17-19 on their colour, 26-30 on their positions; on the Cobot
+    Magic samples the head camera's object region is drawn 2.7-3.5 dB better, as well as the head
+    camera alone draws it, the wrist cameras' full images within 0.1 dB), 1 with fixed cameras
+    only, which see the objects at like scales (docs/benchmarks.md, the head camera's say in how
+    the objects look)."""
+    if weight is not None:
+        return weight
+    return FIXED_CAMERA_WEIGHTS["riding" if riding else "fixed"]
 
 
 def resolve_lambda_mask(weight: float | None, masks_drawn: bool) -> float:

@@ -319,9 +319,23 @@ class Reconstruction:
             loss, meta, composed = self.losses(frame, camera)
             self._before_backward(meta)
             loss.backward()
+            self._weigh_fixed_camera(camera)
             self._step_and_densify(frame, meta, composed)
         self._average_loss(loss.detach())
         self.step += 1
+
+    def _weigh_fixed_camera(self, camera: str | None) -> None:
+        """Scale the gradients a fixed camera's frame gave the objects' Gaussians by
+        ``config.fixed_camera_weight`` (a riding camera's frames, the other nodes, the poses and the
+        image-space statistics of densification: as they are)."""
+        weight = self.config.fixed_camera_weight
+        if weight == 1.0 or self.view(camera).riding:
+            return
+        for node in self.graph.nodes():
+            if node.group > ROBOT:
+                for parameter in node.gaussians.params.values():
+                    if parameter.grad is not None:
+                        parameter.grad.mul_(weight)
 
     def _average_loss(self, loss: torch.Tensor) -> None:
         """Fold this iteration's loss into the running mean (weight 0.02, about 50 frames), on the device."""
@@ -620,7 +634,8 @@ class Reconstruction:
 RESUMED_ALIKE = (("rasterize-mode", "rasterize_mode", "classic", "mode"),
                  ("object-position-rate", "object_position_rate", 1.0, "rate"),  # before: the scene's rate
                  ("pose-rate-final", "pose_rate_final", 1.0, "rate"),  # before the schedule: constant
-                 ("sh-degree", "sh_degree", 2, "degree"))
+                 ("sh-degree", "sh_degree", 2, "degree"),
+                 ("fixed-camera-weight", "fixed_camera_weight", 1.0, "weight"))
 
 
 def _shown(value) -> str:

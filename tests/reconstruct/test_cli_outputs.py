@@ -157,6 +157,17 @@ def test_the_sh_degree_resolves_by_the_number_of_cameras():
         resolve_sh_degree("4", 1)
 
 
+def test_a_fixed_cameras_weight_on_the_objects_resolves_by_the_cameras_trained(tmp_path, capsys):
+    from manisplat.reconstruct.cli import main
+    from manisplat.reconstruct.config import resolve_fixed_camera_weight
+
+    assert [resolve_fixed_camera_weight(None, riding) for riding in (False, True)] == [1.0, 30.0]
+    assert [resolve_fixed_camera_weight(2.5, riding) for riding in (False, True)] == [2.5, 2.5]
+    with pytest.raises(SystemExit) as exit_:
+        main([str(tmp_path), "--out", str(tmp_path / "twin"), "--fixed-camera-weight", "0"])
+    assert exit_.value.code == 2 and "--fixed-camera-weight" in capsys.readouterr().err
+
+
 def test_sheets_are_labelled_with_columns_and_frame(finished):
     import cv2
 

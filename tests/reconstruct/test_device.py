@@ -472,3 +472,16 @@ def test_a_compiled_iteration_computes_the_eager_loss_and_gradients(pick, device
             assert error.norm() <= 1e-2 * g.norm() + 1e-12, name
         else:
             assert error.flatten().median() <= 1e-3 * g.abs().flatten().median() + 1e-12, name
+
+
+def test_a_checkpoint_resumes_only_with_the_fixed_cameras_weight_it_was_trained_with(pick):
+    """A resume asking for another weight of the fixed cameras' gradients is refused by name
+    (checkpoints before --fixed-camera-weight were trained with 1)."""
+    rec, _ = _reconstruction(pick, iters=2, device="cpu", fixed_camera_weight=30.0)
+    rec.train(progress=False)
+    state = rec.state_dict()
+    with pytest.raises(ValueError, match="trained with --fixed-camera-weight 30, this run asks for 1"):
+        _reconstruction(pick, iters=4, device="cpu")[0].load_state_dict(state)
+    del state["config"]["fixed_camera_weight"]
+    with pytest.raises(ValueError, match="trained with --fixed-camera-weight 1, this run asks for 30"):
+        _reconstruction(pick, iters=4, device="cpu", fixed_camera_weight=30.0)[0].load_state_dict(state)

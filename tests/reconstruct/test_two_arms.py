@@ -316,6 +316,35 @@ def test_wrist_cameras_masks_are_drawn_from_the_robot_and_the_objects_at_their_p
             assert iou > (0.85 if role == "robot" else 0.6), (name, role, iou)
 
 
+def test_a_fixed_cameras_gradients_on_the_objects_alone_are_weighed(wrist_episode):
+    """With --fixed-camera-weight W, a head camera frame's gradients on the objects' Gaussians are
+    W times what its loss gave them; the robot's and the background's are as given, and so is
+    everything a wrist camera's frame gives."""
+    data = load_episode_data(wrist_episode, use_masks=False)
+    links = [n for n in data.robot.link_names if data.robot.visuals.get(n)]
+    names = prompts_of(wrist_episode)[1::2]
+    complete_masks(data, links, [ObjectPrompt(t.split("=")[0], point=tuple(map(float, t.split("=")[1].split(","))))
+                                 for t in names], progress=False)
+    views = {"cam_left_wrist": load_episode_data(wrist_episode, camera="cam_left_wrist", use_masks=False)}
+    rec, _ = build(data, make_plan(data), TrainConfig(iters=1, fixed_camera_weight=7.0, shadows=False), views=views)
+    frame = rec.plan.train_frames[len(rec.plan.train_frames) // 2]
+    for camera, expected in ((None, 7.0), ("cam_left_wrist", 1.0)):
+        rec.optimizer.zero_grad(set_to_none=True)
+        rec.losses(frame, camera)[0].backward()
+        given = {(node.name, k): p.grad.clone() for node in rec.graph.nodes()
+                 for k, p in node.gaussians.params.items() if p.grad is not None}
+        rec._weigh_fixed_camera(camera)
+        nodes = {node.name: node for node in rec.graph.nodes()}
+        objects = {f"object/{name}" for name in ("box_left", "box_right")}
+        assert {node for node, _ in given} >= objects | {"background"}
+        for (node, k), grad in given.items():
+            weighed = nodes[node].gaussians.params[k].grad
+            factor = expected if node in objects else 1.0
+            torch.testing.assert_close(weighed, grad * factor, msg=f"{camera} {node}.{k}")
+        seen = {node for (node, k), grad in given.items() if node in objects and k == "sh0" and grad.abs().sum() > 0}
+        assert seen == objects if camera is None else seen, camera  # the left wrist camera sees its own box
+
+
 def test_the_reference_camera_must_be_fixed(wrist_episode, tmp_path, capsys):
     assert main([str(wrist_episode), "--out", str(tmp_path / "t"), "--cameras", "cam_left_wrist", "--no-masks",
                  *prompts_of(wrist_episode)]) == 2
