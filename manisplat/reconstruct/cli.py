@@ -357,8 +357,8 @@ def _config(args: argparse.Namespace, device: str, iters: int, compiled: str | N
              "--fixed-camera-weight" if args.fixed_camera_weight is not None
              else "a camera riding on an arm is trained" if riding else "fixed cameras only")
     return TrainConfig(
-        iters=iters, backend=args.backend, fixed_camera_weight=fixed_camera_weight, shadows=not args.no_shadows, shadow_receivers=args.shadow_receivers,
-        shadow_casters=args.shadow_casters, rasterize_mode=rasterize_mode, sh_degree=sh_degree,
+        iters=iters, backend=args.backend, shadows=not args.no_shadows, shadow_receivers=args.shadow_receivers,
+        shadow_casters=args.shadow_casters, fixed_camera_weight=fixed_camera_weight, rasterize_mode=rasterize_mode, sh_degree=sh_degree,
         object_position_rate=args.object_position_rate, pose_rate_final=args.pose_rate_final,
         densify=not args.no_densify, refine_camera=args.refine_camera, exposure=not args.no_exposure,
         lambda_app=args.lambda_app,

@@ -294,14 +294,21 @@ def test_a_wrist_camera_is_posed_at_each_frame_by_forward_kinematics(wrist_episo
         np.testing.assert_allclose(T_world_cam, gt[f"T_world_cam_{camera}"], atol=2e-5)
 
 
+def head_view_with_drawn_masks(episode):
+    """The head camera's view of ``episode`` without its masks, the robot's and each prompted box's
+    drawn instead (as ``--no-masks`` draws them)."""
+    data = load_episode_data(episode, use_masks=False)
+    links = [n for n in data.robot.link_names if data.robot.visuals.get(n)]
+    names = prompts_of(episode)[1::2]
+    complete_masks(data, links, [ObjectPrompt(t.split("=")[0], point=tuple(map(float, t.split("=")[1].split(","))))
+                                 for t in names], progress=False)
+    return data
+
+
 def test_wrist_cameras_masks_are_drawn_from_the_robot_and_the_objects_at_their_poses(wrist_episode):
     """After alignment, each wrist camera's masks (robot at FK, each box's model at its pseudo
     pose) cover what its own simulated masks say, robot and boxes alike."""
-    data = load_episode_data(wrist_episode, use_masks=False)
-    links = [n for n in data.robot.link_names if data.robot.visuals.get(n)]
-    names = prompts_of(wrist_episode)[1::2]
-    complete_masks(data, links, [ObjectPrompt(t.split("=")[0], point=tuple(map(float, t.split("=")[1].split(","))))
-                                 for t in names], progress=False)
+    data = head_view_with_drawn_masks(wrist_episode)
     views = {name: load_episode_data(wrist_episode, camera=name, use_masks=False)
              for name in ("cam_left_wrist", "cam_right_wrist")}
     build(data, make_plan(data), TrainConfig(iters=1), views=views)
@@ -320,22 +327,18 @@ def test_a_fixed_cameras_gradients_on_the_objects_alone_are_weighed(wrist_episod
     """With --fixed-camera-weight W, a head camera frame's gradients on the objects' Gaussians are
     W times what its loss gave them; the robot's and the background's are as given, and so is
     everything a wrist camera's frame gives."""
-    data = load_episode_data(wrist_episode, use_masks=False)
-    links = [n for n in data.robot.link_names if data.robot.visuals.get(n)]
-    names = prompts_of(wrist_episode)[1::2]
-    complete_masks(data, links, [ObjectPrompt(t.split("=")[0], point=tuple(map(float, t.split("=")[1].split(","))))
-                                 for t in names], progress=False)
+    data = head_view_with_drawn_masks(wrist_episode)
     views = {"cam_left_wrist": load_episode_data(wrist_episode, camera="cam_left_wrist", use_masks=False)}
     rec, _ = build(data, make_plan(data), TrainConfig(iters=1, fixed_camera_weight=7.0, shadows=False), views=views)
     frame = rec.plan.train_frames[len(rec.plan.train_frames) // 2]
+    nodes = {node.name: node for node in rec.graph.nodes()}
+    objects = {f"object/{name}" for name in ("box_left", "box_right")}
     for camera, expected in ((None, 7.0), ("cam_left_wrist", 1.0)):
         rec.optimizer.zero_grad(set_to_none=True)
         rec.losses(frame, camera)[0].backward()
         given = {(node.name, k): p.grad.clone() for node in rec.graph.nodes()
                  for k, p in node.gaussians.params.items() if p.grad is not None}
         rec._weigh_fixed_camera(camera)
-        nodes = {node.name: node for node in rec.graph.nodes()}
-        objects = {f"object/{name}" for name in ("box_left", "box_right")}
         assert {node for node, _ in given} >= objects | {"background"}
         for (node, k), grad in given.items():
             weighed = nodes[node].gaussians.params[k].grad
