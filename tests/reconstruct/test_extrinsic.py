@@ -223,8 +223,8 @@ def test_depth_noise_along_the_rays_does_not_bias_the_fit(sample, tmp_path):
     """Stereo noise moves each point along its pixel's ray (here 5 mm at 1 m, growing with the
     square of the depth). The fits with the noise and with its negative average its linear effect
     away; what is left against the fit on exact depth is the bias of the noise's variance. With
-    the rotation's lever arm at the noisy point it was 1.2 mm / 0.048 deg; at the model point the ray
-    hits 0.65 mm / 0.025 deg (the fit's own nonlinearity at this noise). Uniform depth weights:
+    the rotation's lever arm at the noisy point it was 1.15 mm / 0.048 deg; at the model point the ray
+    hits 0.70 mm / 0.027 deg (the fit's own nonlinearity at this noise). Uniform depth weights:
     the bias of the lever alone."""
     episode, _ = _miscalibrated(sample, tmp_path / "off", 0.3, 3.0)
     depth = load_episode_data(episode).depth
