@@ -16,15 +16,15 @@ behind a thin part or an edge to another face and biases the fit: at the oak pre
 1.1 m away that bias was 0.34 deg / 5.8 mm, larger than the calibration error it corrected. For
 the same reason the rotation's lever arm in the Jacobian is the model point the ray hits, not the
 noisy measured one (whose noise, multiplied by the residual's own, biased the fit by the noise's
-variance: 0.5 mm of camera centre from 1.26 m). Each
+variance: up to 0.4 mm of camera centre from 1.26 m). Each
 depth point is trusted by its expected stereo error, which grows with the square of its depth
 (weight ``(z_ref / z)^4``). The static background cannot help: it is seen
 by one still camera, so any camera pose explains it.
 
-The uncertainty is a bootstrap over frames (frames resampled with replacement, the converged
-normal equations re-solved): the 1-sigma spread of the correction's rotation (deg), camera
-centre (mm) and time offset (ms). It does not include a bias of the robot's meshes against the
-real robot (on the simulator's episodes the true error after correction is about 3x the spread).
+The uncertainty adds in quadrature a bootstrap over frames (frames resampled with replacement,
+the converged normal equations re-solved: the noise) and a jackknife over links (each link's
+points left out in turn: a link's mesh or depth off in the same way in every frame): the 1-sigma
+spread of the correction's rotation (deg), camera centre (mm) and time offset (ms).
 """
 
 from __future__ import annotations
