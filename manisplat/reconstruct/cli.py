@@ -334,6 +334,13 @@ def _training_summary(args: argparse.Namespace, device: str, iters: int, compile
     return f"training      on {device} (rasterizer backend {args.backend}), {budget}; {mode}; {densify}"
 
 
+def _chosen_by(flag: str, given: float | None, riding: bool) -> str:
+    """What chose a setting whose default depends on whether a camera riding on an arm is trained."""
+    if given is not None:
+        return flag
+    return "a camera riding on an arm is trained" if riding else "fixed cameras only"
+
+
 def _config(args: argparse.Namespace, device: str, iters: int, compiled: str | None, cameras: int,
             masks_drawn: bool, riding: bool) -> TrainConfig:
     """The training configuration of a run training ``cameras`` cameras, with masks drawn by the
@@ -350,15 +357,14 @@ def _config(args: argparse.Namespace, device: str, iters: int, compiled: str | N
              "drawn here" if masks_drawn else "the episode's")
     lambda_smooth = resolve_lambda_smooth(args.lambda_smooth, riding)
     log.info("pose corrections' smoothness weight %g (%s)", lambda_smooth,
-             "--lambda-smooth" if args.lambda_smooth is not None
-             else "a camera riding on an arm is trained" if riding else "fixed cameras only")
+             _chosen_by("--lambda-smooth", args.lambda_smooth, riding))
     fixed_camera_weight = resolve_fixed_camera_weight(args.fixed_camera_weight, riding)
     log.info("a fixed camera's gradients on the objects' Gaussians weighed %g (%s)", fixed_camera_weight,
-             "--fixed-camera-weight" if args.fixed_camera_weight is not None
-             else "a camera riding on an arm is trained" if riding else "fixed cameras only")
+             _chosen_by("--fixed-camera-weight", args.fixed_camera_weight, riding))
     return TrainConfig(
         iters=iters, backend=args.backend, shadows=not args.no_shadows, shadow_receivers=args.shadow_receivers,
-        shadow_casters=args.shadow_casters, fixed_camera_weight=fixed_camera_weight, rasterize_mode=rasterize_mode, sh_degree=sh_degree,
+        shadow_casters=args.shadow_casters, rasterize_mode=rasterize_mode, sh_degree=sh_degree,
+        fixed_camera_weight=fixed_camera_weight,
         object_position_rate=args.object_position_rate, pose_rate_final=args.pose_rate_final,
         densify=not args.no_densify, refine_camera=args.refine_camera, exposure=not args.no_exposure,
         lambda_app=args.lambda_app,

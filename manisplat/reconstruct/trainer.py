@@ -331,11 +331,10 @@ class Reconstruction:
         weight = self.config.fixed_camera_weight
         if weight == 1.0 or self.view(camera).riding:
             return
-        for node in self.graph.nodes():
-            if node.group > ROBOT:
-                for parameter in node.gaussians.params.values():
-                    if parameter.grad is not None:
-                        parameter.grad.mul_(weight)
+        for gaussians in self.graph.objects.values():
+            for parameter in gaussians.params.values():
+                if parameter.grad is not None:
+                    parameter.grad.mul_(weight)
 
     def _average_loss(self, loss: torch.Tensor) -> None:
         """Fold this iteration's loss into the running mean (weight 0.02, about 50 frames), on the device."""
