@@ -15,7 +15,7 @@ errors in the world frame (fitted and start-anchored), wall time and time per it
 [--shadow-casters meshes|gaussians] [--shadow-receivers all|background|shaded]
 [--rasterize-mode auto|classic|antialiased] [--lambda-mask L]
 [--lambda-pose L] [--lambda-smooth L] [--pose-rate-final F] [--seed S] [--supersample N] [--shadow-map-px N]
-[--data DIR] [--work DIR] [--out FILE]``: ``--settings all --iters 9000`` gives the head camera about as many iterations as
+[--threads N] [--data DIR] [--work DIR] [--out FILE]``: ``--settings all --iters 9000`` gives the head camera about as many iterations as
 ``--settings head --iters 3000`` (one camera's image an iteration).
 
 With ``--supersample N`` (N odd, the simulator's python in ``MANISPLAT_SIMENV``) the samples are
@@ -80,6 +80,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--shadow-map-px", type=positive(int), metavar="N",
                    help="draw the samples again (as --supersample does) with a shadow map of N x N texels "
                         "(default: the samples' own images, or the scene's map with --supersample)")
+    p.add_argument("--threads", type=positive(int), metavar="N",
+                   help="manisplat-reconstruct --threads (default: the command's, the free cores; give 1 to each of "
+                        "two runs side by side on 2 cores)")
     p.add_argument("--data", type=Path, help="the folder holding the samples (default shared/data; "
                                              "sim_headlight draws copies elsewhere)")
     p.add_argument("--work", type=Path, help="keep the imported samples and the twins here (default: a temporary folder)")
@@ -111,6 +114,7 @@ def main(argv: list[str] | None = None) -> int:
                 options = ("--shadow-casters", args.shadow_casters, "--shadow-receivers", args.shadow_receivers,
                            "--rasterize-mode", args.rasterize_mode, "--seed", str(args.seed))
                 options += training_options(args)
+                options += () if args.threads is None else ("--threads", str(args.threads))
                 row = reconstruct(episode, out, cameras, prompts, args.iters, options)
                 rows.append(row | {"sample": sample, "setting": setting})
                 print(json.dumps(rows[-1], default=float), flush=True)
@@ -120,7 +124,9 @@ def main(argv: list[str] | None = None) -> int:
               "images": "the samples' own" if simenv is None else
               f"the samples' states drawn {args.supersample} x {args.supersample} times finer and averaged"
               + ("" if args.shadow_map_px is None else f" with a shadow map of {args.shadow_map_px} texels a side")
-              + ", through the recorder's JPEG", "threads": "torch's default (the machine's cores)", "rows": rows,
+              + ", through the recorder's JPEG",
+              "threads": "the free cores (manisplat-reconstruct's default)" if args.threads is None else args.threads,
+              "rows": rows,
               "wall_s": round(time.perf_counter() - t0, 1)}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1, default=float) + "\n")
