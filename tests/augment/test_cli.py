@@ -101,7 +101,7 @@ def test_a_used_out_folder_is_refused(augmented, recon, capsys):
     _, out = augmented
     with pytest.raises(SystemExit) as exc:
         main([str(recon), "--n", "1", "--out", str(out)])
-    assert exc.value.code == 2 and "--overwrite" in capsys.readouterr().err
+    assert exc.value.code == 2 and "is not empty; pass --overwrite" in capsys.readouterr().err
 
 
 def test_explicit_poses_and_an_unreachable_one(recon, tmp_path, capsys):
@@ -231,7 +231,7 @@ def test_symmetry_is_checked_and_recorded(recon, tmp_path, capsys):
     and a declared one reaches the report and every episode's planner record."""
     with pytest.raises(SystemExit) as exc:
         main([str(recon), "--n", "1", "--out", str(tmp_path / "a"), "--symmetry", "box=square"])
-    assert exc.value.code == 2 and "--symmetry" in capsys.readouterr().err
+    assert exc.value.code == 2 and "error: --symmetry:" in capsys.readouterr().err
     assert main([str(recon), "--n", "1", "--out", str(tmp_path / "b"), "-q", "--symmetry", "mug=4"]) == 2
     assert "--symmetry names mug; the twin's objects are box" in capsys.readouterr().err
     out = tmp_path / "c"
@@ -262,7 +262,7 @@ def test_start_range_moves_each_demonstrations_first_joints_and_keeps_its_object
     moved within the range (recorded in its planner record and the report); out of range is a usage error."""
     with pytest.raises(SystemExit) as exc:
         main([str(recon), "--n", "1", "--out", str(tmp_path / "a"), "--start-range", "-5"])
-    assert exc.value.code == 2 and "--start-range" in capsys.readouterr().err
+    assert exc.value.code == 2 and "argument --start-range:" in capsys.readouterr().err
     plain, moved = tmp_path / "plain", tmp_path / "moved"
     assert main([str(recon), "--n", "2", "--out", str(plain), "--seed", "3", "-q"]) == 0
     assert main([str(recon), "--n", "2", "--out", str(moved), "--seed", "3", "-q", "--start-range", "8"]) == 0

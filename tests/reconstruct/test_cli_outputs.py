@@ -165,7 +165,7 @@ def test_a_fixed_cameras_weight_on_the_objects_resolves_by_the_cameras_trained(t
     assert [resolve_fixed_camera_weight(2.5, riding) for riding in (False, True)] == [2.5, 2.5]
     with pytest.raises(SystemExit) as exit_:
         main([str(tmp_path), "--out", str(tmp_path / "twin"), "--fixed-camera-weight", "0"])
-    assert exit_.value.code == 2 and "--fixed-camera-weight" in capsys.readouterr().err
+    assert exit_.value.code == 2 and "argument --fixed-camera-weight:" in capsys.readouterr().err
 
 
 def test_sheets_are_labelled_with_columns_and_frame(finished):
