@@ -12,7 +12,8 @@
 * ``pose_plot.png``: rotation and translation per frame (ours, the phase-free baseline, ground truth).
 * ``metrics.json``: ``psnr`` / ``ssim`` ({"full", "robot", "object"}; the same with the held-out
   frame's colour fitted on its static pixels: ``psnr_colour_fitted``, ``ssim_colour_fitted``; for a
-  camera whose recording subsampled its colour, ``psnr_full_colour``: the render as drawn), ``pose`` and
+  camera whose recording subsampled its colour, ``psnr_full_colour``: the render as drawn;
+  ``psnr_per_frame``: the held-out ``frames`` and each one's PSNR per region), ``pose`` and
   ``pose_baseline`` ({object: {"et_cm", "er_deg"}}) when ground truth exists, ``wall_s``,
   ``iters``, ``plan``, ``camera`` (the extrinsic correction, when checked), ``rig`` (several arms
   or riding cameras: each other arm's base and each riding camera's ``T_mount_cam`` as checked,
@@ -282,6 +283,8 @@ def _mean_of(scores: list[dict]) -> dict:
     first = scores[0]
     out = {}
     for key, value in first.items():
+        if key == "psnr_per_frame":  # each episode's own frames: no mean
+            continue
         if isinstance(value, dict):
             out[key] = _mean_of([s[key] for s in scores if isinstance(s.get(key), dict)])
         elif isinstance(value, (int, float)) and not isinstance(value, bool):
@@ -325,7 +328,8 @@ def _image_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], out: 
     keys = ("psnr", "ssim", "psnr_colour_fitted", "ssim_colour_fitted", "psnr_full_colour")
     scores = {k: {"full": [], "robot": [], "object": []} for k in keys}
     shadow = {"psnr": [], "psnr_without_shadows": [], "pixels": []}
-    for f in rec.plan.test_frames if frames is None else frames:
+    frames = list(rec.plan.test_frames if frames is None else frames)
+    for f in frames:
         drawn = rec.render(f, evaluation, camera, recorded=False)[0]
         image = rec.as_recorded(drawn, camera).clamp(0, 1)
         target = view.image(f)
@@ -360,6 +364,8 @@ def _image_metrics(rec: Reconstruction, evaluation: dict[str, np.ndarray], out: 
             shadow["psnr_without_shadows"].append(psnr(unshaded, target, shadowed))
     summary = {metric: {k: _nanmean(v) for k, v in by_region.items() if v}
                for metric, by_region in scores.items() if any(by_region.values())}
+    summary["psnr_per_frame"] = {"frames": frames, **{k: [_finite_or_none(x) for x in v]
+                                                       for k, v in scores["psnr"].items() if v}}
     if shadow["pixels"]:
         summary["shadow"] = {k: _nanmean(v) for k, v in shadow.items()}
     return summary
@@ -421,6 +427,11 @@ negligible along colours the static pixels vary in by more than a few per cent (
 
 
 SHEET_COLUMNS = ("ground truth", "render", "|error| x4")
+
+
+def _finite_or_none(value: float) -> float | None:
+    """``value`` rounded to 0.01 for ``metrics.json``, None where it is NaN (a region the frame does not show)."""
+    return None if math.isnan(value) else round(value, 2)
 
 
 def _nanmean(values: list[float]) -> float | None:

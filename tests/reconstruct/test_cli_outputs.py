@@ -48,6 +48,16 @@ def test_a_folder_with_results_is_refused_without_overwrite(pick, finished, tmp_
     assert {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file()} == before
 
 
+def test_metrics_list_each_held_out_frames_psnr_and_their_mean_is_the_summary(finished):
+    metrics = json.loads((finished[0] / "metrics.json").read_text())
+    per_frame = metrics["psnr_per_frame"]
+    assert per_frame["frames"] == metrics["plan"]["test_frames"] and per_frame["frames"]
+    for region, mean in metrics["psnr"].items():
+        scores = [x for x in per_frame[region] if x is not None]
+        assert len(per_frame[region]) == len(per_frame["frames"]) and scores
+        assert np.mean(scores) == pytest.approx(mean, abs=0.01), region
+
+
 def test_overwrite_replaces_what_the_run_owns_and_keeps_the_rest(pick, tmp_path):
     out = tmp_path / "twin"
     stale = out / "renders" / "test" / "999999.png"
