@@ -22,7 +22,7 @@ source with ``gen_bimanual.py --seed S`` (the sample's task) instead of reading 
 
 ``MANISPLAT_SIMENV=SIMENV/bin/python python -m benchmarks augment_cobot [--sample cobot_dual_small] [--n 100]
 [--planned 0] [--source-seed S] [--iters 1000] [--lambda-mask L] [--lambda-pose L] [--lambda-smooth L]
-[--pose-rate-final F] [--render-check 10] [--work DIR] [--out FILE]``
+[--pose-rate-final F] [--light-response auto|on|off] [--render-check 10] [--work DIR] [--out FILE]``
 """
 
 from __future__ import annotations

@@ -14,7 +14,7 @@ errors in the world frame (fitted and start-anchored), wall time and time per it
 ``python -m benchmarks reconstruct_cobot [--samples cobot_dual_small,...] [--settings all,head] [--iters 3000]
 [--shadow-casters meshes|gaussians] [--shadow-receivers all|background|shaded]
 [--rasterize-mode auto|classic|antialiased] [--lambda-mask L]
-[--lambda-pose L] [--lambda-smooth L] [--pose-rate-final F] [--seed S] [--supersample N] [--shadow-map-px N]
+[--lambda-pose L] [--lambda-smooth L] [--pose-rate-final F] [--light-response auto|on|off] [--seed S] [--supersample N] [--shadow-map-px N]
 [--threads N] [--data DIR] [--work DIR] [--out FILE]``: ``--settings all --iters 9000`` gives the head camera about as many iterations as
 ``--settings head --iters 3000`` (one camera's image an iteration).
 
@@ -52,7 +52,7 @@ from manisplat.cli_args import bounded, non_negative, positive
 from manisplat.episode.cli import main as episode_main
 from manisplat.episode.groundtruth import write_gt
 from manisplat.reconstruct.cli import main as reconstruct_main
-from manisplat.reconstruct.config import RASTERIZE_CHOICES, SHADOW_CASTERS, SHADOW_RECEIVERS
+from manisplat.reconstruct.config import LIGHT_RESPONSE_CHOICES, RASTERIZE_CHOICES, SHADOW_CASTERS, SHADOW_RECEIVERS
 
 OWN_OPTIONS = True
 HEAD = "cam_high"
@@ -193,8 +193,14 @@ def camera_like(simenv: Path, data: Path, sample: str, folder: Path, n: int, sha
 
 
 #: manisplat-reconstruct's training settings passed on when given, each validated as the command does
+def _light_response(value: str) -> str:
+    if value not in LIGHT_RESPONSE_CHOICES:
+        raise argparse.ArgumentTypeError(f"{value!r} is none of {', '.join(LIGHT_RESPONSE_CHOICES)}")
+    return value
+
+
 TRAINING_FLAGS = {"--lambda-mask": non_negative(), "--lambda-pose": non_negative(), "--lambda-smooth": non_negative(),
-                  "--pose-rate-final": bounded(1e-6, 1.0)}
+                  "--pose-rate-final": bounded(1e-6, 1.0), "--light-response": _light_response}
 
 
 def add_training_flags(parser: argparse.ArgumentParser) -> None:
@@ -228,6 +234,7 @@ def reconstruct(episode: Path, out: Path, cameras: tuple[str, ...], prompts: dic
             "options": list(options), "light": metrics.get("light"), "rasterize_mode": metrics.get("rasterize_mode"),
             "eps2d": metrics.get("eps2d"), "lambda_mask": metrics.get("lambda_mask"), "lambda_pose": metrics.get("lambda_pose"),
             "lambda_smooth": metrics.get("lambda_smooth"), "pose_rate_final": metrics.get("pose_rate_final"),
+            "light_response": metrics.get("light_response"),
             "prompts": {k: [round(u), round(v)] for k, (u, v) in prompts.items()},
             "per_camera": {name: {"psnr": m["psnr"], "ssim": m["ssim"], "psnr_full_colour": m.get("psnr_full_colour")}
                            for name, m in metrics.get("cameras", {HEAD: metrics}).items()},

@@ -23,11 +23,11 @@ from manisplat.align.phases import DEFAULT_TAU
 from manisplat.cli_args import add_version, bounded, finite, non_negative, numbers, positive
 from manisplat.exit_codes import ExitCode, exit_status_help
 from manisplat.output_folder import check_output_folder
-from manisplat.reconstruct.config import (COMPILE_CHOICES, COMPILE_MIN_ITERS, GPU_ITERS, RASTERIZE_CHOICES,
-                                          SH_DEGREE_CHOICES, SHADOW_CASTERS, SHADOW_RECEIVERS, DeviceUnavailable,
-                                          TrainConfig, default_iters, resolve_compile, resolve_device,
+from manisplat.reconstruct.config import (COMPILE_CHOICES, COMPILE_MIN_ITERS, GPU_ITERS, LIGHT_RESPONSE_CHOICES,
+                                          RASTERIZE_CHOICES, SH_DEGREE_CHOICES, SHADOW_CASTERS, SHADOW_RECEIVERS,
+                                          DeviceUnavailable, TrainConfig, default_iters, resolve_compile, resolve_device,
                                           resolve_fixed_camera_weight, resolve_lambda_mask, resolve_lambda_smooth,
-                                          resolve_rasterize_mode, resolve_sh_degree)
+                                          resolve_light_response, resolve_rasterize_mode, resolve_sh_degree)
 from manisplat.threads import THREADS_HELP, use_threads
 
 log = logging.getLogger("manisplat.reconstruct")
@@ -104,6 +104,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "shadow on the object; default), background (the parts keep recorded shadows in their colour) "
                         "or shaded (as all, and the objects lit by their surfaces' angle to the light: a face turned "
                         "to a new yaw takes that pose's light)")
+    p.add_argument("--light-response", default="auto", choices=LIGHT_RESPONSE_CHOICES,
+                   help="let the links' and objects' colours follow the shadows' light as each part turns under it "
+                        "(a gain per Gaussian on the light's direction in the part's frame): auto (default: on where a "
+                        "camera riding on an arm is trained, which sees its fingers from one direction whatever the "
+                        "arm does), on, off")
     p.add_argument("--shadow-casters", default="gaussians", choices=SHADOW_CASTERS,
                    help="what casts the links' shadows: gaussians (the links' fitted Gaussians, whose shadows come out "
                         "wider; default) or meshes (the robot description's link meshes: the links' outlines)")
@@ -184,6 +189,8 @@ def main(argv: list[str] | None = None) -> int:
         args.episodes = _episode_folders(args.episodes)
         if len(args.episodes) > 1:
             _check_fusable(args)
+        if args.light_response == "on" and args.no_shadows:
+            raise ValueError("--light-response on follows the shadows' light, which --no-shadows leaves out")
         prompt = _prompt(args)
         if not args.plan:
             _check_out(args)
@@ -351,6 +358,9 @@ def _config(args: argparse.Namespace, device: str, iters: int, compiled: str | N
              cameras, "s" if cameras > 1 else "")
     sh_degree = resolve_sh_degree(args.sh_degree, cameras)
     log.info("view-dependent colour of degree %d (--sh-degree %s)", sh_degree, args.sh_degree)
+    light_response = resolve_light_response(args.light_response, riding) and not args.no_shadows
+    log.info("the moving parts' response to the light %s (--light-response %s%s)", "learned" if light_response else "off",
+             args.light_response, "; no shadows, no light" if args.no_shadows else "")
     lambda_mask = resolve_lambda_mask(args.lambda_mask, masks_drawn)
     log.info("mask loss weight %g (%s; masks %s)", lambda_mask,
              "--lambda-mask" if args.lambda_mask is not None else "by the masks' source",
@@ -363,6 +373,7 @@ def _config(args: argparse.Namespace, device: str, iters: int, compiled: str | N
              _chosen_by("--fixed-camera-weight", args.fixed_camera_weight, riding))
     return TrainConfig(
         iters=iters, backend=args.backend, shadows=not args.no_shadows, shadow_receivers=args.shadow_receivers,
+        light_response=light_response,
         shadow_casters=args.shadow_casters, rasterize_mode=rasterize_mode, sh_degree=sh_degree,
         fixed_camera_weight=fixed_camera_weight,
         object_position_rate=args.object_position_rate, pose_rate_final=args.pose_rate_final,

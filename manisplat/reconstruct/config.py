@@ -30,6 +30,10 @@ class TrainConfig:
             model, whose moving parts bake what shadows they had in the recording into colour) or
             "shaded" ("all", and the objects lit by their surfaces' angle to the light:
             :mod:`manisplat.scene.shadows`).
+        light_response: the moving parts' Gaussians learn how their colour follows the
+            shadows' light as the part turns under it (``light_gain``,
+            :mod:`manisplat.scene.gaussians`): a wrist camera sees its gripper's fingers from one
+            direction whatever the arm does, so their view-dependent bands cannot follow the light.
         shadow_casters: what casts the links' shadows: "gaussians" (the links' fitted Gaussians,
             which reach past the surface: wider shadows) or "meshes" (points sampled over the robot
             description's link meshes: the links' outlines; the Gaussians where it has none).
@@ -107,6 +111,7 @@ class TrainConfig:
     shadow_resolution: int | None = None
     shadow_receivers: str = "all"
     shadow_casters: str = "gaussians"
+    light_response: bool = False
     rasterize_mode: str = "classic"
     object_position_rate: float = 1.0
     pose_rate_final: float = 0.1
@@ -176,6 +181,22 @@ def resolve_sh_degree(name: str, cameras: int) -> int:
     if name == "auto":
         return 3 if cameras > 1 else TrainConfig.sh_degree
     return int(name)
+
+
+#: manisplat-reconstruct --light-response's choices (:func:`resolve_light_response`)
+LIGHT_RESPONSE_CHOICES = ("auto", "on", "off")
+
+
+def resolve_light_response(name: str, riding: bool) -> bool:
+    """Whether the moving parts learn their response to the light (``TrainConfig.light_response``),
+    for ``name``: "on", "off", or "auto": on where a camera riding on an arm is trained (it sees
+    its gripper from one direction whatever the arm does, so only this follows the light; on the
+    Cobot Magic samples the wrist cameras' full images gain 1.0-3.4 dB, the head camera's 0.5;
+    docs/benchmarks.md, the moving parts' response to the light), off with fixed cameras only,
+    whose view-dependent colour turns with the parts (not measured there yet)."""
+    if name not in LIGHT_RESPONSE_CHOICES:
+        raise ValueError(f"unknown light response {name!r}; choose one of {', '.join(LIGHT_RESPONSE_CHOICES)}")
+    return riding if name == "auto" else name == "on"
 
 
 #: "auto" compiles a CUDA run of at least this many iterations: on an H100, over whole runs of

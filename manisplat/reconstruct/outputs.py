@@ -220,7 +220,8 @@ def write_evaluation(rec: Reconstruction, alignments: dict, out: Path, *, wall_s
     metrics = {"psnr": {}, "ssim": {}, "iters": rec.step, "wall_s": round(wall_s, 1), "plan": rec.plan.to_dict(),
                "rasterize_mode": rec.graph.rasterize_mode, "eps2d": rec.graph.eps2d, "lambda_mask": rec.config.lambda_mask,
                "lambda_pose": rec.config.lambda_pose, "lambda_smooth": rec.config.lambda_smooth,
-               "sh_degree": rec.config.sh_degree, "fixed_camera_weight": rec.config.fixed_camera_weight,
+               "sh_degree": rec.config.sh_degree, "light_response": rec.config.light_response,
+               "fixed_camera_weight": rec.config.fixed_camera_weight,
                "object_position_rate": rec.config.object_position_rate,
                "pose_rate_final": rec.config.pose_rate_final}
     if ms_per_iter is not None:

@@ -139,6 +139,8 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
                                       riding_frames=train[::max(1, -(-len(train) // CLOSE_UP_FRAMES))])
     for g in [*links.values(), *objects.values()]:
         g.scene_scale = background.scene_scale
+        if config.light_response:
+            g.learn_light_response()
     graph = SceneGraph(background, links, list(data.robot.link_names), objects)
     rec = Reconstruction(data, plan, graph, trajectories, config, views=views)
     rec.extrinsic = None if rig is None else rig.camera
@@ -218,6 +220,8 @@ def build_fused(datas: list[EpisodeData], plans: list[Plan], config: TrainConfig
     links = link_gaussians(first.robot, plan.links, total=robot_gaussians, sh_degree=config.sh_degree)
     for g in [*links.values(), *objects.values()]:
         g.scene_scale = background.scene_scale
+        if config.light_response:
+            g.learn_light_response()
     graph = SceneGraph(background, links, list(first.robot.link_names), objects)
     rec = Reconstruction(data, plan, graph, trajectories, config)
     log.info("fused %d episodes: %d frames (%d training, %d held out)", len(datas), data.n_frames,

@@ -634,11 +634,14 @@ RESUMED_ALIKE = (("rasterize-mode", "rasterize_mode", "classic", "mode"),
                  ("object-position-rate", "object_position_rate", 1.0, "rate"),  # before: the scene's rate
                  ("pose-rate-final", "pose_rate_final", 1.0, "rate"),  # before the schedule: constant
                  ("sh-degree", "sh_degree", 2, "degree"),
-                 ("fixed-camera-weight", "fixed_camera_weight", 1.0, "weight"))
+                 ("fixed-camera-weight", "fixed_camera_weight", 1.0, "weight"),
+                 ("light-response", "light_response", False, "setting"))
 
 
 def _shown(value) -> str:
-    """An option's value as a message shows it (numbers as ``%g``)."""
+    """An option's value as a message shows it (on / off, numbers as ``%g``)."""
+    if isinstance(value, bool):
+        return "on" if value else "off"
     return f"{value:g}" if isinstance(value, (int, float)) else str(value)
 
 

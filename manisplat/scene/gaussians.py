@@ -3,12 +3,16 @@
 Parameters (per Gaussian, first dimension N): ``means`` [N, 3] (m, local frame), ``scales``
 [N, 3] log of the standard deviations, ``quats`` [N, 4] (w, x, y, z, any norm), ``opacities``
 [N] logits, ``sh0`` [N, 3] the degree-0 SH coefficient (colour = 0.5 + C0 * sh0) and, with a
-``sh_degree`` above 0, ``shN`` [N, (degree + 1)^2 - 1, 3]. Kept as a dict of
+``sh_degree`` above 0, ``shN`` [N, (degree + 1)^2 - 1, 3], and for a moving part with a learned
+response to the light ``light_gain`` [N, 3] (colour x ``1 + light_gain . l``, ``l`` the unit
+direction towards the light in the node's frame). Kept as a dict of
 ``torch.nn.Parameter`` so :class:`manisplat.splat.DefaultStrategy` can densify it.
 
 View-dependent colour is evaluated on the view direction in the node's own frame: for a link or
 an object seen by a fixed camera, that direction turns as the part turns, so the bands also
-capture how the part's shading changes with its orientation under the scene's fixed lights.
+capture how the part's shading changes with its orientation under the scene's fixed lights; for
+a camera that rides on the part (a wrist camera and its gripper's fingers) the direction hardly
+turns, and ``light_gain`` is what follows the light as the arm turns the part under it.
 """
 
 from __future__ import annotations
@@ -20,7 +24,8 @@ import torch
 from manisplat.scene.placement import activate
 from manisplat.splat.sh import C0
 
-LEARNING_RATES = {"means": 1.6e-4, "scales": 5e-3, "quats": 1e-3, "opacities": 5e-2, "sh0": 2.5e-3, "shN": 2.5e-3 / 20}
+LEARNING_RATES = {"means": 1.6e-4, "scales": 5e-3, "quats": 1e-3, "opacities": 5e-2, "sh0": 2.5e-3, "shN": 2.5e-3 / 20,
+                  "light_gain": 2.5e-3}
 
 
 class GaussianSet:
@@ -104,6 +109,17 @@ class GaussianSet:
                                    for k, v in self.strategy_state.items()}
         return self
 
+    def learn_light_response(self) -> None:
+        """Give every Gaussian a ``light_gain`` [N, 3], starting at 0 (colours as before), trained
+        by the set's optimizer from now on. For a moving part: how its shading follows the light
+        as the part turns under it."""
+        if "light_gain" in self.params:
+            return
+        gain = torch.nn.Parameter(torch.zeros(len(self), 3, device=self.device))
+        self.params["light_gain"] = gain
+        self.optimizer.add_param_group({"params": [gain], "lr": LEARNING_RATES["light_gain"], "name": "light_gain"})
+        self.optimizers["light_gain"] = self.optimizer
+
     def use_optimizer(self, optimizer: torch.optim.Optimizer) -> None:
         """Let ``optimizer`` (which must hold every parameter of this set, e.g. one optimizer
         shared by all nodes of a scene graph) update these parameters instead of the own one."""
@@ -114,12 +130,14 @@ class GaussianSet:
         self.optimizer = optimizer
         self.optimizers = {k: optimizer for k in self.params}
 
-    def activated(self, camera_center: torch.Tensor | None = None) -> tuple[torch.Tensor, ...]:
+    def activated(self, camera_center: torch.Tensor | None = None,
+                  light: torch.Tensor | None = None) -> tuple[torch.Tensor, ...]:
         """(means [N, 3], quats [N, 4], scales [N, 3], opacities [N], colours [N, 3]) for rendering.
 
-        ``camera_center`` [3], in this node's frame, enables the view-dependent bands.
+        ``camera_center`` [3], in this node's frame, enables the view-dependent bands; ``light``
+        [3], the unit direction towards the light in this node's frame, the response to it.
         """
-        return activate(self.params, camera_center, self.band_weights())
+        return activate(self.params, camera_center, self.band_weights(), light)
 
     def band_weights(self) -> torch.Tensor | None:
         """[K-1] float32 weights of the view-dependent coefficients ``shN`` on their device: 1 for

@@ -108,11 +108,13 @@ class SceneGraph:
         ``link_quats`` [L, 4], the links' rotations as quaternions, may be passed precomputed (the
         batched placement derives every node's from its pose).
         ``camera_center`` [3] (base frame) enables view-dependent colour, evaluated in each
-        node's own frame.
+        node's own frame; the moving nodes that learn a ``light_gain`` respond to the shadows'
+        light (:meth:`light_direction`) in their own frames.
         """
         batched = self._compose_batched(link_poses, object_poses, camera_center)
         if batched is not None:
             return batched
+        light = self.light_direction()
         parts, slices, start = [], {}, 0
         for node in self.nodes():
             kind, _, name = node.name.partition("/")
@@ -120,7 +122,8 @@ class SceneGraph:
             center = None
             if camera_center is not None:
                 center = camera_center if pose is None else (camera_center - pose[:3, 3]) @ pose[:3, :3].to(camera_center.dtype)
-            means, quats, scales, opacities, colors = node.gaussians.activated(center)
+            towards = None if light is None or pose is None else light @ pose[:3, :3].to(light.dtype)
+            means, quats, scales, opacities, colors = node.gaussians.activated(center, towards)
             if kind == "robot":
                 i = self.link_index[name]
                 q = None if link_quats is None else link_quats[i]
@@ -168,7 +171,8 @@ class SceneGraph:
         background_params, background_bands = (None, None) if self.background is None else \
             (self.background.params, self.background.band_weights())
         bg, moving = place_scene(background_params, [n.gaussians.params for n in dynamic], torch.stack(poses).float(),
-                                 index, camera_center, dynamic[0].gaussians.band_weights(), background_bands)
+                                 index, camera_center, dynamic[0].gaussians.band_weights(), background_bands,
+                                 self.light_direction())
         slices, start = {}, 0
         if bg is not None:
             slices["background"], start = (0, background), background
@@ -176,6 +180,15 @@ class SceneGraph:
             slices[n.name] = (start, start + count)
             start += count
         return Composed(*self._join_shaded(bg, moving, link_poses, object_poses), groups, slices=slices)
+
+    def light_direction(self) -> torch.Tensor | None:
+        """[3] the unit direction towards the shadows' light (base frame, detached: the moving
+        parts' ``light_gain`` learns their response to it, the shadows place it), or None without
+        shadows."""
+        if self.shadows is None:
+            return None
+        direction = self.shadows.direction.detach()
+        return direction / direction.norm().clamp_min(1e-12)
 
     def object_normals(self, name: str) -> torch.Tensor:
         """[N, 3] float32 the outward unit normals of object ``name``'s Gaussians in its frame

@@ -32,29 +32,41 @@ def _colors(means: torch.Tensor, sh0: torch.Tensor, shN: torch.Tensor | None, vi
     return (0.5 + C0 * sh0).clamp_min(0.0)
 
 
+def _lit(colors: torch.Tensor, light_gain: torch.Tensor | None, light: torch.Tensor | None) -> torch.Tensor:
+    """[N, 3] ``colors`` scaled by ``1 + light_gain . light`` (clamped at 0): each Gaussian's
+    ``light_gain`` [N, 3] against the direction towards the light in its node's frame, ``light``
+    [3] or [N, 3] (unit). Unchanged without either."""
+    if light_gain is None or light is None:
+        return colors
+    return colors * (1.0 + (light_gain * light).sum(-1, keepdim=True)).clamp_min(0.0)
+
+
 def activate(params: dict[str, torch.Tensor], camera_center: torch.Tensor | None = None,
-             bands: torch.Tensor | None = None) -> Activated:
+             bands: torch.Tensor | None = None, light: torch.Tensor | None = None) -> Activated:
     """(means [N, 3], quats [N, 4], scales [N, 3], opacities [N], colours [N, 3]) of raw parameters
     (:class:`~manisplat.scene.gaussians.GaussianSet`'s), the SH bands that ``bands`` weighs
     (:meth:`~manisplat.scene.gaussians.GaussianSet.band_weights`) seen from ``camera_center`` [3]
-    in the same frame (None: the base colour only)."""
+    in the same frame (None: the base colour only), lit from the unit direction ``light`` [3] in
+    that frame where the set has a ``light_gain`` (None: the colours unscaled)."""
     colors = _colors(params["means"], params["sh0"], params.get("shN"), camera_center, bands)
+    colors = _lit(colors, params.get("light_gain"), light)
     return params["means"], params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]), colors
 
 
 @compilable
 def place_scene(background: dict[str, torch.Tensor] | None, moving: list[dict[str, torch.Tensor]], poses: torch.Tensor,
                 index: torch.Tensor, camera_center: torch.Tensor | None, bands: torch.Tensor | None,
-                background_bands: torch.Tensor | None) -> tuple[Activated | None, Activated]:
+                background_bands: torch.Tensor | None, light: torch.Tensor | None = None) -> tuple[Activated | None, Activated]:
     """(the background activated in place with the SH bands ``background_bands`` weighs, or None;
-    the moving nodes placed by :func:`place_nodes` with ``bands``): the scene's Gaussians at one
-    state, before any shading, in one function (one compiled graph)."""
-    placed = place_nodes(moving, poses, index, camera_center, bands)
+    the moving nodes placed by :func:`place_nodes` with ``bands`` and ``light``): the scene's
+    Gaussians at one state, before any shadow, in one function (one compiled graph)."""
+    placed = place_nodes(moving, poses, index, camera_center, bands, light)
     return (None if background is None else activate(background, camera_center, background_bands)), placed
 
 
 def place_nodes(params: list[dict[str, torch.Tensor]], poses: torch.Tensor, index: torch.Tensor,
-                camera_center: torch.Tensor | None, bands: torch.Tensor | None) -> Activated:
+                camera_center: torch.Tensor | None, bands: torch.Tensor | None,
+                light: torch.Tensor | None = None) -> Activated:
     """Nodes' Gaussians activated and moved to their poses, as one union in node order.
 
     Args:
@@ -63,6 +75,9 @@ def place_nodes(params: list[dict[str, torch.Tensor]], poses: torch.Tensor, inde
         index: [M] int64, the node of each Gaussian of the union (M = the nodes' sizes summed).
         camera_center: [3] base frame, for the view-dependent bands (None: base colour only).
         bands: [K-1] weights of the view-dependent SH coefficients (1 in use, 0 not yet), or None.
+        light: [3] unit direction towards the light, base frame: scales the colours of nodes
+            with a ``light_gain`` by their Gaussians' response to it in each node's frame (None:
+            unscaled).
     Returns (means, quats, scales, opacities, colours) [M, ...] in the base frame.
     """
     raw = {k: torch.cat([p[k] for p in params]) for k in params[0]}
@@ -73,6 +88,9 @@ def place_nodes(params: list[dict[str, torch.Tensor]], poses: torch.Tensor, inde
     if camera_center is not None:
         viewer = torch.einsum("kj,kji->ki", camera_center.float()[None] - t, R)[index]  # camera in each node's frame
     colors = _colors(local, raw["sh0"], raw.get("shN"), viewer, bands)
+    if light is not None and "light_gain" in raw:
+        towards = torch.einsum("j,kji->ki", light.float(), R)[index]  # the light in each node's frame
+        colors = _lit(colors, raw["light_gain"], towards)
     means = torch.einsum("nij,nj->ni", R[index], local) + t[index]
     quats = quat_multiply(rotations[index], raw["quats"])
     return means, quats, torch.exp(raw["scales"]), torch.sigmoid(raw["opacities"]), colors

@@ -131,6 +131,13 @@ def test_one_camera_learns_two_bands_of_view_dependent_colour_by_default(finishe
     assert json.loads((out / "metrics.json").read_text())["sh_degree"] == 2
 
 
+def test_fixed_cameras_alone_leave_the_parts_response_to_the_light_off_by_default(finished):
+    """--light-response auto: off with fixed cameras only (on with a riding one: test_two_arms)."""
+    out, _ = finished
+    assert json.loads((out / "metrics.json").read_text())["light_response"] is False
+    assert not [n["name"] for n in json.loads((out / "twin.json").read_text())["nodes"] if "light_gain" in n["params"]]
+
+
 def test_the_episode_masks_keep_the_mask_loss(finished):
     """--lambda-mask unset: 1 with the episode's masks (0 with drawn ones: test_without_masks_or_depth)."""
     out, _ = finished

@@ -485,3 +485,16 @@ def test_a_checkpoint_resumes_only_with_the_fixed_cameras_weight_it_was_trained_
     del state["config"]["fixed_camera_weight"]
     with pytest.raises(ValueError, match="trained with --fixed-camera-weight 1, this run asks for 30"):
         _reconstruction(pick, iters=4, device="cpu", fixed_camera_weight=30.0)[0].load_state_dict(state)
+
+
+def test_a_checkpoint_resumes_only_with_the_light_response_it_was_trained_with(pick):
+    """A resume asking for the parts' response to the light where the checkpoint has none, or the
+    reverse, is refused by name (checkpoints before --light-response were trained without it)."""
+    rec, _ = _reconstruction(pick, iters=2, device="cpu", light_response=True)
+    rec.train(progress=False)
+    state = rec.state_dict()
+    with pytest.raises(ValueError, match="trained with --light-response on, this run asks for off"):
+        _reconstruction(pick, iters=4, device="cpu")[0].load_state_dict(state)
+    del state["config"]["light_response"]
+    with pytest.raises(ValueError, match="trained with --light-response off, this run asks for on"):
+        _reconstruction(pick, iters=4, device="cpu", light_response=True)[0].load_state_dict(state)

@@ -92,6 +92,7 @@ def test_both_arms_are_drawn_and_every_camera_is_scored(two_arms):
     assert metrics["sh_degree"] == 3, "several cameras trained: --sh-degree auto learns a third band"
     assert metrics["lambda_mask"] == 0.0, "every camera's masks drawn: no mask loss by default"
     assert metrics["lambda_smooth"] == 1.0, "wrist cameras trained: the corrections' smoothness on by default"
+    assert metrics["light_response"] is True, "wrist cameras trained: the parts' response to the light on by default"
     assert sorted(p.name for p in (out / "renders" / "cam_left_wrist" / "sheets").iterdir())
 
 
@@ -107,6 +108,8 @@ def test_the_twin_keeps_both_arms_and_every_camera_where_they_were(two_arms, wri
         np.testing.assert_array_equal(arm.T_world_base, episode.arms[arm.name].T_world_base)
     assert list(twin.cameras) == ["cam_high", "cam_left_wrist", "cam_right_wrist"]
     assert twin.reference.fixed and twin.cameras["cam_right_wrist"].mount == "right/link6"
+    moving = [*twin.graph.links.values(), *twin.graph.objects.values()]
+    assert all("light_gain" in g.params for g in moving), "the parts' response to the light is kept"
     gt = np.load(wrist_episode / "gt.npz")
     robot_values = [v for v, name in episode.meta.labels.items() if name.startswith("robot/")]
     for camera in twin.cameras:
