@@ -474,27 +474,19 @@ def test_a_compiled_iteration_computes_the_eager_loss_and_gradients(pick, device
             assert error.flatten().median() <= 1e-3 * g.abs().flatten().median() + 1e-12, name
 
 
-def test_a_checkpoint_resumes_only_with_the_fixed_cameras_weight_it_was_trained_with(pick):
-    """A resume asking for another weight of the fixed cameras' gradients is refused by name
-    (checkpoints before --fixed-camera-weight were trained with 1)."""
-    rec, _ = _reconstruction(pick, iters=2, device="cpu", fixed_camera_weight=30.0)
+@pytest.mark.parametrize("flag, field, trained, shown, before", [
+    ("fixed-camera-weight", "fixed_camera_weight", 30.0, "30", "1"),
+    ("light-response", "light_response", True, "on", "off"),
+])
+def test_a_checkpoint_resumes_only_with_the_setting_it_was_trained_with(pick, flag, field, trained, shown, before):
+    """A resume asking for another fixed cameras' weight, or another light response, than the
+    checkpoint was trained with is refused by name (checkpoints from before each option were
+    trained with the value it then had: weight 1, no light response)."""
+    rec, _ = _reconstruction(pick, iters=2, device="cpu", **{field: trained})
     rec.train(progress=False)
     state = rec.state_dict()
-    with pytest.raises(ValueError, match="trained with --fixed-camera-weight 30, this run asks for 1"):
+    with pytest.raises(ValueError, match=f"trained with --{flag} {shown}, this run asks for {before}"):
         _reconstruction(pick, iters=4, device="cpu")[0].load_state_dict(state)
-    del state["config"]["fixed_camera_weight"]
-    with pytest.raises(ValueError, match="trained with --fixed-camera-weight 1, this run asks for 30"):
-        _reconstruction(pick, iters=4, device="cpu", fixed_camera_weight=30.0)[0].load_state_dict(state)
-
-
-def test_a_checkpoint_resumes_only_with_the_light_response_it_was_trained_with(pick):
-    """A resume asking for the parts' response to the light where the checkpoint has none, or the
-    reverse, is refused by name (checkpoints before --light-response were trained without it)."""
-    rec, _ = _reconstruction(pick, iters=2, device="cpu", light_response=True)
-    rec.train(progress=False)
-    state = rec.state_dict()
-    with pytest.raises(ValueError, match="trained with --light-response on, this run asks for off"):
-        _reconstruction(pick, iters=4, device="cpu")[0].load_state_dict(state)
-    del state["config"]["light_response"]
-    with pytest.raises(ValueError, match="trained with --light-response off, this run asks for on"):
-        _reconstruction(pick, iters=4, device="cpu", light_response=True)[0].load_state_dict(state)
+    del state["config"][field]
+    with pytest.raises(ValueError, match=f"trained with --{flag} {before}, this run asks for {shown}"):
+        _reconstruction(pick, iters=4, device="cpu", **{field: trained})[0].load_state_dict(state)
