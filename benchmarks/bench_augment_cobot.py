@@ -85,6 +85,7 @@ def main(argv: list[str] | None = None) -> int:
             raise RuntimeError(f"{args.sample}: import failed")
     prompts = add_ground_truth(episode, source) if not (episode / "gt.npz").exists() else _prompts(episode, source)
     asked = {"lambda_mask": args.lambda_mask, "lambda_pose": args.lambda_pose, "lambda_smooth": args.lambda_smooth,
+             "light_response": args.light_response,
              "pose_rate_final": args.pose_rate_final}
     options = training_options(args)
     if not (twin_dir / "twin.json").exists():
@@ -141,22 +142,26 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def training_settings(twin_dir: Path, asked: dict[str, float | None]) -> dict[str, float]:
+def training_settings(twin_dir: Path, asked: dict[str, float | str | None]) -> dict[str, float | bool]:
     """The training settings (``lambda_mask``, ``lambda_pose``, ``lambda_smooth``,
-    ``pose_rate_final``) the twin in ``twin_dir`` was reconstructed with; a twin of ``--work`` made
-    with other settings than ``asked`` (None: the command's default for three cameras, two of them
-    on the arms) is refused. Twins from before ``metrics.json`` recorded a setting were made with
-    the defaults of then: mask 1, pose 1, no smoothness loss, a constant pose rate."""
-    from manisplat.reconstruct.config import TrainConfig, resolve_lambda_mask, resolve_lambda_smooth
+    ``pose_rate_final``, ``light_response``) the twin in ``twin_dir`` was reconstructed with; a twin
+    of ``--work`` made with other settings than ``asked`` (None: the command's default for three
+    cameras, two of them on the arms) is refused. Twins from before ``metrics.json`` recorded a
+    setting were made with the defaults of then: mask 1, pose 1, no smoothness loss, a constant
+    pose rate, no light response."""
+    from manisplat.reconstruct.config import (TrainConfig, resolve_lambda_mask, resolve_lambda_smooth,
+                                              resolve_light_response)
 
     metrics = json.loads((twin_dir / "metrics.json").read_text())
     made = {"lambda_mask": metrics.get("lambda_mask", 1.0), "lambda_pose": metrics.get("lambda_pose", 1.0),
-            "lambda_smooth": metrics.get("lambda_smooth", 0.0), "pose_rate_final": metrics.get("pose_rate_final", 1.0)}
+            "lambda_smooth": metrics.get("lambda_smooth", 0.0), "pose_rate_final": metrics.get("pose_rate_final", 1.0),
+            "light_response": metrics.get("light_response", False)}
     wanted = {"lambda_mask": resolve_lambda_mask(asked["lambda_mask"], masks_drawn=True),
               "lambda_pose": TrainConfig.lambda_pose if asked["lambda_pose"] is None else asked["lambda_pose"],
               "lambda_smooth": resolve_lambda_smooth(asked["lambda_smooth"], riding=True),
               "pose_rate_final": (TrainConfig.pose_rate_final if asked["pose_rate_final"] is None
-                                  else asked["pose_rate_final"])}
+                                  else asked["pose_rate_final"]),
+              "light_response": resolve_light_response(asked.get("light_response") or "auto", riding=True)}
     differ = [f"--{k.replace('_', '-')} {made[k]}, not {wanted[k]}" for k in made if made[k] != wanted[k]]
     if differ:
         raise RuntimeError(f"{twin_dir} was reconstructed with {'; '.join(differ)}: use another --work")

@@ -192,13 +192,14 @@ def camera_like(simenv: Path, data: Path, sample: str, folder: Path, n: int, sha
     return copy.parent
 
 
-#: manisplat-reconstruct's training settings passed on when given, each validated as the command does
 def _light_response(value: str) -> str:
+    """``--light-response``'s value, one of the command's choices."""
     if value not in LIGHT_RESPONSE_CHOICES:
         raise argparse.ArgumentTypeError(f"{value!r} is none of {', '.join(LIGHT_RESPONSE_CHOICES)}")
     return value
 
 
+#: manisplat-reconstruct's training settings passed on when given, each validated as the command does
 TRAINING_FLAGS = {"--lambda-mask": non_negative(), "--lambda-pose": non_negative(), "--lambda-smooth": non_negative(),
                   "--pose-rate-final": bounded(1e-6, 1.0), "--light-response": _light_response}
 

@@ -21,7 +21,8 @@ RATE_FLAGS = [(bench_reconstruct_cobot, "--pose-rate-final"), (bench_augment_cob
 REFUSED = ([(bench, flag, value) for bench, flag in WEIGHT_FLAGS for value in ("-0.01", "nan", "inf", "x")]
            + [(bench, flag, value) for bench, flag in RATE_FLAGS for value in ("0", "1.5", "nan", "x")]
            + [(bench, "--threads", value) for bench in (bench_reconstruct_viewpoints, bench_reconstruct_cobot)
-              for value in ("0", "1.5")])
+              for value in ("0", "1.5")]
+           + [(bench, "--light-response", "sometimes") for bench in (bench_reconstruct_cobot, bench_augment_cobot)])
 
 
 @pytest.mark.parametrize(("bench", "flag", "value"), REFUSED,
@@ -35,7 +36,8 @@ def test_an_out_of_range_or_unreadable_training_setting_is_refused_at_the_comman
     assert not (tmp_path / "result.json").exists()
 
 
-DEFAULTS = {"lambda_mask": None, "lambda_pose": None, "lambda_smooth": None, "pose_rate_final": None}
+DEFAULTS = {"lambda_mask": None, "lambda_pose": None, "lambda_smooth": None, "pose_rate_final": None,
+            "light_response": None}
 
 
 def _twin(tmp_path, **recorded):
@@ -44,23 +46,29 @@ def _twin(tmp_path, **recorded):
 
 
 def test_a_reused_twin_made_with_the_asked_settings_is_taken_with_them(tmp_path):
-    twin = _twin(tmp_path, lambda_mask=0.0, lambda_pose=0.01, lambda_smooth=1.0, pose_rate_final=0.1)
+    twin = _twin(tmp_path, lambda_mask=0.0, lambda_pose=0.01, lambda_smooth=1.0, pose_rate_final=0.1,
+                 light_response=True)
     assert bench_augment_cobot.training_settings(twin, DEFAULTS) == {"lambda_mask": 0.0, "lambda_pose": 0.01,
-                                                                      "lambda_smooth": 1.0, "pose_rate_final": 0.1}
-    asked = {"lambda_mask": None, "lambda_pose": 1.0, "lambda_smooth": 0.0, "pose_rate_final": 1.0}
+                                                                      "lambda_smooth": 1.0, "pose_rate_final": 0.1,
+                                                                      "light_response": True}
+    asked = {"lambda_mask": None, "lambda_pose": 1.0, "lambda_smooth": 0.0, "pose_rate_final": 1.0,
+             "light_response": "off"}
     made = bench_augment_cobot.training_settings(_twin(tmp_path, lambda_mask=0.0, lambda_pose=1.0, lambda_smooth=0.0),
                                                  asked)  # before the schedule was recorded: constant
     assert (made["lambda_pose"], made["pose_rate_final"]) == (1.0, 1.0)
 
 
 @pytest.mark.parametrize(("recorded", "named"), [
-    ({"lambda_mask": 0.0, "lambda_pose": 1.0, "lambda_smooth": 1.0, "pose_rate_final": 0.1},
+    ({"lambda_mask": 0.0, "lambda_pose": 1.0, "lambda_smooth": 1.0, "pose_rate_final": 0.1, "light_response": True},
      "--lambda-pose 1.0, not 0.01"),
-    ({"lambda_mask": 0.0, "lambda_pose": 0.01, "lambda_smooth": 0.0, "pose_rate_final": 0.1},
+    ({"lambda_mask": 0.0, "lambda_pose": 0.01, "lambda_smooth": 0.0, "pose_rate_final": 0.1, "light_response": True},
      "--lambda-smooth 0.0, not 1.0"),
-    ({"lambda_mask": 0.0, "lambda_pose": 0.01, "lambda_smooth": 1.0, "pose_rate_final": 0.01},
+    ({"lambda_mask": 0.0, "lambda_pose": 0.01, "lambda_smooth": 1.0, "pose_rate_final": 0.01, "light_response": True},
      "--pose-rate-final 0.01, not 0.1"),
-    ({"lambda_mask": 0.0, "lambda_pose": 0.01, "lambda_smooth": 1.0}, "--pose-rate-final 1.0, not 0.1"),  # constant then
+    ({"lambda_mask": 0.0, "lambda_pose": 0.01, "lambda_smooth": 1.0, "light_response": True},
+     "--pose-rate-final 1.0, not 0.1"),  # constant then
+    ({"lambda_mask": 0.0, "lambda_pose": 0.01, "lambda_smooth": 1.0, "pose_rate_final": 0.1},
+     "--light-response False, not True"),  # made before the light response
     ({"lambda_mask": 0.0}, "--lambda-pose 1.0, not 0.01"),  # made before metrics.json recorded the weight
 ])
 def test_a_reused_twin_made_with_other_settings_is_refused_by_name(tmp_path, recorded, named):
