@@ -137,15 +137,21 @@ def build(data: EpisodeData, plan: Plan, config: TrainConfig, *, tau: float = DE
     background = background_gaussians(data, frames=sorted({train[0], train[len(train) // 2], train[-1]}),
                                       sh_degree=config.sh_degree, table_z=table_z, riding=close_ups,
                                       riding_frames=train[::max(1, -(-len(train) // CLOSE_UP_FRAMES))])
-    for g in [*links.values(), *objects.values()]:
-        g.scene_scale = background.scene_scale
-        if config.light_response:
-            g.learn_light_response()
+    _ready_moving_parts([*links.values(), *objects.values()], background.scene_scale, config)
     graph = SceneGraph(background, links, list(data.robot.link_names), objects)
     rec = Reconstruction(data, plan, graph, trajectories, config, views=views)
     rec.extrinsic = None if rig is None else rig.camera
     rec.rig = rig if rig is not None and (rig.bases or rig.riding) else None
     return rec, alignments
+
+
+def _ready_moving_parts(parts: list[GaussianSet], scene_scale: float, config: TrainConfig) -> None:
+    """The links' and objects' Gaussians at the background's ``scene_scale``, learning their response
+    to the light where ``config`` asks for it."""
+    for g in parts:
+        g.scene_scale = scene_scale
+        if config.light_response:
+            g.learn_light_response()
 
 
 def _with_close_ups(name: str, seen: tuple[torch.Tensor, torch.Tensor, torch.Tensor], views: list[EpisodeData],
@@ -218,10 +224,7 @@ def build_fused(datas: list[EpisodeData], plans: list[Plan], config: TrainConfig
     seeds = sorted({train[0], train[len(train) // 2], train[-1], *(s.start for s in spans[1:])})
     background = background_gaussians(data, frames=seeds, sh_degree=config.sh_degree)
     links = link_gaussians(first.robot, plan.links, total=robot_gaussians, sh_degree=config.sh_degree)
-    for g in [*links.values(), *objects.values()]:
-        g.scene_scale = background.scene_scale
-        if config.light_response:
-            g.learn_light_response()
+    _ready_moving_parts([*links.values(), *objects.values()], background.scene_scale, config)
     graph = SceneGraph(background, links, list(first.robot.link_names), objects)
     rec = Reconstruction(data, plan, graph, trajectories, config)
     log.info("fused %d episodes: %d frames (%d training, %d held out)", len(datas), data.n_frames,

@@ -32,7 +32,7 @@ def _colors(means: torch.Tensor, sh0: torch.Tensor, shN: torch.Tensor | None, vi
     return (0.5 + C0 * sh0).clamp_min(0.0)
 
 
-def _lit(colors: torch.Tensor, light_gain: torch.Tensor | None, light: torch.Tensor | None) -> torch.Tensor:
+def _scaled_by_light(colors: torch.Tensor, light_gain: torch.Tensor | None, light: torch.Tensor | None) -> torch.Tensor:
     """[N, 3] ``colors`` scaled by ``1 + light_gain . light`` (clamped at 0): each Gaussian's
     ``light_gain`` [N, 3] against the direction towards the light in its node's frame, ``light``
     [3] or [N, 3] (unit). Unchanged without either."""
@@ -49,7 +49,7 @@ def activate(params: dict[str, torch.Tensor], camera_center: torch.Tensor | None
     in the same frame (None: the base colour only), lit from the unit direction ``light`` [3] in
     that frame where the set has a ``light_gain`` (None: the colours unscaled)."""
     colors = _colors(params["means"], params["sh0"], params.get("shN"), camera_center, bands)
-    colors = _lit(colors, params.get("light_gain"), light)
+    colors = _scaled_by_light(colors, params.get("light_gain"), light)
     return params["means"], params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]), colors
 
 
@@ -90,7 +90,7 @@ def place_nodes(params: list[dict[str, torch.Tensor]], poses: torch.Tensor, inde
     colors = _colors(local, raw["sh0"], raw.get("shN"), viewer, bands)
     if light is not None and "light_gain" in raw:
         towards = torch.einsum("j,kji->ki", light.float(), R)[index]  # the light in each node's frame
-        colors = _lit(colors, raw["light_gain"], towards)
+        colors = _scaled_by_light(colors, raw["light_gain"], towards)
     means = torch.einsum("nij,nj->ni", R[index], local) + t[index]
     quats = quat_multiply(rotations[index], raw["quats"])
     return means, quats, torch.exp(raw["scales"]), torch.sigmoid(raw["opacities"]), colors
