@@ -162,10 +162,16 @@ def training_settings(twin_dir: Path, asked: dict[str, float | str | None]) -> d
               "pose_rate_final": (TrainConfig.pose_rate_final if asked["pose_rate_final"] is None
                                   else asked["pose_rate_final"]),
               "light_response": resolve_light_response(asked.get("light_response") or "auto", riding=True)}
-    differ = [f"--{k.replace('_', '-')} {made[k]}, not {wanted[k]}" for k in made if made[k] != wanted[k]]
+    differ = [f"--{k.replace('_', '-')} {_as_flag(made[k])}, not {_as_flag(wanted[k])}"
+              for k in made if made[k] != wanted[k]]
     if differ:
         raise RuntimeError(f"{twin_dir} was reconstructed with {'; '.join(differ)}: use another --work")
     return made
+
+
+def _as_flag(value: float | bool) -> str:
+    """A setting as manisplat-reconstruct's flag takes it (on/off for a switch)."""
+    return ("on" if value else "off") if isinstance(value, bool) else str(value)
 
 
 def _prompts(episode: Path, source: Path) -> dict[str, tuple[float, float]]:

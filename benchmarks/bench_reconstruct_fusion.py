@@ -4,15 +4,15 @@ at new poses, where the simulator says what the new demonstrations look like (is
     MANISPLAT_SIMENV=SIMENV/bin/python python -m benchmarks reconstruct_fusion [--counts 1,5,20]
         [--iters 3000] [--demos 5] [--shadow-receivers all|background] [--shadow-casters meshes|gaussians]
         [--rasterize-mode classic|antialiased] [--object-position-rate R] [--lambda-pose W]
-        [--pose-rate-final F] [--supersample N] [--work DIR] [--out JSON]
+        [--pose-rate-final F] [--light-response auto|on|off] [--supersample N] [--work DIR] [--out JSON]
 
 1. **Data** (generated, not committed): ``shared/tools/sim/gen_demos.py --source
    shared/data/sim_pick_place_small --n 20 --seed-start 1 --place-range 0.02 0.02 0.4``: the
    shared scene and camera, the box started anywhere within +-8 cm, +-8 cm, +-45 deg of the
    sample's start and placed within +-2 cm of the mat's centre, turned up to 0.4 rad more.
 2. **Twins**: ``manisplat-reconstruct`` of the first 1, 5 and 20 of them (``--iters``, the same
-   for each; ``--shadow-receivers``, ``--shadow-casters``, ``--rasterize-mode``:
-   manisplat-reconstruct's options of those names), each in its own process: wall time, its
+   for each; ``--shadow-receivers``, ``--shadow-casters``, ``--rasterize-mode``,
+   ``--light-response``: manisplat-reconstruct's options of those names), each in its own process: wall time, its
    peak resident memory, metrics.json (held-out
    PSNR per region, the mean over episodes and episode_0001's; pose errors; the pose error with
    one offset for every episode).
@@ -70,7 +70,8 @@ import numpy as np
 from benchmarks._harness import BENCH_DIR, MissingBenchmarkData, machine_info, shared_dir, simulator_python
 from benchmarks._simulator import SimJob, run_sim_jobs, sim_env, sim_tools
 from manisplat.cli_args import bounded, non_negative, positive
-from manisplat.reconstruct.config import RASTERIZE_MODES, SHADOW_CASTERS, SHADOW_RECEIVERS, TrainConfig
+from manisplat.reconstruct.config import (LIGHT_RESPONSE_CHOICES, RASTERIZE_MODES, SHADOW_CASTERS, SHADOW_RECEIVERS,
+                                          TrainConfig, resolve_light_response)
 
 OWN_OPTIONS = True
 SOURCE = "episode_0001"
@@ -96,6 +97,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="manisplat-reconstruct --lambda-pose of every twin (default the product's)")
     p.add_argument("--pose-rate-final", type=bounded(1e-6, 1.0), default=TrainConfig.pose_rate_final, metavar="F",
                    help="manisplat-reconstruct --pose-rate-final of every twin (default the product's)")
+    p.add_argument("--light-response", choices=LIGHT_RESPONSE_CHOICES, default="auto",
+                   help="manisplat-reconstruct --light-response of every twin (default auto: off, the camera is fixed)")
     p.add_argument("--supersample", type=int, default=1, metavar="N",
                    help="record the demonstrations and draw the states N x N finer, averaged (default 1: as the "
                         "simulator draws them)")
@@ -118,7 +121,8 @@ def main(argv: list[str] | None = None) -> int:
                               "rasterize_mode": args.rasterize_mode,
                               "object_position_rate": f"{args.object_position_rate:g}",
                               "lambda_pose": f"{args.lambda_pose:g}",
-                              "pose_rate_final": f"{args.pose_rate_final:g}"})
+                              "pose_rate_final": f"{args.pose_rate_final:g}",
+                              "light_response": _on_off(resolve_light_response(args.light_response, riding=False))})
         print(f"{count} episodes: {json.dumps({k: twins[count][k] for k in ('wall_s', 'peak_rss_mb', 'psnr')})}",
               flush=True)
     for count in counts:
@@ -143,6 +147,7 @@ def main(argv: list[str] | None = None) -> int:
               "shadow_receivers": args.shadow_receivers, "shadow_casters": args.shadow_casters,
               "rasterize_mode": args.rasterize_mode, "object_position_rate": args.object_position_rate,
               "lambda_pose": args.lambda_pose, "pose_rate_final": args.pose_rate_final,
+              "light_response": args.light_response,
               "supersample": args.supersample, "episodes": [e.name for e in episodes],
               "twins": {str(k): v for k, v in twins.items()},
               "new_poses_common_samples": common, "renderer_check": renderer_check, "registration": registration,
@@ -210,8 +215,8 @@ def _ground_truth_states(episode: Path, out: Path) -> None:
 def _twin(episodes: list[Path], out: Path, iters: int, options: dict[str, str]) -> dict:
     """Reconstruct ``episodes`` into ``out`` in a process of its own, with manisplat-reconstruct's
     ``options`` (``shadow_receivers``, ``shadow_casters``, ``rasterize_mode``,
-    ``object_position_rate``, ``lambda_pose``, ``pose_rate_final``; a twin made before a setting was
-    recorded: the default of then); its time, peak memory, figures."""
+    ``object_position_rate``, ``lambda_pose``, ``pose_rate_final``, ``light_response``; a twin made
+    before a setting was recorded: the default of then); its time, peak memory, figures."""
     if (out / "metrics.json").exists():
         metrics = json.loads((out / "metrics.json").read_text())
         light = metrics.get("light") or {}
@@ -220,7 +225,8 @@ def _twin(episodes: list[Path], out: Path, iters: int, options: dict[str, str]) 
                 "rasterize_mode": metrics.get("rasterize_mode", "classic"),
                 "object_position_rate": f"{metrics.get('object_position_rate', 1.0):g}",
                 "lambda_pose": f"{metrics.get('lambda_pose', 1.0):g}",
-                "pose_rate_final": f"{metrics.get('pose_rate_final', 1.0):g}"}
+                "pose_rate_final": f"{metrics.get('pose_rate_final', 1.0):g}",
+                "light_response": _on_off(metrics.get("light_response", False))}
         if made != options:
             raise MissingBenchmarkData(f"{out} was made with {made}, not {options}: use another --work")
     else:
@@ -243,6 +249,11 @@ def _twin(episodes: list[Path], out: Path, iters: int, options: dict[str, str]) 
             "ms_per_iter": m.get("ms_per_iter"), "psnr": m["psnr"], "psnr_colour_fitted": m.get("psnr_colour_fitted"),
             "psnr_source_episode": first["psnr"], "shadow": m.get("shadow"), "pose": m.get("pose"),
             "pose_anchored": _anchored(m.get("pose_anchored")), "pose_one_offset": m.get("pose_one_offset")}
+
+
+def _on_off(flag: bool) -> str:
+    """manisplat-reconstruct's ``--light-response`` value for a resolved setting."""
+    return "on" if flag else "off"
 
 
 def _anchored(anchored: dict | None) -> dict | None:

@@ -8,7 +8,8 @@ import json
 
 import pytest
 
-from benchmarks import bench_augment_cobot, bench_reconstruct_cobot, bench_reconstruct_viewpoints
+from benchmarks import bench_augment_cobot, bench_reconstruct_cobot, bench_reconstruct_fusion, bench_reconstruct_viewpoints
+from benchmarks._harness import MissingBenchmarkData
 
 #: (benchmark, its loss-weight flag) for every such flag a benchmark passes on to manisplat-reconstruct
 WEIGHT_FLAGS = [(bench_reconstruct_cobot, "--lambda-pose"), (bench_reconstruct_viewpoints, "--lambda-pose"),
@@ -22,7 +23,8 @@ REFUSED = ([(bench, flag, value) for bench, flag in WEIGHT_FLAGS for value in ("
            + [(bench, flag, value) for bench, flag in RATE_FLAGS for value in ("0", "1.5", "nan", "x")]
            + [(bench, "--threads", value) for bench in (bench_reconstruct_viewpoints, bench_reconstruct_cobot)
               for value in ("0", "1.5")]
-           + [(bench, "--light-response", "sometimes") for bench in (bench_reconstruct_cobot, bench_augment_cobot)])
+           + [(bench, "--light-response", "sometimes")
+              for bench in (bench_reconstruct_cobot, bench_augment_cobot, bench_reconstruct_fusion)])
 
 
 @pytest.mark.parametrize(("bench", "flag", "value"), REFUSED,
@@ -68,12 +70,35 @@ def test_a_reused_twin_made_with_the_asked_settings_is_taken_with_them(tmp_path)
     ({"lambda_mask": 0.0, "lambda_pose": 0.01, "lambda_smooth": 1.0, "light_response": True},
      "--pose-rate-final 1.0, not 0.1"),  # constant then
     ({"lambda_mask": 0.0, "lambda_pose": 0.01, "lambda_smooth": 1.0, "pose_rate_final": 0.1},
-     "--light-response False, not True"),  # made before the light response
+     "--light-response off, not on"),  # made before the light response
     ({"lambda_mask": 0.0}, "--lambda-pose 1.0, not 0.01"),  # made before metrics.json recorded the weight
 ])
 def test_a_reused_twin_made_with_other_settings_is_refused_by_name(tmp_path, recorded, named):
     with pytest.raises(RuntimeError, match=named):
         bench_augment_cobot.training_settings(_twin(tmp_path, **recorded), DEFAULTS)
+
+
+#: the fusion benchmark's settings of every twin, as its command line gives them by default
+FUSION_OPTIONS = {"shadow_receivers": "all", "shadow_casters": "gaussians", "rasterize_mode": "classic",
+                  "object_position_rate": "1", "lambda_pose": "1", "pose_rate_final": "1", "light_response": "off"}
+
+
+@pytest.mark.parametrize(("recorded", "asked"), [(True, "off"), (False, "on"), (None, "on")])
+def test_the_fusion_benchmark_refuses_a_reused_twin_of_another_light_response(tmp_path, recorded, asked):
+    twin = _twin(tmp_path, light={"receivers": "all", "casters": "gaussians"}, rasterize_mode="classic",
+                 object_position_rate=1.0, lambda_pose=1.0, pose_rate_final=1.0,
+                 **({} if recorded is None else {"light_response": recorded}))  # None: made before the setting
+    with pytest.raises(MissingBenchmarkData, match=f"'light_response': '{asked}'"):
+        bench_reconstruct_fusion._twin([], twin, 10, {**FUSION_OPTIONS, "light_response": asked})
+
+
+def test_the_fusion_benchmark_takes_a_reused_twin_of_the_asked_light_response(tmp_path):
+    twin = _twin(tmp_path, light={"receivers": "all", "casters": "gaussians"}, rasterize_mode="classic",
+                 object_position_rate=1.0, lambda_pose=1.0, pose_rate_final=1.0, light_response=True,
+                 psnr={"full": 30.0})
+    (twin / "bench_run.json").write_text(json.dumps({"wall_s": 12.0, "peak_rss_kb": 2048}))
+    taken = bench_reconstruct_fusion._twin([], twin, 10, {**FUSION_OPTIONS, "light_response": "on"})
+    assert (taken["wall_s"], taken["peak_rss_mb"], taken["psnr"]) == (12.0, 2, {"full": 30.0})
 
 
 def test_reconstruct_cobot_keeps_its_twins_only_in_an_empty_work_folder(tmp_path, capsys):
