@@ -69,7 +69,7 @@ import numpy as np
 
 from benchmarks._harness import BENCH_DIR, MissingBenchmarkData, machine_info, shared_dir, simulator_python
 from benchmarks._simulator import SimJob, run_sim_jobs, sim_env, sim_tools
-from manisplat.cli_args import bounded, non_negative, positive
+from manisplat.cli_args import bounded, non_negative, positive, shown_value
 from manisplat.reconstruct.config import (LIGHT_RESPONSE_CHOICES, RASTERIZE_MODES, SHADOW_CASTERS, SHADOW_RECEIVERS,
                                           TrainConfig, resolve_light_response)
 
@@ -122,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
                               "object_position_rate": f"{args.object_position_rate:g}",
                               "lambda_pose": f"{args.lambda_pose:g}",
                               "pose_rate_final": f"{args.pose_rate_final:g}",
-                              "light_response": _on_off(resolve_light_response(args.light_response, riding=False))})
+                              "light_response": shown_value(resolve_light_response(args.light_response, riding=False))})
         print(f"{count} episodes: {json.dumps({k: twins[count][k] for k in ('wall_s', 'peak_rss_mb', 'psnr')})}",
               flush=True)
     for count in counts:
@@ -226,7 +226,7 @@ def _twin(episodes: list[Path], out: Path, iters: int, options: dict[str, str]) 
                 "object_position_rate": f"{metrics.get('object_position_rate', 1.0):g}",
                 "lambda_pose": f"{metrics.get('lambda_pose', 1.0):g}",
                 "pose_rate_final": f"{metrics.get('pose_rate_final', 1.0):g}",
-                "light_response": _on_off(metrics.get("light_response", False))}
+                "light_response": shown_value(metrics.get("light_response", False))}
         if made != options:
             raise MissingBenchmarkData(f"{out} was made with {made}, not {options}: use another --work")
     else:
@@ -249,11 +249,6 @@ def _twin(episodes: list[Path], out: Path, iters: int, options: dict[str, str]) 
             "ms_per_iter": m.get("ms_per_iter"), "psnr": m["psnr"], "psnr_colour_fitted": m.get("psnr_colour_fitted"),
             "psnr_source_episode": first["psnr"], "shadow": m.get("shadow"), "pose": m.get("pose"),
             "pose_anchored": _anchored(m.get("pose_anchored")), "pose_one_offset": m.get("pose_one_offset")}
-
-
-def _on_off(flag: bool) -> str:
-    """manisplat-reconstruct's ``--light-response`` value for a resolved setting."""
-    return "on" if flag else "off"
 
 
 def _anchored(anchored: dict | None) -> dict | None:

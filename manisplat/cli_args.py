@@ -1,10 +1,18 @@
-"""argparse types shared by the command-line tools: malformed numbers get a message naming them."""
+"""argparse types shared by the command-line tools: malformed numbers get a message naming them;
+and option values shown as their flags read them."""
 
 from __future__ import annotations
 
 import argparse
 import math
 from typing import Any, Callable
+
+
+def shown_value(value: Any) -> str:
+    """An option's value as its flag reads it: a switch as on / off, numbers as ``%g``."""
+    if isinstance(value, bool):
+        return "on" if value else "off"
+    return f"{value:g}" if isinstance(value, (int, float)) else str(value)
 
 
 def numbers(count: tuple[int, ...]) -> Callable[[str], list[float]]:

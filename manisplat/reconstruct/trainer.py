@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from manisplat.cli_args import shown_value
 from manisplat.compilation import compilation
 from manisplat.reconstruct.chroma import subsample_chroma, subsampled
 from manisplat.reconstruct.config import RASTERIZE_MODES, SHADOW_CASTERS, TrainConfig, resolve_compile, resolve_device
@@ -538,8 +539,8 @@ class Reconstruction:
         for flag, field, before, what in RESUMED_ALIKE:
             trained, asked = state["config"].get(field, before), getattr(self.config, field)
             if trained != asked:
-                raise ValueError(f"the checkpoint was trained with --{flag} {_shown(trained)}, this run asks for "
-                                 f"{_shown(asked)}; resume with the same {what}, or start a new run (--overwrite)")
+                raise ValueError(f"the checkpoint was trained with --{flag} {shown_value(trained)}, this run asks for "
+                                 f"{shown_value(asked)}; resume with the same {what}, or start a new run (--overwrite)")
         dilation = state.get("eps2d", GSPLAT_EPS2D)  # checkpoints before the modes' own dilations: gsplat's in both
         if dilation != self.graph.eps2d:
             raise ValueError(f"the checkpoint's splats were fitted with a {dilation:g} px^2 2D dilation, this version "
@@ -636,13 +637,6 @@ RESUMED_ALIKE = (("rasterize-mode", "rasterize_mode", "classic", "mode"),
                  ("sh-degree", "sh_degree", 2, "degree"),
                  ("fixed-camera-weight", "fixed_camera_weight", 1.0, "weight"),
                  ("light-response", "light_response", False, "setting"))
-
-
-def _shown(value) -> str:
-    """An option's value as a message shows it (on / off, numbers as ``%g``)."""
-    if isinstance(value, bool):
-        return "on" if value else "off"
-    return f"{value:g}" if isinstance(value, (int, float)) else str(value)
 
 
 def _progress_fields(mean_loss: float, held_out_psnr: float, gaussians: int) -> dict[str, str | int]:

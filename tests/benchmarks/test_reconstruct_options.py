@@ -83,19 +83,21 @@ FUSION_OPTIONS = {"shadow_receivers": "all", "shadow_casters": "gaussians", "ras
                   "object_position_rate": "1", "lambda_pose": "1", "pose_rate_final": "1", "light_response": "off"}
 
 
+def _fusion_twin(tmp_path, **recorded):
+    """A twin folder whose metrics.json records :data:`FUSION_OPTIONS`' other settings and ``recorded``."""
+    return _twin(tmp_path, light={"receivers": "all", "casters": "gaussians"}, rasterize_mode="classic",
+                 object_position_rate=1.0, lambda_pose=1.0, pose_rate_final=1.0, **recorded)
+
+
 @pytest.mark.parametrize(("recorded", "asked"), [(True, "off"), (False, "on"), (None, "on")])
 def test_the_fusion_benchmark_refuses_a_reused_twin_of_another_light_response(tmp_path, recorded, asked):
-    twin = _twin(tmp_path, light={"receivers": "all", "casters": "gaussians"}, rasterize_mode="classic",
-                 object_position_rate=1.0, lambda_pose=1.0, pose_rate_final=1.0,
-                 **({} if recorded is None else {"light_response": recorded}))  # None: made before the setting
+    twin = _fusion_twin(tmp_path, **({} if recorded is None else {"light_response": recorded}))  # None: made before it
     with pytest.raises(MissingBenchmarkData, match=f"'light_response': '{asked}'"):
         bench_reconstruct_fusion._twin([], twin, 10, {**FUSION_OPTIONS, "light_response": asked})
 
 
 def test_the_fusion_benchmark_takes_a_reused_twin_of_the_asked_light_response(tmp_path):
-    twin = _twin(tmp_path, light={"receivers": "all", "casters": "gaussians"}, rasterize_mode="classic",
-                 object_position_rate=1.0, lambda_pose=1.0, pose_rate_final=1.0, light_response=True,
-                 psnr={"full": 30.0})
+    twin = _fusion_twin(tmp_path, light_response=True, psnr={"full": 30.0})
     (twin / "bench_run.json").write_text(json.dumps({"wall_s": 12.0, "peak_rss_kb": 2048}))
     taken = bench_reconstruct_fusion._twin([], twin, 10, {**FUSION_OPTIONS, "light_response": "on"})
     assert (taken["wall_s"], taken["peak_rss_mb"], taken["psnr"]) == (12.0, 2, {"full": 30.0})
