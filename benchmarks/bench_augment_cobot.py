@@ -45,6 +45,7 @@ from benchmarks._harness import BENCH_DIR, shared_dir, simulator_python
 from benchmarks._simulator import SimJob, run_sim_jobs, sim_tools
 from benchmarks.bench_reconstruct_cobot import (CAMERAS, add_ground_truth, add_training_flags, reconstruct,
                                                 training_options)
+from manisplat.cli_args import shown_value
 
 if TYPE_CHECKING:  # the planner and the twin load torch and the robot model: not for --help
     from manisplat.augment.bimanual import BimanualTrajectory
@@ -85,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
             raise RuntimeError(f"{args.sample}: import failed")
     prompts = add_ground_truth(episode, source) if not (episode / "gt.npz").exists() else _prompts(episode, source)
     asked = {"lambda_mask": args.lambda_mask, "lambda_pose": args.lambda_pose, "lambda_smooth": args.lambda_smooth,
-             "light_response": args.light_response,
+             "light_response": args.light_response, "fixed_camera_share": args.fixed_camera_share,
              "pose_rate_final": args.pose_rate_final}
     options = training_options(args)
     if not (twin_dir / "twin.json").exists():
@@ -144,34 +145,31 @@ def main(argv: list[str] | None = None) -> int:
 
 def training_settings(twin_dir: Path, asked: dict[str, float | str | None]) -> dict[str, float | bool]:
     """The training settings (``lambda_mask``, ``lambda_pose``, ``lambda_smooth``,
-    ``pose_rate_final``, ``light_response``) the twin in ``twin_dir`` was reconstructed with; a twin
-    of ``--work`` made with other settings than ``asked`` (None: the command's default for three
-    cameras, two of them on the arms) is refused. Twins from before ``metrics.json`` recorded a
-    setting were made with the defaults of then: mask 1, pose 1, no smoothness loss, a constant
-    pose rate, no light response."""
+    ``pose_rate_final``, ``light_response``, ``fixed_camera_share``) the twin in ``twin_dir`` was
+    reconstructed with; a twin of ``--work`` made with other settings than ``asked`` (None: the
+    command's default for three cameras, two of them on the arms) is refused. Twins from before
+    ``metrics.json`` recorded a setting were made with the defaults of then: mask 1, pose 1, no
+    smoothness loss, a constant pose rate, no light response, every camera's frames alike."""
     from manisplat.reconstruct.config import (TrainConfig, resolve_lambda_mask, resolve_lambda_smooth,
                                               resolve_light_response)
 
     metrics = json.loads((twin_dir / "metrics.json").read_text())
     made = {"lambda_mask": metrics.get("lambda_mask", 1.0), "lambda_pose": metrics.get("lambda_pose", 1.0),
             "lambda_smooth": metrics.get("lambda_smooth", 0.0), "pose_rate_final": metrics.get("pose_rate_final", 1.0),
-            "light_response": metrics.get("light_response", False)}
+            "light_response": metrics.get("light_response", False),
+            "fixed_camera_share": metrics.get("fixed_camera_share")}
     wanted = {"lambda_mask": resolve_lambda_mask(asked["lambda_mask"], masks_drawn=True),
               "lambda_pose": TrainConfig.lambda_pose if asked["lambda_pose"] is None else asked["lambda_pose"],
               "lambda_smooth": resolve_lambda_smooth(asked["lambda_smooth"], riding=True),
               "pose_rate_final": (TrainConfig.pose_rate_final if asked["pose_rate_final"] is None
                                   else asked["pose_rate_final"]),
-              "light_response": resolve_light_response(asked.get("light_response") or "auto", riding=True)}
-    differ = [f"--{k.replace('_', '-')} {_as_flag(made[k])}, not {_as_flag(wanted[k])}"
+              "light_response": resolve_light_response(asked.get("light_response") or "auto", riding=True),
+              "fixed_camera_share": asked["fixed_camera_share"]}
+    differ = [f"--{k.replace('_', '-')} {shown_value(made[k])}, not {shown_value(wanted[k])}"
               for k in made if made[k] != wanted[k]]
     if differ:
         raise RuntimeError(f"{twin_dir} was reconstructed with {'; '.join(differ)}: use another --work")
     return made
-
-
-def _as_flag(value: float | bool) -> str:
-    """A setting as manisplat-reconstruct's flag takes it (on/off for a switch)."""
-    return ("on" if value else "off") if isinstance(value, bool) else str(value)
 
 
 def _prompts(episode: Path, source: Path) -> dict[str, tuple[float, float]]:

@@ -14,7 +14,8 @@ errors in the world frame (fitted and start-anchored), wall time and time per it
 ``python -m benchmarks reconstruct_cobot [--samples cobot_dual_small,...] [--settings all,head] [--iters 3000]
 [--shadow-casters meshes|gaussians] [--shadow-receivers all|background|shaded]
 [--rasterize-mode auto|classic|antialiased] [--lambda-mask L]
-[--lambda-pose L] [--lambda-smooth L] [--pose-rate-final F] [--light-response auto|on|off] [--seed S] [--supersample N] [--shadow-map-px N]
+[--lambda-pose L] [--lambda-smooth L] [--pose-rate-final F] [--light-response auto|on|off]
+[--fixed-camera-share S] [--seed S] [--supersample N] [--shadow-map-px N]
 [--threads N] [--data DIR] [--work DIR] [--out FILE]``: ``--settings all --iters 9000`` gives the head camera about as many iterations as
 ``--settings head --iters 3000`` (one camera's image an iteration).
 
@@ -48,7 +49,7 @@ import numpy as np
 
 from benchmarks._harness import BENCH_DIR, shared_dir, simulator_python
 from benchmarks._simulator import run_sim_jobs
-from manisplat.cli_args import bounded, non_negative, positive
+from manisplat.cli_args import bounded, non_negative, open_fraction, positive
 from manisplat.episode.cli import main as episode_main
 from manisplat.episode.groundtruth import write_gt
 from manisplat.reconstruct.cli import main as reconstruct_main
@@ -91,6 +92,9 @@ def main(argv: list[str] | None = None) -> int:
     settings = args.settings.split(",")
     if unknown := sorted(set(settings) - set(SETTINGS)):
         p.error(f"--settings: unknown {', '.join(unknown)} (choose from {', '.join(SETTINGS)})")
+    if args.fixed_camera_share is not None and "head" in settings:
+        p.error("--fixed-camera-share: the head camera alone has no riding camera to share the iterations with; "
+                "give --settings all")
     if args.supersample < 1 or args.supersample % 2 == 0:
         p.error(f"--supersample takes an odd number of at least 1, not {args.supersample}")
     if args.work is not None and args.work.exists() and any(args.work.iterdir()):
@@ -201,7 +205,8 @@ def _light_response(value: str) -> str:
 
 #: manisplat-reconstruct's training settings passed on when given, each validated as the command does
 TRAINING_FLAGS = {"--lambda-mask": non_negative(), "--lambda-pose": non_negative(), "--lambda-smooth": non_negative(),
-                  "--pose-rate-final": bounded(1e-6, 1.0), "--light-response": _light_response}
+                  "--pose-rate-final": bounded(1e-6, 1.0), "--light-response": _light_response,
+                  "--fixed-camera-share": open_fraction()}
 
 
 def add_training_flags(parser: argparse.ArgumentParser) -> None:
@@ -235,7 +240,7 @@ def reconstruct(episode: Path, out: Path, cameras: tuple[str, ...], prompts: dic
             "options": list(options), "light": metrics.get("light"), "rasterize_mode": metrics.get("rasterize_mode"),
             "eps2d": metrics.get("eps2d"), "lambda_mask": metrics.get("lambda_mask"), "lambda_pose": metrics.get("lambda_pose"),
             "lambda_smooth": metrics.get("lambda_smooth"), "pose_rate_final": metrics.get("pose_rate_final"),
-            "light_response": metrics.get("light_response"),
+            "light_response": metrics.get("light_response"), "fixed_camera_share": metrics.get("fixed_camera_share"),
             "prompts": {k: [round(u), round(v)] for k, (u, v) in prompts.items()},
             "per_camera": {name: {"psnr": m["psnr"], "ssim": m["ssim"], "psnr_full_colour": m.get("psnr_full_colour")}
                            for name, m in metrics.get("cameras", {HEAD: metrics}).items()},

@@ -9,7 +9,10 @@ from typing import Any, Callable
 
 
 def shown_value(value: Any) -> str:
-    """An option's value as its flag reads it: a switch as on / off, numbers as ``%g``."""
+    """An option's value as its flag reads it: a switch as on / off, numbers as ``%g``, an option
+    not given (None) as unset."""
+    if value is None:
+        return "unset"
     if isinstance(value, bool):
         return "on" if value else "off"
     return f"{value:g}" if isinstance(value, (int, float)) else str(value)
@@ -62,6 +65,11 @@ def bounded(low: float, high: float = math.inf, kind: type = float) -> Callable[
     """An argparse type: one finite number of ``kind`` (float or int) from ``low`` to ``high``, both included."""
     requirement = f"must be >= {low:g}" if high == math.inf else f"must be in {low:g}..{high:g}"
     return _checked(kind, lambda v: low <= v <= high, requirement)
+
+
+def open_fraction() -> Callable[[str], float]:
+    """An argparse type: a number between 0 and 1, both excluded."""
+    return _checked(float, lambda v: 0.0 < v < 1.0, "must be between 0 and 1, both excluded")
 
 
 def finite_numbers(count: tuple[int, ...]) -> Callable[[str], list[float]]:

@@ -20,7 +20,7 @@ from functools import partial
 from pathlib import Path
 
 from manisplat.align.phases import DEFAULT_TAU
-from manisplat.cli_args import add_version, bounded, finite, non_negative, numbers, positive
+from manisplat.cli_args import add_version, bounded, finite, non_negative, numbers, open_fraction, positive
 from manisplat.exit_codes import ExitCode, exit_status_help
 from manisplat.output_folder import check_output_folder
 from manisplat.reconstruct.config import (COMPILE_CHOICES, COMPILE_MIN_ITERS, GPU_ITERS, LIGHT_RESPONSE_CHOICES,
@@ -125,6 +125,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the factor on the gradients a fixed camera's frames give the objects' Gaussians (default: "
                         "30 when a camera riding on an arm is trained too, whose close-ups would otherwise decide alone "
                         "how the objects look; 1 with fixed cameras only)")
+    p.add_argument("--fixed-camera-share", type=open_fraction(), default=None, metavar="S",
+                   help="the share of the iterations that draw a fixed camera's frame where cameras riding on an arm "
+                        "are trained too (default: every camera's frames alike, a third for the head camera beside "
+                        "two wrist cameras)")
     p.add_argument("--object-position-rate", type=positive(), default=TrainConfig.object_position_rate, metavar="R",
                    help="the objects' Gaussians' position learning rate as a fraction of the scene's (default "
                         f"{TrainConfig.object_position_rate:g}; 0.3 keeps a few-centimetre object's Gaussians nearer "
@@ -371,11 +375,18 @@ def _config(args: argparse.Namespace, device: str, iters: int, compiled: str | N
     fixed_camera_weight = resolve_fixed_camera_weight(args.fixed_camera_weight, riding)
     log.info("a fixed camera's gradients on the objects' Gaussians weighed %g (%s)", fixed_camera_weight,
              _chosen_by("--fixed-camera-weight", args.fixed_camera_weight, riding))
+    if args.fixed_camera_share is not None:
+        from manisplat.reconstruct.data import ReconstructionInputError
+
+        if not riding:
+            raise ReconstructionInputError("--fixed-camera-share: no camera riding on an arm is trained; it shares "
+                                           "the iterations between fixed and riding cameras")
+        log.info("a fixed camera's frames drawn in %g of the iterations (--fixed-camera-share)", args.fixed_camera_share)
     return TrainConfig(
         iters=iters, backend=args.backend, shadows=not args.no_shadows, shadow_receivers=args.shadow_receivers,
         light_response=light_response,
         shadow_casters=args.shadow_casters, rasterize_mode=rasterize_mode, sh_degree=sh_degree,
-        fixed_camera_weight=fixed_camera_weight,
+        fixed_camera_weight=fixed_camera_weight, fixed_camera_share=args.fixed_camera_share,
         object_position_rate=args.object_position_rate, pose_rate_final=args.pose_rate_final,
         densify=not args.no_densify, refine_camera=args.refine_camera, exposure=not args.no_exposure,
         lambda_app=args.lambda_app,

@@ -73,6 +73,11 @@ class TrainConfig:
             below the head camera's alone on the Cobot Magic samples; docs/benchmarks.md). The
             poses, the robot, the background and densification's statistics take the gradients
             as they are.
+        fixed_camera_share: the probability that an iteration draws a fixed camera's frame where
+            cameras riding on an arm are trained too (None: every camera's frames alike, 1/3 for
+            the head camera of a Cobot Magic; the command line's ``--fixed-camera-share``). With
+            the wrist cameras the head camera's full image gets a third of the iterations and
+            stays short of its own alone; a larger share trades the close-ups' iterations for it.
         sh_degree, sh_every: view-dependent colour bands (evaluated in each node's frame), one
             more band switched on every ``sh_every`` iterations.
         refine_camera: also optimise a correction of the camera extrinsic.
@@ -116,6 +121,7 @@ class TrainConfig:
     object_position_rate: float = 1.0
     pose_rate_final: float = 0.1
     fixed_camera_weight: float = 1.0
+    fixed_camera_share: float | None = None
     sh_degree: int = 2
     sh_every: int = 500
     refine_camera: bool = False

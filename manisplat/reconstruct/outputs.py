@@ -222,6 +222,7 @@ def write_evaluation(rec: Reconstruction, alignments: dict, out: Path, *, wall_s
                "lambda_pose": rec.config.lambda_pose, "lambda_smooth": rec.config.lambda_smooth,
                "sh_degree": rec.config.sh_degree, "light_response": rec.config.light_response,
                "fixed_camera_weight": rec.config.fixed_camera_weight,
+               "fixed_camera_share": rec.config.fixed_camera_share,
                "object_position_rate": rec.config.object_position_rate,
                "pose_rate_final": rec.config.pose_rate_final}
     if ms_per_iter is not None:

@@ -298,14 +298,15 @@ class Reconstruction:
         if self.exposure is not None and self.step >= c.iters:
             self.refit_exposure()
 
-    def _train_states(self) -> list[tuple[str | None, int]]:
+    def _train_states(self) -> TrainStates:
         """The (camera, frame) pairs an iteration draws from: every camera's distinct states, else
-        every training frame (None: the reference camera)."""
+        every training frame (None: the reference camera), drawn by ``config.fixed_camera_share``."""
         frames = self.plan.distinct_train_states or self.plan.train_frames
         cameras = [None, *(name for name in self.views if name != self.data.camera_name)]
-        return [(camera, f) for camera in cameras for f in frames]
+        riding = {camera for camera in cameras if self.view(camera).riding}
+        return TrainStates([(camera, f) for camera in cameras for f in frames], riding, self.config.fixed_camera_share)
 
-    def _iteration(self, states: list[tuple[str | None, int]]) -> None:
+    def _iteration(self, states: TrainStates) -> None:
         """One training iteration on a (camera, frame) drawn from ``states`` (the light is searched
         first, eagerly, when its start is reached)."""
         c = self.config
@@ -315,7 +316,7 @@ class Reconstruction:
         degree = min(c.sh_degree, self.step // max(c.sh_every, 1))
         for node in self.graph.nodes():
             node.gaussians.active_degree = min(degree, node.gaussians.sh_degree)
-        camera, frame = self._rng.choice(states)
+        camera, frame = states.draw(self._rng)
         with value_checks(False):
             loss, meta, composed = self.losses(frame, camera)
             self._before_backward(meta)
@@ -629,6 +630,29 @@ class Reconstruction:
         tmp.replace(path)
 
 
+class TrainStates:
+    """The (camera, frame) pairs training draws its iterations from, and how: each alike, or a
+    fixed camera's with probability ``fixed_share`` (spread evenly over the fixed cameras' pairs)
+    and a riding camera's otherwise."""
+
+    def __init__(self, states: list[tuple[str | None, int]], riding: set[str | None], fixed_share: float | None):
+        if fixed_share is not None and not 0.0 < fixed_share < 1.0:
+            raise ValueError(f"a fixed camera's share of the iterations is within (0, 1), not {fixed_share}")
+        self.states = states
+        self.fixed = [s for s in states if s[0] not in riding]
+        self.riding = [s for s in states if s[0] in riding]
+        if fixed_share is not None and not (self.fixed and self.riding):
+            raise ValueError("a fixed camera's share of the iterations needs fixed and riding cameras trained, not "
+                             f"{'riding' if self.riding else 'fixed'} ones only")
+        self.fixed_share = fixed_share
+
+    def draw(self, rng: random.Random) -> tuple[str | None, int]:
+        """One (camera, frame) pair."""
+        if self.fixed_share is None:
+            return rng.choice(self.states)
+        return rng.choice(self.fixed if rng.random() < self.fixed_share else self.riding)
+
+
 #: the options a checkpoint resumes only with: (flag, ``TrainConfig`` field, the value of checkpoints
 #: from before the option, what to keep the same)
 RESUMED_ALIKE = (("rasterize-mode", "rasterize_mode", "classic", "mode"),
@@ -636,6 +660,7 @@ RESUMED_ALIKE = (("rasterize-mode", "rasterize_mode", "classic", "mode"),
                  ("pose-rate-final", "pose_rate_final", 1.0, "rate"),  # before the schedule: constant
                  ("sh-degree", "sh_degree", 2, "degree"),
                  ("fixed-camera-weight", "fixed_camera_weight", 1.0, "weight"),
+                 ("fixed-camera-share", "fixed_camera_share", None, "share"),
                  ("light-response", "light_response", False, "setting"))
 
 

@@ -24,7 +24,9 @@ REFUSED = ([(bench, flag, value) for bench, flag in WEIGHT_FLAGS for value in ("
            + [(bench, "--threads", value) for bench in (bench_reconstruct_viewpoints, bench_reconstruct_cobot)
               for value in ("0", "1.5")]
            + [(bench, "--light-response", "sometimes")
-              for bench in (bench_reconstruct_cobot, bench_augment_cobot, bench_reconstruct_fusion)])
+              for bench in (bench_reconstruct_cobot, bench_augment_cobot, bench_reconstruct_fusion)]
+           + [(bench, "--fixed-camera-share", value) for bench in (bench_reconstruct_cobot, bench_augment_cobot)
+              for value in ("0", "1", "nan", "x")])
 
 
 @pytest.mark.parametrize(("bench", "flag", "value"), REFUSED,
@@ -39,7 +41,7 @@ def test_an_out_of_range_or_unreadable_training_setting_is_refused_at_the_comman
 
 
 DEFAULTS = {"lambda_mask": None, "lambda_pose": None, "lambda_smooth": None, "pose_rate_final": None,
-            "light_response": None}
+            "light_response": None, "fixed_camera_share": None}
 
 
 def _twin(tmp_path, **recorded):
@@ -52,30 +54,42 @@ def test_a_reused_twin_made_with_the_asked_settings_is_taken_with_them(tmp_path)
                  light_response=True)
     assert bench_augment_cobot.training_settings(twin, DEFAULTS) == {"lambda_mask": 0.0, "lambda_pose": 0.01,
                                                                       "lambda_smooth": 1.0, "pose_rate_final": 0.1,
-                                                                      "light_response": True}
+                                                                      "light_response": True,
+                                                                      "fixed_camera_share": None}
     asked = {"lambda_mask": None, "lambda_pose": 1.0, "lambda_smooth": 0.0, "pose_rate_final": 1.0,
-             "light_response": "off"}
-    made = bench_augment_cobot.training_settings(_twin(tmp_path, lambda_mask=0.0, lambda_pose=1.0, lambda_smooth=0.0),
+             "light_response": "off", "fixed_camera_share": 0.5}
+    made = bench_augment_cobot.training_settings(_twin(tmp_path, lambda_mask=0.0, lambda_pose=1.0, lambda_smooth=0.0,
+                                                       fixed_camera_share=0.5),
                                                  asked)  # before the schedule was recorded: constant
     assert (made["lambda_pose"], made["pose_rate_final"]) == (1.0, 1.0)
 
 
 @pytest.mark.parametrize(("recorded", "named"), [
     ({"lambda_mask": 0.0, "lambda_pose": 1.0, "lambda_smooth": 1.0, "pose_rate_final": 0.1, "light_response": True},
-     "--lambda-pose 1.0, not 0.01"),
+     "--lambda-pose 1, not 0.01"),
     ({"lambda_mask": 0.0, "lambda_pose": 0.01, "lambda_smooth": 0.0, "pose_rate_final": 0.1, "light_response": True},
-     "--lambda-smooth 0.0, not 1.0"),
+     "--lambda-smooth 0, not 1"),
     ({"lambda_mask": 0.0, "lambda_pose": 0.01, "lambda_smooth": 1.0, "pose_rate_final": 0.01, "light_response": True},
      "--pose-rate-final 0.01, not 0.1"),
     ({"lambda_mask": 0.0, "lambda_pose": 0.01, "lambda_smooth": 1.0, "light_response": True},
-     "--pose-rate-final 1.0, not 0.1"),  # constant then
+     "--pose-rate-final 1, not 0.1"),  # constant then
     ({"lambda_mask": 0.0, "lambda_pose": 0.01, "lambda_smooth": 1.0, "pose_rate_final": 0.1},
      "--light-response off, not on"),  # made before the light response
-    ({"lambda_mask": 0.0}, "--lambda-pose 1.0, not 0.01"),  # made before metrics.json recorded the weight
+    ({"lambda_mask": 0.0, "lambda_pose": 0.01, "lambda_smooth": 1.0, "pose_rate_final": 0.1, "light_response": True,
+      "fixed_camera_share": 0.5}, "--fixed-camera-share 0.5, not unset"),
+    ({"lambda_mask": 0.0}, "--lambda-pose 1, not 0.01"),  # made before metrics.json recorded the weight
 ])
 def test_a_reused_twin_made_with_other_settings_is_refused_by_name(tmp_path, recorded, named):
     with pytest.raises(RuntimeError, match=named):
         bench_augment_cobot.training_settings(_twin(tmp_path, **recorded), DEFAULTS)
+
+
+def test_the_cobot_benchmark_refuses_a_share_with_the_head_camera_alone(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        bench_reconstruct_cobot.main(["--settings", "all,head", "--fixed-camera-share", "0.5",
+                                      "--out", str(tmp_path / "result.json")])
+    assert exit_.value.code == 2 and "the head camera alone has no riding camera" in capsys.readouterr().err
+    assert not (tmp_path / "result.json").exists()
 
 
 #: the fusion benchmark's settings of every twin, as its command line gives them by default

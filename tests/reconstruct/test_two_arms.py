@@ -25,6 +25,7 @@ from manisplat.reconstruct.data import ReconstructionInputError, load_episode_da
 from manisplat.reconstruct.masks import ObjectPrompt, complete_masks
 from manisplat.reconstruct.pipeline import build
 from manisplat.reconstruct.plan import make_plan
+from manisplat.reconstruct.trainer import TrainStates
 from manisplat.twin import Twin
 from manisplat.view.app import Viewer
 from manisplat.view.content import load_content
@@ -355,3 +356,69 @@ def test_the_reference_camera_must_be_fixed(wrist_episode, tmp_path, capsys):
     assert main([str(wrist_episode), "--out", str(tmp_path / "t"), "--cameras", "cam_left_wrist", "--no-masks",
                  *prompts_of(wrist_episode)]) == 2
     assert "none is fixed" in capsys.readouterr().err
+
+
+def test_a_fixed_cameras_share_of_the_iterations_is_drawn_as_asked():
+    """With a fixed camera's share S, about S of the iterations draw the head camera's frames and
+    the rest the wrist cameras' alike; without one every (camera, frame) pair is drawn alike, as
+    one uniform choice over them all."""
+    import collections
+    import random
+
+    wrists = {"cam_left_wrist", "cam_right_wrist"}
+    every = [(camera, frame) for camera in (None, *sorted(wrists)) for frame in range(0, 40, 3)]
+    counts = {}
+    for share in (None, 0.6):
+        rng = random.Random(3)
+        drawn = [TrainStates(every, wrists, share).draw(rng) for _ in range(6000)]
+        counts[share] = collections.Counter(camera for camera, _ in drawn)
+        assert set(drawn) == set(every)
+    assert counts[None][None] / 6000 == pytest.approx(1 / 3, abs=0.02)
+    assert counts[0.6][None] / 6000 == pytest.approx(0.6, abs=0.02)
+    for wrist in wrists:
+        assert counts[0.6][wrist] / 6000 == pytest.approx(0.2, abs=0.02)
+    uniform, drawn_alike = random.Random(5), random.Random(5)
+    alike = TrainStates(every, wrists, None)
+    assert [alike.draw(drawn_alike) for _ in range(50)] == [uniform.choice(every) for _ in range(50)]
+
+
+def test_a_fixed_cameras_share_needs_both_kinds_of_camera(wrist_episode, tmp_path, capsys):
+    states = [(None, 0), ("cam_left_wrist", 0)]
+    for riding in (set(), {None, "cam_left_wrist"}):
+        with pytest.raises(ValueError, match="needs fixed and riding cameras trained"):
+            TrainStates(states, riding, 0.5)
+    for share in (0.0, 1.0):
+        with pytest.raises(ValueError, match="within"):
+            TrainStates(states, {"cam_left_wrist"}, share)
+    assert main([str(wrist_episode), "--out", str(tmp_path / "t"), "--cameras", "cam_high", "--no-masks", "-q",
+                 "--iters", "1", "--fixed-camera-share", "0.5", *prompts_of(wrist_episode)]) == 2
+    assert "--fixed-camera-share: no camera riding on an arm is trained" in capsys.readouterr().err
+    for value in ("0", "1", "x"):
+        with pytest.raises(SystemExit) as exit_:
+            main([str(wrist_episode), "--out", str(tmp_path / "t"), "--fixed-camera-share", value])
+        assert exit_.value.code == 2 and "argument --fixed-camera-share:" in capsys.readouterr().err
+
+
+def test_a_checkpoint_resumes_only_with_the_share_it_was_trained_with(wrist_episode):
+    """A reconstruction draws its head camera's frames as the fixed ones and its wrist camera's as
+    the riding ones, and resumes only a checkpoint trained with its own share (unset before it)."""
+    data = head_view_with_drawn_masks(wrist_episode)
+    views = {"cam_left_wrist": load_episode_data(wrist_episode, camera="cam_left_wrist", use_masks=False)}
+
+    def reconstruction(share):
+        return build(data, make_plan(data), TrainConfig(iters=1, fixed_camera_share=share, shadows=False),
+                     views=views)[0]
+
+    shared = reconstruction(0.5)
+    states = shared._train_states()  # the head camera's pairs fixed, the wrist camera's riding
+    assert ({c for c, _ in states.fixed}, {c for c, _ in states.riding}, states.fixed_share) == \
+        ({None}, {"cam_left_wrist"}, 0.5)
+    state, unshared = shared.state_dict(), reconstruction(None)
+    with pytest.raises(ValueError, match="trained with --fixed-camera-share 0.5, this run asks for unset"):
+        unshared.load_state_dict(state)
+    del state["config"]["fixed_camera_share"]  # a checkpoint from before the option: every camera alike
+    unshared.config.fixed_camera_share = 0.7
+    with pytest.raises(ValueError, match="trained with --fixed-camera-share unset, this run asks for 0.7"):
+        unshared.load_state_dict(state)
+    unshared.config.fixed_camera_share = None
+    unshared.load_state_dict(state)
