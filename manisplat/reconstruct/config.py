@@ -76,8 +76,10 @@ class TrainConfig:
         fixed_camera_share: the probability that an iteration draws a fixed camera's frame where
             cameras riding on an arm are trained too (None: every camera's frames alike, 1/3 for
             the head camera of a Cobot Magic; the command line's ``--fixed-camera-share``). With
-            the wrist cameras the head camera's full image gets a third of the iterations and
-            stays short of its own alone; a larger share trades the close-ups' iterations for it.
+            the wrist cameras the head camera gets a third of the iterations and its full image
+            stayed under what it draws alone; 0.5 at 10 000 iterations lifts it 0.1-0.4 dB, to
+            35.3 on both Cobot Magic samples, the wrist cameras' 0.2-0.7 dB lower
+            (docs/benchmarks.md).
         sh_degree, sh_every: view-dependent colour bands (evaluated in each node's frame), one
             more band switched on every ``sh_every`` iterations.
         refine_camera: also optimise a correction of the camera extrinsic.
