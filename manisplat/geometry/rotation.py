@@ -150,6 +150,15 @@ def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return outer.reshape(*outer.shape[:-2], 16) @ constant_tensor(HAMILTON_MAP, outer.dtype, outer.device)
 
 
+def quat_left_multiplier(q: torch.Tensor) -> torch.Tensor:
+    """The [..., 4, 4] matrix ``X`` of left multiplication by quaternions ``q`` [..., 4] for row
+    vectors: ``b @ X == quat_multiply(q, b)`` for any ``b`` [N, 4]. One small product, so that
+    turning many quaternions by one (a rigid node's Gaussians) costs one [N, 4] x [4, 4] product
+    instead of :func:`quat_multiply`'s outer products (five times fewer operations)."""
+    hamilton = constant_tensor(HAMILTON_MAP, q.dtype, q.device).reshape(4, 16)
+    return (q @ hamilton).reshape(*q.shape[:-1], 4, 4)
+
+
 def quat_conjugate(q: torch.Tensor) -> torch.Tensor:
     """Conjugate (the inverse, for unit quaternions) of ``q`` [..., 4]."""
     return q * torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=q.dtype, device=q.device)

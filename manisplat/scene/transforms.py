@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from manisplat.geometry import matrix_to_quat, quat_multiply
+from manisplat.geometry import matrix_to_quat, quat_left_multiplier
 
 
 def transform_gaussians(T: torch.Tensor, means: torch.Tensor, quats: torch.Tensor,
@@ -17,4 +17,4 @@ def transform_gaussians(T: torch.Tensor, means: torch.Tensor, quats: torch.Tenso
     """
     R, t = T[:3, :3], T[:3, 3]
     q = matrix_to_quat(R.to(torch.float64)).to(quats.dtype) if q_T is None else q_T.to(quats.dtype)
-    return means @ R.transpose(0, 1).to(means.dtype) + t.to(means.dtype), quat_multiply(q.expand_as(quats), quats)
+    return means @ R.transpose(0, 1).to(means.dtype) + t.to(means.dtype), quats @ quat_left_multiplier(q)

@@ -19,6 +19,7 @@ from manisplat.geometry import (
     orthonormalize,
     quat_canonical,
     quat_conjugate,
+    quat_left_multiplier,
     quat_multiply,
     quat_to_matrix,
     random_rotations,
@@ -130,6 +131,19 @@ def test_quaternion_product_composes_rotations():
     qa, qb = matrix_to_quat(R[:50]), matrix_to_quat(R[50:])
     assert torch.allclose(quat_to_matrix(quat_multiply(qa, qb)), R[:50] @ R[50:], atol=1e-14)
     assert torch.allclose(quat_to_matrix(quat_conjugate(qa)), R[:50].transpose(-1, -2), atol=1e-14)
+
+
+
+def test_one_quaternion_turns_many_as_the_product_does():
+    """``b @ quat_left_multiplier(q)`` is ``q * b`` for every row of ``b``, for one ``q`` and for a
+    batch of them (float64 to the last digits, float32 as its own product)."""
+    R = random_rotations(41, generator=torch.Generator().manual_seed(1))
+    q, b = matrix_to_quat(R[0]), matrix_to_quat(R[1:])
+    assert torch.allclose(b @ quat_left_multiplier(q), quat_multiply(q.expand_as(b), b), atol=1e-15)
+    qs = matrix_to_quat(R[1:5])
+    assert torch.allclose(b[:4, None, :] @ quat_left_multiplier(qs), quat_multiply(qs, b[:4])[:, None, :], atol=1e-15)
+    q32, b32 = q.float(), b.float()
+    assert torch.allclose(b32 @ quat_left_multiplier(q32), quat_multiply(q32.expand_as(b32), b32), atol=1e-6)
 
 
 # ---------------------------------------------------------------- angles
