@@ -3,6 +3,7 @@ per xdist worker."""
 
 import os
 
+import pytest
 from hypothesis import HealthCheck, settings
 
 if os.environ.get("PYTEST_XDIST_WORKER"):
@@ -40,10 +41,18 @@ had run in a worker process, the simulated PiPER on the virtual CAN bus there on
 30 s in a later recorder test."""
 
 
-def pytest_collection_modifyitems(config, items):
-    import pytest
+def _uses_a_module_fixture(item) -> bool:
+    """Whether ``item`` uses a fixture of module scope (a twin trained once for a module's tests)."""
+    return any(defs[-1].scope == "module" for defs in item._fixtureinfo.name2fixturedefs.values())
 
+
+@pytest.hookimpl(tryfirst=True)  # before xdist's own, which names each test by the groups marked so far
+def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.nodeid.startswith(REALTIME):
             item.add_marker(pytest.mark.xdist_group("realtime"))
+        elif _uses_a_module_fixture(item):
+            # xdist builds a module's fixture in every worker that runs one of its tests: the tests
+            # that share one run on one worker, which builds it once
+            item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::")[0]))
     items[:] = [i for i in items if not i.nodeid.startswith(LAST)] + [i for i in items if i.nodeid.startswith(LAST)]
