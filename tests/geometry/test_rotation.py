@@ -133,7 +133,6 @@ def test_quaternion_product_composes_rotations():
     assert torch.allclose(quat_to_matrix(quat_conjugate(qa)), R[:50].transpose(-1, -2), atol=1e-14)
 
 
-
 def test_one_quaternion_turns_many_as_the_product_does():
     """``b @ quat_left_multiplier(q)`` is ``q * b`` for every row of ``b``, for one ``q`` and for a
     batch of them (float64 to the last digits, float32 as its own product)."""
