@@ -94,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
         recon = reconstruct(episode, twin_dir, CAMERAS, prompts, args.iters, options)
         stages["reconstruct_s"] = round(time.perf_counter() - t0, 1)
         print(json.dumps({k: recon[k] for k in ("wall_s", "ms_per_iter", "pose_anchored")}, default=float), flush=True)
-    settings = training_settings(twin_dir, asked)
+    settings = training_settings(twin_dir, asked, args.iters)
     if not (aug / "augment_report.json").exists():
         t0 = time.perf_counter()
         augment_main([str(twin_dir), "--n", str(args.n), "--out", str(aug), "--workers", "2", "--seed", "0", "-q",
@@ -143,15 +143,16 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def training_settings(twin_dir: Path, asked: dict[str, float | str | None]) -> dict[str, float | bool]:
+def training_settings(twin_dir: Path, asked: dict[str, float | str | None], iters: int) -> dict[str, float | bool]:
     """The training settings (``lambda_mask``, ``lambda_pose``, ``lambda_smooth``,
     ``pose_rate_final``, ``light_response``, ``fixed_camera_share``) the twin in ``twin_dir`` was
     reconstructed with; a twin of ``--work`` made with other settings than ``asked`` (None: the
-    command's default for three cameras, two of them on the arms) is refused. Twins from before
-    ``metrics.json`` recorded a setting were made with the defaults of then: mask 1, pose 1, no
-    smoothness loss, a constant pose rate, no light response, every camera's frames alike."""
-    from manisplat.reconstruct.config import (TrainConfig, resolve_lambda_mask, resolve_lambda_smooth,
-                                              resolve_light_response)
+    command's default for three cameras, two of them on the arms, trained ``iters`` iterations) is
+    refused. Twins from before ``metrics.json`` recorded a setting were made with the defaults of
+    then: mask 1, pose 1, no smoothness loss, a constant pose rate, no light response, every
+    camera's frames alike."""
+    from manisplat.reconstruct.config import (SHARE_ALIKE, TrainConfig, resolve_fixed_camera_share, resolve_lambda_mask,
+                                              resolve_lambda_smooth, resolve_light_response)
 
     metrics = json.loads((twin_dir / "metrics.json").read_text())
     made = {"lambda_mask": metrics.get("lambda_mask", 1.0), "lambda_pose": metrics.get("lambda_pose", 1.0),
@@ -164,8 +165,9 @@ def training_settings(twin_dir: Path, asked: dict[str, float | str | None]) -> d
               "pose_rate_final": (TrainConfig.pose_rate_final if asked["pose_rate_final"] is None
                                   else asked["pose_rate_final"]),
               "light_response": resolve_light_response(asked.get("light_response") or "auto", riding=True),
-              "fixed_camera_share": asked["fixed_camera_share"]}
-    differ = [f"--{k.replace('_', '-')} {shown_value(made[k])}, not {shown_value(wanted[k])}"
+              "fixed_camera_share": resolve_fixed_camera_share(asked["fixed_camera_share"] or "auto", riding=True,
+                                                               iters=iters)}
+    differ = [f"--{k.replace('_', '-')} {shown_value(made[k], SHARE_ALIKE)}, not {shown_value(wanted[k], SHARE_ALIKE)}"
               for k in made if made[k] != wanted[k]]
     if differ:
         raise RuntimeError(f"{twin_dir} was reconstructed with {'; '.join(differ)}: use another --work")

@@ -49,11 +49,12 @@ import numpy as np
 
 from benchmarks._harness import BENCH_DIR, shared_dir, simulator_python
 from benchmarks._simulator import run_sim_jobs
-from manisplat.cli_args import bounded, non_negative, open_fraction, positive
+from manisplat.cli_args import bounded, non_negative, open_fraction_or, positive
 from manisplat.episode.cli import main as episode_main
 from manisplat.episode.groundtruth import write_gt
 from manisplat.reconstruct.cli import main as reconstruct_main
-from manisplat.reconstruct.config import LIGHT_RESPONSE_CHOICES, RASTERIZE_CHOICES, SHADOW_CASTERS, SHADOW_RECEIVERS
+from manisplat.reconstruct.config import (FIXED_CAMERA_SHARE_WORDS, LIGHT_RESPONSE_CHOICES, RASTERIZE_CHOICES,
+                                          SHADOW_CASTERS, SHADOW_RECEIVERS)
 
 OWN_OPTIONS = True
 HEAD = "cam_high"
@@ -92,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     settings = args.settings.split(",")
     if unknown := sorted(set(settings) - set(SETTINGS)):
         p.error(f"--settings: unknown {', '.join(unknown)} (choose from {', '.join(SETTINGS)})")
-    if args.fixed_camera_share is not None and "head" in settings:
+    if args.fixed_camera_share not in (None, *FIXED_CAMERA_SHARE_WORDS) and "head" in settings:
         p.error("--fixed-camera-share: the head camera alone has no riding camera to share the iterations with; "
                 "give --settings all")
     if args.supersample < 1 or args.supersample % 2 == 0:
@@ -206,7 +207,7 @@ def _light_response(value: str) -> str:
 #: manisplat-reconstruct's training settings passed on when given, each validated as the command does
 TRAINING_FLAGS = {"--lambda-mask": non_negative(), "--lambda-pose": non_negative(), "--lambda-smooth": non_negative(),
                   "--pose-rate-final": bounded(1e-6, 1.0), "--light-response": _light_response,
-                  "--fixed-camera-share": open_fraction()}
+                  "--fixed-camera-share": open_fraction_or(FIXED_CAMERA_SHARE_WORDS)}
 
 
 def add_training_flags(parser: argparse.ArgumentParser) -> None:

@@ -8,11 +8,11 @@ import math
 from typing import Any, Callable
 
 
-def shown_value(value: Any) -> str:
+def shown_value(value: Any, unset: str = "unset") -> str:
     """An option's value as its flag reads it: a switch as on / off, numbers as ``%g``, an option
-    not given (None) as unset."""
+    not given (None) as ``unset`` (or the word the flag takes for it)."""
     if value is None:
-        return "unset"
+        return unset
     if isinstance(value, bool):
         return "on" if value else "off"
     return f"{value:g}" if isinstance(value, (int, float)) else str(value)
@@ -70,6 +70,22 @@ def bounded(low: float, high: float = math.inf, kind: type = float) -> Callable[
 def open_fraction() -> Callable[[str], float]:
     """An argparse type: a number between 0 and 1, both excluded."""
     return _checked(float, lambda v: 0.0 < v < 1.0, "must be between 0 and 1, both excluded")
+
+
+def open_fraction_or(words: tuple[str, ...]) -> Callable[[str], float | str]:
+    """An argparse type: one of ``words``, or a number between 0 and 1, both excluded."""
+    parse_fraction = open_fraction()
+
+    def parse(text: str) -> float | str:
+        if text in words:
+            return text
+        try:
+            return parse_fraction(text)
+        except argparse.ArgumentTypeError:
+            raise argparse.ArgumentTypeError(f"expected {', '.join(words)} or a number between 0 and 1, both "
+                                             f"excluded; got {text!r}") from None
+
+    return parse
 
 
 def finite_numbers(count: tuple[int, ...]) -> Callable[[str], list[float]]:

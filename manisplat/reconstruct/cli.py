@@ -20,14 +20,17 @@ from functools import partial
 from pathlib import Path
 
 from manisplat.align.phases import DEFAULT_TAU
-from manisplat.cli_args import add_version, bounded, finite, non_negative, numbers, open_fraction, positive
+from manisplat.cli_args import (add_version, bounded, finite, non_negative, numbers, open_fraction_or,
+                                positive)
 from manisplat.exit_codes import ExitCode, exit_status_help
 from manisplat.output_folder import check_output_folder
-from manisplat.reconstruct.config import (COMPILE_CHOICES, COMPILE_MIN_ITERS, GPU_ITERS, LIGHT_RESPONSE_CHOICES,
+from manisplat.reconstruct.config import (AUTO_FIXED_CAMERA_SHARE, COMPILE_CHOICES, COMPILE_MIN_ITERS,
+                                          FIXED_CAMERA_SHARE_WORDS, GPU_ITERS, LIGHT_RESPONSE_CHOICES,
                                           RASTERIZE_CHOICES, SH_DEGREE_CHOICES, SHADOW_CASTERS, SHADOW_RECEIVERS,
                                           DeviceUnavailable, TrainConfig, default_iters, resolve_compile, resolve_device,
-                                          resolve_fixed_camera_weight, resolve_lambda_mask, resolve_lambda_smooth,
-                                          resolve_light_response, resolve_rasterize_mode, resolve_sh_degree)
+                                          resolve_fixed_camera_share, resolve_fixed_camera_weight, resolve_lambda_mask,
+                                          resolve_lambda_smooth, resolve_light_response, resolve_rasterize_mode,
+                                          resolve_sh_degree)
 from manisplat.threads import THREADS_HELP, use_threads
 
 log = logging.getLogger("manisplat.reconstruct")
@@ -125,10 +128,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the factor on the gradients a fixed camera's frames give the objects' Gaussians (default: "
                         "30 when a camera riding on an arm is trained too, whose close-ups would otherwise decide alone "
                         "how the objects look; 1 with fixed cameras only)")
-    p.add_argument("--fixed-camera-share", type=open_fraction(), default=None, metavar="S",
-                   help="the share of the iterations that draw a fixed camera's frame where cameras riding on an arm "
-                        "are trained too (default: every camera's frames alike, a third for the head camera beside "
-                        "two wrist cameras)")
+    p.add_argument("--fixed-camera-share", type=open_fraction_or(FIXED_CAMERA_SHARE_WORDS), default="auto",
+                   metavar="{auto,alike,S}",
+                   help="the share S of the iterations that draw a fixed camera's frame where cameras riding on an "
+                        f"arm are trained too; alike: every camera's frames alike (a third for the head camera beside "
+                        f"two wrist cameras); auto (default): {AUTO_FIXED_CAMERA_SHARE:g} from {GPU_ITERS} iterations "
+                        "on (the CUDA default), alike below")
     p.add_argument("--object-position-rate", type=positive(), default=TrainConfig.object_position_rate, metavar="R",
                    help="the objects' Gaussians' position learning rate as a fraction of the scene's (default "
                         f"{TrainConfig.object_position_rate:g}; 0.3 keeps a few-centimetre object's Gaussians nearer "
@@ -375,18 +380,21 @@ def _config(args: argparse.Namespace, device: str, iters: int, compiled: str | N
     fixed_camera_weight = resolve_fixed_camera_weight(args.fixed_camera_weight, riding)
     log.info("a fixed camera's gradients on the objects' Gaussians weighed %g (%s)", fixed_camera_weight,
              _chosen_by("--fixed-camera-weight", args.fixed_camera_weight, riding))
-    if args.fixed_camera_share is not None:
+    if not riding and args.fixed_camera_share not in FIXED_CAMERA_SHARE_WORDS:
         from manisplat.reconstruct.data import ReconstructionInputError
 
-        if not riding:
-            raise ReconstructionInputError("--fixed-camera-share: no camera riding on an arm is trained; it shares "
-                                           "the iterations between fixed and riding cameras")
-        log.info("a fixed camera's frames drawn in %g of the iterations (--fixed-camera-share)", args.fixed_camera_share)
+        raise ReconstructionInputError("--fixed-camera-share: no camera riding on an arm is trained; it shares "
+                                       "the iterations between fixed and riding cameras")
+    fixed_camera_share = resolve_fixed_camera_share(args.fixed_camera_share, riding, iters)
+    if riding:
+        log.info("%s (--fixed-camera-share %s%s)", "every camera's frames drawn alike" if fixed_camera_share is None
+                 else f"a fixed camera's frames drawn in {fixed_camera_share:g} of the iterations",
+                 args.fixed_camera_share, f", {iters} iterations" if args.fixed_camera_share == "auto" else "")
     return TrainConfig(
         iters=iters, backend=args.backend, shadows=not args.no_shadows, shadow_receivers=args.shadow_receivers,
         light_response=light_response,
         shadow_casters=args.shadow_casters, rasterize_mode=rasterize_mode, sh_degree=sh_degree,
-        fixed_camera_weight=fixed_camera_weight, fixed_camera_share=args.fixed_camera_share,
+        fixed_camera_weight=fixed_camera_weight, fixed_camera_share=fixed_camera_share,
         object_position_rate=args.object_position_rate, pose_rate_final=args.pose_rate_final,
         densify=not args.no_densify, refine_camera=args.refine_camera, exposure=not args.no_exposure,
         lambda_app=args.lambda_app,

@@ -75,11 +75,11 @@ class TrainConfig:
             as they are.
         fixed_camera_share: the probability that an iteration draws a fixed camera's frame where
             cameras riding on an arm are trained too (None: every camera's frames alike, 1/3 for
-            the head camera of a Cobot Magic; the command line's ``--fixed-camera-share``). With
-            the wrist cameras the head camera gets a third of the iterations and its full image
-            stayed under what it draws alone; 0.5 at 10 000 iterations lifts it 0.1-0.4 dB, to
-            35.3 on both Cobot Magic samples, the wrist cameras' 0.2-0.7 dB lower
-            (docs/benchmarks.md).
+            the head camera of a Cobot Magic; the command line's ``--fixed-camera-share``,
+            :func:`resolve_fixed_camera_share`: 0.5 from 10 000 iterations on). With the wrist
+            cameras the head camera gets a third of the iterations and its full image stayed
+            under what it draws alone; 0.5 at 10 000 iterations lifts it 0.1-0.4 dB, to 35.3 on
+            both Cobot Magic samples, the wrist cameras' 0.2-0.7 dB lower (docs/benchmarks.md).
         sh_degree, sh_every: view-dependent colour bands (evaluated in each node's frame), one
             more band switched on every ``sh_every`` iterations.
         refine_camera: also optimise a correction of the camera extrinsic.
@@ -309,6 +309,39 @@ def resolve_fixed_camera_weight(weight: float | None, riding: bool) -> float:
     if weight is not None:
         return weight
     return FIXED_CAMERA_WEIGHTS["riding" if riding else "fixed"]
+
+
+#: manisplat-reconstruct --fixed-camera-share's word for every camera's frames alike (the share None)
+SHARE_ALIKE = "alike"
+#: manisplat-reconstruct --fixed-camera-share's words (besides a share): auto
+#: (:func:`resolve_fixed_camera_share`) and alike
+FIXED_CAMERA_SHARE_WORDS = ("auto", SHARE_ALIKE)
+#: the fixed cameras' share of the iterations that auto gives from :data:`GPU_ITERS` iterations on
+AUTO_FIXED_CAMERA_SHARE = 0.5
+
+
+def resolve_fixed_camera_share(share: str | float, riding: bool, iters: int) -> float | None:
+    """``TrainConfig.fixed_camera_share`` of a run of ``iters`` iterations, ``riding``: a camera
+    riding on an arm trained beside the fixed ones. ``share``: a number in (0, 1) (refused with
+    fixed cameras only: there is nothing to share with), "alike" (None: every camera's frames
+    alike) or "auto": :data:`AUTO_FIXED_CAMERA_SHARE` where a camera rides on an arm and the run
+    has :data:`GPU_ITERS` iterations or more (the CUDA default), alike otherwise. At 10 000
+    iterations the head camera drawn in half of them met the Cobot Magic goals on both samples
+    (its full image 35.3 dB, the handover's object region 28.1; alike 34.9 / 27.6), the wrist
+    cameras 0.2-0.7 dB lower and still over theirs; at 3000 the wrist cameras had no iterations to
+    spare (two of four fell under 30 dB) and the head camera stayed short either way
+    (docs/benchmarks.md, the head camera drawn in half the iterations)."""
+    if share not in FIXED_CAMERA_SHARE_WORDS:
+        if not 0.0 < float(share) < 1.0:
+            raise ValueError(f"a fixed camera's share of the iterations must be between 0 and 1, both excluded; "
+                             f"got {share!r}")
+        if not riding:
+            raise ValueError("a fixed camera's share of the iterations asked for, but no camera riding on an arm is "
+                             "trained; it shares the iterations between fixed and riding cameras")
+        return float(share)
+    if share == "auto" and riding and iters >= GPU_ITERS:
+        return AUTO_FIXED_CAMERA_SHARE
+    return None
 
 
 def resolve_lambda_mask(weight: float | None, masks_drawn: bool) -> float:

@@ -22,7 +22,8 @@ from tqdm import tqdm
 from manisplat.cli_args import shown_value
 from manisplat.compilation import compilation
 from manisplat.reconstruct.chroma import subsample_chroma, subsampled
-from manisplat.reconstruct.config import RASTERIZE_MODES, SHADOW_CASTERS, TrainConfig, resolve_compile, resolve_device
+from manisplat.reconstruct.config import (RASTERIZE_MODES, SHADOW_CASTERS, SHARE_ALIKE, TrainConfig, resolve_compile,
+                                          resolve_device)
 from manisplat.reconstruct.data import EpisodeData
 from manisplat.reconstruct.exposure import FrameExposure
 from manisplat.reconstruct.extrinsic import ExtrinsicCorrection
@@ -540,8 +541,9 @@ class Reconstruction:
         for flag, field, before, what in RESUMED_ALIKE:
             trained, asked = state["config"].get(field, before), getattr(self.config, field)
             if trained != asked:
-                raise ValueError(f"the checkpoint was trained with --{flag} {shown_value(trained)}, this run asks for "
-                                 f"{shown_value(asked)}; resume with the same {what}, or start a new run (--overwrite)")
+                trained, asked = (shown_value(v, unset=SHARE_ALIKE) for v in (trained, asked))  # None: the share
+                raise ValueError(f"the checkpoint was trained with --{flag} {trained}, this run asks for {asked}; "
+                                 f"resume with the same {what}, or start a new run (--overwrite)")
         dilation = state.get("eps2d", GSPLAT_EPS2D)  # checkpoints before the modes' own dilations: gsplat's in both
         if dilation != self.graph.eps2d:
             raise ValueError(f"the checkpoint's splats were fitted with a {dilation:g} px^2 2D dilation, this version "

@@ -52,7 +52,7 @@ def _twin(tmp_path, **recorded):
 def test_a_reused_twin_made_with_the_asked_settings_is_taken_with_them(tmp_path):
     twin = _twin(tmp_path, lambda_mask=0.0, lambda_pose=0.01, lambda_smooth=1.0, pose_rate_final=0.1,
                  light_response=True)
-    assert bench_augment_cobot.training_settings(twin, DEFAULTS) == {"lambda_mask": 0.0, "lambda_pose": 0.01,
+    assert bench_augment_cobot.training_settings(twin, DEFAULTS, 3000) == {"lambda_mask": 0.0, "lambda_pose": 0.01,
                                                                       "lambda_smooth": 1.0, "pose_rate_final": 0.1,
                                                                       "light_response": True,
                                                                       "fixed_camera_share": None}
@@ -60,7 +60,7 @@ def test_a_reused_twin_made_with_the_asked_settings_is_taken_with_them(tmp_path)
              "light_response": "off", "fixed_camera_share": 0.5}
     made = bench_augment_cobot.training_settings(_twin(tmp_path, lambda_mask=0.0, lambda_pose=1.0, lambda_smooth=0.0,
                                                        fixed_camera_share=0.5),
-                                                 asked)  # before the schedule was recorded: constant
+                                                 asked, 3000)  # before the schedule was recorded: constant
     assert (made["lambda_pose"], made["pose_rate_final"]) == (1.0, 1.0)
 
 
@@ -76,12 +76,26 @@ def test_a_reused_twin_made_with_the_asked_settings_is_taken_with_them(tmp_path)
     ({"lambda_mask": 0.0, "lambda_pose": 0.01, "lambda_smooth": 1.0, "pose_rate_final": 0.1},
      "--light-response off, not on"),  # made before the light response
     ({"lambda_mask": 0.0, "lambda_pose": 0.01, "lambda_smooth": 1.0, "pose_rate_final": 0.1, "light_response": True,
-      "fixed_camera_share": 0.5}, "--fixed-camera-share 0.5, not unset"),
+      "fixed_camera_share": 0.5}, "--fixed-camera-share 0.5, not alike"),
     ({"lambda_mask": 0.0}, "--lambda-pose 1, not 0.01"),  # made before metrics.json recorded the weight
 ])
 def test_a_reused_twin_made_with_other_settings_is_refused_by_name(tmp_path, recorded, named):
     with pytest.raises(RuntimeError, match=named):
-        bench_augment_cobot.training_settings(_twin(tmp_path, **recorded), DEFAULTS)
+        bench_augment_cobot.training_settings(_twin(tmp_path, **recorded), DEFAULTS, 3000)
+
+
+def test_a_reused_twin_is_refused_unless_made_with_the_share_the_budget_gives(tmp_path):
+    """The command's default share (auto) is the head camera's half from 10 000 iterations on:
+    a twin made alike is the default's at 3000 iterations, not at 10 000."""
+    made_alike = {"lambda_mask": 0.0, "lambda_pose": 0.01, "lambda_smooth": 1.0, "pose_rate_final": 0.1,
+                  "light_response": True}
+    assert bench_augment_cobot.training_settings(_twin(tmp_path, **made_alike), DEFAULTS, 3000)["fixed_camera_share"] \
+        is None
+    with pytest.raises(RuntimeError, match="--fixed-camera-share alike, not 0.5"):
+        bench_augment_cobot.training_settings(_twin(tmp_path, **made_alike), DEFAULTS, 10_000)
+    asked_alike = {**DEFAULTS, "fixed_camera_share": "alike"}
+    assert bench_augment_cobot.training_settings(_twin(tmp_path, **made_alike), asked_alike, 10_000)[
+        "fixed_camera_share"] is None
 
 
 def test_the_cobot_benchmark_refuses_a_share_with_the_head_camera_alone(tmp_path, capsys):

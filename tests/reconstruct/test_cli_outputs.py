@@ -5,6 +5,7 @@ summary, sheets, plot and progress bar say what they show."""
 from __future__ import annotations
 
 import json
+import logging
 import math
 import shutil
 
@@ -183,6 +184,32 @@ def test_a_fixed_cameras_weight_on_the_objects_resolves_by_the_cameras_trained(t
     with pytest.raises(SystemExit) as exit_:
         main([str(tmp_path), "--out", str(tmp_path / "twin"), "--fixed-camera-weight", "0"])
     assert exit_.value.code == 2 and "argument --fixed-camera-weight:" in capsys.readouterr().err
+
+
+def test_the_head_cameras_share_of_the_iterations_is_half_from_the_cuda_budget_on_with_a_riding_camera(caplog):
+    from manisplat.reconstruct.cli import _config, build_parser
+    from manisplat.reconstruct.config import resolve_fixed_camera_share
+
+    assert [resolve_fixed_camera_share("auto", True, iters) for iters in (3000, 9999, 10_000, 30_000)] == \
+        [None, None, 0.5, 0.5]
+    assert resolve_fixed_camera_share("auto", False, 10_000) is None  # fixed cameras only: nothing to share
+    assert [resolve_fixed_camera_share("alike", True, iters) for iters in (3000, 10_000)] == [None, None]
+    assert [resolve_fixed_camera_share(0.7, True, iters) for iters in (3000, 10_000)] == [0.7, 0.7]
+    with pytest.raises(ValueError, match="no camera riding on an arm is trained"):
+        resolve_fixed_camera_share(0.7, False, 3000)
+    with pytest.raises(ValueError, match="between 0 and 1"):
+        resolve_fixed_camera_share(1.0, True, 3000)
+
+    def share(flags, iters):  # the configuration the command trains a wrist camera's run with
+        args = build_parser().parse_args(["ep", "--out", "twin", *flags])
+        return _config(args, "cpu", iters, None, cameras=3, masks_drawn=True, riding=True).fixed_camera_share
+
+    with caplog.at_level(logging.INFO, logger="manisplat.reconstruct"):
+        assert [share([], 3000), share([], 10_000)] == [None, 0.5]
+    assert "a fixed camera's frames drawn in 0.5 of the iterations (--fixed-camera-share auto, 10000 iterations)" \
+        in caplog.text
+    assert [share(["--fixed-camera-share", "alike"], 10_000), share(["--fixed-camera-share", "0.25"], 3000)] == \
+        [None, 0.25]
 
 
 def test_sheets_are_labelled_with_columns_and_frame(finished):

@@ -414,11 +414,11 @@ def test_a_checkpoint_resumes_only_with_the_share_it_was_trained_with(wrist_epis
     assert ({c for c, _ in states.fixed}, {c for c, _ in states.riding}, states.fixed_share) == \
         ({None}, {"cam_left_wrist"}, 0.5)
     state, unshared = shared.state_dict(), reconstruction(None)
-    with pytest.raises(ValueError, match="trained with --fixed-camera-share 0.5, this run asks for unset"):
+    with pytest.raises(ValueError, match="trained with --fixed-camera-share 0.5, this run asks for alike"):
         unshared.load_state_dict(state)
     del state["config"]["fixed_camera_share"]  # a checkpoint from before the option: every camera alike
     unshared.config.fixed_camera_share = 0.7
-    with pytest.raises(ValueError, match="trained with --fixed-camera-share unset, this run asks for 0.7"):
+    with pytest.raises(ValueError, match="trained with --fixed-camera-share alike, this run asks for 0.7"):
         unshared.load_state_dict(state)
     unshared.config.fixed_camera_share = None
     unshared.load_state_dict(state)
