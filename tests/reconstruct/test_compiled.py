@@ -16,6 +16,10 @@ from manisplat.reconstruct.config import resolve_compile
 from manisplat.reconstruct.loss import frame_loss
 from manisplat.scene.placement import place_scene
 
+# One worker runs this module's tests in order (`--dist loadgroup`): the placement of the same
+# nodes, traced by the first, serves the second (16 s on 2 cores when each worker traced it anew).
+pytestmark = pytest.mark.xdist_group("tests/reconstruct/test_compiled.py")
+
 
 def _node(n: int, g: torch.Generator) -> dict[str, torch.Tensor]:
     return {"means": torch.randn(n, 3, generator=g), "quats": torch.randn(n, 4, generator=g),
@@ -80,7 +84,7 @@ def test_a_new_sh_band_changes_values_not_the_compiled_code():
     alone (the higher coefficients add exact zeros)."""
     from manisplat.splat.sh import spherical_harmonics
 
-    inputs = _placement_inputs((20, 30, 10))
+    inputs = _placement_inputs((20, 30, 10, 6))  # as many nodes as the test above: its compiled code serves
     with compilation("trace"):
         _placed(inputs, 0)
         compiled_graphs = counters["stats"]["unique_graphs"]
