@@ -123,22 +123,24 @@ def render_robot_labels(data: EpisodeData, links: list[str], *, occlusion_margin
         means, quats, scales, _, _ = (x.detach() for x in g.activated())
         parts.append((index[name], label, means, quats, scales))
     groups = torch.cat([torch.full((len(p[2]),), p[1], dtype=torch.int64) for p in parts])
+    # each disc's colour is its link's one-hot channel: a pixel's colour is then each link's alpha
+    # there (what group_ids gives, without a one-hot of every disc made again per frame)
+    link_channels = torch.nn.functional.one_hot(groups, len(parts)).float()
     scales = torch.cat([p[4] for p in parts]) * MASK_DISC_SCALE
     opacities = torch.full((len(groups),), 0.99)
-    colors = torch.zeros(len(groups), 1)
     masks = torch.zeros(data.n_frames, H, W, dtype=torch.uint8)
     for f in tqdm(range(data.n_frames), desc="rendering robot masks", unit="frame", leave=False, disable=not progress):
         placed = [transform_gaussians(data.link_poses[f, i], m, q, data.link_quats[f, i]) for i, _, m, q, _ in parts]
         with torch.no_grad():
-            depth, alpha, meta = rasterization(
-                torch.cat([p[0] for p in placed]), torch.cat([p[1] for p in placed]), scales, opacities, colors,
-                data.view_at(f)[None], data.K[None], W, H, render_mode="ED", group_ids=groups, num_groups=len(parts),
-                eps2d=MASK_EPS2D)
+            image, alpha, _ = rasterization(
+                torch.cat([p[0] for p in placed]), torch.cat([p[1] for p in placed]), scales, opacities, link_channels,
+                data.view_at(f)[None], data.K[None], W, H, render_mode="RGB+ED", eps2d=MASK_EPS2D)
+        link_alphas, depth = image[0, ..., :-1], image[0, ..., -1]
         robot = alpha[0, ..., 0] > 0.5
         if data.depth is not None:  # a measured surface clearly in front of the link occludes it
             measured = data.depth[f]
-            robot &= ~((measured > 0) & (measured < depth[0, ..., 0] - occlusion_margin))
-        label = meta["group_alphas"][0].argmax(-1).to(torch.uint8) + 1
+            robot &= ~((measured > 0) & (measured < depth - occlusion_margin))
+        label = link_alphas.argmax(-1).to(torch.uint8) + 1
         masks[f] = torch.where(robot, label, torch.zeros_like(label))
     return masks, {i + 1: name for i, name in enumerate(sets)}
 
