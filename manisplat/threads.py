@@ -19,9 +19,11 @@ frames/s with the defaults and 58 with one thread. So here:
   (a library user's own thread count, a ``--threads`` above them), spinning workers would take
   turns with the other jobs, so they sleep at once there;
 - a job takes the cores that are free when it starts: the cores this process may run on minus
-  the whole cores other work keeps busy (measured over 0.2 s), at least one (``--threads N`` on
-  every heavy command sets it); torch's pool and OpenCV's follow it, and the log says how many
-  and why.
+  the whole cores other work keeps busy (measured over 0.2 s), at least one; ``--threads N`` on
+  every heavy command sets it, and so does ``OMP_NUM_THREADS`` where it is set (by the user, or by
+  a scheduler to what it gave the job: Ray sets it to a task's ``num_cpus``, so a reconstruction
+  that took the cores free when it started would share them with the tasks started after it);
+  torch's pool and OpenCV's follow it, and the log says how many and why.
 """
 
 from __future__ import annotations
@@ -101,20 +103,40 @@ def _busy_cores(sample_s: float) -> float | None:
     return 0.0 if spent <= 0 else n * (spent - (idle1 - idle0)) / spent
 
 
+def environment_threads() -> int | None:
+    """The threads ``OMP_NUM_THREADS`` asks for (its first level's: ``4,2`` is 4), or None where
+    it is unset or no whole number above 0 (a warning names it; OpenMP ignores such a value too).
+    A scheduler sets it to what it gave the job (Ray to a task's ``num_cpus``, many SLURM setups
+    to ``--cpus-per-task``), a user to what they chose."""
+    text = os.environ.get("OMP_NUM_THREADS", "").strip()
+    if not text:
+        return None
+    first = text.split(",")[0].strip()
+    if not first.isdigit() or int(first) < 1:
+        log.warning("OMP_NUM_THREADS=%r is no thread count (a whole number above 0): ignored", text)
+        return None
+    return int(first)
+
+
 def use_threads(requested: int | None = None) -> int:
-    """Set this process's CPU threads (torch's pool, OpenCV's) to ``requested`` or, when None, to
-    the free cores; log the choice and return it."""
+    """Set this process's CPU threads (torch's pool, OpenCV's) to ``requested``, else to what
+    ``OMP_NUM_THREADS`` asks for (:func:`environment_threads`), else to the free cores; log the
+    choice and return it."""
     if requested is not None and requested < 1:
         raise ValueError(f"threads must be at least 1, got {requested}")
     free, cores, busy = free_cores()
-    threads = requested if requested is not None else free
+    if requested is not None:
+        threads, why = requested, "--threads"
+    elif (asked := environment_threads()) is not None:
+        threads, why = asked, "OMP_NUM_THREADS"
+    else:
+        threads, why = free, f"the free cores: {cores}, {busy:.1f} busy with other work"
     spin_briefly_when_idle(threads, free, busy)
     import cv2
     import torch
 
     torch.set_num_threads(threads)
     cv2.setNumThreads(threads)
-    why = "--threads" if requested is not None else f"the free cores: {cores}, {busy:.1f} busy with other work"
     log.info("using %d CPU thread%s (%s; OpenMP wait policy %s)", threads, "" if threads == 1 else "s", why,
              _wait_policy())
     return threads

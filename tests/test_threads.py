@@ -13,7 +13,8 @@ import pytest
 from manisplat import threads
 
 
-WAIT_VARIABLES = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")
+#: what each new process starts without unless a test sets it (xdist's workers set OMP_NUM_THREADS)
+WAIT_VARIABLES = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "OMP_NUM_THREADS")
 
 
 def _wait_after(script: str, **chosen: str) -> list[str]:
@@ -91,6 +92,7 @@ def test_use_threads_sets_torch_and_opencv_and_says_why(monkeypatch, caplog, res
     import cv2
     import torch
 
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     caplog.set_level(logging.INFO, logger="manisplat.threads")
     assert threads.use_threads(3) == 3
     assert torch.get_num_threads() == 3 and cv2.getNumThreads() == 3
@@ -100,6 +102,26 @@ def test_use_threads_sets_torch_and_opencv_and_says_why(monkeypatch, caplog, res
     assert "using 1 CPU thread (the free cores: 2, 1.4 busy with other work" in caplog.text
     with pytest.raises(ValueError, match="at least 1"):
         threads.use_threads(0)
+
+
+def test_omp_num_threads_is_kept_as_a_schedulers_or_users_choice(monkeypatch, caplog, restore_threads):
+    """Ray sets OMP_NUM_THREADS to a task's num_cpus: a job started while the node's other tasks are
+    still starting must not take their cores. --threads overrides it; a value OpenMP would not take
+    is named and ignored."""
+    import torch
+
+    caplog.set_level(logging.INFO, logger="manisplat.threads")
+    monkeypatch.setattr(threads, "free_cores", lambda: (2, 2, 0.0))
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert threads.use_threads() == 1 and torch.get_num_threads() == 1
+    assert "using 1 CPU thread (OMP_NUM_THREADS" in caplog.text
+    monkeypatch.setenv("OMP_NUM_THREADS", "3,1")  # nested levels: the first is this process's
+    assert threads.use_threads() == 3 and threads.use_threads(2) == 2
+    for value in ("0", "x", "-2"):
+        monkeypatch.setenv("OMP_NUM_THREADS", value)
+        caplog.clear()
+        assert threads.use_threads() == 2
+        assert f"OMP_NUM_THREADS={value!r} is no thread count" in caplog.text and "the free cores: 2" in caplog.text
 
 
 def test_reconstruct_says_how_many_threads_it_uses(tmp_path, caplog, restore_threads):
