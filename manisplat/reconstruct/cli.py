@@ -131,7 +131,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fixed-camera-share", type=open_fraction_or(FIXED_CAMERA_SHARE_WORDS), default="auto",
                    metavar="{auto,alike,S}",
                    help="the share S of the iterations that draw a fixed camera's frame where cameras riding on an "
-                        f"arm are trained too; alike: every camera's frames alike (a third for the head camera beside "
+                        "arm are trained too; alike: every camera's frames alike (a third for the head camera beside "
                         f"two wrist cameras); auto (default): {AUTO_FIXED_CAMERA_SHARE:g} from {GPU_ITERS} iterations "
                         "on (the CUDA default), alike below")
     p.add_argument("--object-position-rate", type=positive(), default=TrainConfig.object_position_rate, metavar="R",
