@@ -329,7 +329,7 @@ def resolve_fixed_camera_share(share: str | float, riding: bool, iters: int) -> 
     iterations the head camera drawn in half of them met the Cobot Magic goals on both samples
     (its full image 35.3 dB, the handover's object region 28.1; alike 34.9 / 27.6), the wrist
     cameras 0.2-0.7 dB lower and still over theirs; at 3000 the wrist cameras had no iterations to
-    spare (two of four fell under 30 dB) and the head camera stayed short either way
+    spare (two of four under 30 dB, one alike) and the head camera stayed short either way
     (docs/benchmarks.md, the head camera drawn in half the iterations)."""
     if share not in FIXED_CAMERA_SHARE_WORDS:
         if not 0.0 < float(share) < 1.0:
