@@ -380,12 +380,12 @@ def _config(args: argparse.Namespace, device: str, iters: int, compiled: str | N
     fixed_camera_weight = resolve_fixed_camera_weight(args.fixed_camera_weight, riding)
     log.info("a fixed camera's gradients on the objects' Gaussians weighed %g (%s)", fixed_camera_weight,
              _chosen_by("--fixed-camera-weight", args.fixed_camera_weight, riding))
-    if not riding and args.fixed_camera_share not in FIXED_CAMERA_SHARE_WORDS:
+    try:
+        fixed_camera_share = resolve_fixed_camera_share(args.fixed_camera_share, riding, iters)
+    except ValueError as exc:
         from manisplat.reconstruct.data import ReconstructionInputError
 
-        raise ReconstructionInputError("--fixed-camera-share: no camera riding on an arm is trained; it shares "
-                                       "the iterations between fixed and riding cameras")
-    fixed_camera_share = resolve_fixed_camera_share(args.fixed_camera_share, riding, iters)
+        raise ReconstructionInputError(f"--fixed-camera-share: {exc}") from None
     if riding:
         log.info("%s (--fixed-camera-share %s%s)", "every camera's frames drawn alike" if fixed_camera_share is None
                  else f"a fixed camera's frames drawn in {fixed_camera_share:g} of the iterations",

@@ -336,8 +336,8 @@ def resolve_fixed_camera_share(share: str | float, riding: bool, iters: int) -> 
             raise ValueError(f"a fixed camera's share of the iterations must be between 0 and 1, both excluded; "
                              f"got {share!r}")
         if not riding:
-            raise ValueError("a fixed camera's share of the iterations asked for, but no camera riding on an arm is "
-                             "trained; it shares the iterations between fixed and riding cameras")
+            raise ValueError("no camera riding on an arm is trained; it shares the iterations between fixed and "
+                             "riding cameras")
         return float(share)
     if share == "auto" and riding and iters >= GPU_ITERS:
         return AUTO_FIXED_CAMERA_SHARE
